@@ -1,0 +1,1 @@
+"""The composition root: the ``magic`` command, configuration loading, launching, evaluation."""

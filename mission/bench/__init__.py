@@ -1,0 +1,71 @@
+"""``magic bench SUITE``: benchmark suites and their runner (DESIGN section 6).
+
+A suite is a module ``mission.bench.<suite>`` exposing::
+
+    def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]
+
+It returns metrics by the names its issue gives; ``--quick`` finishes in under 60 s on the
+2-core machine and still measures every metric. Ratios are measured against a baseline run in
+the same process, and timings are medians of repeats. Suites never print: they report
+progress through ``progress`` and return numbers; this runner prints the table and writes
+``{"suite": ..., "quick": bool, "metrics": {name: number}}`` with ``--json``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Protocol
+
+__all__ = ["SUITES", "BenchError", "median_time_s", "run_suite", "write_json"]
+
+#: Suite name -> module that implements it. A suite appears here when its issue lands.
+SUITES: dict[str, str] = {
+    "link": "mission.bench.link",
+}
+
+
+class BenchError(RuntimeError):
+    """A suite is unknown or failed to produce its metrics."""
+
+
+class Suite(Protocol):
+    def run(self, *, quick: bool, progress: Callable[[str], None]) -> dict[str, float]: ...
+
+
+def median_time_s(fn: Callable[[], object], *, repeats: int, warmup: int = 1) -> float:
+    """Median wall time of ``fn()`` over ``repeats`` runs after ``warmup`` untimed runs."""
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        samples.append(time.perf_counter() - t0)
+    return statistics.median(samples)
+
+
+def run_suite(
+    name: str, *, quick: bool, progress: Callable[[str], None] = lambda _msg: None
+) -> dict[str, float]:
+    """Import and run suite ``name``; returns its metrics (all finite numbers)."""
+    if name not in SUITES:
+        known = ", ".join(sorted(SUITES))
+        raise BenchError(f"unknown benchmark suite {name!r}; known suites: {known}")
+    module: Suite = importlib.import_module(SUITES[name])  # type: ignore[assignment]
+    metrics = module.run(quick=quick, progress=progress)
+    for key, value in metrics.items():
+        if not isinstance(value, int | float) or not math.isfinite(value):
+            raise BenchError(f"suite {name!r} metric {key!r} is not a finite number: {value!r}")
+    return dict(metrics)
+
+
+def write_json(path: str | Path, *, suite: str, quick: bool, metrics: dict[str, float]) -> None:
+    """Write the benchmark result file in the format DESIGN section 6 fixes."""
+    doc = {"suite": suite, "quick": quick, "metrics": metrics}
+    Path(path).write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n", encoding="utf-8")

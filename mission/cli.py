@@ -1,0 +1,87 @@
+"""The ``magic`` command: one entry point for every process of the system.
+
+Subcommands that are not built yet say so on stderr and exit with status 2; none prints
+made-up output.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+__all__ = ["main"]
+
+#: Subcommands that are specified but not built yet, and the issue that brings each.
+_NOT_BUILT = {
+    "run": "the whole mission on the embedded default (robot autonomy, issue 4)",
+    "sim": "the PyBullet simulator server (simulated world, issue 3)",
+    "robot": "a robot node (robot autonomy, issue 4)",
+    "gcs": "the ground-control station node (loop closing and the GCS node, issue 7)",
+    "console": "the operator console (operator interfaces)",
+    "replay": "replay of CARMEN laser logs through the GCS (loop closing, issue 7)",
+    "report": "mission reports against ground truth (metrics)",
+}
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="magic",
+        description="magic-recon: supervise a team of autonomous ground robots (MAGIC 2010).",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    bench = sub.add_parser("bench", help="run a benchmark suite and print its metrics")
+    bench.add_argument("suite", help="suite name, e.g. 'link'")
+    bench.add_argument("--quick", action="store_true", help="short run (under 60 s)")
+    bench.add_argument("--json", metavar="FILE", help="also write the metrics as JSON to FILE")
+
+    for name, what in _NOT_BUILT.items():
+        p = sub.add_parser(name, help=f"{what} [not built yet]", add_help=True)
+        p.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    return parser
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from mission.bench import BenchError, run_suite, write_json
+
+    err = Console(stderr=True)
+    out = Console()
+    try:
+        with err.status(f"bench {args.suite}...") as status:
+
+            def progress(msg: str) -> None:
+                status.update(f"bench {args.suite}: {msg}")
+                err.log(msg)
+
+            metrics = run_suite(args.suite, quick=args.quick, progress=progress)
+    except BenchError as exc:
+        err.print(f"magic bench: {exc}", style="red", markup=False, highlight=False)
+        return 2
+    table = Table(title=f"bench {args.suite}" + (" (quick)" if args.quick else ""))
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for key, value in metrics.items():
+        table.add_row(key, f"{value:.6g}")
+    out.print(table)
+    if args.json:
+        write_json(args.json, suite=args.suite, quick=args.quick, metrics=metrics)
+        err.print(f"wrote {args.json}", markup=False, highlight=False)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "bench":
+        return _cmd_bench(args)
+    what = _NOT_BUILT[args.command]
+    print(f"magic {args.command}: not built yet; it arrives with {what}.", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

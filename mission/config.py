@@ -1,0 +1,104 @@
+"""Typed configuration from YAML files (DESIGN section 3).
+
+Every configurable class has an ``XConfig`` beside it: a ``msgspec.Struct`` declared with
+``frozen=True, forbid_unknown_fields=True, kw_only=True`` whose fields mirror the object tree.
+This module turns YAML into those structs and reports problems by file and dotted key path::
+
+    configs/gcs.yaml: gcs.loops.matcher.levels: expected int, got str
+
+Configuration is decoded strictly: no str-to-number coercion, unknown keys are errors.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Any, TypeVar
+
+import msgspec
+import yaml
+
+__all__ = ["ConfigError", "decode_config", "load_config", "load_config_text"]
+
+T = TypeVar("T")
+
+#: Where the shipped configuration files live (the repository's ``configs/`` folder).
+CONFIGS_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+_PATH_RE = re.compile(r" - at `\$(?P<path>[^`]*)`$")
+_EXPECTED_RE = re.compile(r"^Expected `(?P<want>[^`]+)`, got `(?P<got>[^`]+)`")
+_UNKNOWN_RE = re.compile(r"^Object contains unknown field `(?P<name>[^`]+)`")
+_MISSING_RE = re.compile(r"^Object missing required field `(?P<name>[^`]+)`")
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is invalid; the message names the file and the dotted key."""
+
+    def __init__(self, source: str, key: str, problem: str) -> None:
+        self.source = source
+        self.key = key
+        self.problem = problem
+        where = f"{source}: {key}: " if key else f"{source}: "
+        super().__init__(where + problem)
+
+
+def _dotted(path: str, prefix: str) -> str:
+    """``.loops.names[1].rate`` -> ``gcs.loops.names[1].rate`` (with ``prefix='gcs'``)."""
+    path = path.lstrip(".")
+    if prefix:
+        path = f"{prefix}.{path}" if path and not path.startswith("[") else prefix + path
+    return path
+
+
+def _translate(err: msgspec.ValidationError, source: str, prefix: str) -> ConfigError:
+    text = str(err)
+    path = ""
+    if m := _PATH_RE.search(text):
+        path = m.group("path")
+        text = text[: m.start()]
+    if m := _EXPECTED_RE.match(text):
+        problem = f"expected {m.group('want')}, got {m.group('got')}"
+        return ConfigError(source, _dotted(path, prefix), problem)
+    if m := _UNKNOWN_RE.match(text):
+        key = _dotted(f"{path}.{m.group('name')}", prefix)
+        return ConfigError(source, key, "unknown key")
+    if m := _MISSING_RE.match(text):
+        key = _dotted(f"{path}.{m.group('name')}", prefix)
+        return ConfigError(source, key, "required key is missing")
+    return ConfigError(source, _dotted(path, prefix), text[:1].lower() + text[1:])
+
+
+def decode_config(data: Any, config_type: type[T], *, source: str, prefix: str = "") -> T:
+    """Convert already-parsed data (dicts, lists, scalars) into ``config_type``.
+
+    ``source`` names where the data came from (a file path, ``--set``); ``prefix`` is the dotted
+    key of ``data`` inside a larger file, used in error messages.
+    """
+    if data is None:
+        data = {}
+    try:
+        return msgspec.convert(data, config_type, strict=True)
+    except msgspec.ValidationError as err:
+        raise _translate(err, source, prefix) from None
+
+
+def load_config_text(text: str, config_type: type[T], *, source: str = "<string>") -> T:
+    """Parse YAML text and decode it into ``config_type``."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err)
+        raise ConfigError(source, "", f"invalid YAML: {where}{problem}") from None
+    return decode_config(data, config_type, source=source)
+
+
+def load_config(path: str | Path, config_type: type[T]) -> T:
+    """Read a YAML file into ``config_type``; errors name the file and the dotted key."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(str(path), "", f"cannot read: {err.strerror or err}") from None
+    return load_config_text(text, config_type, source=str(path))
