@@ -1,0 +1,1 @@
+"""Ground-control station: global estimation, loop closing, maps, tasks, operator console."""

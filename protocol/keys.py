@@ -1,0 +1,112 @@
+"""Zenoh key expressions: the only place they are built (DESIGN section 4).
+
+::
+
+    magic/<mission>/robot/<id>/up/<stream>      robot -> GCS radio traffic (metered)
+    magic/<mission>/robot/<id>/down/<stream>    GCS -> robot radio traffic (metered)
+    magic/<mission>/gcs/<topic>                 GCS command queryable, state for consoles/views
+    magic/<mission>/sim/clock                   mission clock
+    magic/<mission>/sim/robot/<id>/sensors      sensor frames for a remote robot node
+    magic/<mission>/sim/robot/<id>/commands     commands from a remote robot node
+    magic/<mission>/sim/radio/<id>              radio grants for robot <id>
+    magic/<mission>/sim/truth/<topic>           ground truth, for evaluation only
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from protocol.messages import STREAMS, Direction
+
+__all__ = [
+    "RadioKey",
+    "gcs",
+    "parse_radio_key",
+    "radio",
+    "radio_wildcard",
+    "sim_clock",
+    "sim_commands",
+    "sim_radio",
+    "sim_sensors",
+    "sim_truth",
+]
+
+_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
+ROOT = "magic"
+
+
+def _chunk(value: str, what: str) -> str:
+    if not _CHUNK.match(value):
+        raise ValueError(f"{what} {value!r}: use letters, digits, '_', '-' and '.' only")
+    return value
+
+
+def _robot(robot_id: int) -> str:
+    if not isinstance(robot_id, int) or isinstance(robot_id, bool) or robot_id < 0:
+        raise ValueError(f"robot id {robot_id!r}: expected a non-negative int")
+    return str(robot_id)
+
+
+def radio(mission: str, robot_id: int, direction: Direction, stream: str) -> str:
+    """Key of one radio stream of one robot."""
+    if stream not in STREAMS[direction]:
+        raise ValueError(f"no {direction.value}link stream named {stream!r}")
+    return f"{ROOT}/{_chunk(mission, 'mission')}/robot/{_robot(robot_id)}/{direction.value}/{stream}"
+
+
+def radio_wildcard(mission: str, direction: Direction, robot_id: int | None = None) -> str:
+    """All streams of ``direction`` for one robot, or for every robot when ``robot_id`` is None."""
+    who = "*" if robot_id is None else _robot(robot_id)
+    return f"{ROOT}/{_chunk(mission, 'mission')}/robot/{who}/{direction.value}/*"
+
+
+@dataclass(frozen=True)
+class RadioKey:
+    mission: str
+    robot_id: int
+    direction: Direction
+    stream: str
+
+
+def parse_radio_key(key: str) -> RadioKey:
+    """Inverse of :func:`radio`; ``ValueError`` naming the key if it is not a radio key."""
+    parts = key.split("/")
+    if (
+        len(parts) != 6
+        or parts[0] != ROOT
+        or parts[2] != "robot"
+        or not parts[3].isdigit()
+        or parts[4] not in ("up", "down")
+    ):
+        raise ValueError(f"not a radio key: {key!r}")
+    direction = Direction(parts[4])
+    if parts[5] not in STREAMS[direction]:
+        raise ValueError(f"radio key {key!r}: no {direction.value}link stream {parts[5]!r}")
+    return RadioKey(parts[1], int(parts[3]), direction, parts[5])
+
+
+def gcs(mission: str, topic: str) -> str:
+    """GCS keys: ``command`` (queryable), ``state/<name>`` for consoles and views."""
+    topic_parts = [_chunk(p, "gcs topic") for p in topic.split("/")]
+    return f"{ROOT}/{_chunk(mission, 'mission')}/gcs/" + "/".join(topic_parts)
+
+
+def sim_clock(mission: str) -> str:
+    return f"{ROOT}/{_chunk(mission, 'mission')}/sim/clock"
+
+
+def sim_sensors(mission: str, robot_id: int) -> str:
+    return f"{ROOT}/{_chunk(mission, 'mission')}/sim/robot/{_robot(robot_id)}/sensors"
+
+
+def sim_commands(mission: str, robot_id: int) -> str:
+    return f"{ROOT}/{_chunk(mission, 'mission')}/sim/robot/{_robot(robot_id)}/commands"
+
+
+def sim_radio(mission: str, robot_id: int) -> str:
+    return f"{ROOT}/{_chunk(mission, 'mission')}/sim/radio/{_robot(robot_id)}"
+
+
+def sim_truth(mission: str, topic: str) -> str:
+    return f"{ROOT}/{_chunk(mission, 'mission')}/sim/truth/{_chunk(topic, 'truth topic')}"
