@@ -1,0 +1,369 @@
+"""g2o 2D pose-graph files: import, export, lossless merging of repeated edges.
+
+Format (one record a line; ``#`` starts a comment)::
+
+    VERTEX_SE2 id x y theta
+    EDGE_SE2 i j dx dy dtheta I11 I12 I13 I22 I23 I33
+    FIX id
+
+The information matrix is given in g2o's upper-triangular order (xx xy xth yy yth thth); the
+tangent order ``(x, y, theta)`` is GTSAM's ``Pose2`` order. A malformed line raises
+:class:`G2oError` naming the line number and what is wrong.
+
+Repeated edges between the same two vertices are merged into one losslessly (paper 4.7:
+Gaussian edges between the same nodes add their information): the merged measurement is the
+information-weighted mean on the manifold, its information the sum. The constant part of the
+chi2 that the merge removes (the disagreement of the repeated measurements among themselves)
+is kept in ``chi2_offset`` so that chi2 values stay comparable with the original graph.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from gcs.graph import se2
+
+__all__ = [
+    "G2oError",
+    "G2oGraph",
+    "chained_odometry",
+    "merge_repeated_edges",
+    "parse_g2o",
+    "read_g2o",
+    "to_gtsam",
+    "write_g2o",
+]
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+class G2oError(ValueError):
+    """A g2o file or graph is malformed; the message names the line (or edge) at fault."""
+
+
+@dataclass(frozen=True)
+class G2oGraph:
+    """A 2D pose graph as arrays.
+
+    ``vertex_ids`` (N,) with ``vertex_poses`` (N, 3) in the file's frame; ``edge_ij`` (M, 2)
+    vertex ids; ``edge_z`` (M, 3) measured ``i_from_j`` poses; ``edge_info`` (M, 3, 3)
+    information matrices; ``fixed`` ids from ``FIX`` lines; ``edge_lines`` (M,) source line
+    numbers (0 when not read from a file); ``chi2_offset`` the constant removed by merging.
+    """
+
+    vertex_ids: IntArray
+    vertex_poses: FloatArray
+    edge_ij: IntArray
+    edge_z: FloatArray
+    edge_info: FloatArray
+    fixed: tuple[int, ...] = ()
+    edge_lines: IntArray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    chi2_offset: float = 0.0
+
+    @property
+    def node_ids(self) -> IntArray:
+        """Sorted ids of every vertex declared or referenced by an edge."""
+        return np.union1d(self.vertex_ids, self.edge_ij.ravel()).astype(np.int64)
+
+    def chi2(self, poses_by_id: dict[int, FloatArray] | gtsam.Values) -> float:
+        """``sum e' Omega e`` (GTSAM ``BetweenFactorPose2`` residuals) plus ``chi2_offset``."""
+        graph, _ = to_gtsam(self, prior_sigma=None)
+        values = poses_by_id if isinstance(poses_by_id, gtsam.Values) else _values(poses_by_id)
+        return 2.0 * graph.error(values) + self.chi2_offset
+
+
+def _values(poses_by_id: dict[int, FloatArray]) -> gtsam.Values:
+    values = gtsam.Values()
+    for key, p in poses_by_id.items():
+        values.insert(int(key), se2.pose2(p))
+    return values
+
+
+_EDGE_NUMBERS = 11
+
+
+def _floats(tokens: list[str], lineno: int, tag: str) -> list[float]:
+    try:
+        out = [float(t) for t in tokens]
+    except ValueError:
+        bad = next(t for t in tokens if not _is_float(t))
+        raise G2oError(f"g2o line {lineno}: {tag}: {bad!r} is not a number") from None
+    for t, v in zip(tokens, out, strict=True):
+        if not math.isfinite(v):
+            raise G2oError(f"g2o line {lineno}: {tag}: non-finite value {t!r}")
+    return out
+
+
+def _is_float(t: str) -> bool:
+    try:
+        float(t)
+    except ValueError:
+        return False
+    return True
+
+
+def _vertex_id(token: str, lineno: int, tag: str) -> int:
+    try:
+        vid = int(token)
+    except ValueError:
+        raise G2oError(f"g2o line {lineno}: {tag}: vertex id {token!r} is not an integer") from None
+    if vid < 0:
+        raise G2oError(f"g2o line {lineno}: {tag}: vertex id {vid} is negative")
+    return vid
+
+
+def info_from_upper(u: FloatArray) -> FloatArray:
+    """3x3 symmetric information from g2o's ``I11 I12 I13 I22 I23 I33``."""
+    return np.array([[u[0], u[1], u[2]], [u[1], u[3], u[4]], [u[2], u[4], u[5]]])
+
+
+def _check_info(info: FloatArray, where: str) -> None:
+    try:
+        np.linalg.cholesky(info)
+    except np.linalg.LinAlgError:
+        eig = np.linalg.eigvalsh(info)
+        raise G2oError(
+            f"{where}: information matrix is not positive definite (eigenvalues {eig.tolist()})"
+        ) from None
+
+
+def parse_g2o(text: str, *, merge_repeated: bool = True) -> G2oGraph:
+    """Parse g2o text. Raises :class:`G2oError` naming the line of the first problem.
+
+    With ``merge_repeated`` (the default) repeated edges are merged (see module docstring).
+    """
+    vids: list[int] = []
+    vposes: list[list[float]] = []
+    seen: dict[int, int] = {}
+    eij: list[tuple[int, int]] = []
+    ez: list[list[float]] = []
+    einfo: list[FloatArray] = []
+    elines: list[int] = []
+    fixed: list[int] = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        tokens = line.split()
+        tag = tokens[0]
+        args = tokens[1:]
+        if tag == "VERTEX_SE2":
+            if len(args) != 4:
+                raise G2oError(f"g2o line {lineno}: VERTEX_SE2 expects 4 numbers, got {len(args)}")
+            vid = _vertex_id(args[0], lineno, tag)
+            if vid in seen:
+                raise G2oError(
+                    f"g2o line {lineno}: VERTEX_SE2 {vid} already defined on line {seen[vid]}"
+                )
+            seen[vid] = lineno
+            vids.append(vid)
+            vposes.append(_floats(args[1:], lineno, tag))
+        elif tag == "EDGE_SE2":
+            if len(args) != _EDGE_NUMBERS:
+                raise G2oError(
+                    f"g2o line {lineno}: EDGE_SE2 expects {_EDGE_NUMBERS} numbers, got {len(args)}"
+                )
+            i = _vertex_id(args[0], lineno, tag)
+            j = _vertex_id(args[1], lineno, tag)
+            if i == j:
+                raise G2oError(f"g2o line {lineno}: EDGE_SE2 connects vertex {i} to itself")
+            nums = _floats(args[2:], lineno, tag)
+            info = info_from_upper(np.array(nums[3:]))
+            _check_info(info, f"g2o line {lineno}: EDGE_SE2 {i} {j}")
+            eij.append((i, j))
+            ez.append(nums[:3])
+            einfo.append(info)
+            elines.append(lineno)
+        elif tag == "FIX":
+            if len(args) != 1:
+                raise G2oError(f"g2o line {lineno}: FIX expects 1 vertex id, got {len(args)}")
+            fixed.append(_vertex_id(args[0], lineno, tag))
+        else:
+            raise G2oError(
+                f"g2o line {lineno}: unsupported record {tag!r} (expected VERTEX_SE2, EDGE_SE2, FIX)"
+            )
+    graph = G2oGraph(
+        vertex_ids=np.array(vids, dtype=np.int64),
+        vertex_poses=np.array(vposes, dtype=float).reshape(-1, 3),
+        edge_ij=np.array(eij, dtype=np.int64).reshape(-1, 2),
+        edge_z=np.array(ez, dtype=float).reshape(-1, 3),
+        edge_info=np.array(einfo, dtype=float).reshape(-1, 3, 3),
+        fixed=tuple(fixed),
+        edge_lines=np.array(elines, dtype=np.int64),
+    )
+    return merge_repeated_edges(graph) if merge_repeated else graph
+
+
+def read_g2o(path: str | Path, *, merge_repeated: bool = True) -> G2oGraph:
+    """Read a g2o file; errors name the file and the line."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise G2oError(f"{path}: cannot read: {err.strerror or err}") from None
+    try:
+        return parse_g2o(text, merge_repeated=merge_repeated)
+    except G2oError as err:
+        raise G2oError(f"{path}: {err}") from None
+
+
+def merge_gaussian_edges(
+    zs_a_from_b: FloatArray, infos: FloatArray, *, iterations: int = 5
+) -> tuple[FloatArray, FloatArray, float]:
+    """Merge K measurements of the same ``a_from_b`` (K, 3) with informations (K, 3, 3).
+
+    Returns ``(z, info, chi2_offset)``: the information-weighted manifold mean (Gauss-Newton on
+    ``sum ||Log(z^-1 z_k)||^2_{info_k}``), the summed information and the residual sum at the
+    mean, which is the part of the chi2 the single merged edge no longer carries.
+    """
+    info_sum = infos.sum(axis=0)
+    z = se2.pose2(zs_a_from_b[0])
+    poses = [se2.pose2(zk) for zk in zs_a_from_b]
+    for _ in range(iterations):
+        rhs = np.zeros(3)
+        for pk, ik in zip(poses, infos, strict=True):
+            rhs += ik @ gtsam.Pose2.Logmap(z.between(pk))
+        step = np.linalg.solve(info_sum, rhs)
+        z = z.compose(gtsam.Pose2.Expmap(step))
+        if np.abs(step).max() < 1e-14:
+            break
+    offset = 0.0
+    for pk, ik in zip(poses, infos, strict=True):
+        r = gtsam.Pose2.Logmap(z.between(pk))
+        offset += float(r @ ik @ r)
+    return se2.pose_vec(z), info_sum, offset
+
+
+def reverse_edge(z_a_from_b: FloatArray, info: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The same constraint stated as ``b_from_a``: ``z^-1`` with information ``Ad^T info Ad``.
+
+    The residual of the reversed factor is ``-Ad_{z} e`` of the original (to first order), so the
+    information transforms with ``Ad_{z^-1}``.
+    """
+    ad = se2.adjoint(se2.inverse(z_a_from_b))
+    ad_inv = np.linalg.inv(ad)
+    return se2.inverse(z_a_from_b), ad_inv.T @ info @ ad_inv
+
+
+def merge_repeated_edges(graph: G2oGraph) -> G2oGraph:
+    """Merge edges between the same pair of vertices (either direction) into one edge each.
+
+    The first occurrence fixes the merged edge's position, direction and source line.
+    """
+    groups: dict[tuple[int, int], list[int]] = {}
+    for m, (i, j) in enumerate(graph.edge_ij.tolist()):
+        groups.setdefault((min(i, j), max(i, j)), []).append(m)
+    if all(len(g) == 1 for g in groups.values()):
+        return graph
+    keep: list[int] = []
+    zs = graph.edge_z.copy()
+    infos = graph.edge_info.copy()
+    offset = graph.chi2_offset
+    for members in groups.values():
+        first = members[0]
+        keep.append(first)
+        if len(members) == 1:
+            continue
+        i0, j0 = graph.edge_ij[first]
+        mz, mi = [], []
+        for m in members:
+            z, info = graph.edge_z[m], graph.edge_info[m]
+            if graph.edge_ij[m, 0] != i0:
+                z, info = reverse_edge(z, info)
+            mz.append(z)
+            mi.append(info)
+        z, info, extra = merge_gaussian_edges(np.array(mz), np.array(mi))
+        zs[first], infos[first] = z, info
+        offset += extra
+    keep.sort()
+    idx = np.array(keep, dtype=np.int64)
+    lines = graph.edge_lines[idx] if graph.edge_lines.size else graph.edge_lines
+    return G2oGraph(
+        vertex_ids=graph.vertex_ids,
+        vertex_poses=graph.vertex_poses,
+        edge_ij=graph.edge_ij[idx],
+        edge_z=zs[idx],
+        edge_info=infos[idx],
+        fixed=graph.fixed,
+        edge_lines=lines,
+        chi2_offset=offset,
+    )
+
+
+def _fmt(v: float) -> str:
+    return repr(float(v))
+
+
+def write_g2o(path: str | Path, graph: G2oGraph, *, merge_repeated: bool = True) -> None:
+    """Write ``graph`` as g2o text (full float precision, repeated edges merged by default)."""
+    if merge_repeated:
+        graph = merge_repeated_edges(graph)
+    lines = []
+    for vid, p in zip(graph.vertex_ids.tolist(), graph.vertex_poses, strict=True):
+        lines.append(f"VERTEX_SE2 {vid} {' '.join(_fmt(v) for v in p)}")
+    for (i, j), z, info in zip(graph.edge_ij.tolist(), graph.edge_z, graph.edge_info, strict=True):
+        upper = [info[0, 0], info[0, 1], info[0, 2], info[1, 1], info[1, 2], info[2, 2]]
+        nums = " ".join(_fmt(v) for v in (*z, *upper))
+        lines.append(f"EDGE_SE2 {i} {j} {nums}")
+    for vid in graph.fixed:
+        lines.append(f"FIX {vid}")
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def chained_odometry(graph: G2oGraph, *, first_pose: FloatArray | None = None) -> FloatArray:
+    """Initial guess (N, 3) for ``graph.node_ids`` by chaining the edges ``i -> i+1``.
+
+    Raises :class:`G2oError` if an odometry edge ``k -> k+1`` (either direction) is missing.
+    """
+    ids = graph.node_ids
+    odo: dict[int, FloatArray] = {}
+    for (i, j), z in zip(graph.edge_ij.tolist(), graph.edge_z, strict=True):
+        if j == i + 1 and i not in odo:
+            odo[i] = z
+        elif i == j + 1 and j not in odo:
+            odo[j] = se2.inverse(z)
+    poses = np.zeros((ids.size, 3))
+    poses[0] = np.zeros(3) if first_pose is None else first_pose
+    for n in range(1, ids.size):
+        prev = int(ids[n - 1])
+        if int(ids[n]) != prev + 1 or prev not in odo:
+            raise G2oError(f"chained odometry: no edge between vertices {prev} and {prev + 1}")
+        poses[n] = se2.compose(poses[n - 1], odo[prev])
+    return poses
+
+
+def to_gtsam(
+    graph: G2oGraph, *, prior_sigma: float | None = 1e-6, poses: FloatArray | None = None
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """``BetweenFactorPose2`` per edge (keys = vertex ids) and the vertices' values.
+
+    ``prior_sigma`` adds a tight prior on the first vertex at its value (gauge freedom), or
+    none when ``None``. ``poses`` (N, 3), in ``graph.node_ids`` order, replaces the vertex values.
+    """
+    fg = gtsam.NonlinearFactorGraph()
+    for (i, j), z, info in zip(graph.edge_ij.tolist(), graph.edge_z, graph.edge_info, strict=True):
+        noise = gtsam.noiseModel.Gaussian.Information(info)
+        fg.add(gtsam.BetweenFactorPose2(i, j, se2.pose2(z), noise))
+    values = gtsam.Values()
+    if poses is None:
+        for vid, p in zip(graph.vertex_ids.tolist(), graph.vertex_poses, strict=True):
+            values.insert(vid, se2.pose2(p))
+        first = int(graph.vertex_ids[0]) if graph.vertex_ids.size else None
+    else:
+        ids = graph.node_ids
+        if poses.shape != (ids.size, 3):
+            raise ValueError(f"poses has shape {poses.shape}, expected {(ids.size, 3)}")
+        for vid, p in zip(ids.tolist(), poses, strict=True):
+            values.insert(vid, se2.pose2(p))
+        first = int(ids[0]) if ids.size else None
+    if prior_sigma is not None and first is not None:
+        noise = gtsam.noiseModel.Isotropic.Sigma(3, prior_sigma)
+        fg.add(gtsam.PriorFactorPose2(first, values.atPose2(first), noise))
+    return fg, values

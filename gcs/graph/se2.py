@@ -1,0 +1,81 @@
+"""SE(2) helpers for the pose graph, in GTSAM's ``Pose2`` conventions.
+
+A pose is ``(x, y, theta)`` (metres, radians); ``a_from_b`` composes right to left. Tangent
+vectors are ``(vx, vy, omega)`` and perturbations act on the right, ``x = x_bar * Exp(xi)``, as
+in GTSAM, so covariances are expressed in the body frame of the pose they belong to.
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "adjoint",
+    "between",
+    "compose",
+    "inverse",
+    "pose2",
+    "pose_vec",
+    "propagate_covariance",
+    "wrap_angle",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+def wrap_angle(theta_rad: FloatArray | float) -> FloatArray | float:
+    """Angle(s) wrapped into ``[-pi, pi)``."""
+    return (np.asarray(theta_rad) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def pose2(p: FloatArray | tuple[float, float, float]) -> gtsam.Pose2:
+    """``gtsam.Pose2`` from ``(x, y, theta)``."""
+    return gtsam.Pose2(float(p[0]), float(p[1]), float(p[2]))
+
+
+def pose_vec(p: gtsam.Pose2) -> FloatArray:
+    """``(x, y, theta)`` of a ``gtsam.Pose2``."""
+    return np.array([p.x(), p.y(), p.theta()])
+
+
+def compose(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``a * b`` for poses of shape ``(3,)`` or ``(N, 3)`` (broadcasting)."""
+    a = np.asarray(a, dtype=float)
+    b = np.asarray(b, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
+    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
+    return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
+
+
+def inverse(a: FloatArray) -> FloatArray:
+    """``a^-1`` for poses of shape ``(3,)`` or ``(N, 3)``."""
+    a = np.asarray(a, dtype=float)
+    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
+    x = -c * a[..., 0] - s * a[..., 1]
+    y = s * a[..., 0] - c * a[..., 1]
+    return np.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
+
+
+def between(a: FloatArray, b: FloatArray) -> FloatArray:
+    """``a^-1 * b``: pose of ``b`` in the frame of ``a``."""
+    return compose(inverse(a), b)
+
+
+def adjoint(a: FloatArray) -> FloatArray:
+    """Adjoint matrix ``Ad_a`` (3x3) of one pose, GTSAM ``Pose2.AdjointMap`` convention."""
+    c, s = np.cos(a[2]), np.sin(a[2])
+    return np.array([[c, -s, a[1]], [s, c, -a[0]], [0.0, 0.0, 1.0]])
+
+
+def propagate_covariance(
+    cov_a: FloatArray, step_a_from_b: FloatArray, cov_step: FloatArray
+) -> FloatArray:
+    """Covariance of ``x_b = x_a * step`` given independent ``cov_a`` (of ``x_a``) and ``cov_step``.
+
+    With right perturbations, ``x_b = x_a Exp(da) step Exp(ds) = x_b Exp(Ad_{step^-1} da + ds)``.
+    """
+    ad = adjoint(inverse(step_a_from_b))
+    return ad @ cov_a @ ad.T + cov_step
