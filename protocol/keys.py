@@ -52,7 +52,9 @@ def radio(mission: str, robot_id: int, direction: Direction, stream: str) -> str
     """Key of one radio stream of one robot."""
     if stream not in STREAMS[direction]:
         raise ValueError(f"no {direction.value}link stream named {stream!r}")
-    return f"{ROOT}/{_chunk(mission, 'mission')}/robot/{_robot(robot_id)}/{direction.value}/{stream}"
+    return (
+        f"{ROOT}/{_chunk(mission, 'mission')}/robot/{_robot(robot_id)}/{direction.value}/{stream}"
+    )
 
 
 def radio_wildcard(mission: str, direction: Direction, robot_id: int | None = None) -> str:
@@ -104,8 +106,10 @@ def sim_commands(mission: str, robot_id: int) -> str:
     return f"{ROOT}/{_chunk(mission, 'mission')}/sim/robot/{_robot(robot_id)}/commands"
 
 
-def sim_radio(mission: str, robot_id: int) -> str:
-    return f"{ROOT}/{_chunk(mission, 'mission')}/sim/radio/{_robot(robot_id)}"
+def sim_radio(mission: str, robot_id: int | None) -> str:
+    """Radio grants for one robot, or (``robot_id=None``) a wildcard for all robots."""
+    who = "*" if robot_id is None else _robot(robot_id)
+    return f"{ROOT}/{_chunk(mission, 'mission')}/sim/radio/{who}"
 
 
 def sim_truth(mission: str, topic: str) -> str:

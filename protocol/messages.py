@@ -408,7 +408,14 @@ class ParameterUpdate(_Message, tag=33):
 
 TaskMessage = GoToTask | NeutralizeTask | PauseTask | ResumeTask | RelayTask | IdleTask | TeleopTask
 UplinkMessage = (
-    Ack | PoseNode | TerrainGrid | FiducialObservation | Detection | DetectionImage | Telemetry | TaskStatus
+    Ack
+    | PoseNode
+    | TerrainGrid
+    | FiducialObservation
+    | Detection
+    | DetectionImage
+    | Telemetry
+    | TaskStatus
 )
 DownlinkMessage = Ack | TaskMessage | HazardUpdate | ParameterUpdate
 
@@ -443,7 +450,9 @@ class StreamSpec:
     types: tuple[type, ...]
 
 
-def _spec(name: str, sid: int, d: Direction, prio: int, rel: Reliability, *types: type) -> StreamSpec:
+def _spec(
+    name: str, sid: int, d: Direction, prio: int, rel: Reliability, *types: type
+) -> StreamSpec:
     return StreamSpec(name, sid, d, prio, rel, types)
 
 

@@ -84,7 +84,9 @@ def enc_hook(obj: Any) -> Any:
     if type(obj) is f32:
         return msgspec.Raw(b"\xca" + _F32.pack(obj))
     if isinstance(obj, np.ndarray):
-        code = _DTYPE_CODES.get(obj.dtype.newbyteorder("<") if obj.dtype.byteorder == ">" else obj.dtype)
+        code = _DTYPE_CODES.get(
+            obj.dtype.newbyteorder("<") if obj.dtype.byteorder == ">" else obj.dtype
+        )
         if code is None or obj.ndim > _MAX_NDIM:
             raise TypeError(f"cannot encode array of dtype {obj.dtype} with {obj.ndim} dimensions")
         data = np.ascontiguousarray(obj, dtype=_DTYPES[code]).tobytes()
@@ -135,9 +137,7 @@ def dec_hook(type_: type, obj: Any) -> Any:
     raise NotImplementedError(f"cannot decode type {type_}")
 
 
-def check_array(
-    name: str, arr: Any, dtype: str, shape: tuple[int | None, ...]
-) -> np.ndarray:
+def check_array(name: str, arr: Any, dtype: str, shape: tuple[int | None, ...]) -> np.ndarray:
     """Validate ``arr``'s dtype and shape (``None`` = any length); raise ``ValueError`` naming it.
 
     Used in ``__post_init__`` so the same check runs at construction and on decoding.
@@ -197,7 +197,11 @@ def describe_path(root: type, raw: Any, path: str) -> str:
         if isinstance(tinfo, mi.ListType | mi.VarTupleType):
             name += f"[{step}]"
             tinfo = tinfo.item_type
-            raw = raw[step] if isinstance(raw, list) and isinstance(step, int) and step < len(raw) else None
+            raw = (
+                raw[step]
+                if isinstance(raw, list) and isinstance(step, int) and step < len(raw)
+                else None
+            )
             continue
         if isinstance(tinfo, mi.TupleType) and isinstance(step, int):
             name += f"[{step}]"

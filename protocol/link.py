@@ -1,0 +1,496 @@
+"""The link: every process talks through here, over eclipse-zenoh (DESIGN section 4).
+
+This is the only module that imports zenoh. It is a thin shell: queueing, rates, reliability
+and metering live in the sans-IO :class:`~protocol.radio_channel.RadioChannel`; this module
+opens the session, moves bytes between channels and zenoh, and runs a pump thread that drains
+the queues in mission time.
+
+Embedded default: peer mode listening on loopback only, multicast scouting off, no router, no
+external service; shared memory off so what is metered is what would cross a real radio. For
+several hosts or large teams, give ``connect``/``listen`` zenoh endpoints (or a router's).
+
+Typical use::
+
+    link = Link(LinkConfig(listen=("tcp/127.0.0.1:7447",)), mission="demo")
+    gcs = link.gcs_endpoint()                       # receives every robot's uplink
+    robot = Link(LinkConfig(connect=("tcp/127.0.0.1:7447",)), mission="demo").robot_endpoint(3)
+    robot.send(PoseNode(...))                       # queued, rate-limited, reliable
+    robot_id, msg = gcs.recv(timeout_s=1.0)
+
+Received messages go to the endpoint's ``on_message`` callback (called in order, on a zenoh
+thread; keep it short) or, without one, to a queue read by ``recv``. Bad bytes never raise out
+of the link: they are counted (``stats.rejected``) and logged.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import queue
+import threading
+from collections.abc import Callable
+from typing import Any, Literal
+
+import msgspec
+import zenoh
+
+from protocol import keys
+from protocol.clock import Clock, WallClock
+from protocol.messages import Direction
+from protocol.meter import Meter
+from protocol.radio import RadioConfig, RadioGrant
+from protocol.radio_channel import RadioChannel, ReliabilityConfig
+from protocol.wire import ProtocolError
+
+__all__ = ["GcsEndpoint", "Link", "LinkConfig", "RobotEndpoint", "Subscription"]
+
+log = logging.getLogger(__name__)
+
+_GRANT_DECODER = msgspec.msgpack.Decoder(RadioGrant)
+_GRANT_ENCODER = msgspec.msgpack.Encoder()
+
+
+class LinkConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """How a process joins the zenoh network, and the radio link's tunables.
+
+    ``listen``/``connect``: zenoh endpoints such as ``tcp/127.0.0.1:7447``. ``pump_period_s``:
+    wall seconds between queue drains by the pump thread; 0 means no thread (call
+    :meth:`Link.pump` yourself, e.g. in lockstep simulation). ``initial_grant_bps``: the rate
+    each radio channel uses until a radio model grants one (``.inf`` in YAML: unlimited).
+    """
+
+    mode: Literal["peer", "client"] = "peer"
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = False
+    pump_period_s: float = 0.002
+    initial_grant_bps: float = math.inf
+    radio: RadioConfig = RadioConfig()
+    reliability: ReliabilityConfig = ReliabilityConfig()
+
+    def __post_init__(self) -> None:
+        if not (self.pump_period_s >= 0 and math.isfinite(self.pump_period_s)):
+            raise ValueError(f"pump_period_s must be finite and >= 0, got {self.pump_period_s}")
+        if not self.initial_grant_bps >= 0:
+            raise ValueError(f"initial_grant_bps must be >= 0, got {self.initial_grant_bps}")
+
+
+def _zenoh_config(cfg: LinkConfig) -> zenoh.Config:
+    zc = zenoh.Config()
+    zc.insert_json5("mode", json.dumps(cfg.mode))
+    zc.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
+    zc.insert_json5("transport/shared_memory/enabled", "false")
+    zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+    zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+    return zc
+
+
+class Subscription:
+    """A live subscription; :meth:`close` ends it."""
+
+    def __init__(self, subscriber: Any) -> None:
+        self._subscriber = subscriber
+
+    def close(self) -> None:
+        if self._subscriber is not None:
+            self._subscriber.undeclare()
+            self._subscriber = None
+
+
+class _Endpoint:
+    """Radio channels of one side, their zenoh publishers, and delivery of what arrives."""
+
+    sends: Direction
+
+    def __init__(
+        self,
+        link: Link,
+        on_message: Callable[..., None] | None,
+    ) -> None:
+        self._link = link
+        self._lock = threading.Lock()  # channel state: send, poll, receive
+        self._rx_lock = threading.Lock()  # one delivery at a time keeps streams in order
+        self._channels: dict[int, RadioChannel] = {}
+        self._publishers: dict[tuple[int, str], Any] = {}
+        self._key_cache: dict[str, tuple[int, str]] = {}
+        self._on_message = on_message
+        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._subs: list[Subscription] = []
+        self.callback_errors = 0
+        self.rejected_keys = 0
+
+    # -- construction helpers
+
+    def _channel(self, robot_id: int) -> RadioChannel:
+        ch = self._channels.get(robot_id)
+        if ch is None:
+            cfg = self._link.config
+            ch = RadioChannel(
+                robot_id,
+                self.sends,
+                config=cfg.reliability,
+                framing_overhead_bytes=cfg.radio.framing_overhead_bytes,
+                meter=self._link.meter,
+                grant_bps=cfg.initial_grant_bps,
+                seed=self._link.seed * 1_000_003 + robot_id,
+            )
+            self._channels[robot_id] = ch
+        return ch
+
+    def _publisher(self, robot_id: int, stream: str) -> Any:
+        pub = self._publishers.get((robot_id, stream))
+        if pub is None:
+            key = keys.radio(self._link.mission, robot_id, self.sends, stream)
+            pub = self._link._session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            self._publishers[(robot_id, stream)] = pub
+        return pub
+
+    def _follow_radio(self, robot_id: int | None) -> None:
+        key = keys.sim_radio(self._link.mission, robot_id)
+        self._subs.append(self._link.subscribe(key, self._on_grant))
+
+    def _on_grant(self, key: str, payload: bytes) -> None:
+        try:
+            robot_id = int(key.rsplit("/", 1)[1])
+            grant = _GRANT_DECODER.decode(payload)
+        except (ValueError, msgspec.DecodeError, msgspec.ValidationError) as err:
+            self.rejected_keys += 1
+            log.warning("bad radio grant on %s: %s", key, err)
+            return
+        with self._lock:
+            ch = self._accept_channel(robot_id)
+            if ch is not None:
+                ch.apply_grant(grant)
+
+    # -- data path
+
+    def _on_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        addr = self._key_cache.get(key)
+        if addr is None:
+            try:
+                parsed = keys.parse_radio_key(key)
+            except ValueError as err:
+                self.rejected_keys += 1
+                log.warning("ignoring %s", err)
+                return
+            addr = (parsed.robot_id, parsed.stream)
+            self._key_cache[key] = addr
+        robot_id, stream = addr
+        data = sample.payload.to_bytes()
+        now = self._link.clock.now()
+        with self._rx_lock:
+            with self._lock:
+                ch = self._accept_channel(robot_id)
+                if ch is None:
+                    return
+                try:
+                    messages = ch.receive(stream, data, now)
+                except ProtocolError as err:
+                    n = ch.stats.rejected
+                    if n <= 5 or n % 1000 == 0:
+                        log.warning(
+                            "robot %d %s: rejected message #%d: %s", robot_id, stream, n, err
+                        )
+                    return
+            for msg in messages:
+                self._deliver(robot_id, msg)
+
+    def _accept_channel(self, robot_id: int) -> RadioChannel | None:
+        raise NotImplementedError
+
+    def _deliver(self, robot_id: int, msg: Any) -> None:
+        raise NotImplementedError
+
+    def _call(self, *args: Any) -> None:
+        assert self._on_message is not None
+        try:
+            self._on_message(*args)
+        except Exception:  # a consumer bug must not kill the link
+            self.callback_errors += 1
+            log.exception("on_message callback raised")
+
+    def _pump(self, now: float) -> int:
+        with self._lock:
+            batches = [(rid, ch.poll(now)) for rid, ch in self._channels.items()]
+        n = 0
+        for robot_id, packets in batches:
+            for pkt in packets:
+                self._publisher(robot_id, pkt.stream).put(pkt.payload)
+            n += len(packets)
+        return n
+
+    def _close(self) -> None:
+        for sub in self._subs:
+            sub.close()
+        self._subs.clear()
+        for pub in self._publishers.values():
+            pub.undeclare()
+        self._publishers.clear()
+
+    def _wait_matching(self, robot_id: int, stream: str, timeout_s: float) -> bool:
+        pub = self._publisher(robot_id, stream)
+        event = threading.Event()
+        listener = pub.declare_matching_listener(
+            lambda status: event.set() if status.matching else None
+        )
+        try:
+            return bool(pub.matching_status.matching) or event.wait(timeout_s)
+        finally:
+            listener.undeclare()
+
+
+class RobotEndpoint(_Endpoint):
+    """A robot's side of the radio: sends the uplink, receives the downlink."""
+
+    sends = Direction.UP
+
+    def __init__(
+        self,
+        link: Link,
+        robot_id: int,
+        *,
+        on_message: Callable[[Any], None] | None = None,
+        follow_radio: bool = False,
+    ) -> None:
+        super().__init__(link, on_message)
+        self.robot_id = robot_id
+        self.channel = self._channel(robot_id)
+        sub = link._session.declare_subscriber(
+            keys.radio_wildcard(link.mission, Direction.DOWN, robot_id), self._on_sample
+        )
+        self._subs.append(Subscription(sub))
+        if follow_radio:
+            self._follow_radio(robot_id)
+
+    def send(self, message: Any) -> int:
+        """Queue an uplink message; returns its stream sequence number."""
+        with self._lock:
+            return self.channel.send(message)
+
+    def set_grant(self, grant: RadioGrant) -> None:
+        """Apply a radio grant (its ``uplink_bps`` and ``loss``)."""
+        with self._lock:
+            self.channel.apply_grant(grant)
+
+    def recv(self, timeout_s: float | None = None) -> Any | None:
+        """Next downlink message, or None after ``timeout_s`` (only without ``on_message``)."""
+        try:
+            return self._inbox.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def wait_for_gcs(self, timeout_s: float) -> bool:
+        """Block until a GCS subscribes to this robot's uplink (True) or the timeout passes."""
+        return self._wait_matching(self.robot_id, "pose_node", timeout_s)
+
+    def _accept_channel(self, robot_id: int) -> RadioChannel | None:
+        return self.channel if robot_id == self.robot_id else None
+
+    def _deliver(self, robot_id: int, msg: Any) -> None:
+        if self._on_message is None:
+            self._inbox.put(msg)
+        else:
+            self._call(msg)
+
+
+class GcsEndpoint(_Endpoint):
+    """The GCS side: one radio channel per robot, created when the robot is first heard from.
+
+    ``on_message(robot_id, message)`` receives every robot's uplink.
+    """
+
+    sends = Direction.DOWN
+
+    def __init__(
+        self,
+        link: Link,
+        *,
+        on_message: Callable[[int, Any], None] | None = None,
+        follow_radio: bool = False,
+    ) -> None:
+        super().__init__(link, on_message)
+        sub = link._session.declare_subscriber(
+            keys.radio_wildcard(link.mission, Direction.UP), self._on_sample
+        )
+        self._subs.append(Subscription(sub))
+        if follow_radio:
+            self._follow_radio(None)
+
+    def send(self, robot_id: int, message: Any) -> int:
+        """Queue a downlink message for ``robot_id``; returns its stream sequence number."""
+        with self._lock:
+            return self._channel(robot_id).send(message)
+
+    def set_grant(self, robot_id: int, grant: RadioGrant) -> None:
+        """Apply a radio grant for ``robot_id`` (its ``downlink_bps`` and ``loss``)."""
+        with self._lock:
+            self._channel(robot_id).apply_grant(grant)
+
+    def channel(self, robot_id: int) -> RadioChannel:
+        """The radio channel to ``robot_id`` (created if new); read its ``stats`` freely."""
+        with self._lock:
+            return self._channel(robot_id)
+
+    def robots(self) -> list[int]:
+        with self._lock:
+            return sorted(self._channels)
+
+    def recv(self, timeout_s: float | None = None) -> tuple[int, Any] | None:
+        """Next ``(robot_id, message)``; None after ``timeout_s`` (only without ``on_message``)."""
+        try:
+            return self._inbox.get(timeout=timeout_s)  # type: ignore[no-any-return]
+        except queue.Empty:
+            return None
+
+    def wait_for_robot(self, robot_id: int, timeout_s: float) -> bool:
+        """Block until ``robot_id`` subscribes to its downlink (True) or the timeout passes."""
+        return self._wait_matching(robot_id, "task", timeout_s)
+
+    def _accept_channel(self, robot_id: int) -> RadioChannel | None:
+        return self._channel(robot_id)
+
+    def _deliver(self, robot_id: int, msg: Any) -> None:
+        if self._on_message is None:
+            self._inbox.put((robot_id, msg))
+        else:
+            self._call(robot_id, msg)
+
+
+class Link:
+    """One process's zenoh session, its radio endpoints and its radio meter.
+
+    ``clock`` gives mission time for rates and timeouts (default: wall time since start);
+    ``meter`` counts the radio bytes this process sends; ``seed`` drives loss injection.
+    """
+
+    def __init__(
+        self,
+        config: LinkConfig | None = None,
+        *,
+        mission: str = "default",
+        clock: Clock | None = None,
+        meter: Meter | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.config = config or LinkConfig()
+        keys.sim_clock(mission)  # validates the mission name before opening anything
+        self.mission = mission
+        self.clock: Clock = clock or WallClock()
+        self.meter = meter if meter is not None else Meter()
+        self.seed = seed
+        self._session = zenoh.open(_zenoh_config(self.config))
+        self._endpoints: list[_Endpoint] = []
+        self._publishers: dict[str, Any] = {}
+        self._subs: list[Subscription] = []
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if self.config.pump_period_s > 0:
+            self._thread = threading.Thread(target=self._pump_loop, name="link-pump", daemon=True)
+            self._thread.start()
+
+    # -- radio endpoints
+
+    def robot_endpoint(
+        self,
+        robot_id: int,
+        *,
+        on_message: Callable[[Any], None] | None = None,
+        follow_radio: bool = False,
+    ) -> RobotEndpoint:
+        """The radio of robot ``robot_id``. ``follow_radio``: apply grants from the simulator."""
+        ep = RobotEndpoint(self, robot_id, on_message=on_message, follow_radio=follow_radio)
+        with self._lock:
+            self._endpoints.append(ep)
+        return ep
+
+    def gcs_endpoint(
+        self,
+        *,
+        on_message: Callable[[int, Any], None] | None = None,
+        follow_radio: bool = False,
+    ) -> GcsEndpoint:
+        """The GCS's radio to every robot. ``follow_radio``: apply grants from the simulator."""
+        ep = GcsEndpoint(self, on_message=on_message, follow_radio=follow_radio)
+        with self._lock:
+            self._endpoints.append(ep)
+        return ep
+
+    def publish_grant(self, robot_id: int, grant: RadioGrant) -> None:
+        """Publish a radio model's grant for ``robot_id`` (endpoints with ``follow_radio``)."""
+        self.publish(keys.sim_radio(self.mission, robot_id), _GRANT_ENCODER.encode(grant))
+
+    def pump(self) -> int:
+        """Drain every channel's queue at the current mission time; returns packets sent."""
+        now = self.clock.now()
+        with self._lock:
+            endpoints = list(self._endpoints)
+        return sum(ep._pump(now) for ep in endpoints)
+
+    def _pump_loop(self) -> None:
+        period = self.config.pump_period_s
+        while not self._stop.wait(period):
+            try:
+                self.pump()
+            except Exception:  # keep pumping: one bad moment must not silence the radio
+                log.exception("link pump failed")
+
+    # -- unmetered traffic (sensor frames, clock, state for consoles and views)
+
+    def publish(self, key: str, payload: bytes) -> None:
+        """Publish bytes on ``key``, outside the radio (not metered, not rate-limited)."""
+        pub = self._publishers.get(key)
+        if pub is None:
+            with self._lock:
+                pub = self._publishers.get(key)
+                if pub is None:
+                    pub = self._session.declare_publisher(key)
+                    self._publishers[key] = pub
+        pub.put(payload)
+
+    def subscribe(self, key: str, callback: Callable[[str, bytes], None]) -> Subscription:
+        """Call ``callback(key, payload)`` for every publication matching ``key``.
+
+        Exceptions from the callback are logged, never propagated into zenoh.
+        """
+
+        def handler(sample: Any) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception:
+                log.exception("subscriber callback for %s raised", key)
+
+        sub = Subscription(self._session.declare_subscriber(key, handler))
+        self._subs.append(sub)
+        return sub
+
+    # -- lifetime
+
+    def close(self) -> None:
+        """Stop the pump, undeclare everything and close the session (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        with self._lock:
+            endpoints, self._endpoints = self._endpoints, []
+        for ep in endpoints:
+            ep._close()
+        for sub in self._subs:
+            sub.close()
+        self._subs.clear()
+        for pub in self._publishers.values():
+            pub.undeclare()
+        self._publishers.clear()
+        if not self._session.is_closed():
+            self._session.close()
+
+    def __enter__(self) -> Link:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
