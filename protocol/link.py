@@ -119,6 +119,9 @@ class _Endpoint:
         self._subs: list[Subscription] = []
         self.callback_errors = 0
         self.rejected_keys = 0
+        self.packets_out = 0  # radio packets this endpoint put on zenoh (lost ones excluded)
+        self._arrivals = 0  # radio packets that arrived and were processed
+        self._arrived = threading.Condition()
 
     # -- construction helpers
 
@@ -168,6 +171,28 @@ class _Endpoint:
     # -- data path
 
     def _on_sample(self, sample: Any) -> None:
+        try:
+            self._handle_sample(sample)
+        finally:
+            with self._arrived:
+                self._arrivals += 1
+                self._arrived.notify_all()
+
+    @property
+    def packets_in(self) -> int:
+        """Radio packets that arrived at this endpoint and were processed (or rejected)."""
+        return self._arrivals
+
+    def wait_packets_in(self, count: int, timeout_s: float) -> bool:
+        """Block until ``packets_in >= count`` (True) or ``timeout_s`` passes (False).
+
+        With :meth:`Link.pump` called by hand this lets a lockstep driver wait until what one
+        side put on the air has been processed by the other before time moves on.
+        """
+        with self._arrived:
+            return self._arrived.wait_for(lambda: self._arrivals >= count, timeout_s)
+
+    def _handle_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
         addr = self._key_cache.get(key)
         if addr is None:
@@ -221,6 +246,7 @@ class _Endpoint:
             for pkt in packets:
                 self._publisher(robot_id, pkt.stream).put(pkt.payload)
             n += len(packets)
+        self.packets_out += n
         return n
 
     def _close(self) -> None:

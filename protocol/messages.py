@@ -140,12 +140,13 @@ class AckEntry(msgspec.Struct, array_like=True, frozen=True, gc=False):
     """Acknowledgement state of one reliable stream.
 
     ``through``: every sequence number up to and including it was received (0: none yet).
-    ``bitmap``: bit ``i`` set means ``through + 2 + i`` was also received (selective ack).
+    ``received``: selective acknowledgement bitmap, little-endian bit order: bit ``i`` set
+    means ``through + 2 + i`` was also received (``through + 1`` is the gap, by definition).
     """
 
     stream_id: int
     through: int
-    bitmap: int = 0
+    received: bytes = b""
 
 
 class Ack(_Message, tag=0):

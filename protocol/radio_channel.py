@@ -15,12 +15,14 @@ What it implements (DESIGN section 4, paper 4.1):
   While the queue is backlogged, credit accumulates without a cap, so the achieved rate equals
   the grant however coarsely ``poll`` is called; when idle, credit is capped at ``burst_s``.
 * **Reliable streams**: per-stream sequence numbers from 1; the receiver buffers out-of-order
-  messages and delivers in order, exactly once, dropping duplicates; it acknowledges with a
-  cumulative sequence number plus a 64-bit selective bitmap. Acks are delayed so that their
-  bytes stay a bounded fraction of the traffic they acknowledge (``ack_budget_frac``), and
-  sent sooner when a duplicate shows the sender missed an earlier ack. The sender retransmits
-  after a timeout estimated from measured round trips (RFC 6298 style, Karn's rule), doubling
-  per attempt up to ``rto_max_s``; the backoff restarts when the link comes back up.
+  messages and delivers in order, exactly once, dropping duplicates. It acknowledges with a
+  cumulative sequence number plus a selective bitmap of what arrived beyond the first gap.
+  Acks are delayed so that their bytes stay a bounded fraction of the traffic they acknowledge
+  (``ack_budget_frac``), and sent sooner after a duplicate (the sender missed an ack) or a
+  gap. The sender resends a message at once when ``FAST_RETRANSMIT_AFTER`` later ones were
+  acknowledged, otherwise after a timeout estimated from measured round trips (RFC 6298,
+  Karn's rule), doubling per attempt up to ``rto_max_s``; the backoff restarts when the link
+  comes back up.
 * **Latest-only streams** (telemetry): a newer message replaces a queued older one; never
   retransmitted; the receiver drops anything older than what it delivered.
 * **Latest-reliable streams** (hazard updates): only the newest matters, but it is
@@ -61,7 +63,10 @@ from protocol.wire import ProtocolError
 
 __all__ = ["ChannelStats", "LinkBackpressure", "Packet", "RadioChannel", "ReliabilityConfig"]
 
-_BITMAP_BITS = 64
+#: Most sequence numbers beyond a gap that one ack reports (bytes of bitmap = this / 8).
+SACK_MAX_BITS = 2048
+#: A message is presumed lost once this many later ones were selectively acknowledged.
+FAST_RETRANSMIT_AFTER = 3
 _OPPOSITE = {Direction.UP: Direction.DOWN, Direction.DOWN: Direction.UP}
 
 
@@ -94,8 +99,8 @@ class ReliabilityConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
             raise ValueError(
                 "rto_initial_s must exceed ack_max_delay_s, or every message is sent twice"
             )
-        if self.receive_window < _BITMAP_BITS:
-            raise ValueError(f"receive_window must be >= {_BITMAP_BITS}")
+        if self.receive_window < 64:
+            raise ValueError("receive_window must be >= 64")
 
 
 class LinkBackpressure(RuntimeError):
@@ -135,6 +140,7 @@ class _Outgoing:
     tx_count: int = 0
     last_sent_s: float = -math.inf
     deadline_s: float = math.inf  # retransmission deadline of the latest transmission
+    fast_retx_of: int = 0  # the transmission (tx_count) already fast-retransmitted
 
 
 @dataclass
@@ -150,6 +156,17 @@ class _RecvStream:
     spec: StreamSpec
     delivered_through: int = 0  # reliable: all <= this delivered; latest: newest delivered
     buffer: dict[int, Any] = field(default_factory=dict)
+
+
+def _bitmap_seqs(bitmap: bytes, base: int) -> list[int]:
+    """Sequence numbers set in a selective-ack bitmap (bit i = ``base + i``), ascending."""
+    out = []
+    for i, byte in enumerate(bitmap[: SACK_MAX_BITS // 8]):
+        while byte:
+            low = byte & -byte
+            out.append(base + i * 8 + low.bit_length() - 1)
+            byte ^= low
+    return out
 
 
 class RadioChannel:
@@ -426,14 +443,14 @@ class RadioChannel:
             self._ack_prompt_s = now + self.config.ack_prompt_delay_s
 
     def _ack_entry(self, rs: _RecvStream) -> AckEntry:
-        base = rs.delivered_through
-        bitmap = 0
-        if rs.buffer:
-            for s in rs.buffer:
-                bit = s - base - 2
-                if 0 <= bit < _BITMAP_BITS:
-                    bitmap |= 1 << bit
-        return AckEntry(rs.spec.stream_id, base, bitmap)
+        if not rs.buffer:
+            return AckEntry(rs.spec.stream_id, rs.delivered_through)
+        base = rs.delivered_through + 2
+        bits = [s - base for s in rs.buffer if 0 <= s - base < SACK_MAX_BITS]
+        bitmap = bytearray(max(bits) // 8 + 1)
+        for b in bits:
+            bitmap[b >> 3] |= 1 << (b & 7)
+        return AckEntry(rs.spec.stream_id, rs.delivered_through, bytes(bitmap))
 
     def _maybe_queue_ack(self, now: float) -> None:
         if not self._ack_dirty:
@@ -467,22 +484,39 @@ class RadioChannel:
             if st is None or st.spec.reliability is Reliability.LATEST:
                 continue
             acked = [s for s in st.unacked if s <= entry.through]
-            if entry.bitmap:
-                base = entry.through + 2
-                acked += [
-                    s
-                    for s in st.unacked
-                    if 0 <= s - base < _BITMAP_BITS and (entry.bitmap >> (s - base)) & 1
-                ]
+            sacked = _bitmap_seqs(entry.received, entry.through + 2)
+            acked += [s for s in sacked if s in st.unacked]
+            newest_sent_s = -math.inf
             for s in acked:
-                item = st.unacked.pop(s, None)
-                if item is None:
-                    continue
+                item = st.unacked.pop(s)
                 if item.tx_count == 1:  # Karn: only unambiguous samples
                     self._rtt_sample(now - item.last_sent_s)
+                newest_sent_s = max(newest_sent_s, item.last_sent_s)
                 item.alive = False
                 if st.spec.reliability is Reliability.RELIABLE:
                     self._held_bytes -= len(item.payload)
+            if len(sacked) >= FAST_RETRANSMIT_AFTER:
+                self._fast_retransmit(st, sacked, newest_sent_s)
+
+    def _fast_retransmit(self, st: _SendStream, sacked: list[int], newest_sent_s: float) -> None:
+        """Resend at once what later acknowledged messages show was lost (SACK recovery).
+
+        A message counts as lost when ``FAST_RETRANSMIT_AFTER`` messages with higher sequence
+        numbers were received and it was sent before them; each transmission is fast-resent at
+        most once, after that the timeout and its backoff rule.
+        """
+        threshold = sacked[-FAST_RETRANSMIT_AFTER]
+        for seq, item in st.unacked.items():
+            if seq >= threshold:
+                break
+            if (
+                not item.queued
+                and item.tx_count > 0
+                and item.fast_retx_of != item.tx_count
+                and item.last_sent_s <= newest_sent_s
+            ):
+                item.fast_retx_of = item.tx_count
+                self._enqueue(item)
 
     def _rtt_sample(self, rtt_s: float) -> None:
         if rtt_s < 0:

@@ -162,6 +162,6 @@ def elimination_degrees(n: int, edges: IntArray, order: IntArray) -> IntArray:
 
 
 def factor_nnz(degrees: IntArray, *, dim: int = 3) -> int:
-    """Non-zeros of the triangular factor from :func:`elimination_degrees` (``dim`` per variable)."""
+    """Non-zeros of the triangular factor given :func:`elimination_degrees` (``dim`` a variable)."""
     degrees = np.asarray(degrees, dtype=np.int64)
     return int(degrees.size * dim * (dim + 1) // 2 + dim * dim * int(degrees.sum()))

@@ -187,7 +187,8 @@ def parse_g2o(text: str, *, merge_repeated: bool = True) -> G2oGraph:
             fixed.append(_vertex_id(args[0], lineno, tag))
         else:
             raise G2oError(
-                f"g2o line {lineno}: unsupported record {tag!r} (expected VERTEX_SE2, EDGE_SE2, FIX)"
+                f"g2o line {lineno}: unsupported record {tag!r} "
+                "(expected VERTEX_SE2, EDGE_SE2 or FIX)"
             )
     graph = G2oGraph(
         vertex_ids=np.array(vids, dtype=np.int64),
@@ -244,12 +245,11 @@ def merge_gaussian_edges(
 def reverse_edge(z_a_from_b: FloatArray, info: FloatArray) -> tuple[FloatArray, FloatArray]:
     """The same constraint stated as ``b_from_a``: ``z^-1`` with information ``Ad^T info Ad``.
 
-    The residual of the reversed factor is ``-Ad_{z} e`` of the original (to first order), so the
-    information transforms with ``Ad_{z^-1}``.
+    With right perturbations ``x_b = x_a z Exp(n)`` gives ``x_a = x_b z^-1 Exp(-Ad_z n)``: the
+    covariance becomes ``Ad_z C Ad_z'``, so the information becomes ``Ad_{z^-1}' I Ad_{z^-1}``.
     """
     ad = se2.adjoint(se2.inverse(z_a_from_b))
-    ad_inv = np.linalg.inv(ad)
-    return se2.inverse(z_a_from_b), ad_inv.T @ info @ ad_inv
+    return se2.inverse(z_a_from_b), ad.T @ info @ ad
 
 
 def merge_repeated_edges(graph: G2oGraph) -> G2oGraph:

@@ -162,9 +162,7 @@ class Isam2Solver:
     on the affected part of its Bayes tree), so no ordering choice applies here.
     """
 
-    def __init__(
-        self, *, relinearize_threshold: float = 0.1, relinearize_skip: int = 10
-    ) -> None:
+    def __init__(self, *, relinearize_threshold: float = 0.1, relinearize_skip: int = 10) -> None:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(relinearize_threshold)
         params.relinearizeSkip = relinearize_skip
