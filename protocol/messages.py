@@ -86,8 +86,11 @@ F3 = tuple[float, float, float]
 F6 = tuple[float, float, float, float, float, float]
 
 
-class _Message(msgspec.Struct, array_like=True, frozen=True, gc=False):
-    """Base of all radio messages: fields listed in ``_F32`` are rounded to float32."""
+class _Message(msgspec.Struct, array_like=True, frozen=True, gc=False, omit_defaults=True):
+    """Base of all radio messages: fields listed in ``_F32`` are rounded to float32.
+
+    Trailing fields equal to their defaults are left off the wire (``omit_defaults``).
+    """
 
     _F32: ClassVar[tuple[str, ...]] = ()
     _F32_TUPLES: ClassVar[tuple[str, ...]] = ()
@@ -136,7 +139,7 @@ class TaskState(enum.IntEnum):
 # ----------------------------------------------------------------------------- both directions
 
 
-class AckEntry(msgspec.Struct, array_like=True, frozen=True, gc=False):
+class AckEntry(msgspec.Struct, array_like=True, frozen=True, gc=False, omit_defaults=True):
     """Acknowledgement state of one reliable stream.
 
     ``through``: every sequence number up to and including it was received (0: none yet).

@@ -76,7 +76,7 @@ class ReliabilityConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
     #: Acks may use at most this fraction of the bytes they acknowledge ...
     ack_budget_frac: float = 0.03
     #: ... but wait no longer than this after the first unacknowledged arrival.
-    ack_max_delay_s: float = 4.0
+    ack_max_delay_s: float = 5.0
     #: How soon to ack after a duplicate or an out-of-order arrival.
     ack_prompt_delay_s: float = 0.1
     #: Retransmission timeout before any round trip was measured (> ack_max_delay_s).
