@@ -41,9 +41,25 @@ from protocol.messages import Direction
 from protocol.meter import Meter
 from protocol.radio import RadioConfig, RadioGrant
 from protocol.radio_channel import RadioChannel, ReliabilityConfig
+from protocol.sensors import (
+    RobotCommand,
+    SensorFrame,
+    decode_command,
+    decode_sensor_frame,
+    encode_command,
+    encode_sensor_frame,
+)
 from protocol.wire import ProtocolError
 
-__all__ = ["GcsEndpoint", "Link", "LinkConfig", "RobotEndpoint", "Subscription"]
+__all__ = [
+    "DriverPort",
+    "GcsEndpoint",
+    "Link",
+    "LinkConfig",
+    "RemoteDriver",
+    "RobotEndpoint",
+    "Subscription",
+]
 
 log = logging.getLogger(__name__)
 
@@ -386,6 +402,80 @@ class GcsEndpoint(_Endpoint):
             self._call(robot_id, msg)
 
 
+class RemoteDriver:
+    """A :class:`~protocol.sensors.RobotDriver` for a robot node whose simulator (or hardware
+    process) runs elsewhere: sensor frames arrive over zenoh, commands go back over zenoh.
+
+    Frames that do not decode are counted in ``rejected`` and logged, never raised.
+    """
+
+    def __init__(self, link: Link, robot_id: int) -> None:
+        self.robot_id = robot_id
+        self.rejected = 0
+        self._link = link
+        self._frames: queue.SimpleQueue[SensorFrame] = queue.SimpleQueue()
+        self._commands_key = keys.sim_commands(link.mission, robot_id)
+        self._sub = link.subscribe(keys.sim_sensors(link.mission, robot_id), self._on_frame)
+
+    def _on_frame(self, key: str, payload: bytes) -> None:
+        try:
+            self._frames.put(decode_sensor_frame(payload))
+        except ProtocolError as err:
+            self.rejected += 1
+            log.warning("robot %d: bad sensor frame on %s: %s", self.robot_id, key, err)
+
+    def poll(self, timeout_s: float) -> list[SensorFrame]:
+        """Frames received since the last call, oldest first; waits ``timeout_s`` for one."""
+        try:
+            frames = [self._frames.get(timeout=timeout_s)]
+        except queue.Empty:
+            return []
+        while True:
+            try:
+                frames.append(self._frames.get_nowait())
+            except queue.Empty:
+                return frames
+
+    def send(self, command: RobotCommand) -> None:
+        self._link.publish(self._commands_key, encode_command(command))
+
+    def close(self) -> None:
+        self._sub.close()
+
+
+class DriverPort:
+    """The simulator's (or hardware process's) end of a :class:`RemoteDriver`.
+
+    ``publish(frame)`` sends a sensor frame to the robot node; each command the node sends is
+    decoded and handed to ``on_command``. Bad commands are counted in ``rejected`` and logged.
+    """
+
+    def __init__(
+        self, link: Link, robot_id: int, on_command: Callable[[RobotCommand], None]
+    ) -> None:
+        self.robot_id = robot_id
+        self.rejected = 0
+        self._link = link
+        self._on_command = on_command
+        self._sensors_key = keys.sim_sensors(link.mission, robot_id)
+        self._sub = link.subscribe(keys.sim_commands(link.mission, robot_id), self._on_payload)
+
+    def _on_payload(self, key: str, payload: bytes) -> None:
+        try:
+            command = decode_command(payload)
+        except ProtocolError as err:
+            self.rejected += 1
+            log.warning("robot %d: bad command on %s: %s", self.robot_id, key, err)
+            return
+        self._on_command(command)
+
+    def publish(self, frame: SensorFrame) -> None:
+        self._link.publish(self._sensors_key, encode_sensor_frame(frame))
+
+    def close(self) -> None:
+        self._sub.close()
+
+
 class Link:
     """One process's zenoh session, its radio endpoints and its radio meter.
 
@@ -445,6 +535,16 @@ class Link:
         with self._lock:
             self._endpoints.append(ep)
         return ep
+
+    # -- the driver contract over zenoh (not radio traffic)
+
+    def remote_driver(self, robot_id: int) -> RemoteDriver:
+        """A robot node's driver whose sensors are served by another process."""
+        return RemoteDriver(self, robot_id)
+
+    def driver_port(self, robot_id: int, on_command: Callable[[RobotCommand], None]) -> DriverPort:
+        """The serving end for robot ``robot_id``'s :class:`RemoteDriver`."""
+        return DriverPort(self, robot_id, on_command)
 
     def publish_grant(self, robot_id: int, grant: RadioGrant) -> None:
         """Publish a radio model's grant for ``robot_id`` (endpoints with ``follow_radio``)."""

@@ -187,3 +187,43 @@ def test_manual_clock_never_goes_back() -> None:
     with pytest.raises(ValueError, match="cannot go back"):
         clock.set(4.0)
     assert clock.advance(1.5) == 6.5
+
+
+def test_remote_driver_carries_sensor_frames_and_commands() -> None:
+    import numpy as np
+
+    from protocol.sensors import LidarSweep, VelocityCommand
+
+    commands: list[VelocityCommand] = []
+    got_command = threading.Event()
+
+    def on_command(cmd: VelocityCommand) -> None:
+        commands.append(cmd)
+        got_command.set()
+
+    sim_link, robot_link = open_pair(mission="driver", clock=WallClock())
+    try:
+        port = sim_link.driver_port(2, on_command)
+        driver = robot_link.remote_driver(2)
+        sweep = LidarSweep(
+            0, 1.0, 1.25, np.arange(12, dtype=np.float32).reshape(4, 3), np.zeros(4, np.float32)
+        )
+        frames: list = []
+        deadline = time.monotonic() + 10.0
+        while not frames and time.monotonic() < deadline:  # until the subscription is live
+            port.publish(sweep)
+            frames = driver.poll(0.05)
+        assert frames, "no sensor frame arrived"
+        assert np.array_equal(frames[0].points_in_base, sweep.points_in_base)
+        sim_link.publish(keys.sim_sensors("driver", 2), b"not a frame")
+        cmd = VelocityCommand(1.0, 0.5, -0.1)
+        while not got_command.is_set() and time.monotonic() < deadline:
+            driver.send(cmd)
+            got_command.wait(0.05)
+        assert commands[0] == cmd
+        while driver.rejected == 0 and time.monotonic() < deadline:
+            driver.poll(0.05)
+        assert driver.rejected == 1
+    finally:
+        robot_link.close()
+        sim_link.close()
