@@ -75,8 +75,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser()
-    args = parser.parse_args(argv)
+    # Unbuilt subcommands take whatever options they will have (``magic robot --id 3``).
+    args, unknown = parser.parse_known_args(argv)
     if args.command == "bench":
+        if unknown:
+            parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         return _cmd_bench(args)
     what = _NOT_BUILT[args.command]
     print(f"magic {args.command}: not built yet; it arrives with {what}.", file=sys.stderr)

@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 
 import msgspec
 import yaml
+from msgspec import inspect as mi
 
 __all__ = ["ConfigError", "decode_config", "load_config", "load_config_text"]
 
@@ -29,6 +30,9 @@ _PATH_RE = re.compile(r" - at `\$(?P<path>[^`]*)`$")
 _EXPECTED_RE = re.compile(r"^Expected `(?P<want>[^`]+)`, got `(?P<got>[^`]+)`")
 _UNKNOWN_RE = re.compile(r"^Object contains unknown field `(?P<name>[^`]+)`")
 _MISSING_RE = re.compile(r"^Object missing required field `(?P<name>[^`]+)`")
+#: A ``__post_init__`` check's message that starts with the field it is about, e.g.
+#: ``shared_capacity_bps must be > 0`` or ``RadioGrant.loss must be in [0, 1)``.
+_FIELD_FIRST_RE = re.compile(r"^(?:[A-Za-z_]\w*\.)?(?P<name>[A-Za-z_]\w*):? (?P<rest>.+)$", re.S)
 
 
 class ConfigError(ValueError):
@@ -50,7 +54,38 @@ def _dotted(path: str, prefix: str) -> str:
     return path
 
 
-def _translate(err: msgspec.ValidationError, source: str, prefix: str) -> ConfigError:
+def _struct_at(config_type: Any, path: str) -> mi.StructType | None:
+    """The struct at msgspec error ``path`` inside ``config_type``, or None."""
+
+    def unwrap(tinfo: mi.Type) -> mi.Type:
+        if isinstance(tinfo, mi.UnionType):  # Optional[...] and the like: take the struct
+            structs = [t for t in tinfo.types if isinstance(t, mi.StructType)]
+            return structs[0] if len(structs) == 1 else tinfo
+        return tinfo
+
+    tinfo = mi.type_info(config_type)
+    for m in re.finditer(r"\.(?P<field>[^.\[]+)|\[(?P<index>[^\]]*)\]", path):
+        tinfo = unwrap(tinfo)
+        if m.group("field") is not None and isinstance(tinfo, mi.StructType):
+            fields = {f.encode_name: f.type for f in tinfo.fields}
+            if m.group("field") not in fields:
+                return None
+            tinfo = fields[m.group("field")]
+        elif m.group("index") is not None and isinstance(
+            tinfo, mi.ListType | mi.VarTupleType | mi.SetType | mi.FrozenSetType
+        ):
+            tinfo = tinfo.item_type
+        elif m.group("index") is not None and isinstance(tinfo, mi.DictType):
+            tinfo = tinfo.value_type
+        else:
+            return None
+    tinfo = unwrap(tinfo)
+    return tinfo if isinstance(tinfo, mi.StructType) else None
+
+
+def _translate(
+    err: msgspec.ValidationError, source: str, prefix: str, config_type: Any = None
+) -> ConfigError:
     text = str(err)
     path = ""
     if m := _PATH_RE.search(text):
@@ -65,6 +100,13 @@ def _translate(err: msgspec.ValidationError, source: str, prefix: str) -> Config
     if m := _MISSING_RE.match(text):
         key = _dotted(f"{path}.{m.group('name')}", prefix)
         return ConfigError(source, key, "required key is missing")
+    # Anything else is a struct's own check (``__post_init__``), reported at the struct: when
+    # the message starts with one of its fields, report it at that field's key.
+    st = _struct_at(config_type, path) if config_type is not None else None
+    m = _FIELD_FIRST_RE.match(text)
+    if st is not None and m and m.group("name") in {f.encode_name for f in st.fields}:
+        key = _dotted(f"{path}.{m.group('name')}", prefix)
+        return ConfigError(source, key, m.group("rest"))
     return ConfigError(source, _dotted(path, prefix), text[:1].lower() + text[1:])
 
 
@@ -79,7 +121,7 @@ def decode_config(data: Any, config_type: type[T], *, source: str, prefix: str =
     try:
         return msgspec.convert(data, config_type, strict=True)
     except msgspec.ValidationError as err:
-        raise _translate(err, source, prefix) from None
+        raise _translate(err, source, prefix, config_type) from None
 
 
 def load_config_text(text: str, config_type: type[T], *, source: str = "<string>") -> T:
@@ -101,4 +143,7 @@ def load_config(path: str | Path, config_type: type[T]) -> T:
         text = path.read_text(encoding="utf-8")
     except OSError as err:
         raise ConfigError(str(path), "", f"cannot read: {err.strerror or err}") from None
+    except UnicodeDecodeError as err:
+        problem = f"not UTF-8 text: {err.reason} at byte {err.start}"
+        raise ConfigError(str(path), "", problem) from None
     return load_config_text(text, config_type, source=str(path))

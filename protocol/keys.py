@@ -32,12 +32,13 @@ __all__ = [
     "sim_truth",
 ]
 
-_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
+_CHUNK = re.compile(r"[A-Za-z0-9_.\-]+")
+_ROBOT_ID = re.compile(r"0|[1-9][0-9]*")
 ROOT = "magic"
 
 
 def _chunk(value: str, what: str) -> str:
-    if not _CHUNK.match(value):
+    if not isinstance(value, str) or not _CHUNK.fullmatch(value):
         raise ValueError(f"{what} {value!r}: use letters, digits, '_', '-' and '.' only")
     return value
 
@@ -77,8 +78,9 @@ def parse_radio_key(key: str) -> RadioKey:
     if (
         len(parts) != 6
         or parts[0] != ROOT
+        or not _CHUNK.fullmatch(parts[1])
         or parts[2] != "robot"
-        or not parts[3].isdigit()
+        or not _ROBOT_ID.fullmatch(parts[3])
         or parts[4] not in ("up", "down")
     ):
         raise ValueError(f"not a radio key: {key!r}")

@@ -20,7 +20,9 @@ Array = NDArray[np.float64]
 def wrap_angle(theta_rad: ArrayLike) -> Array:
     """Wrap angles to ``[-pi, pi)``."""
     t = np.asarray(theta_rad, dtype=np.float64)
-    return (t + np.pi) % (2.0 * np.pi) - np.pi
+    w = (t + np.pi) % (2.0 * np.pi) - np.pi
+    # The modulo of a tiny negative number rounds up to 2 pi, giving pi: map it to -pi.
+    return w - 2.0 * np.pi * (w >= np.pi)  # type: ignore[no-any-return]
 
 
 def _poses(p: ArrayLike, name: str) -> Array:
@@ -30,10 +32,16 @@ def _poses(p: ArrayLike, name: str) -> Array:
     return a
 
 
+def _same_batch(a: Array, name_a: str, b: Array, name_b: str) -> None:
+    if a.ndim == 2 and b.ndim == 2 and len(a) != len(b) and 1 not in (len(a), len(b)):
+        raise ValueError(f"{name_b}: {len(b)} poses do not match the {len(a)} of {name_a}")
+
+
 def compose(a_from_b: ArrayLike, b_from_c: ArrayLike) -> Array:
     """``a_from_c = a_from_b * b_from_c``."""
     ab = _poses(a_from_b, "a_from_b")
     bc = _poses(b_from_c, "b_from_c")
+    _same_batch(ab, "a_from_b", bc, "b_from_c")
     c, s = np.cos(ab[..., 2]), np.sin(ab[..., 2])
     x = ab[..., 0] + c * bc[..., 0] - s * bc[..., 1]
     y = ab[..., 1] + s * bc[..., 0] + c * bc[..., 1]
@@ -53,6 +61,7 @@ def relative(world_from_a: ArrayLike, world_from_b: ArrayLike) -> Array:
     """``a_from_b = inverse(world_from_a) * world_from_b`` (gtsam's ``between``)."""
     wa = _poses(world_from_a, "world_from_a")
     wb = _poses(world_from_b, "world_from_b")
+    _same_batch(wa, "world_from_a", wb, "world_from_b")
     c, s = np.cos(wa[..., 2]), np.sin(wa[..., 2])
     dx = wb[..., 0] - wa[..., 0]
     dy = wb[..., 1] - wa[..., 1]

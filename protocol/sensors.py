@@ -17,7 +17,15 @@ from typing import Any, Protocol, runtime_checkable
 import msgspec
 import numpy as np
 
-from protocol.wire import PROTOCOL_VERSION, ProtocolError, check_array, dec_hook, enc_hook, ext_hook
+from protocol.wire import (
+    PROTOCOL_VERSION,
+    ProtocolError,
+    check_array,
+    dec_hook,
+    describe_path,
+    enc_hook,
+    ext_hook,
+)
 
 __all__ = [
     "CameraImage",
@@ -178,13 +186,29 @@ def _encode(obj: Any, kind: str) -> bytes:
         raise ProtocolError(f"cannot encode {kind} {type(obj).__name__}: {err}") from None
 
 
+def _describe(envelope: type, data: bytes, text: str) -> str:
+    """msgspec's ``problem - at `$path``` with the path named by field (``LidarSweep.time_s``)."""
+    problem, sep, path = text.rpartition(" - at `$")
+    if not sep:
+        return text.replace("`", "")
+    try:
+        raw = msgspec.msgpack.decode(data, ext_hook=lambda code, buf: None)
+        where = describe_path(envelope, raw, path.rstrip("`"))
+    except Exception:  # noqa: BLE001 - fall back to msgspec's own text
+        return text.replace("`", "")
+    problem = problem.replace("`", "")
+    if where.startswith(envelope.__name__):  # the whole frame: its own check names the field
+        return problem
+    return f"{where}: {problem[:1].lower() + problem[1:]}"
+
+
 def _decode(decoder: msgspec.msgpack.Decoder[Any], data: bytes, kind: str) -> Any:
     try:
         env = decoder.decode(data)
     except ProtocolError as err:
         raise ProtocolError(f"{kind}: {err}") from None
     except Exception as err:  # noqa: BLE001 - every failure must surface as ProtocolError
-        raise ProtocolError(f"{kind}: {str(err).replace('`', '')}") from None
+        raise ProtocolError(f"{kind}: {_describe(decoder.type, data, str(err))}") from None
     if env.version != PROTOCOL_VERSION:
         raise ProtocolError(f"{kind}: protocol version {env.version}, expected {PROTOCOL_VERSION}")
     return env

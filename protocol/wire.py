@@ -16,6 +16,7 @@ Every decoding failure, whatever its cause, surfaces as :class:`ProtocolError`.
 
 from __future__ import annotations
 
+import math
 import struct
 from collections.abc import Iterable
 from typing import Any
@@ -71,7 +72,11 @@ class f32(float):  # noqa: N801 - named like numpy's scalar types on purpose
     __slots__ = ()
 
     def __new__(cls, value: float = 0.0) -> f32:
-        return super().__new__(cls, _F32.unpack(_F32.pack(value))[0])
+        try:
+            rounded = _F32.unpack(_F32.pack(value))[0]
+        except OverflowError:  # beyond float32's range: IEEE rounding gives an infinity
+            rounded = math.copysign(math.inf, value)
+        return super().__new__(cls, rounded)
 
 
 def f32s(values: Iterable[float]) -> tuple[f32, ...]:
