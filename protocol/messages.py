@@ -152,7 +152,7 @@ class AckEntry(msgspec.Struct, array_like=True, frozen=True, gc=False, omit_defa
     received: bytes = b""
 
 
-class Ack(_Message, tag=0):
+class Ack(_Message, tag=0, frozen=True):
     """Acknowledges reliable streams of the opposite direction (both directions use it)."""
 
     entries: list[AckEntry]
@@ -161,7 +161,7 @@ class Ack(_Message, tag=0):
 # ----------------------------------------------------------------------------- robot -> GCS
 
 
-class PoseNode(_Message, tag=1):
+class PoseNode(_Message, tag=1, frozen=True):
     """A new sample of the robot's trajectory with its odometry constraint (paper 4.2, 4.3.1).
 
     ``node_index`` counts this robot's nodes from 0 without gaps. ``pose_in_odom`` is the robot
@@ -179,7 +179,7 @@ class PoseNode(_Message, tag=1):
     odom_covariance: F6
 
 
-class TerrainGrid(_Message, tag=2):
+class TerrainGrid(_Message, tag=2, frozen=True):
     """Binary grid of vertical surfaces around pose node ``node_index`` (paper 4.3.3, 4.3.4).
 
     Cell ``(row, col)`` covers ``origin_in_base + (col, row) * resolution_m`` in the node's
@@ -199,7 +199,7 @@ class TerrainGrid(_Message, tag=2):
     data: bytes
 
 
-class FiducialObservation(_Message, tag=3):
+class FiducialObservation(_Message, tag=3, frozen=True):
     """Another robot's AprilTag seen from pose node ``node_index`` (paper 4.3.2).
 
     ``observed_in_base``: pose of the observed robot's base in the observer's base frame, with
@@ -216,7 +216,7 @@ class FiducialObservation(_Message, tag=3):
     covariance: F6
 
 
-class Detection(_Message, tag=4):
+class Detection(_Message, tag=4, frozen=True):
     """An object detected from pose node ``node_index`` (paper 5.2).
 
     ``position_in_base`` (m) with ``position_covariance`` ``(xx, xy, yy)`` in m²;
@@ -237,7 +237,7 @@ class Detection(_Message, tag=4):
     confidence: float
 
 
-class DetectionImage(_Message, tag=5):
+class DetectionImage(_Message, tag=5, frozen=True):
     """A camera image sent on demand, e.g. for an operator to confirm a detection (paper 6.1).
 
     ``detection_id`` is 0 for an image not tied to a detection. ``camera_pan_rad``: camera
@@ -256,7 +256,7 @@ class DetectionImage(_Message, tag=5):
     data: bytes
 
 
-class Telemetry(_Message, tag=6):
+class Telemetry(_Message, tag=6, frozen=True):
     """Latest robot state for operators (latest only: never retransmitted).
 
     ``velocity``: (linear m/s, angular rad/s) in ``base``; ``roll_pitch_rad`` from gravity;
@@ -275,7 +275,7 @@ class Telemetry(_Message, tag=6):
     task_id: int
 
 
-class TaskStatus(_Message, tag=7):
+class TaskStatus(_Message, tag=7, frozen=True):
     """Progress of task ``task_id``; ``detail`` says why for failures and rejections."""
 
     task_id: int
@@ -289,7 +289,7 @@ class TaskStatus(_Message, tag=7):
 # its current estimate of ``map_from_odom`` (paper 4.1: robots receive goals in their own frame).
 
 
-class GoToTask(_Message, tag=16):
+class GoToTask(_Message, tag=16, frozen=True):
     """Drive through ``waypoints_in_odom`` in order; ``speed_limit_m_s`` 0 means default."""
 
     _F32 = ("speed_limit_m_s",)
@@ -304,7 +304,7 @@ class GoToTask(_Message, tag=16):
         force_setattr(self, "waypoints_in_odom", [f32s(p) for p in self.waypoints_in_odom])
 
 
-class NeutralizeTask(_Message, tag=17):
+class NeutralizeTask(_Message, tag=17, frozen=True):
     """Hold the laser pointer on the static OOI at ``target_in_odom`` for 15 s (paper 2).
 
     The robot drives to a stand-off pose ``standoff_m`` away with line of sight; it fires only
@@ -321,21 +321,21 @@ class NeutralizeTask(_Message, tag=17):
     approved: bool
 
 
-class PauseTask(_Message, tag=18):
+class PauseTask(_Message, tag=18, frozen=True):
     """Stop and hold the current task."""
 
     task_id: int
     issued_time_s: float
 
 
-class ResumeTask(_Message, tag=19):
+class ResumeTask(_Message, tag=19, frozen=True):
     """Resume the paused task."""
 
     task_id: int
     issued_time_s: float
 
 
-class RelayTask(_Message, tag=20):
+class RelayTask(_Message, tag=20, frozen=True):
     """Drive to ``position_in_odom`` and hold there as a radio relay."""
 
     _F32_TUPLES = ("position_in_odom",)
@@ -345,14 +345,14 @@ class RelayTask(_Message, tag=20):
     position_in_odom: F2
 
 
-class IdleTask(_Message, tag=21):
+class IdleTask(_Message, tag=21, frozen=True):
     """Drop any task and stay still."""
 
     task_id: int
     issued_time_s: float
 
 
-class TeleopTask(_Message, tag=22):
+class TeleopTask(_Message, tag=22, frozen=True):
     """Drive at (``linear_m_s``, ``angular_rad_s``) for ``duration_s``.
 
     ``conservative``: the robot stops before obstacles (paper 6.1's safe tele-operation).
@@ -391,7 +391,7 @@ class RobotFrame(msgspec.Struct, array_like=True, frozen=True, gc=False):
         force_setattr(self, "map_from_odom", f32s(self.map_from_odom))
 
 
-class HazardUpdate(_Message, tag=32):
+class HazardUpdate(_Message, tag=32, frozen=True):
     """All known hazards in ``map`` plus every robot's ``map_from_odom`` (paper 4.1).
 
     Sent once for all robots rather than once per robot in each private frame; each robot
@@ -403,7 +403,7 @@ class HazardUpdate(_Message, tag=32):
     frames: list[RobotFrame]
 
 
-class ParameterUpdate(_Message, tag=33):
+class ParameterUpdate(_Message, tag=33, frozen=True):
     """Set a robot parameter at run time by dotted name (e.g. ``planner.clearance_m``)."""
 
     name: str
@@ -532,7 +532,7 @@ class DownlinkFrame(Frame, frozen=True, gc=False):
 
 
 _ENCODER = msgspec.msgpack.Encoder(enc_hook=enc_hook)
-_DECODERS = {
+_DECODERS: dict[Direction, msgspec.msgpack.Decoder[Any]] = {
     Direction.UP: msgspec.msgpack.Decoder(UplinkFrame, dec_hook=dec_hook, ext_hook=ext_hook),
     Direction.DOWN: msgspec.msgpack.Decoder(DownlinkFrame, dec_hook=dec_hook, ext_hook=ext_hook),
 }

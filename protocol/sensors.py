@@ -52,7 +52,7 @@ class _Frame(msgspec.Struct, array_like=True, frozen=True, gc=False):
     pass
 
 
-class LidarSweep(_Frame, tag=1):
+class LidarSweep(_Frame, tag=1, frozen=True):
     """One 3D sweep of the nodding LIDAR (paper 3.1: 270° planar scanner, sweep every 1.25 s).
 
     ``points_in_base`` is ``(N, 3)`` float32, each point in the body frame *at the instant it
@@ -72,7 +72,7 @@ class LidarSweep(_Frame, tag=1):
         check_array("LidarSweep.point_time_s", self.point_time_s, "float32", (pts.shape[0],))
 
 
-class CameraImage(_Frame, tag=2):
+class CameraImage(_Frame, tag=2, frozen=True):
     """An RGB image (``(H, W, 3)`` uint8) with the camera pose and pinhole intrinsics.
 
     ``camera_pan_rad`` / ``camera_tilt_rad``: camera heading and elevation relative to
@@ -94,7 +94,7 @@ class CameraImage(_Frame, tag=2):
         check_array("CameraImage.rgb", self.rgb, "uint8", (None, None, 3))
 
 
-class WheelTicks(_Frame, tag=3):
+class WheelTicks(_Frame, tag=3, frozen=True):
     """Cumulative encoder counts of the left and right wheel sides (skid steer)."""
 
     time_s: float
@@ -102,7 +102,7 @@ class WheelTicks(_Frame, tag=3):
     right_ticks: int
 
 
-class ImuSample(_Frame, tag=4):
+class ImuSample(_Frame, tag=4, frozen=True):
     """Gyro (rad/s) and accelerometer (m/s², gravity included: +9.81 on z when level)."""
 
     time_s: float
@@ -110,7 +110,7 @@ class ImuSample(_Frame, tag=4):
     linear_acceleration_m_s2: F3
 
 
-class ClockTick(_Frame, tag=5):
+class ClockTick(_Frame, tag=5, frozen=True):
     """The mission clock, published by the simulator (or a real-time clock source)."""
 
     time_s: float
@@ -119,7 +119,7 @@ class ClockTick(_Frame, tag=5):
 SensorFrame = LidarSweep | CameraImage | WheelTicks | ImuSample | ClockTick
 
 
-class VelocityCommand(_Frame, tag=16):
+class VelocityCommand(_Frame, tag=16, frozen=True):
     """Drive at ``linear_m_s`` forward and ``angular_rad_s`` counter-clockwise (body frame)."""
 
     time_s: float
@@ -127,7 +127,7 @@ class VelocityCommand(_Frame, tag=16):
     angular_rad_s: float
 
 
-class LaserPointerCommand(_Frame, tag=17):
+class LaserPointerCommand(_Frame, tag=17, frozen=True):
     """Point the disruptor's laser (paper 2) at ``pan_rad``/``tilt_rad`` in ``base``; ``on``."""
 
     time_s: float
@@ -136,7 +136,7 @@ class LaserPointerCommand(_Frame, tag=17):
     tilt_rad: float
 
 
-class ImageRequest(_Frame, tag=18):
+class ImageRequest(_Frame, tag=18, frozen=True):
     """Ask for the camera image at the camera pose recorded at ``time_s`` (paper 5.2's image
     memory of a continuously panning camera); answered by a :class:`CameraImage`."""
 
