@@ -1,0 +1,1 @@
+"""Control and safety: path following, keep-out disks, stuck detection, traversability."""

@@ -1,0 +1,188 @@
+"""Following a planned path with speed and acceleration limits (paper 5.4's last stage).
+
+Pure pursuit on the path in ``odom``: steer towards the point ``lookahead_m`` ahead along the
+path, turn in place when that point is far off the heading (skid steer can), slow down near
+the goal and in tight turns, and limit linear and angular acceleration so commands are
+smooth. Every command is then checked against keep-out disks (hazards): the follower stops
+rather than let the predicted motion enter one (:func:`motion_enters_keepout`).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import msgspec
+import numpy as np
+
+from protocol.se2 import wrap_angle
+
+__all__ = ["FollowStatus", "FollowerConfig", "PathFollower", "motion_enters_keepout"]
+
+
+class FollowerConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    max_speed_m_s: float = 1.0
+    max_accel_m_s2: float = 0.8
+    max_yaw_rate_rad_s: float = 1.2
+    max_yaw_accel_rad_s2: float = 3.0
+    lookahead_m: float = 0.8
+    goal_tolerance_m: float = 0.3
+    turn_in_place_rad: float = 0.9  # heading error beyond which the robot turns on the spot
+    slow_radius_m: float = 1.5  # decelerate within this distance of the goal
+    yaw_gain: float = 2.0
+    keepout_horizon_s: float = 1.5
+
+
+class FollowStatus(enum.Enum):
+    IDLE = "idle"
+    FOLLOWING = "following"
+    ARRIVED = "arrived"
+    BLOCKED = "blocked"  # the next motion would enter a keep-out disk
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    linear_m_s: float
+    angular_rad_s: float
+    status: FollowStatus
+
+
+def motion_enters_keepout(
+    pose_in_odom: np.ndarray,
+    linear_m_s: float,
+    angular_rad_s: float,
+    disks_in_odom: np.ndarray,
+    *,
+    horizon_s: float,
+    steps: int = 10,
+) -> bool:
+    """Whether driving at the given velocities for ``horizon_s`` enters any disk ``(x, y, r)``
+    (one it is not already inside: a robot inside a disk may still drive out of it)."""
+    if len(disks_in_odom) == 0:
+        return False
+    disks = np.asarray(disks_in_odom, dtype=np.float64)
+    x, y, th = (float(v) for v in pose_in_odom)
+    d_now = np.hypot(disks[:, 0] - x, disks[:, 1] - y)
+    inside_now = d_now < disks[:, 2]
+    dt = horizon_s / steps
+    for _ in range(steps):
+        x += linear_m_s * dt * math.cos(th + 0.5 * angular_rad_s * dt)
+        y += linear_m_s * dt * math.sin(th + 0.5 * angular_rad_s * dt)
+        th += angular_rad_s * dt
+        d = np.hypot(disks[:, 0] - x, disks[:, 1] - y)
+        entering = (d < disks[:, 2]) & ~inside_now
+        deeper = inside_now & (d < d_now - 1e-9)
+        if np.any(entering | deeper):
+            return True
+    return False
+
+
+class PathFollower:
+    """Pure pursuit with limits; call :meth:`step` at the control rate."""
+
+    def __init__(self, config: FollowerConfig | None = None) -> None:
+        self.config = config or FollowerConfig()
+        self._path = np.zeros((0, 2))
+        self._v = 0.0
+        self._w = 0.0
+        self._progress = 0  # index of the path segment we are on
+
+    def set_path(self, path_in_odom: np.ndarray) -> None:
+        """Follow ``path_in_odom`` ``(N, 2)`` (N >= 1) from now on; empty path: stop."""
+        path = np.asarray(path_in_odom, dtype=np.float64).reshape(-1, 2)
+        if not np.all(np.isfinite(path)):
+            raise ValueError("path_in_odom contains non-finite points")
+        self._path = path
+        self._progress = 0
+
+    @property
+    def has_path(self) -> bool:
+        return len(self._path) > 0
+
+    def _lookahead_point(self, pos: np.ndarray) -> tuple[np.ndarray, float]:
+        path = self._path
+        if len(path) == 1:
+            return path[0], float(np.linalg.norm(path[0] - pos))
+        # advance progress to the closest segment ahead
+        best_i, best_d = self._progress, math.inf
+        for i in range(self._progress, len(path) - 1):
+            a, b = path[i], path[i + 1]
+            ab = b - a
+            t = float(np.clip(np.dot(pos - a, ab) / max(np.dot(ab, ab), 1e-12), 0.0, 1.0))
+            d = float(np.linalg.norm(a + t * ab - pos))
+            if d < best_d - 1e-9:
+                best_i, best_d = i, d
+            elif d > best_d + 2 * self.config.lookahead_m:
+                break
+        self._progress = best_i
+        remaining = self.config.lookahead_m
+        a, b = path[best_i], path[best_i + 1]
+        ab = b - a
+        t = float(np.clip(np.dot(pos - a, ab) / max(np.dot(ab, ab), 1e-12), 0.0, 1.0))
+        point = a + t * ab
+        i = best_i
+        while True:
+            seg_end = path[i + 1]
+            left = float(np.linalg.norm(seg_end - point))
+            if left >= remaining or i + 2 >= len(path):
+                point = point + (seg_end - point) * min(1.0, remaining / max(left, 1e-12))
+                break
+            remaining -= left
+            point = seg_end
+            i += 1
+        to_goal = float(np.linalg.norm(path[-1] - pos))
+        return point, to_goal
+
+    def step(
+        self,
+        pose_in_odom: np.ndarray,
+        dt_s: float,
+        *,
+        keepout_disks_in_odom: np.ndarray | None = None,
+        speed_limit_m_s: float | None = None,
+    ) -> Command:
+        """The velocity command for this control period."""
+        cfg = self.config
+        pos = np.asarray(pose_in_odom[:2], dtype=np.float64)
+        status = FollowStatus.FOLLOWING
+        if not self.has_path:
+            v_des = w_des = 0.0
+            status = FollowStatus.IDLE
+        else:
+            target, to_goal = self._lookahead_point(pos)
+            if to_goal <= cfg.goal_tolerance_m:
+                v_des = w_des = 0.0
+                status = FollowStatus.ARRIVED
+            else:
+                bearing = math.atan2(target[1] - pos[1], target[0] - pos[0])
+                err = float(wrap_angle(bearing - float(pose_in_odom[2])))
+                w_des = float(
+                    np.clip(cfg.yaw_gain * err, -cfg.max_yaw_rate_rad_s, cfg.max_yaw_rate_rad_s)
+                )
+                vmax = min(cfg.max_speed_m_s, speed_limit_m_s or math.inf)
+                if abs(err) > cfg.turn_in_place_rad:
+                    v_des = 0.0
+                else:
+                    v_des = vmax * math.cos(err) * min(1.0, to_goal / cfg.slow_radius_m + 0.2)
+        v, w = self._limit(v_des, w_des, dt_s)
+        disks = keepout_disks_in_odom
+        if disks is not None and motion_enters_keepout(
+            np.asarray(pose_in_odom), v, w, disks, horizon_s=cfg.keepout_horizon_s
+        ):
+            v, w = 0.0, 0.0  # a hard stop is the safe reaction; the planner routes around
+            self._v, self._w = 0.0, 0.0
+            status = FollowStatus.BLOCKED
+        return Command(v, w, status)
+
+    def _limit(self, v_des: float, w_des: float, dt_s: float) -> tuple[float, float]:
+        cfg = self.config
+        dv = float(np.clip(v_des - self._v, -cfg.max_accel_m_s2 * dt_s, cfg.max_accel_m_s2 * dt_s))
+        dw = float(
+            np.clip(
+                w_des - self._w, -cfg.max_yaw_accel_rad_s2 * dt_s, cfg.max_yaw_accel_rad_s2 * dt_s
+            )
+        )
+        self._v += dv
+        self._w += dw
+        return self._v, self._w

@@ -1,0 +1,143 @@
+"""Path following with limits, keep-out disks, stuck detection and traversability."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from protocol.messages import Hazard, HazardUpdate, ObjectKind, RobotFrame
+from protocol.se2 import compose
+from robot.control.keepout import KeepoutConfig, keepout_disks_in_odom, rasterize_disks
+from robot.control.path_follower import (
+    FollowerConfig,
+    FollowStatus,
+    PathFollower,
+    motion_enters_keepout,
+)
+from robot.control.stuck_detector import StuckDetector
+from robot.control.traversability import TraversabilityMap, traversability
+
+
+def simulate(follower: PathFollower, pose: np.ndarray, *, steps: int, dt: float = 0.05, disks=None):
+    """Unicycle kinematics driven by the follower; returns poses, commands, last status."""
+    poses, cmds, status = [pose.copy()], [], FollowStatus.IDLE
+    for _ in range(steps):
+        cmd = follower.step(pose, dt, keepout_disks_in_odom=disks)
+        cmds.append((cmd.linear_m_s, cmd.angular_rad_s))
+        status = cmd.status
+        pose = compose(pose, np.array([cmd.linear_m_s * dt, 0.0, cmd.angular_rad_s * dt]))
+        poses.append(pose.copy())
+        if status is FollowStatus.ARRIVED:
+            break
+    return np.array(poses), np.array(cmds), status
+
+
+def test_follows_an_l_shaped_path_within_limits() -> None:
+    cfg = FollowerConfig()
+    follower = PathFollower(cfg)
+    path = np.array([[0.0, 0.0], [5.0, 0.0], [5.0, 5.0]])
+    follower.set_path(path)
+    poses, cmds, status = simulate(follower, np.zeros(3), steps=2000)
+    assert status is FollowStatus.ARRIVED
+    assert np.linalg.norm(poses[-1, :2] - path[-1]) <= cfg.goal_tolerance_m + 0.05
+    # never far from the path (the corner is cut by at most about the lookahead)
+    seg_d = [
+        min(
+            np.linalg.norm(p - np.clip(p, [0, 0], [5, 0])),
+            np.linalg.norm(p - np.clip(p, [5, 0], [5, 5])),
+        )
+        for p in poses[:, :2]
+    ]
+    assert max(seg_d) < cfg.lookahead_m
+    dv = np.abs(np.diff(cmds[:, 0])) / 0.05
+    dw = np.abs(np.diff(cmds[:, 1])) / 0.05
+    assert cmds[:, 0].max() <= cfg.max_speed_m_s + 1e-9
+    assert np.abs(cmds[:, 1]).max() <= cfg.max_yaw_rate_rad_s + 1e-9
+    assert dv.max() <= cfg.max_accel_m_s2 + 1e-9 and dw.max() <= cfg.max_yaw_accel_rad_s2 + 1e-9
+
+
+def test_turns_in_place_towards_a_goal_behind() -> None:
+    follower = PathFollower()
+    follower.set_path(np.array([[-3.0, 0.0]]))
+    _, cmds, status = simulate(follower, np.zeros(3), steps=20)
+    assert np.allclose(cmds[:10, 0], 0.0) and np.all(np.abs(cmds[5:10, 1]) > 0.1)
+
+
+def test_never_enters_a_keepout_disk_on_its_path() -> None:
+    follower = PathFollower()
+    follower.set_path(np.array([[0.0, 0.0], [10.0, 0.0]]))
+    disks = np.array([[6.0, 0.0, 3.25]])  # a static OOI at 6 m: 2.5 m + 0.75 m margin
+    poses, _, status = simulate(follower, np.zeros(3), steps=600, disks=disks)
+    d = np.hypot(poses[:, 0] - 6.0, poses[:, 1])
+    assert d.min() >= 3.25 - 1e-6
+    assert status is FollowStatus.BLOCKED
+
+
+def test_keepout_check_lets_a_robot_leave_a_disk() -> None:
+    disks = np.array([[0.0, 0.0, 3.0]])
+    pose = np.array([1.0, 0.0, 0.0])  # inside, facing away
+    assert not motion_enters_keepout(pose, 0.5, 0.0, disks, horizon_s=1.0)
+    assert motion_enters_keepout(np.array([1.0, 0.0, math.pi]), 0.5, 0.0, disks, horizon_s=1.0)
+
+
+def test_hazards_convert_from_map_with_this_robots_frame() -> None:
+    update = HazardUpdate(
+        10.0,
+        [
+            Hazard(1, ObjectKind.STATIC_OOI, (10.0, 0.0), 0.0),
+            Hazard(2, ObjectKind.HOSTILE, (0.0, 10.0), 6.0),
+        ],
+        [RobotFrame(3, (10.0, 0.0, math.pi / 2)), RobotFrame(4, (0.0, 0.0, 0.0))],
+    )
+    cfg = KeepoutConfig()
+    disks = keepout_disks_in_odom(
+        3, update, [(ObjectKind.HOSTILE, 1.0, 1.0), (ObjectKind.CIVILIAN, 2.0, 2.0)], config=cfg
+    )
+    # map_from_odom = (10, 0, 90°): the hazard at map (10, 0) is the odom origin
+    assert np.allclose(disks[0], [0.0, 0.0, 2.5 + 0.75], atol=1e-5)
+    # map (0, 10) -> odom: rotate (-10, 10) by -90° -> (10, 10); a larger reported radius wins
+    assert np.allclose(disks[1], [10.0, 10.0, 6.0 + 0.75], atol=1e-4)
+    assert np.allclose(disks[2], [1.0, 1.0, 5.75])  # own hostile detection; civilians add none
+    assert len(disks) == 3
+    # a robot the update does not place only keeps its own detections
+    assert keepout_disks_in_odom(9, update).shape == (0, 3)
+
+
+def test_rasterize_disks_marks_cell_centres_inside() -> None:
+    grid = np.zeros((40, 40), dtype=bool)
+    out = rasterize_disks(
+        grid, np.array([[2.0, 2.0, 1.0]]), origin_in_odom=(0.0, 0.0), resolution_m=0.1
+    )
+    rows, cols = np.nonzero(out)
+    centres = np.stack([(cols + 0.5) * 0.1, (rows + 0.5) * 0.1], axis=1)
+    assert np.all(np.hypot(centres[:, 0] - 2.0, centres[:, 1] - 2.0) <= 1.0 + 1e-9)
+    assert abs(out.sum() - math.pi * 100) < 20  # about pi r^2 / cell area
+    assert not grid.any()  # the input is not modified
+
+
+def test_stuck_when_commanded_but_not_moving() -> None:
+    det = StuckDetector()
+    pose = np.zeros(3)
+    assert not any(det.update(0.1 * k, pose, 0.5, 0.0) for k in range(37))  # < 0.95 window
+    assert det.update(4.0, pose, 0.5, 0.0)
+    det.reset()
+    moving = [det.update(0.1 * k, np.array([0.05 * k, 0.0, 0.0]), 0.5, 0.0) for k in range(100)]
+    assert not any(moving)
+    assert not det.update(20.0, pose, 0.0, 0.0)
+
+
+def test_traversability_eq1_and_learning() -> None:
+    assert traversability(0.25, 0.5) == pytest.approx(0.5)
+    assert traversability(0.9, 0.5) == 1.0
+    assert traversability(0.3, 0.0) == 0.0
+    tm = TraversabilityMap((10, 10), origin_in_odom=(0.0, 0.0), resolution_m=1.0)
+    for _ in range(30):  # sand: half the requested speed
+        tm.observe(2.5, 3.5, measured_m_s=0.3, requested_m_s=0.6)
+        tm.observe(5.5, 5.5, measured_m_s=0.6, requested_m_s=0.6)
+    cost = tm.cost_multiplier()
+    assert cost[3, 2] == pytest.approx(1 + 4.0 * 0.5, rel=0.01)
+    assert cost[5, 5] == pytest.approx(1.0) and cost[0, 0] == 1.0
+    with pytest.raises(ValueError, match="non-finite"):
+        tm.observe(1.0, 1.0, measured_m_s=math.nan, requested_m_s=1.0)
