@@ -4,6 +4,7 @@
 GCS use; the stream's header says which codec made it, so the GCS decodes any of them.
 """
 
+import compression.codecs  # noqa: F401 - registers the shipped codecs
 from compression.registry import (
     MAX_GRID_CELLS,
     CodecError,
