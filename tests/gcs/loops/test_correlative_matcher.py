@@ -64,6 +64,7 @@ def test_branch_and_bound_equals_brute_force_on_structured_pairs(seed: int) -> N
     guess = truth + np.array([0.4, -0.3, math.radians(-6)])
     bnb = matcher.match(ref, pts, guess)
     brute = brute_force_match(matcher, ref, pts, guess)
+    assert bnb is not None and brute is not None
     assert bnb.score == brute.score
     assert np.array_equal(bnb.a_from_b_discrete, brute.a_from_b_discrete)
     assert bnb.nodes_evaluated < brute.nodes_evaluated / 5  # the bound prunes
@@ -84,7 +85,29 @@ def test_branch_and_bound_equals_brute_force_on_random_grids(seed: int) -> None:
     guess = np.array([0.1, 0.0, 0.05])
     bnb = matcher.match(ref, pts, guess)
     brute = brute_force_match(matcher, ref, pts, guess)
+    assert bnb is not None and brute is not None
     assert (bnb.score, *bnb.a_from_b_discrete) == (brute.score, *brute.a_from_b_discrete)
+
+
+def test_min_score_prunes_and_agrees_with_brute_force() -> None:
+    truth = np.array([0.3, 0.2, 0.1])
+    ref_grid, query_grid, origin = scene_pair(7, truth)
+    _, unrelated, _ = scene_pair(8, truth)  # another place entirely
+    matcher = CorrelativeMatcher(MatcherConfig(search_xy_m=1.0, search_yaw_rad=math.radians(10)))
+    ref = matcher.reference_table(ref_grid, origin_m=origin, resolution_m=RES)
+    good = grid_points(query_grid, origin_m=origin, resolution_m=RES)
+    bad = grid_points(unrelated, origin_m=origin, resolution_m=RES)
+    free = matcher.match(ref, good, np.zeros(3))
+    pruned = matcher.match(ref, good, np.zeros(3), min_score=0.6)
+    assert free is not None and pruned is not None
+    assert pruned.score == free.score and pruned.nodes_evaluated <= free.nodes_evaluated
+    # a place that does not match is rejected after far fewer evaluations
+    unpruned_bad = matcher.match(ref, bad, np.zeros(3))
+    assert unpruned_bad is not None and unpruned_bad.normalized_score < 0.6
+    assert matcher.match(ref, bad, np.zeros(3), min_score=0.6) is None
+    assert brute_force_match(matcher, ref, bad, np.zeros(3), min_score=0.6) is None
+    with pytest.raises(ValueError, match="min_score"):
+        matcher.match(ref, good, np.zeros(3), min_score=1.5)
 
 
 def test_covariance_is_positive_definite_and_small_for_a_good_match() -> None:
