@@ -28,6 +28,7 @@ from protocol.wire import (
 )
 
 __all__ = [
+    "BatteryState",
     "CameraImage",
     "ClockTick",
     "ImageRequest",
@@ -110,13 +111,20 @@ class ImuSample(_Frame, tag=4, frozen=True):
     linear_acceleration_m_s2: F3
 
 
+class BatteryState(_Frame, tag=6, frozen=True):
+    """Remaining battery charge as a fraction of full, in [0, 1]."""
+
+    time_s: float
+    charge_frac: float
+
+
 class ClockTick(_Frame, tag=5, frozen=True):
     """The mission clock, published by the simulator (or a real-time clock source)."""
 
     time_s: float
 
 
-SensorFrame = LidarSweep | CameraImage | WheelTicks | ImuSample | ClockTick
+SensorFrame = LidarSweep | CameraImage | WheelTicks | ImuSample | ClockTick | BatteryState
 
 
 class VelocityCommand(_Frame, tag=16, frozen=True):

@@ -101,38 +101,31 @@ class PathFollower:
         return len(self._path) > 0
 
     def _lookahead_point(self, pos: np.ndarray) -> tuple[np.ndarray, float]:
+        """The point ``lookahead_m`` of arc length beyond ``pos``'s projection onto the path,
+        and the straight distance to the goal. Progress only moves forward along the path
+        (searching a window ahead), so a path that doubles back is followed in order."""
         path = self._path
         if len(path) == 1:
             return path[0], float(np.linalg.norm(path[0] - pos))
-        # advance progress to the closest segment ahead
-        best_i, best_d = self._progress, math.inf
-        for i in range(self._progress, len(path) - 1):
-            a, b = path[i], path[i + 1]
-            ab = b - a
-            t = float(np.clip(np.dot(pos - a, ab) / max(np.dot(ab, ab), 1e-12), 0.0, 1.0))
-            d = float(np.linalg.norm(a + t * ab - pos))
-            if d < best_d - 1e-9:
-                best_i, best_d = i, d
-            elif d > best_d + 2 * self.config.lookahead_m:
-                break
-        self._progress = best_i
-        remaining = self.config.lookahead_m
-        a, b = path[best_i], path[best_i + 1]
-        ab = b - a
-        t = float(np.clip(np.dot(pos - a, ab) / max(np.dot(ab, ab), 1e-12), 0.0, 1.0))
-        point = a + t * ab
-        i = best_i
-        while True:
-            seg_end = path[i + 1]
-            left = float(np.linalg.norm(seg_end - point))
-            if left >= remaining or i + 2 >= len(path):
-                point = point + (seg_end - point) * min(1.0, remaining / max(left, 1e-12))
-                break
-            remaining -= left
-            point = seg_end
-            i += 1
-        to_goal = float(np.linalg.norm(path[-1] - pos))
-        return point, to_goal
+        cfg = self.config
+        seg = path[1:] - path[:-1]
+        seg_len = np.hypot(seg[:, 0], seg[:, 1])
+        arc = np.concatenate([[0.0], np.cumsum(seg_len)])
+        lo = self._progress
+        # segments starting within the window, plus the one the window ends in
+        hi = int(np.searchsorted(arc, arc[lo] + 4.0 * cfg.lookahead_m + 1.0, side="right")) + 1
+        hi = min(max(hi, lo + 2), len(seg))
+        a, ab, ln = path[lo:hi], seg[lo:hi], seg_len[lo:hi]
+        t = np.clip(np.einsum("ij,ij->i", pos - a, ab) / np.maximum(ln**2, 1e-12), 0.0, 1.0)
+        proj = a + t[:, None] * ab
+        k = int(np.argmin(np.hypot(proj[:, 0] - pos[0], proj[:, 1] - pos[1])))
+        i = lo + k
+        self._progress = i
+        s_target = min(arc[i] + t[k] * seg_len[i] + cfg.lookahead_m, arc[-1])
+        j = min(int(np.searchsorted(arc, s_target, side="right")) - 1, len(seg) - 1)
+        frac = (s_target - arc[j]) / max(seg_len[j], 1e-12)
+        point = path[j] + min(frac, 1.0) * seg[j]
+        return point, float(np.linalg.norm(path[-1] - pos))
 
     def step(
         self,

@@ -1,0 +1,453 @@
+"""The robot node: one robot's on-board autonomy, wired between its driver and its radio.
+
+Everything happens in the robot's private frame ``odom`` (paper 4.1). Per sensor frame:
+
+* **IMU / encoders** -> inertially-aided odometry (4.3.1); each encoder reading is a control
+  period: the task executor advances, the path follower produces a velocity command, hazards'
+  keep-out disks and the stuck detector guard it (5.4, AOJRF traversability from the speed).
+* **LIDAR sweep** (one per 1.25 s) -> de-skewed with odometry, classified (5.3) and fused
+  with the last 12 sweeps; a pose node when the robot moved enough (4.2), with its
+  vertical-surface grid compressed by the codec registry (4.3.3, 4.3.4); a new plan to the
+  current waypoint (5.4). No path: the robot stops, waits (the short memory forgets a bad
+  map) and the task reports it after a timeout.
+* **Downlink** -> tasks (the executor validates them), hazard updates (keep-out disks via this
+  robot's ``map_from_odom``), parameter updates.
+
+The node is sans-IO: :meth:`RobotNode.process` takes the frames a driver returned and gives
+back the commands for the driver; uplink messages go to ``send`` (a radio endpoint's send);
+downlink messages arrive through :meth:`RobotNode.handle_downlink` from any thread. It never
+dies on a bad message: it counts it, logs it, and carries on.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from compression import CodecError, encode_grid
+from protocol.messages import (
+    AutonomyMode,
+    HazardUpdate,
+    ParameterUpdate,
+    TaskMessage,
+    TaskStatus,
+    Telemetry,
+    TerrainGrid,
+)
+from protocol.se2 import relative, wrap_angle
+from protocol.sensors import (
+    BatteryState,
+    ImuSample,
+    LaserPointerCommand,
+    LidarSweep,
+    RobotCommand,
+    SensorFrame,
+    VelocityCommand,
+    WheelTicks,
+)
+from robot.control.keepout import KeepoutConfig, keepout_disks_in_odom, rasterize_disks
+from robot.control.path_follower import FollowerConfig, FollowStatus, PathFollower
+from robot.control.stuck_detector import StuckConfig, StuckDetector
+from robot.odometry.inertial_odometry import InertialOdometry, OdometryConfig
+from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
+from robot.planning.planner import PathPlanner, PlannerConfig
+from robot.tasks.task_executor import TaskExecutor, TaskExecutorConfig
+from robot.terrain.classifier import TerrainConfig, classify_sweep
+from robot.terrain.grid import OBSTACLE, GridGeometry
+from robot.terrain.map_fusion import TerrainMapFusion
+from robot.terrain.vertical_surface_grid import VerticalSurfaceConfig, vertical_surface_grid
+
+__all__ = ["NodeStats", "RobotNode", "RobotNodeConfig"]
+
+log = logging.getLogger(__name__)
+
+_TASK_TYPES = TaskMessage.__args__  # type: ignore[attr-defined]
+
+
+class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Everything a robot node runs with (``configs/robot/*.yaml``)."""
+
+    codec: str = "zlib"
+    telemetry_period_s: float = 1.0
+    calibrate_still_s: float = 3.0  # hold still at start so the gyro bias is learned (4.3.1)
+    deskew_samples: int = 16  # odometry poses interpolated across a sweep
+    backup_s: float = 1.5  # stuck recovery: reverse this long
+    backup_speed_m_s: float = 0.3
+    conservative_stop_m: float = 0.6  # conservative tele-operation stops this far from obstacles
+    odometry: OdometryConfig = OdometryConfig()
+    pose_nodes: PoseNodeConfig = PoseNodeConfig()
+    terrain: TerrainConfig = TerrainConfig()
+    vertical_surfaces: VerticalSurfaceConfig = VerticalSurfaceConfig()
+    planner: PlannerConfig = PlannerConfig()
+    follower: FollowerConfig = FollowerConfig()
+    tasks: TaskExecutorConfig = TaskExecutorConfig()
+    keepout: KeepoutConfig = KeepoutConfig()
+    stuck: StuckConfig = StuckConfig()
+
+
+@dataclass
+class NodeStats:
+    sweeps: int = 0
+    pose_nodes: int = 0
+    terrain_grids: int = 0
+    terrain_grid_bytes: int = 0
+    plans: int = 0
+    plan_failures: int = 0
+    bad_messages: int = 0
+    bad_frames: int = 0
+    stuck_recoveries: int = 0
+    keepout_stops: int = 0
+
+
+class RobotNode:
+    """One robot's autonomy (see the module docstring)."""
+
+    def __init__(
+        self,
+        robot_id: int,
+        *,
+        send: Callable[[Any], object],
+        config: RobotNodeConfig | None = None,
+    ) -> None:
+        self.robot_id = robot_id
+        self.config = config or RobotNodeConfig()
+        cfg = self.config
+        self._send = send
+        self.stats = NodeStats()
+        self.odometry = InertialOdometry(cfg.odometry)
+        self.nodes = PoseNodeMaker(cfg.pose_nodes)
+        self.fusion = TerrainMapFusion(memory_sweeps=cfg.terrain.memory_sweeps)
+        self.planner = PathPlanner(cfg.planner)
+        self.follower = PathFollower(cfg.follower)
+        self.tasks = TaskExecutor(cfg.tasks)
+        self.stuck = StuckDetector(cfg.stuck)
+        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._hazards: HazardUpdate | None = None
+        self._keepout = np.zeros((0, 3))
+        self._codec = cfg.codec
+        self._now = -math.inf
+        self._last_cmd = (0.0, 0.0)
+        self._last_telemetry_s = -math.inf
+        self._planned_goal: np.ndarray | None = None
+        self._path_found = True
+        self._backup_until_s = -math.inf
+        self._last_map: tuple[np.ndarray, GridGeometry] | None = None
+        self._laser_on = False
+        self._battery_frac = math.nan  # unknown until the hardware reports it
+        self._start_s: float | None = None
+
+    # ------------------------------------------------------------------ downlink
+
+    def handle_downlink(self, message: Any) -> None:
+        """Queue a message from the GCS (thread-safe); it is applied on the next frame."""
+        self._inbox.put(message)
+
+    def _apply_downlink(self) -> None:
+        while True:
+            try:
+                msg = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                self._apply(msg)
+            except Exception as err:  # a bad message must never stop the robot
+                self.stats.bad_messages += 1
+                log.warning("robot %d: bad downlink message %r: %s", self.robot_id, msg, err)
+
+    def _apply(self, msg: Any) -> None:
+        pose = self.odometry.pose_in_odom
+        if isinstance(msg, _TASK_TYPES) or not isinstance(msg, HazardUpdate | ParameterUpdate):
+            for status in self.tasks.submit(msg, self._now, pose):
+                self._report(status)
+            self._planned_goal = None  # replan for the new intent
+            return
+        if isinstance(msg, HazardUpdate):
+            self._hazards = msg
+            self._keepout = keepout_disks_in_odom(self.robot_id, msg, config=self.config.keepout)
+            self._planned_goal = None
+            return
+        if msg.name == "codec":
+            if not isinstance(msg.value, str):
+                raise ValueError(f"parameter codec must be a string, got {msg.value!r}")
+            encode_grid(np.zeros((1, 1), bool), msg.value)  # raises CodecError if unknown
+            self._codec = msg.value
+            return
+        raise ValueError(f"unknown parameter {msg.name!r}")
+
+    def _report(self, status: TaskStatus) -> None:
+        self._send(status)
+
+    # ------------------------------------------------------------------ frames
+
+    def process(self, frames: list[SensorFrame]) -> list[RobotCommand]:
+        """Consume the frames a driver returned (time order); return the commands to send."""
+        commands: list[RobotCommand] = []
+        for frame in frames:
+            try:
+                if isinstance(frame, ImuSample):
+                    self._now = max(self._now, frame.time_s)
+                    self.odometry.add_imu(frame)
+                elif isinstance(frame, WheelTicks):
+                    self._now = max(self._now, frame.time_s)
+                    inc = self.odometry.add_ticks(frame)
+                    if inc is not None:
+                        self.nodes.add_increment(inc)
+                        self._apply_downlink()
+                        commands.extend(self._control(inc.dt_s))
+                elif isinstance(frame, LidarSweep):
+                    self._now = max(self._now, frame.time_s + frame.duration_s)
+                    self._on_sweep(frame)
+                elif isinstance(frame, BatteryState):
+                    self._battery_frac = float(frame.charge_frac)
+            except ValueError as err:  # a bad frame is counted, never fatal
+                self.stats.bad_frames += 1
+                log.warning("robot %d: bad %s: %s", self.robot_id, type(frame).__name__, err)
+        return commands
+
+    # ------------------------------------------------------------------ sweep pipeline
+
+    def _sweep_poses(self, sweep: LidarSweep) -> np.ndarray:
+        """``odom_from_base`` at each point's time, interpolated from a few odometry poses."""
+        cfg = self.config
+        t = sweep.time_s + sweep.point_time_s.astype(np.float64)
+        ts = np.linspace(
+            sweep.time_s, sweep.time_s + max(sweep.duration_s, 1e-6), cfg.deskew_samples
+        )
+        poses = np.array([self.odometry.pose_at(float(x)) for x in ts])
+        yaw = np.unwrap(poses[:, 2])
+        return np.stack(
+            [np.interp(t, ts, poses[:, 0]), np.interp(t, ts, poses[:, 1]), np.interp(t, ts, yaw)],
+            axis=1,
+        )
+
+    def _on_sweep(self, sweep: LidarSweep) -> None:
+        cfg = self.config
+        self.stats.sweeps += 1
+        if len(sweep.points_in_base) == 0:
+            return
+        poses = self._sweep_poses(sweep)
+        roll, pitch = self.odometry.roll_pitch_rad
+        classes, geometry = classify_sweep(
+            sweep.points_in_base, poses, config=cfg.terrain, roll_rad=roll, pitch_rad=pitch
+        )
+        self.fusion.add(classes, geometry)
+        end_time = sweep.time_s + sweep.duration_s
+        pose = self.odometry.pose_in_odom
+        if self.nodes.due(pose, end_time):
+            node = self.nodes.make(pose, end_time)
+            self._send(node)
+            self.stats.pose_nodes += 1
+            self._send_grid(node.node_index, sweep, poses, pose, roll, pitch)
+        self._replan(force=True)
+
+    def _send_grid(
+        self,
+        index: int,
+        sweep: LidarSweep,
+        poses: np.ndarray,
+        node_pose: np.ndarray,
+        roll: float,
+        pitch: float,
+    ) -> None:
+        vs = vertical_surface_grid(
+            sweep.points_in_base,
+            config=self.config.vertical_surfaces,
+            roll_rad=roll,
+            pitch_rad=pitch,
+            base_from_point_base=relative(node_pose, poses),
+        )
+        occ = vs.occupied
+        rows = np.flatnonzero(occ.any(axis=1))
+        cols = np.flatnonzero(occ.any(axis=0))
+        if len(rows) == 0:
+            r0 = c0 = 0
+            crop = np.zeros((0, 0), dtype=bool)
+        else:  # send only the bounding box of what was seen
+            r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+            crop = occ[r0:r1, c0:c1]
+        res = vs.resolution_m
+        origin = (vs.origin_in_base[0] + c0 * res, vs.origin_in_base[1] + r0 * res)
+        try:
+            data = encode_grid(crop, self._codec)
+        except CodecError as err:
+            log.error("robot %d: cannot encode terrain grid: %s", self.robot_id, err)
+            return
+        self._send(TerrainGrid(index, self._codec, res, crop.shape[1], crop.shape[0], origin, data))
+        self.stats.terrain_grids += 1
+        self.stats.terrain_grid_bytes += len(data)
+
+    def _current_map(self) -> tuple[np.ndarray, GridGeometry]:
+        geometry = self.config.terrain.geometry_around(self.odometry.pose_in_odom[:2])
+        classes = (
+            self.fusion.fused(geometry) if len(self.fusion) else np.zeros(geometry.shape, np.uint8)
+        )
+        if len(self._keepout):
+            blocked = rasterize_disks(
+                classes == OBSTACLE,
+                self._keepout,
+                origin_in_odom=geometry.origin_m,
+                resolution_m=geometry.resolution_m,
+            )
+            classes = classes.copy()
+            classes[blocked] = OBSTACLE
+        return classes, geometry
+
+    def _replan(self, *, force: bool = False) -> None:
+        intent = self.tasks.intent
+        if intent.teleop is not None or len(intent.waypoints_in_odom) == 0:
+            self.follower.set_path(np.zeros((0, 2)))
+            self._planned_goal = None
+            self._path_found = True
+            return
+        goal = intent.waypoints_in_odom[0]
+        if (
+            not force
+            and self._planned_goal is not None
+            and np.array_equal(goal, self._planned_goal)
+        ):
+            return
+        classes, geometry = self._current_map()
+        self._last_map = (classes, geometry)
+        pose = self.odometry.pose_in_odom
+        clipped = self._clip_to_map(goal, geometry)
+        result = self.planner.plan(classes, geometry, pose[:2], clipped)
+        self.stats.plans += 1
+        self._planned_goal = goal
+        if result.ok:
+            self._path_found = True
+            self.follower.set_path(result.path_in_odom)
+        else:
+            self.stats.plan_failures += 1
+            self._path_found = False
+            self.follower.set_path(np.zeros((0, 2)))  # stop and wait for the map to change
+
+    @staticmethod
+    def _clip_to_map(goal: np.ndarray, geometry: GridGeometry) -> np.ndarray:
+        margin = 2 * geometry.resolution_m
+        x0, y0 = geometry.origin_m
+        x1 = x0 + geometry.cols * geometry.resolution_m
+        y1 = y0 + geometry.rows * geometry.resolution_m
+        return np.array(
+            [np.clip(goal[0], x0 + margin, x1 - margin), np.clip(goal[1], y0 + margin, y1 - margin)]
+        )
+
+    # ------------------------------------------------------------------ control
+
+    def _control(self, dt_s: float) -> list[RobotCommand]:
+        cfg = self.config
+        now = self._now
+        pose = self.odometry.pose_in_odom
+        intent = self.tasks.intent
+        laser_target = intent.laser_target_in_odom
+        laser_ok = laser_target is not None and self._line_of_sight(pose, laser_target)
+        for status in self.tasks.update(
+            now, pose, path_found=self._path_found, laser_on_target=laser_ok
+        ):
+            self._report(status)
+        intent = self.tasks.intent
+        if self._planned_goal is None:
+            self._replan()
+        out: list[RobotCommand] = []
+        if self._start_s is None:
+            self._start_s = now
+        if now - self._start_s < cfg.calibrate_still_s:
+            v, w = 0.0, 0.0
+        elif now < self._backup_until_s:
+            v, w = -cfg.backup_speed_m_s, 0.0
+        elif intent.teleop is not None:
+            v, w = intent.teleop
+            if (
+                intent.conservative
+                and v > 0
+                and self._obstacle_ahead(pose, cfg.conservative_stop_m)
+            ):
+                v = 0.0
+        elif intent.mode in (AutonomyMode.PAUSED, AutonomyMode.IDLE):
+            v, w = 0.0, 0.0
+            if self.follower.has_path:
+                self.follower.set_path(np.zeros((0, 2)))
+        else:
+            cmd = self.follower.step(pose, dt_s, keepout_disks_in_odom=self._keepout)
+            v, w = cmd.linear_m_s, cmd.angular_rad_s
+            if cmd.status is FollowStatus.BLOCKED:
+                self.stats.keepout_stops += 1
+            if cmd.status is FollowStatus.ARRIVED:
+                self._planned_goal = None
+            if self.stuck.update(now, pose, v, w):
+                self.stats.stuck_recoveries += 1
+                self._backup_until_s = now + cfg.backup_s
+                self.stuck.reset()
+                self.fusion.clear()  # the map that trapped us may be an artifact
+                self._planned_goal = None
+        out.append(VelocityCommand(now, float(v), float(w)))
+        self._last_cmd = (float(v), float(w))
+        out.extend(self._laser(pose, laser_target if laser_ok else None))
+        if now - self._last_telemetry_s >= cfg.telemetry_period_s:
+            self._telemetry(pose, intent.mode, intent.task_id)
+        return out
+
+    def _laser(self, pose: np.ndarray, target: tuple[float, float] | None) -> list[RobotCommand]:
+        if target is None:
+            if self._laser_on:
+                self._laser_on = False
+                return [LaserPointerCommand(self._now, False, 0.0, 0.0)]
+            return []
+        bearing = math.atan2(target[1] - pose[1], target[0] - pose[0]) - pose[2]
+        self._laser_on = True
+        return [LaserPointerCommand(self._now, True, float(wrap_angle(bearing)), 0.0)]
+
+    def _line_of_sight(self, pose: np.ndarray, target: tuple[float, float]) -> bool:
+        """No obstacle cell of the fused map between the robot and ``target``."""
+        if self._last_map is None:
+            return False
+        classes, geometry = self._last_map
+        start = np.asarray(pose[:2])
+        end = np.asarray(target)
+        n = max(2, int(np.linalg.norm(end - start) / geometry.resolution_m))
+        pts = start + np.linspace(0.0, 1.0, n)[:, None] * (end - start)
+        pts = pts[
+            : max(1, n - int(0.5 / geometry.resolution_m))
+        ]  # the target itself may be an obstacle
+        rc = geometry.cell_of(pts)
+        inside = (
+            (rc[:, 0] >= 0)
+            & (rc[:, 0] < geometry.rows)
+            & (rc[:, 1] >= 0)
+            & (rc[:, 1] < geometry.cols)
+        )
+        rc = rc[inside]
+        return not bool(np.any(classes[rc[:, 0], rc[:, 1]] == OBSTACLE))
+
+    def _obstacle_ahead(self, pose: np.ndarray, distance_m: float) -> bool:
+        classes, geometry = self._current_map()
+        r = self.config.planner.robot_radius_m
+        ahead = np.linspace(0.0, distance_m + r, 12)
+        pts = pose[:2] + np.outer(ahead, [math.cos(pose[2]), math.sin(pose[2])])
+        rc = geometry.cell_of(pts)
+        return bool(np.any(classes[rc[:, 0], rc[:, 1]] == OBSTACLE))
+
+    def _telemetry(self, pose: np.ndarray, mode: AutonomyMode, task_id: int) -> None:
+        roll, pitch = self.odometry.roll_pitch_rad
+        self._send(
+            Telemetry(
+                self._now,
+                (float(pose[0]), float(pose[1]), float(pose[2])),
+                self._last_cmd,
+                (roll, pitch),
+                self._battery_frac,
+                mode,
+                task_id,
+            )
+        )
+        self._last_telemetry_s = self._now
+
+    @property
+    def mode(self) -> AutonomyMode:
+        return self.tasks.intent.mode
