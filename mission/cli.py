@@ -14,7 +14,6 @@ __all__ = ["main"]
 
 #: Subcommands that are specified but not built yet, and the issue that brings each.
 _NOT_BUILT = {
-    "run": "the whole mission on the embedded default (robot autonomy, issue 4)",
     "sim": "the PyBullet simulator server (simulated world, issue 3)",
     "robot": "a robot node (robot autonomy, issue 4)",
     "gcs": "the ground-control station node (loop closing and the GCS node, issue 7)",
@@ -35,6 +34,13 @@ def _build_parser() -> argparse.ArgumentParser:
     bench.add_argument("suite", help="suite name, e.g. 'link'")
     bench.add_argument("--quick", action="store_true", help="short run (under 60 s)")
     bench.add_argument("--json", metavar="FILE", help="also write the metrics as JSON to FILE")
+
+    run = sub.add_parser("run", help="simulate a robot team on this machine, end to end")
+    run.add_argument("--config", metavar="YAML", help="run configuration (mission.run.RunConfig)")
+    run.add_argument("--world", metavar="YAML", help="world configuration (default: small)")
+    run.add_argument("--duration", type=float, metavar="S", help="mission seconds to run")
+    run.add_argument("--seed", type=int, help="seed of the scripted goals")
+    run.add_argument("--quiet", action="store_true", help="no live table, only the summary")
 
     for name, what in _NOT_BUILT.items():
         p = sub.add_parser(name, help=f"{what} [not built yet]", add_help=True)
@@ -73,14 +79,44 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    import msgspec
+    from rich.console import Console
+    from rich.live import Live
+
+    from mission.config import ConfigError, load_config
+    from mission.run import RunConfig, format_progress, run_mission
+
+    err = Console(stderr=True)
+    try:
+        config = load_config(args.config, RunConfig) if args.config else RunConfig()
+    except ConfigError as exc:
+        err.print(f"magic run: {exc}", style="red", markup=False, highlight=False)
+        return 2
+    overrides = {
+        k: v
+        for k, v in (("world", args.world), ("duration_s", args.duration), ("seed", args.seed))
+        if v is not None
+    }
+    if overrides:
+        config = msgspec.structs.replace(config, **overrides)
+    if args.quiet:
+        report = run_mission(config)
+    else:
+        with Live(console=err, refresh_per_second=4) as live:
+            report = run_mission(config, on_progress=lambda r: live.update(format_progress(r)))
+    Console().print(format_progress(report))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser()
     # Unbuilt subcommands take whatever options they will have (``magic robot --id 3``).
     args, unknown = parser.parse_known_args(argv)
-    if args.command == "bench":
+    if args.command in ("bench", "run"):
         if unknown:
             parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-        return _cmd_bench(args)
+        return _cmd_bench(args) if args.command == "bench" else _cmd_run(args)
     what = _NOT_BUILT[args.command]
     print(f"magic {args.command}: not built yet; it arrives with {what}.", file=sys.stderr)
     return 2

@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import msgspec
 import numpy as np
 
@@ -60,7 +61,7 @@ from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
 from robot.planning.planner import PathPlanner, PlannerConfig
 from robot.tasks.task_executor import TaskExecutor, TaskExecutorConfig
 from robot.terrain.classifier import TerrainConfig, classify_sweep
-from robot.terrain.grid import OBSTACLE, GridGeometry
+from robot.terrain.grid import OBSTACLE, UNKNOWN, GridGeometry
 from robot.terrain.map_fusion import TerrainMapFusion
 from robot.terrain.vertical_surface_grid import VerticalSurfaceConfig, vertical_surface_grid
 
@@ -317,9 +318,22 @@ class RobotNode:
         self._last_map = (classes, geometry)
         pose = self.odometry.pose_in_odom
         clipped = self._clip_to_map(goal, geometry)
+        beyond_map = not np.allclose(clipped, goal)
         result = self.planner.plan(classes, geometry, pose[:2], clipped)
         self.stats.plans += 1
         self._planned_goal = goal
+        if not result.ok:
+            # head for the reachable free cell nearest the goal: progress towards a goal
+            # beyond the map's edge, or as close as the map allows to one that is blocked
+            nearest = self._nearest_reachable(classes, geometry, pose[:2], clipped)
+            if nearest is not None:
+                result = self.planner.plan(classes, geometry, pose[:2], nearest)
+                self.stats.plans += 1
+                if result.ok and not beyond_map:
+                    self.stats.plan_failures += 1
+                    self._path_found = False  # the goal itself is unreachable: the timeout runs
+                    self.follower.set_path(result.path_in_odom)
+                    return
         if result.ok:
             self._path_found = True
             self.follower.set_path(result.path_in_odom)
@@ -327,6 +341,28 @@ class RobotNode:
             self.stats.plan_failures += 1
             self._path_found = False
             self.follower.set_path(np.zeros((0, 2)))  # stop and wait for the map to change
+
+    def _nearest_reachable(
+        self, classes: np.ndarray, geometry: GridGeometry, start: np.ndarray, goal: np.ndarray
+    ) -> np.ndarray | None:
+        """The free configuration-space cell connected to ``start`` that is nearest ``goal``."""
+        res = geometry.resolution_m
+        radius = max(1, int(math.ceil(self.config.planner.robot_radius_m / res)))
+        blocked = (classes == OBSTACLE).astype(np.uint8)
+        if self.config.planner.unknown == "obstacle":
+            blocked |= (classes == UNKNOWN).astype(np.uint8)
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+        free = (cv2.dilate(blocked, disc) == 0).astype(np.uint8)
+        _, labels = cv2.connectedComponents(free, connectivity=8)
+        r, c = (int(v) for v in geometry.cell_of(start))
+        if not (0 <= r < geometry.rows and 0 <= c < geometry.cols) or labels[r, c] == 0:
+            return None
+        rows, cols = np.nonzero(labels == labels[r, c])
+        centres = geometry.center_of(np.stack([rows, cols], axis=1))
+        best = int(np.argmin(np.hypot(centres[:, 0] - goal[0], centres[:, 1] - goal[1])))
+        if np.hypot(*(centres[best] - start)) < 2 * res:
+            return None  # already as close as the map allows
+        return np.asarray(centres[best], dtype=np.float64)
 
     @staticmethod
     def _clip_to_map(goal: np.ndarray, geometry: GridGeometry) -> np.ndarray:

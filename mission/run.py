@@ -1,0 +1,320 @@
+"""``magic run``: a whole team on one machine, on the embedded default (no server to start).
+
+The simulator, one robot node per robot and a ground-control side run in this process, in
+lockstep with the simulator's mission clock; robots and the ground side talk over two real
+zenoh sessions on loopback through the radio link (rates granted by the simulator's radio
+model, every byte metered). Until the GCS node exists, the ground side is a script: it sends
+each robot a sequence of goals (``GoToTask``, in that robot's private frame) and follows the
+reports that come back (task status, pose nodes, terrain grids, telemetry).
+
+Goals are drawn (seeded) from the ground truth's reachable area, away from walls and objects
+of interest: this composition root is allowed to read ground truth (DESIGN section 2); robots
+never see it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import msgspec
+import numpy as np
+
+from mission.config import CONFIGS_DIR, load_config
+from protocol.clock import ManualClock
+from protocol.link import Link, LinkConfig
+from protocol.loopback import free_loopback_port
+from protocol.messages import (
+    Direction,
+    GoToTask,
+    PoseNode,
+    TaskState,
+    TaskStatus,
+    Telemetry,
+    TerrainGrid,
+)
+from protocol.radio import RadioConfig
+from protocol.radio_channel import LinkBackpressure
+from protocol.se2 import inverse, transform_points
+from robot.node import RobotNode, RobotNodeConfig
+from sim.simulator import Simulator, SimulatorConfig, load_world_config
+
+__all__ = ["RobotProgress", "RunConfig", "RunReport", "run_mission", "scripted_goals"]
+
+
+class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """``configs/run/*.yaml``: which world, how long, and the scripted goals."""
+
+    world: str = "world/small.yaml"  # relative to configs/ unless absolute
+    radio: str = "radio/magic2010.yaml"
+    duration_s: float = 180.0
+    goals_per_robot: int = 4
+    goal_min_m: float = 6.0
+    goal_max_m: float = 18.0
+    goal_clearance_m: float = 1.2  # from walls and other structures
+    goal_separation_m: float = 8.0  # teammates' goals at the same step stay this far apart
+    ooi_clearance_m: float = 7.0  # goals stay well away from objects of interest
+    seed: int = 0
+    simulator: SimulatorConfig = SimulatorConfig()
+    robot: RobotNodeConfig = RobotNodeConfig()
+
+
+@dataclass
+class RobotProgress:
+    robot_id: int
+    goals_sent: int = 0
+    goals_succeeded: int = 0
+    goals_failed: int = 0
+    last_state: str = "-"
+    mode: str = "-"
+    distance_m: float = 0.0
+    pose_nodes: int = 0
+    terrain_grids: int = 0
+    uplink_bytes: int = 0
+    alive: bool = True
+    stuck_recoveries: int = 0
+    plan_failures: int = 0
+    blocked_steps: int = 0  # steps the simulator refused the robot's motion (ground truth)
+
+
+@dataclass
+class RunReport:
+    mission_s: float
+    wall_s: float
+    robots: dict[int, RobotProgress] = field(default_factory=dict)
+    events: list[str] = field(default_factory=list)
+
+    @property
+    def rtf(self) -> float:
+        return self.mission_s / max(self.wall_s, 1e-9)
+
+
+def _resolve(path: str) -> Path:
+    p = Path(path)
+    return p if p.is_absolute() or p.exists() else CONFIGS_DIR / p
+
+
+def scripted_goals(
+    sim: Simulator,
+    robot_index: int,
+    config: RunConfig,
+    rng: np.random.Generator,
+    *,
+    avoid: list[np.ndarray] = (),  # type: ignore[assignment]
+) -> np.ndarray:
+    """``(K, 2)`` goals in the world frame: reachable, clear of structures and OOIs, each
+    between ``goal_min_m`` and ``goal_max_m`` from the previous one (the first from the start),
+    and at each step ``goal_separation_m`` from the goals in ``avoid`` (teammates' ``(K, 2)``
+    sequences), so that robots spread out instead of jamming each other."""
+    truth = sim.truth
+    res = truth.resolution_m
+    free = truth.reachable.astype(np.uint8)
+    clearance = cv2.distanceTransform(free, cv2.DIST_L2, 5) * res
+    ok = clearance >= config.goal_clearance_m
+    rows, cols = np.nonzero(ok)
+    cells = np.stack([(cols + 0.5) * res, (rows + 0.5) * res], axis=1)
+    for ooi in truth.oois:
+        far = (
+            np.hypot(cells[:, 0] - ooi.xy_m[0], cells[:, 1] - ooi.xy_m[1]) >= config.ooi_clearance_m
+        )
+        cells = cells[far]
+    if len(cells) == 0:
+        raise ValueError("no reachable goal cells clear of structures and OOIs in this world")
+    goals = []
+    here = sim.robot_poses()[robot_index][:2]
+    for step in range(config.goals_per_robot):
+        d = np.hypot(cells[:, 0] - here[0], cells[:, 1] - here[1])
+        ok = (d >= config.goal_min_m) & (d <= config.goal_max_m)
+        for other in avoid:
+            sep = np.hypot(cells[:, 0] - other[step, 0], cells[:, 1] - other[step, 1])
+            if np.any(ok & (sep >= config.goal_separation_m)):
+                ok &= sep >= config.goal_separation_m
+        pick = np.flatnonzero(ok)
+        if len(pick) == 0:
+            pick = np.array([int(np.argmax(d))])
+        here = cells[rng.choice(pick)]
+        goals.append(here)
+    return np.array(goals)
+
+
+class _GroundScript:
+    """The ground side until the GCS node lands: sends goals, follows the reports."""
+
+    def __init__(
+        self, sim: Simulator, config: RunConfig, progress: dict[int, RobotProgress]
+    ) -> None:
+        self.progress = progress
+        rng = np.random.default_rng(config.seed)
+        self.goals_in_odom: dict[int, np.ndarray] = {}
+        chosen: list[np.ndarray] = []
+        for k, rid in enumerate(sim.robot_ids):
+            world_goals = scripted_goals(sim, k, config, rng, avoid=chosen)
+            chosen.append(world_goals)
+            odom_from_world = inverse(sim.robot_poses()[k])  # odom starts at the start pose
+            self.goals_in_odom[rid] = transform_points(odom_from_world, world_goals)
+        self.active: dict[int, int] = {}  # robot -> task id in flight
+        self.next_task_id = 1
+
+    def on_message(self, robot_id: int, msg: Any) -> None:
+        p = self.progress.get(robot_id)
+        if p is None:
+            return
+        if isinstance(msg, TaskStatus):
+            p.last_state = msg.state.name.lower() + (f" ({msg.detail})" if msg.detail else "")
+            if msg.task_id == self.active.get(robot_id) and msg.state in (
+                TaskState.SUCCEEDED,
+                TaskState.FAILED,
+                TaskState.REJECTED,
+                TaskState.CANCELED,
+            ):
+                del self.active[robot_id]
+                if msg.state is TaskState.SUCCEEDED:
+                    p.goals_succeeded += 1
+                else:
+                    p.goals_failed += 1
+        elif isinstance(msg, PoseNode):
+            p.pose_nodes += 1
+        elif isinstance(msg, TerrainGrid):
+            p.terrain_grids += 1
+        elif isinstance(msg, Telemetry):
+            p.mode = msg.mode.name.lower()
+
+    def next_goal(self, robot_id: int, now_s: float) -> GoToTask | None:
+        if robot_id in self.active:
+            return None
+        p = self.progress[robot_id]
+        if p.goals_sent >= len(self.goals_in_odom[robot_id]):
+            return None
+        goal = self.goals_in_odom[robot_id][p.goals_sent]
+        task = GoToTask(self.next_task_id, now_s, [(float(goal[0]), float(goal[1]))])
+        self.active[robot_id] = self.next_task_id
+        self.next_task_id += 1
+        p.goals_sent += 1
+        return task
+
+
+def run_mission(
+    config: RunConfig,
+    *,
+    on_progress: Callable[[RunReport], None] | None = None,
+    progress_period_s: float = 0.5,
+) -> RunReport:
+    """Run the team for ``config.duration_s`` mission-seconds; returns what happened."""
+    world_cfg = load_world_config(_resolve(config.world))
+    radio_cfg = load_config(_resolve(config.radio), RadioConfig)
+    clock = ManualClock()
+    port = free_loopback_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    ground_link = Link(LinkConfig(listen=(endpoint,), radio=radio_cfg), mission="run", clock=clock)
+    robot_link = Link(
+        LinkConfig(listen=(), connect=(endpoint,), radio=radio_cfg), mission="run", clock=clock
+    )
+    t_wall = time.perf_counter()
+    try:
+        with Simulator(world_cfg, config=config.simulator) as sim:
+            report = RunReport(0.0, 0.0)
+            for rid in sim.robot_ids:
+                report.robots[rid] = RobotProgress(rid)
+            script = _GroundScript(sim, config, report.robots)
+            ground = ground_link.gcs_endpoint(on_message=script.on_message)
+            nodes: dict[int, RobotNode] = {}
+            radios: dict[int, Any] = {}
+            drivers = {}
+            for rid in sim.robot_ids:
+                nodes[rid] = RobotNode(rid, send=_uplink(radios, rid), config=config.robot)
+                radios[rid] = robot_link.robot_endpoint(rid, on_message=nodes[rid].handle_downlink)
+                drivers[rid] = sim.driver(rid)
+            for rid in sim.robot_ids:
+                if not ground.wait_for_robot(rid, 10.0):
+                    raise TimeoutError(f"robot {rid}'s radio did not come up on {endpoint}")
+            last_pose = {
+                rid: sim.robot_poses()[k][:2].copy() for k, rid in enumerate(sim.robot_ids)
+            }
+            last_report = time.perf_counter()
+            n_steps = int(round(config.duration_s / sim.config.step_s))
+            for _ in range(n_steps):
+                sim.step()
+                clock.set(sim.time_s)
+                for rid, grant in sim.radio_grants().items():
+                    radios[rid].set_grant(grant)
+                    ground.set_grant(rid, grant)
+                alive = sim.alive()
+                poses = sim.robot_poses()
+                blocked = sim.bodies.state.blocked_steps
+                for k, rid in enumerate(sim.robot_ids):
+                    p = report.robots[rid]
+                    p.alive = bool(alive[k])
+                    p.blocked_steps = int(blocked[k])
+                    p.stuck_recoveries = nodes[rid].stats.stuck_recoveries
+                    p.plan_failures = nodes[rid].stats.plan_failures
+                    p.distance_m += float(np.hypot(*(poses[k][:2] - last_pose[rid])))
+                    last_pose[rid] = poses[k][:2].copy()
+                    for command in nodes[rid].process(drivers[rid].poll(0.0)):
+                        drivers[rid].send(command)
+                    task = script.next_goal(rid, sim.time_s)
+                    if task is not None:
+                        ground.send(rid, task)
+                for event in sim.events[len(report.events) :]:
+                    report.events.append(str(event))
+                report.mission_s = sim.time_s
+                if (
+                    on_progress is not None
+                    and time.perf_counter() - last_report >= progress_period_s
+                ):
+                    _fill_bytes(report, robot_link)
+                    report.wall_s = time.perf_counter() - t_wall
+                    on_progress(report)
+                    last_report = time.perf_counter()
+            _fill_bytes(report, robot_link)
+            report.wall_s = time.perf_counter() - t_wall
+            return report
+    finally:
+        robot_link.close()
+        ground_link.close()
+
+
+def _uplink(radios: dict[int, Any], robot_id: int) -> Callable[[Any], object]:
+    """The node's ``send``: its radio endpoint's, tolerating a full queue (the message was
+    refused, not accepted; the node's next report supersedes it)."""
+
+    def send(msg: Any) -> object:
+        try:
+            return radios[robot_id].send(msg)
+        except LinkBackpressure:
+            return None
+
+    return send
+
+
+def _fill_bytes(report: RunReport, robot_link: Link) -> None:
+    for rid, p in report.robots.items():
+        p.uplink_bytes = robot_link.meter.total_bytes(robot_id=rid, direction=Direction.UP)
+
+
+def format_progress(report: RunReport) -> Any:
+    """A rich table of the run so far."""
+    from rich.table import Table
+
+    table = Table(
+        title=f"magic run: {report.mission_s:6.1f} mission-s, x{report.rtf:.1f} real time",
+        caption=f"events: {len(report.events)}"
+        + (f" (last: {report.events[-1]})" if report.events else ""),
+    )
+    for col in ("robot", "mode", "goals ok/sent", "task", "driven m", "nodes", "uplink B/s"):
+        table.add_column(col, justify="right" if col not in ("mode", "task") else "left")
+    for rid, p in sorted(report.robots.items()):
+        bps = p.uplink_bytes / max(report.mission_s, 1e-9)
+        table.add_row(
+            str(rid),
+            p.mode if p.alive else "[red]disabled[/red]",
+            f"{p.goals_succeeded}/{p.goals_sent}",
+            p.last_state[:40],
+            f"{p.distance_m:.1f}",
+            str(p.pose_nodes),
+            f"{bps:.0f}",
+        )
+    return table
