@@ -11,7 +11,7 @@ and covariance ``cov[e]`` in the tangent space of ``j`` (GTSAM ``BetweenFactorPo
 traversing it backwards uses ``z^-1`` with covariance ``Ad_z cov Ad_z'``. Covariances of the
 results are in the body frame of the reached pose, with the source fixed.
 
-Cost: ``O((n + m) log n)`` relaxations of 3x3 matrix products (pure Python/numpy).
+Cost: ``O((n + m) log n)`` relaxations of 3x3 matrix products, compiled with numba.
 """
 
 from __future__ import annotations
@@ -20,7 +20,9 @@ import heapq
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -28,7 +30,7 @@ from gcs.graph import se2
 
 __all__ = ["Adjacency", "ProjectionResult", "dijkstra_projection", "relative_covariance"]
 
-FloatArray = NDArray[np.float64]
+FloatArray = NDArray[np.floating[Any]]
 IntArray = NDArray[np.int64]
 
 
@@ -52,34 +54,99 @@ def _inverse(a: Sequence[float]) -> tuple[float, float, float]:
 class Adjacency:
     """Directed traversal steps of an undirected edge set, grown edge by edge.
 
-    ``steps[i]`` lists ``(j, step_i_from_j, step_covariance, edge_index)`` for both directions
-    of every edge, so that queries need no per-edge adjoint computations.
+    Every edge ``i -> j`` is stored in both directions in array pools (linked lists per node),
+    each direction with its step ``from_i_to_j`` pose and step covariance, so that edges can be
+    added in O(1) between queries (Algorithm 1 alternates the two) and the compiled search
+    needs no per-edge adjoint of the measurement.
     """
 
-    def __init__(self, n: int) -> None:
+    def __init__(self, n: int, *, capacity: int = 16) -> None:
         self.n = n
-        self.steps: list[list[tuple[int, tuple[float, float, float], FloatArray, int]]] = [
-            [] for _ in range(n)
-        ]
         self.num_edges = 0
+        self._size = 0
+        cap = max(2, 2 * capacity)
+        self.head = np.full(n, -1, dtype=np.int64)
+        self.next = np.full(cap, -1, dtype=np.int64)
+        self.to = np.zeros(cap, dtype=np.int64)
+        self.edge = np.zeros(cap, dtype=np.int64)
+        self.step = np.zeros((cap, 3))
+        self.step_cov = np.zeros((cap, 3, 3))
 
     @classmethod
     def from_arrays(cls, n: int, ij: IntArray, z: FloatArray, cov: FloatArray) -> Adjacency:
         """Adjacency of ``n`` nodes and edges ``ij`` (M, 2), ``z`` (M, 3), ``cov`` (M, 3, 3)."""
-        adj = cls(n)
-        for e in range(len(ij)):
-            adj.add(int(ij[e, 0]), int(ij[e, 1]), z[e], cov[e], edge_index=e)
+        ij = np.asarray(ij, dtype=np.int64).reshape(-1, 2)
+        m = len(ij)
+        adj = cls(n, capacity=max(m, 1))
+        if m == 0:
+            return adj
+        if ij.min() < 0 or ij.max() >= n:
+            raise ValueError(f"edge endpoints must lie in 0..{n - 1}")
+        z = np.asarray(z, dtype=float).reshape(m, 3)
+        cov = np.asarray(cov, dtype=float).reshape(m, 3, 3)
+        ad = _ad_batch(z)
+        slots = np.arange(2 * m)
+        adj.to[0::2][:m], adj.to[1::2][:m] = ij[:, 1], ij[:, 0]
+        adj.edge[0 : 2 * m : 2] = np.arange(m)
+        adj.edge[1 : 2 * m : 2] = np.arange(m)
+        adj.step[0 : 2 * m : 2] = z
+        adj.step[1 : 2 * m : 2] = se2.inverse(z)
+        adj.step_cov[0 : 2 * m : 2] = cov
+        adj.step_cov[1 : 2 * m : 2] = ad @ cov @ ad.transpose(0, 2, 1)
+        src = np.empty(2 * m, dtype=np.int64)
+        src[0::2], src[1::2] = ij[:, 0], ij[:, 1]
+        _link_all(adj.head, adj.next, src, slots)
+        adj._size = 2 * m
+        adj.num_edges = m
         return adj
+
+    def _grow(self) -> None:
+        cap = 2 * len(self.next)
+        self.next = np.concatenate([self.next, np.full(cap - len(self.next), -1, np.int64)])
+        self.to = np.resize(self.to, cap)
+        self.edge = np.resize(self.edge, cap)
+        self.step = np.resize(self.step, (cap, 3))
+        self.step_cov = np.resize(self.step_cov, (cap, 3, 3))
 
     def add(
         self, i: int, j: int, z_i_from_j: FloatArray, cov: FloatArray, *, edge_index: int = -1
     ) -> None:
-        """Add edge ``i -> j`` with measurement ``i_from_j`` and its covariance."""
-        zf = (float(z_i_from_j[0]), float(z_i_from_j[1]), float(z_i_from_j[2]))
-        ad = _ad(zf)
-        self.steps[i].append((j, zf, np.asarray(cov, dtype=float), edge_index))
-        self.steps[j].append((i, _inverse(zf), ad @ cov @ ad.T, edge_index))
+        """Add edge ``i -> j``: measurement ``i_from_j`` and its covariance (both directions)."""
+        if not (0 <= i < self.n and 0 <= j < self.n):
+            raise ValueError(f"edge {i} -> {j}: endpoints must lie in 0..{self.n - 1}")
+        if self._size + 2 > len(self.next):
+            self._grow()
+        z = np.asarray(z_i_from_j, dtype=float)
+        cov = np.asarray(cov, dtype=float)
+        ad = se2.adjoint(z)
+        for slot, src, dst, step, scov in (
+            (self._size, i, j, z, cov),
+            (self._size + 1, j, i, se2.inverse(z), ad @ cov @ ad.T),
+        ):
+            self.to[slot] = dst
+            self.edge[slot] = edge_index
+            self.step[slot] = step
+            self.step_cov[slot] = scov
+            self.next[slot] = self.head[src]
+            self.head[src] = slot
+        self._size += 2
         self.num_edges += 1
+
+
+def _ad_batch(z: FloatArray) -> FloatArray:
+    c, s = np.cos(z[:, 2]), np.sin(z[:, 2])
+    out = np.zeros((len(z), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = c, -s, z[:, 1]
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = s, c, -z[:, 0]
+    out[:, 2, 2] = 1.0
+    return out
+
+
+@numba.njit(cache=True)
+def _link_all(head: np.ndarray, nxt: np.ndarray, src: np.ndarray, slots: np.ndarray) -> None:
+    for k in range(src.size):
+        nxt[slots[k]] = head[src[k]]
+        head[src[k]] = slots[k]
 
 
 @dataclass(frozen=True)
@@ -102,6 +169,80 @@ class ProjectionResult:
         return np.isfinite(self.poses[:, 0])
 
 
+@numba.njit(cache=True)
+def _search(
+    head: np.ndarray,
+    nxt: np.ndarray,
+    to: np.ndarray,
+    edge: np.ndarray,
+    step: np.ndarray,
+    step_cov: np.ndarray,
+    source: int,
+    p0: np.ndarray,
+    c0: np.ndarray,
+    target: int,
+    max_trace: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    n = head.size
+    poses = np.full((n, 3), np.nan)
+    covs = np.full((n, 3, 3), np.inf)
+    cand_pose = np.zeros((n, 3))
+    cand_cov = np.zeros((n, 3, 3))
+    parent = np.full(n, -1, dtype=np.int64)
+    parent_edge = np.full(n, -1, dtype=np.int64)
+    best = np.full(n, np.inf)
+    done = np.zeros(n, dtype=np.bool_)
+    cand_pose[source] = p0
+    cand_cov[source] = c0
+    best[source] = c0[0, 0] + c0[1, 1] + c0[2, 2]
+    heap = [(best[source], source)]
+    ad = np.zeros((3, 3))
+    ad[2, 2] = 1.0
+    while len(heap) > 0:
+        tr, v = heapq.heappop(heap)
+        if done[v] or tr > best[v]:
+            continue
+        if tr > max_trace:
+            break
+        done[v] = True
+        poses[v] = cand_pose[v]
+        covs[v] = cand_cov[v]
+        if v == target:
+            break
+        pv = cand_pose[v]
+        cv = cand_cov[v]
+        cv_, sv = math.cos(pv[2]), math.sin(pv[2])
+        slot = head[v]
+        while slot >= 0:
+            w = to[slot]
+            if not done[w]:
+                st = step[slot]
+                # Ad of the inverse step: x_w = x_v * step, cov_w = Ad cov_v Ad' + cov_step.
+                c, s = math.cos(st[2]), math.sin(st[2])
+                ix = -c * st[0] - s * st[1]
+                iy = s * st[0] - c * st[1]
+                ad[0, 0], ad[0, 1], ad[0, 2] = c, s, iy
+                ad[1, 0], ad[1, 1], ad[1, 2] = -s, c, -ix
+                cw = ad @ cv @ ad.T + step_cov[slot]
+                t = cw[0, 0] + cw[1, 1] + cw[2, 2]
+                if t < best[w]:
+                    best[w] = t
+                    cand_cov[w] = cw
+                    th = pv[2] + st[2]
+                    cand_pose[w, 0] = pv[0] + cv_ * st[0] - sv * st[1]
+                    cand_pose[w, 1] = pv[1] + sv * st[0] + cv_ * st[1]
+                    cand_pose[w, 2] = (th + math.pi) % (2.0 * math.pi) - math.pi
+                    parent[w] = v
+                    parent_edge[w] = edge[slot]
+                    heapq.heappush(heap, (t, w))
+            slot = nxt[slot]
+    for v in range(n):
+        if not done[v]:
+            parent[v] = -1
+            parent_edge[v] = -1
+    return poses, covs, parent, parent_edge
+
+
 def dijkstra_projection(
     adjacency: Adjacency,
     source: int,
@@ -120,47 +261,21 @@ def dijkstra_projection(
     n = adjacency.n
     if not 0 <= source < n:
         raise ValueError(f"source {source} out of range 0..{n - 1}")
-    poses = np.full((n, 3), np.nan)
-    covs = np.full((n, 3, 3), np.inf)
-    parent = np.full(n, -1, dtype=np.int64)
-    parent_edge = np.full(n, -1, dtype=np.int64)
-    best = np.full(n, np.inf)
-    done = np.zeros(n, dtype=bool)
     p0 = np.zeros(3) if source_pose is None else np.asarray(source_pose, dtype=float)
     c0 = np.zeros((3, 3)) if source_covariance is None else np.asarray(source_covariance, float)
-    pose_of: dict[int, tuple[float, float, float]] = {source: (p0[0], p0[1], p0[2])}
-    cov_of: dict[int, FloatArray] = {source: c0}
-    best[source] = float(np.trace(c0))
-    heap: list[tuple[float, int]] = [(best[source], source)]
-    steps = adjacency.steps
-    while heap:
-        tr, v = heapq.heappop(heap)
-        if done[v] or tr > best[v]:
-            continue
-        if tr > max_trace:
-            break
-        done[v] = True
-        pv, cv = pose_of[v], cov_of[v]
-        poses[v] = pv
-        covs[v] = cv
-        if v == target:
-            break
-        for w, step, cstep, e in steps[v]:
-            if done[w]:
-                continue
-            ad = _ad(_inverse(step))
-            cw = ad @ cv @ ad.T + cstep
-            t = cw[0, 0] + cw[1, 1] + cw[2, 2]
-            if t < best[w]:
-                best[w] = t
-                cov_of[w] = cw
-                pose_of[w] = _compose(pv, step)
-                parent[w] = v
-                parent_edge[w] = e
-                heapq.heappush(heap, (t, w))
-    unreached = ~done
-    parent[unreached] = -1
-    parent_edge[unreached] = -1
+    poses, covs, parent, parent_edge = _search(
+        adjacency.head,
+        adjacency.next,
+        adjacency.to,
+        adjacency.edge,
+        adjacency.step,
+        adjacency.step_cov,
+        int(source),
+        np.ascontiguousarray(p0),
+        np.ascontiguousarray(c0),
+        -1 if target is None else int(target),
+        float(max_trace),
+    )
     return ProjectionResult(poses, covs, parent, parent_edge)
 
 

@@ -24,6 +24,7 @@ import copy
 import enum
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import gtsam
 import msgspec
@@ -33,8 +34,18 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from gcs.graph import se2
+from gcs.graph.dijkstra_projection import Adjacency, ProjectionResult, dijkstra_projection
+from gcs.graph.g2o import G2oGraph, chained_odometry
 from gcs.graph.keys import pose_key, split_key
-from gcs.graph.optimization import METHODS, ORDERINGS, OrderingKind, SolveMethod, optimize_batch
+from gcs.graph.optimization import (
+    Isam2Config,
+    Isam2Solver,
+    OrderingKind,
+    SolveMethod,
+    optimize_batch,
+)
+from gcs.graph.simplification import simplify_graph
+from gcs.graph.spanning_tree_init import GlobalAnchor, spanning_tree_initialization
 
 __all__ = [
     "EdgeRecord",
@@ -47,7 +58,8 @@ __all__ = [
     "SolveSummary",
 ]
 
-FloatArray = NDArray[np.float64]
+FloatArray = NDArray[np.floating[Any]]
+_Arrays = tuple[NDArray[np.int64], FloatArray, FloatArray]
 
 
 class PoseGraphError(ValueError):
@@ -68,27 +80,25 @@ class PoseGraphConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     """Configuration of :class:`PoseGraph`.
 
     ``map_robot_id``'s first pose anchors ``map`` at ``map_from_odom`` (x m, y m, yaw rad) with
-    the ``anchor_sigma_*``; other components get the broad ``weak_anchor_sigma_*``.
+    the ``anchor_sigma_*``; other components get the ``weak_anchor_sigma_*``. A weak anchor is a
+    prior at the current estimate of a component with no other absolute information, so its
+    residual stays zero at the optimum whatever its strength: it fixes only the gauge. Moderate
+    sigmas keep the linear systems well conditioned (iSAM2 rejects near-singular ones).
     """
 
     map_robot_id: int = 0
     map_from_odom: tuple[float, float, float] = (0.0, 0.0, 0.0)
     anchor_sigma_xy_m: float = 1e-4
     anchor_sigma_yaw_rad: float = 1e-5
-    weak_anchor_sigma_xy_m: float = 1e3
-    weak_anchor_sigma_yaw_rad: float = 1e2
-    method: str = "lm"
-    ordering: str = "colamd"
+    weak_anchor_sigma_xy_m: float = 10.0
+    weak_anchor_sigma_yaw_rad: float = 1.0
+    method: SolveMethod = "lm"
+    ordering: OrderingKind = "colamd"
     max_iterations: int = 100
     relative_error_tol: float = 1e-6
+    isam2: Isam2Config = msgspec.field(default_factory=Isam2Config)
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
-        if self.ordering not in ORDERINGS:
-            raise ValueError(
-                f"ordering: expected one of {', '.join(ORDERINGS)}, got {self.ordering!r}"
-            )
         for name in (
             "anchor_sigma_xy_m",
             "anchor_sigma_yaw_rad",
@@ -180,9 +190,12 @@ class PoseGraph:
     """Factor graph of all robots' trajectories with provenance, anchoring and edits.
 
     API: :meth:`add_pose` (a robot's next pose, odometry edge added), :meth:`add_edge`
-    (fiducial / loop closure), :meth:`add_prior` (global information), :meth:`optimize`,
+    (fiducial / loop closure), :meth:`add_prior` (global information), :meth:`optimize`
+    (batch), :meth:`optimize_incremental` (iSAM2), :meth:`initialize_from_spanning_trees`,
+    :meth:`projection` (Dijkstra projection), :meth:`simplify` (Algorithm 1),
     :meth:`map_from_odom`, :meth:`pose`, :meth:`edges`, :meth:`rewind`, :meth:`remove_edges`,
-    :meth:`snapshot` / :meth:`restore`, :meth:`factor_graph` (the GTSAM graph and values).
+    :meth:`snapshot` / :meth:`restore`, :meth:`factor_graph` (the GTSAM graph and values),
+    :meth:`from_g2o` / :meth:`to_g2o`.
     """
 
     def __init__(self, config: PoseGraphConfig | None = None) -> None:
@@ -192,7 +205,13 @@ class PoseGraph:
         self._estimate: dict[int, FloatArray] = {}
         self._last_key: dict[int, int] = {}
         self._next_edge_id = 0
-        self._components: dict[int, int] | None = None
+        self._components: dict[int, int] | None = None  # kept up to date on additions
+        self._next_label = 0
+        self._isam: Isam2Solver | None = None
+        self._isam_edges: set[int] = set()
+        self._isam_keys: set[int] = set()
+        self._isam_anchors: set[tuple[str, int]] = set()
+        self._isam_stale = True
 
     # ---- queries -------------------------------------------------------------------------
 
@@ -258,6 +277,7 @@ class PoseGraph:
             mat = coo_matrix((np.ones(rows.size), (rows, cols)), shape=(len(keys), len(keys)))
             _, labels = connected_components(mat, directed=False)
             self._components = {k: int(labels[i]) for k, i in index.items()}
+            self._next_label = int(labels.max()) + 1 if labels.size else 0
         return self._components
 
     def anchored_components(self) -> set[int]:
@@ -303,10 +323,16 @@ class PoseGraph:
             cov = _check_cov(odometry_covariance, f"robot {robot_id} pose {index} odometry")
             z = se2.between(self._nodes[prev].odom_from_base, pose)
             estimate = se2.compose(self._estimate[prev], z)
+        pose.setflags(write=False)
         self._nodes[key] = NodeRecord(key, robot_id, index, float(time_s), pose)
         self._estimate[key] = estimate
         self._last_key[robot_id] = key
-        self._components = None
+        if self._components is not None:
+            if prev is None:
+                self._components[key] = self._next_label
+                self._next_label += 1
+            else:
+                self._components[key] = self._components[prev]
         if prev is not None:
             self._append(prev, key, z, cov, Provenance.ODOMETRY, time_s)
         return key
@@ -378,8 +404,15 @@ class PoseGraph:
     ) -> int:
         edge_id = self._next_edge_id
         self._next_edge_id += 1
+        z.setflags(write=False)
+        cov.setflags(write=False)
         self._edges[edge_id] = EdgeRecord(edge_id, key_a, key_b, z, cov, provenance, float(time_s))
-        self._components = None
+        comp = self._components
+        if comp is not None and key_b is not None and comp[key_a] != comp[key_b]:
+            keep, gone = comp[key_a], comp[key_b]
+            for k, label in comp.items():
+                if label == gone:
+                    comp[k] = keep
         return edge_id
 
     def _move_component(self, label: int, key: int, target: FloatArray) -> None:
@@ -390,6 +423,7 @@ class PoseGraph:
         moved = se2.compose(delta, np.array([self._estimate[k] for k in keys]))
         for k, p in zip(keys, moved, strict=True):
             self._estimate[k] = p
+        self._isam_stale = True
 
     # ---- edits ---------------------------------------------------------------------------
 
@@ -402,6 +436,7 @@ class PoseGraph:
                 raise PoseGraphError(f"remove: edge {eid} is odometry and cannot be removed")
         removed = [self._edges.pop(eid) for eid in edge_ids]
         self._components = None
+        self._isam_stale = True
         return removed
 
     def rewind(
@@ -435,25 +470,27 @@ class PoseGraph:
         for key in sorted(self._nodes):
             self._last_key[self._nodes[key].robot_id] = key
         self._components = None
+        self._isam_stale = True
 
     # ---- solving -------------------------------------------------------------------------
 
-    def factor_graph(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-        """The GTSAM graph (edges, map anchor, weak anchors) and the current estimate."""
-        fg = gtsam.NonlinearFactorGraph()
-        for e in self._edges.values():
-            noise = gtsam.noiseModel.Gaussian.Covariance(e.covariance)
-            if e.key_b is None:
-                fg.add(gtsam.PriorFactorPose2(e.key_a, se2.pose2(e.z), noise))
-            else:
-                fg.add(gtsam.BetweenFactorPose2(e.key_a, e.key_b, se2.pose2(e.z), noise))
+    @staticmethod
+    def _edge_factor(e: EdgeRecord) -> gtsam.NonlinearFactor:
+        noise = gtsam.noiseModel.Gaussian.Covariance(e.covariance)
+        if e.key_b is None:
+            return gtsam.PriorFactorPose2(e.key_a, se2.pose2(e.z), noise)
+        return gtsam.BetweenFactorPose2(e.key_a, e.key_b, se2.pose2(e.z), noise)
+
+    def _anchor_factors(self) -> dict[tuple[str, int], gtsam.NonlinearFactor]:
+        """The map anchor and the weak anchors of unanchored components, by (kind, key)."""
         cfg = self.config
+        out: dict[tuple[str, int], gtsam.NonlinearFactor] = {}
         map_key = pose_key(cfg.map_robot_id, 0)
         if map_key in self._nodes:
             target = se2.compose(np.array(cfg.map_from_odom), self._nodes[map_key].odom_from_base)
             sig = [cfg.anchor_sigma_xy_m, cfg.anchor_sigma_xy_m, cfg.anchor_sigma_yaw_rad]
             noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(sig))
-            fg.add(gtsam.PriorFactorPose2(map_key, se2.pose2(target), noise))
+            out[("map", map_key)] = gtsam.PriorFactorPose2(map_key, se2.pose2(target), noise)
         anchored = self.anchored_components()
         roots: dict[int, int] = {}
         for key, label in sorted(self.components().items()):
@@ -466,11 +503,51 @@ class PoseGraph:
         ]
         weak_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(weak))
         for key in roots.values():
-            fg.add(gtsam.PriorFactorPose2(key, se2.pose2(self._estimate[key]), weak_noise))
+            pose = se2.pose2(self._estimate[key])
+            out[("weak", key)] = gtsam.PriorFactorPose2(key, pose, weak_noise)
+        return out
+
+    def factor_graph(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """The GTSAM graph (edges, map anchor, weak anchors) and the current estimate."""
+        fg = gtsam.NonlinearFactorGraph()
+        for e in self._edges.values():
+            fg.add(self._edge_factor(e))
+        for factor in self._anchor_factors().values():
+            fg.add(factor)
         values = gtsam.Values()
         for key, p in self._estimate.items():
             values.insert(key, se2.pose2(p))
         return fg, values
+
+    def optimize_incremental(self) -> None:
+        """Online update with iSAM2: push the edges and poses added since the last call.
+
+        Removals, restores, component merges and anchor changes re-seed iSAM2 from the whole
+        graph (they are rare operator or topology events); otherwise the update is incremental.
+        """
+        anchors = self._anchor_factors()
+        if self._isam is None or self._isam_stale or not self._isam_anchors <= anchors.keys():
+            self._isam = Isam2Solver(self.config.isam2)
+            fg, values = self.factor_graph()
+            self._isam.update(fg, values)
+            self._isam_edges = set(self._edges)
+            self._isam_keys = set(self._nodes)
+            self._isam_anchors = set(anchors)
+            self._isam_stale = False
+        else:
+            fg = gtsam.NonlinearFactorGraph()
+            for eid in self._edges.keys() - self._isam_edges:
+                fg.add(self._edge_factor(self._edges[eid]))
+            for name in anchors.keys() - self._isam_anchors:
+                fg.add(anchors[name])
+            values = gtsam.Values()
+            for key in self._nodes.keys() - self._isam_keys:
+                values.insert(key, se2.pose2(self._estimate[key]))
+            self._isam.update(fg, values)
+            self._isam_edges |= self._edges.keys()
+            self._isam_keys |= self._nodes.keys()
+            self._isam_anchors |= anchors.keys()
+        self.set_estimate(self._isam.estimate())
 
     def set_estimate(self, values: gtsam.Values) -> None:
         """Replace the estimate with ``values`` (must hold every pose)."""
@@ -493,12 +570,13 @@ class PoseGraph:
         result = optimize_batch(
             fg,
             values,
-            method=method or self.config.method,  # type: ignore[arg-type]
-            ordering=ordering or self.config.ordering,  # type: ignore[arg-type]
+            method=method or self.config.method,
+            ordering=ordering or self.config.ordering,
             max_iterations=self.config.max_iterations,
             relative_error_tol=self.config.relative_error_tol,
         )
         self.set_estimate(result.values)
+        self._isam_stale = True
         return SolveSummary(
             chi2=result.chi2,
             iterations=result.iterations,
@@ -511,6 +589,170 @@ class PoseGraph:
         self._require_key(key, "marginal")
         fg, values = self.factor_graph()
         return np.asarray(gtsam.Marginals(fg, values).marginalCovariance(key))
+
+    # ---- uncertainty, initialization, simplification (paper 4.6, 4.7) ----------------------
+
+    def _relative_arrays(
+        self,
+    ) -> tuple[
+        list[int], dict[int, int], list[EdgeRecord], NDArray[np.int64], FloatArray, FloatArray
+    ]:
+        keys = sorted(self._nodes)
+        index = {k: i for i, k in enumerate(keys)}
+        rel = [e for e in self._edges.values() if e.key_b is not None]
+        ij = np.array([[index[e.key_a], index[e.key_b]] for e in rel], dtype=np.int64)  # type: ignore[index]
+        z = np.array([e.z for e in rel], dtype=float).reshape(-1, 3)
+        cov = np.array([e.covariance for e in rel], dtype=float).reshape(-1, 3, 3)
+        return keys, index, rel, ij.reshape(-1, 2), z, cov
+
+    def projection(
+        self, source_key: int, *, target_key: int | None = None, max_trace: float = math.inf
+    ) -> tuple[NDArray[np.int64], ProjectionResult]:
+        """Dijkstra projection from ``source_key`` over the relative edges (paper 4.6).
+
+        Returns ``(keys, result)``: row ``i`` of ``result`` belongs to ``keys[i]``; covariances
+        bound the relative uncertainty ``source^-1 * pose`` from above (loop-closure candidate
+        search uses them to size its search windows).
+        """
+        self._require_key(source_key, "projection")
+        if target_key is not None:
+            self._require_key(target_key, "projection")
+        keys, index, _, ij, z, cov = self._relative_arrays()
+        adjacency = Adjacency.from_arrays(len(keys), ij, z, cov)
+        result = dijkstra_projection(
+            adjacency,
+            index[source_key],
+            target=None if target_key is None else index[target_key],
+            max_trace=max_trace,
+        )
+        return np.array(keys, dtype=np.int64), result
+
+    def initialize_from_spanning_trees(self) -> None:
+        """Re-initialize the estimate from minimum-uncertainty spanning trees (paper 4.6).
+
+        The global anchors are the ``PRIOR`` edges and the map robot's first pose; each pose
+        they reach gets the weighted average of the trees' predictions. Poses of components
+        without global information keep their estimate.
+        """
+        keys, index, _, ij, z, cov = self._relative_arrays()
+        anchors = [
+            GlobalAnchor(index[e.key_a], e.z, e.covariance)
+            for e in self._edges.values()
+            if e.provenance is Provenance.PRIOR
+        ]
+        cfg = self.config
+        map_key = pose_key(cfg.map_robot_id, 0)
+        if map_key in self._nodes:
+            target = se2.compose(np.array(cfg.map_from_odom), self._nodes[map_key].odom_from_base)
+            sig = np.array([cfg.anchor_sigma_xy_m, cfg.anchor_sigma_xy_m, cfg.anchor_sigma_yaw_rad])
+            anchors.append(GlobalAnchor(index[map_key], target, np.diag(sig**2)))
+        if not anchors:
+            return
+        current = np.array([self._estimate[k] for k in keys])
+        init = spanning_tree_initialization(len(keys), ij, z, cov, anchors, fallback=current)
+        for k, p in zip(keys, init, strict=True):
+            self._estimate[k] = p
+        self._isam_stale = True
+
+    def simplify(self, *, alpha: float = 5.0) -> list[EdgeRecord]:
+        """Algorithm 1 (paper 4.7) on the relative edges at the current estimate.
+
+        Call :meth:`optimize` first: kept edges are re-expressed with zero residual at the
+        current estimate, which stays the maximum-likelihood solution. Repeated edges are merged;
+        a merged edge keeps the provenance and id of its first member and the latest time.
+        Priors are untouched. Returns the removed records (take a :meth:`snapshot` first to
+        be able to undo: the current state is baked into the kept edges).
+        """
+        keys, _, rel, ij, z, cov = self._relative_arrays()
+        estimate = np.array([self._estimate[k] for k in keys])
+        simple = simplify_graph(len(keys), ij, cov, estimate, alpha=alpha, z=z)
+        kept_ids: set[int] = set()
+        replaced: dict[int, EdgeRecord] = {}
+        for (i, j), zk, ck, members in zip(
+            simple.ij.tolist(), simple.z, simple.cov, simple.source_edges, strict=True
+        ):
+            first = rel[members[0]]
+            replaced[first.edge_id] = EdgeRecord(
+                edge_id=first.edge_id,
+                key_a=keys[i],
+                key_b=keys[j],
+                z=zk,
+                covariance=ck,
+                provenance=first.provenance,
+                time_s=max(rel[m].time_s for m in members),
+            )
+            kept_ids.add(first.edge_id)
+        removed = [e for e in rel if e.edge_id not in kept_ids]
+        self._edges = {
+            eid: replaced.get(eid, e)
+            for eid, e in self._edges.items()
+            if e.key_b is None or eid in kept_ids
+        }
+        self._components = None
+        self._isam_stale = True
+        return removed
+
+    # ---- g2o -------------------------------------------------------------------------------
+
+    @classmethod
+    def from_g2o(
+        cls,
+        graph: G2oGraph,
+        *,
+        robot_id: int = 0,
+        period_s: float = 1.0,
+        config: PoseGraphConfig | None = None,
+    ) -> PoseGraph:
+        """A one-robot pose graph from a g2o graph whose vertices ``0..N-1`` form an odometry
+        chain (``i -> i+1`` edges become ``ODOMETRY``, the others ``LOOP_AUTO``). Pose ``i``
+        is stamped ``i * period_s``; the estimate starts from chained odometry."""
+        ids = graph.node_ids
+        if ids.size and not np.array_equal(ids, np.arange(ids.size)):
+            raise PoseGraphError("from_g2o: vertex ids must be 0..N-1")
+        cfg = config or PoseGraphConfig(map_robot_id=robot_id)
+        out = cls(cfg)
+        odo = chained_odometry(graph)
+        chain: dict[int, int] = {}
+        for m, (i, j) in enumerate(graph.edge_ij.tolist()):
+            if abs(i - j) == 1 and min(i, j) not in chain:
+                chain[min(i, j)] = m
+        covs = np.linalg.inv(graph.edge_info)
+        for k in range(ids.size):
+            if k == 0:
+                out.add_pose(robot_id, odom_from_base=odo[0], time_s=0.0)
+                continue
+            m = chain[k - 1]
+            cov = covs[m]
+            if graph.edge_ij[m, 0] != k - 1:  # stated k -> k-1: express as k-1 -> k
+                ad = se2.adjoint(graph.edge_z[m])
+                cov = ad @ cov @ ad.T
+            out.add_pose(
+                robot_id, odom_from_base=odo[k], time_s=k * period_s, odometry_covariance=cov
+            )
+        for m, (i, j) in enumerate(graph.edge_ij.tolist()):
+            if chain.get(min(i, j)) == m:
+                continue
+            out.add_edge(
+                pose_key(robot_id, i),
+                pose_key(robot_id, j),
+                a_from_b=graph.edge_z[m],
+                covariance=covs[m],
+                provenance=Provenance.LOOP_AUTO,
+                time_s=max(i, j) * period_s,
+            )
+        return out
+
+    def to_g2o(self) -> G2oGraph:
+        """The relative edges and current estimate as a g2o graph (vertex ids are the keys)."""
+        keys = np.array(sorted(self._nodes), dtype=np.int64)
+        rel = [e for e in self._edges.values() if e.key_b is not None]
+        return G2oGraph(
+            vertex_ids=keys,
+            vertex_poses=np.array([self._estimate[int(k)] for k in keys]).reshape(-1, 3),
+            edge_ij=np.array([[e.key_a, e.key_b] for e in rel], dtype=np.int64).reshape(-1, 2),
+            edge_z=np.array([e.z for e in rel]).reshape(-1, 3),
+            edge_info=np.linalg.inv(np.array([e.covariance for e in rel]).reshape(-1, 3, 3)),
+        )
 
     # ---- helpers -------------------------------------------------------------------------
 

@@ -1,5 +1,9 @@
 """SE(2) helpers for the pose graph, in GTSAM's ``Pose2`` conventions.
 
+Composition, inversion, ``between`` and angle wrapping are the project's shared vectorized
+ones (:mod:`protocol.se2`, re-exported here); this module adds what the graph needs on top:
+conversion to and from ``gtsam.Pose2``, the adjoint, and covariance propagation.
+
 A pose is ``(x, y, theta)`` (metres, radians); ``a_from_b`` composes right to left. Tangent
 vectors are ``(vx, vy, omega)`` and perturbations act on the right, ``x = x_bar * Exp(xi)``, as
 in GTSAM, so covariances are expressed in the body frame of the pose they belong to.
@@ -7,9 +11,14 @@ in GTSAM, so covariances are expressed in the body frame of the pose they belong
 
 from __future__ import annotations
 
+from typing import Any
+
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
+
+from protocol.se2 import compose, inverse, wrap_angle
+from protocol.se2 import relative as between
 
 __all__ = [
     "adjoint",
@@ -22,12 +31,7 @@ __all__ = [
     "wrap_angle",
 ]
 
-FloatArray = NDArray[np.float64]
-
-
-def wrap_angle(theta_rad: FloatArray | float) -> FloatArray | float:
-    """Angle(s) wrapped into ``[-pi, pi)``."""
-    return (np.asarray(theta_rad) + np.pi) % (2.0 * np.pi) - np.pi
+FloatArray = NDArray[np.floating[Any]]
 
 
 def pose2(p: FloatArray | tuple[float, float, float]) -> gtsam.Pose2:
@@ -38,30 +42,6 @@ def pose2(p: FloatArray | tuple[float, float, float]) -> gtsam.Pose2:
 def pose_vec(p: gtsam.Pose2) -> FloatArray:
     """``(x, y, theta)`` of a ``gtsam.Pose2``."""
     return np.array([p.x(), p.y(), p.theta()])
-
-
-def compose(a: FloatArray, b: FloatArray) -> FloatArray:
-    """``a * b`` for poses of shape ``(3,)`` or ``(N, 3)`` (broadcasting)."""
-    a = np.asarray(a, dtype=float)
-    b = np.asarray(b, dtype=float)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
-    y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
-    return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
-
-
-def inverse(a: FloatArray) -> FloatArray:
-    """``a^-1`` for poses of shape ``(3,)`` or ``(N, 3)``."""
-    a = np.asarray(a, dtype=float)
-    c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
-    x = -c * a[..., 0] - s * a[..., 1]
-    y = s * a[..., 0] - c * a[..., 1]
-    return np.stack([x, y, wrap_angle(-a[..., 2])], axis=-1)
-
-
-def between(a: FloatArray, b: FloatArray) -> FloatArray:
-    """``a^-1 * b``: pose of ``b`` in the frame of ``a``."""
-    return compose(inverse(a), b)
 
 
 def adjoint(a: FloatArray) -> FloatArray:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -23,7 +24,7 @@ from gcs.graph.dijkstra_projection import Adjacency, dijkstra_projection
 
 __all__ = ["GlobalAnchor", "spanning_tree_initialization"]
 
-FloatArray = NDArray[np.float64]
+FloatArray = NDArray[np.floating[Any]]
 IntArray = NDArray[np.int64]
 
 

@@ -1,0 +1,239 @@
+"""``magic bench graph``: the GCS pose graph (issue 6; paper 4.6 Table 1, 4.7).
+
+Metrics (times are medians of repeats, wall clock, after warm-up):
+
+- Table 1 per graph ``g`` in ``m3500`` (manhattan_olson3500), ``intel``, ``city10k`` and
+  ordering ``o`` in ``emd``, ``colamd``, ``metis`` (and ``natural`` without ``--quick``):
+  ``{g}_order_s_{o}`` (ordering time, EMD's including reading the graph's adjacency),
+  ``{g}_nnz_{o}`` (non-zeros of the Cholesky factor), ``{g}_solve_s_{o}`` (linearize, factor,
+  back-substitute once at the chained-odometry start), ``{g}_table_total_s_{o}``.
+- ``m3500_chi2``, ``m3500_total_s`` (EMD ordering + Gauss-Newton from chained odometry to the
+  optimum), ``m3500_total_s_colamd`` (the same with COLAMD), ``intel_chi2``,
+  ``city10k_chi2``, ``city10k_total_s``.
+- ``m3500b_chi2_odom_init``, ``m3500b_chi2_tree_init``, ``m3500b_chi2_lago_dogleg``: Dogleg
+  from chained odometry, from the spanning-tree initialization (paper 4.6) and from GTSAM's
+  LAGO, in the same run; ``m3500b_tree_init_s``.
+- ``isam2_ms_per_node_p50``: median iSAM2 update per new node over nodes 4500..5000 of
+  city10000, added one node with its edges at a time: ``update`` plus reading the new node's
+  estimate (which initializes the next node); ``isam2_ms_per_node_p50_all`` the same over all
+  5000 nodes; ``isam2_update_ms_p50`` the ``update`` call alone over nodes 4500..5000;
+  ``isam2_chi2_rel_err`` the final iSAM2 estimate's chi2 relative to the batch optimum.
+- ``simplify_edges_kept_frac``, ``simplify_max_pose_shift_m``: Algorithm 1 on manhattan_olson3500
+  at its optimum; the shift is the largest position difference between the original optimum
+  and the simplified graph's optimum solved from chained odometry; ``simplify_s``.
+"""
+
+from __future__ import annotations
+
+__all__ = ["run"]
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from gcs.graph import se2
+from gcs.graph.dijkstra_projection import Adjacency, dijkstra_projection
+from gcs.graph.emd_ordering import minimum_degree_ordering
+from gcs.graph.g2o import G2oGraph, chained_odometry, read_g2o, to_gtsam
+from gcs.graph.optimization import (
+    Isam2Solver,
+    chi2,
+    compute_ordering,
+    optimize_batch,
+    ordering_nnz,
+)
+from gcs.graph.simplification import SimplificationConfig, simplify_graph
+from gcs.graph.spanning_tree_init import GlobalAnchor, spanning_tree_initialization
+from mission.bench import BenchError, median_time_s
+
+DATASETS = Path(__file__).resolve().parents[2] / ".." / "shared" / "datasets" / "posegraph"
+
+
+def _load(name: str) -> G2oGraph:
+    path = DATASETS / name
+    if not path.is_file():
+        raise BenchError(f"dataset {path} not found (the graph suite needs ../shared/datasets)")
+    return read_g2o(path)
+
+
+def _table_rows(
+    tag: str, g: G2oGraph, orderings: tuple[str, ...], repeats: int
+) -> dict[str, float]:
+    fg, values = to_gtsam(g, poses=chained_odometry(g))
+    out: dict[str, float] = {}
+    for kind in orderings:
+
+        def order(k: str = kind) -> gtsam.Ordering:
+            return compute_ordering(fg, k)  # type: ignore[arg-type]
+
+        order_s = median_time_s(order, repeats=repeats)
+        ordering = order()
+
+        def solve(o: gtsam.Ordering = ordering) -> None:
+            fg.linearize(values).eliminateMultifrontal(o).optimize()
+
+        solve_s = median_time_s(solve, repeats=repeats)
+
+        def total(k: str = kind) -> None:
+            fg.linearize(values).eliminateMultifrontal(compute_ordering(fg, k)).optimize()  # type: ignore[arg-type]
+
+        out[f"{tag}_order_s_{kind}"] = order_s
+        out[f"{tag}_nnz_{kind}"] = float(ordering_nnz(fg, ordering))
+        out[f"{tag}_solve_s_{kind}"] = solve_s
+        out[f"{tag}_table_total_s_{kind}"] = median_time_s(total, repeats=repeats)
+    return out
+
+
+def _solve_from_odometry(
+    g: G2oGraph, ordering: str, repeats: int, *, use_vertices: bool = False
+) -> tuple[float, float]:
+    fg, values = to_gtsam(g, poses=None if use_vertices else chained_odometry(g))
+    results = []
+
+    def run() -> None:
+        results.append(optimize_batch(fg, values, method="gn", ordering=ordering))  # type: ignore[arg-type]
+
+    total_s = median_time_s(run, repeats=repeats)
+    return g.chi2(results[-1].values), total_s
+
+
+def _m3500b(progress: Callable[[str], None]) -> dict[str, float]:
+    g = _load("manhattan_M3500b.g2o")
+    n = len(g.node_ids)
+    cov = np.linalg.inv(g.edge_info)
+    fg, odo = to_gtsam(g, poses=chained_odometry(g))
+
+    def dogleg(values: gtsam.Values) -> float:
+        return optimize_batch(
+            fg, values, method="dogleg", relative_error_tol=1e-6, max_iterations=200
+        ).chi2
+
+    t0 = time.perf_counter()
+    tree = spanning_tree_initialization(
+        n, g.edge_ij, g.edge_z, cov, [GlobalAnchor(0, np.zeros(3), np.eye(3) * 1e-12)]
+    )
+    tree_s = time.perf_counter() - t0
+    _, tree_values = to_gtsam(g, poses=tree)
+    progress("m3500b: dogleg from odometry, tree init, LAGO")
+    return {
+        "m3500b_chi2_odom_init": dogleg(odo) + g.chi2_offset,
+        "m3500b_chi2_tree_init": dogleg(tree_values) + g.chi2_offset,
+        "m3500b_chi2_lago_dogleg": dogleg(gtsam.lago.initialize(fg)) + g.chi2_offset,
+        "m3500b_tree_init_s": tree_s,
+    }
+
+
+def _isam2(g: G2oGraph, nodes: int) -> dict[str, float]:
+    by_newest: dict[int, list[int]] = {}
+    for m, (i, j) in enumerate(g.edge_ij.tolist()):
+        by_newest.setdefault(max(i, j), []).append(m)
+    noises = [gtsam.noiseModel.Gaussian.Information(info) for info in g.edge_info]
+    solver = Isam2Solver()
+    added = gtsam.NonlinearFactorGraph()
+    times: list[float] = []
+    update_times: list[float] = []
+    last = gtsam.Pose2()
+    for k in range(nodes):
+        fg = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        if k == 0:
+            noise = gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)
+            fg.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), noise))
+            values.insert(0, gtsam.Pose2())
+        else:
+            for m in by_newest.get(k, []):
+                i, j = (int(v) for v in g.edge_ij[m])
+                z = se2.pose2(g.edge_z[m])
+                fg.add(gtsam.BetweenFactorPose2(i, j, z, noises[m]))
+                if (i, j) == (k - 1, k):
+                    values.insert(k, last.compose(z))
+        t0 = time.perf_counter()
+        solver.update(fg, values)
+        t1 = time.perf_counter()
+        last = solver.estimate_pose(k)
+        times.append(time.perf_counter() - t0)
+        update_times.append(t1 - t0)
+        added.push_back(fg)
+    estimate = solver.estimate()
+    batch = optimize_batch(added, estimate, method="gn", relative_error_tol=1e-9)
+    ms = np.array(times) * 1e3
+    return {
+        "isam2_ms_per_node_p50": float(np.median(ms[-500:])),
+        "isam2_ms_per_node_p50_all": float(np.median(ms)),
+        "isam2_update_ms_p50": float(np.median(np.array(update_times[-500:]) * 1e3)),
+        "isam2_chi2_rel_err": chi2(added, estimate) / batch.chi2 - 1.0,
+    }
+
+
+def _simplify(g: G2oGraph) -> dict[str, float]:
+    n = len(g.node_ids)
+    fg, values = to_gtsam(g, poses=chained_odometry(g))
+    res = optimize_batch(fg, values, method="gn", relative_error_tol=1e-9)
+    optimum = np.array([se2.pose_vec(res.values.atPose2(k)) for k in range(n)])
+    cov = np.linalg.inv(g.edge_info)
+    t0 = time.perf_counter()
+    simple = simplify_graph(
+        n, g.edge_ij, cov, optimum, alpha=SimplificationConfig().alpha, z=g.edge_z
+    )
+    simplify_s = time.perf_counter() - t0
+    sg = gtsam.NonlinearFactorGraph()
+    for (i, j), z, c in zip(simple.ij.tolist(), simple.z, simple.cov, strict=True):
+        sg.add(
+            gtsam.BetweenFactorPose2(i, j, se2.pose2(z), gtsam.noiseModel.Gaussian.Covariance(c))
+        )
+    sg.add(
+        gtsam.PriorFactorPose2(0, se2.pose2(optimum[0]), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6))
+    )
+    sres = optimize_batch(sg, values, method="gn", relative_error_tol=1e-9)
+    again = np.array([se2.pose_vec(sres.values.atPose2(k)) for k in range(n)])
+    return {
+        "simplify_edges_kept_frac": len(simple.ij) / len(g.edge_ij),
+        "simplify_max_pose_shift_m": float(
+            np.linalg.norm(again[:, :2] - optimum[:, :2], axis=1).max()
+        ),
+        "simplify_s": simplify_s,
+    }
+
+
+def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    """Run the suite; see the module docstring for the metrics."""
+    repeats = 3 if quick else 11
+    orderings = ("emd", "colamd", "metis") if quick else ("emd", "colamd", "metis", "natural")
+    # Load (or compile once) the numba kernels so that no timing includes compilation.
+    minimum_degree_ordering(3, np.array([[0, 1], [1, 2]]))
+    warm = Adjacency(2)
+    warm.add(0, 1, np.array([1.0, 0.0, 0.0]), np.eye(3))
+    dijkstra_projection(warm, 0)
+    metrics: dict[str, float] = {}
+
+    progress("loading datasets")
+    m3500 = _load("manhattan_olson3500.g2o")
+    intel = _load("intel.g2o")
+    city = _load("city10000.g2o")
+
+    progress("Table 1: orderings on manhattan_olson3500, intel, city10000")
+    metrics |= _table_rows("m3500", m3500, orderings, repeats)
+    metrics |= _table_rows("intel", intel, orderings, repeats)
+    metrics |= _table_rows("city10k", city, tuple(o for o in orderings if o != "natural"), repeats)
+
+    progress("Gauss-Newton from chained odometry")
+    metrics["m3500_chi2"], metrics["m3500_total_s"] = _solve_from_odometry(
+        m3500, "emd", 2 * repeats + 1
+    )
+    _, metrics["m3500_total_s_colamd"] = _solve_from_odometry(m3500, "colamd", 2 * repeats + 1)
+    metrics["intel_chi2"], metrics["intel_total_s"] = _solve_from_odometry(
+        intel, "emd", repeats, use_vertices=True
+    )
+    metrics["city10k_chi2"], metrics["city10k_total_s"] = _solve_from_odometry(city, "emd", repeats)
+
+    metrics |= _m3500b(progress)
+
+    progress("iSAM2 on city10000, 5000 nodes")
+    metrics |= _isam2(city, 5000)
+
+    progress("simplification of manhattan_olson3500")
+    metrics |= _simplify(m3500)
+    return {k: float(v) for k, v in metrics.items()}

@@ -1,0 +1,114 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+
+from gcs.graph import se2
+from gcs.graph.g2o import chained_odometry, read_g2o, to_gtsam
+from gcs.graph.optimization import Isam2Config, Isam2Solver, compute_ordering, optimize_batch
+
+
+def _solve(path: Path, *, use_vertices: bool, method: str, ordering: str) -> float:
+    g = read_g2o(path)
+    fg, values = to_gtsam(g, poses=None if use_vertices else chained_odometry(g))
+    res = optimize_batch(fg, values, method=method, ordering=ordering)  # type: ignore[arg-type]
+    return g.chi2(res.values)
+
+
+@pytest.mark.parametrize("ordering", ["colamd", "metis", "emd"])
+def test_manhattan_olson3500_optimum(posegraph_dir: Path, ordering: str) -> None:
+    chi2 = _solve(
+        posegraph_dir / "manhattan_olson3500.g2o",
+        use_vertices=False,
+        method="gn",
+        ordering=ordering,
+    )
+    assert chi2 == pytest.approx(146.08, rel=1e-3)
+
+
+@pytest.mark.parametrize("method", ["gn", "lm", "dogleg"])
+def test_intel_optimum(posegraph_dir: Path, method: str) -> None:
+    chi2 = _solve(posegraph_dir / "intel.g2o", use_vertices=True, method=method, ordering="emd")
+    assert chi2 == pytest.approx(45.004, rel=1e-3)
+
+
+def test_natural_ordering_same_optimum() -> None:
+    rng = np.random.default_rng(2)
+    n = 80
+    truth = np.cumsum(rng.normal([0.5, 0.0, 0.2], 0.1, size=(n, 3)), axis=0)
+    fg = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([0.05, 0.05, 0.02]))
+    pairs = [(k, k + 1) for k in range(n - 1)] + [
+        (int(a), int(b)) for a, b in rng.integers(0, n, (40, 2)) if a != b
+    ]
+    for i, j in pairs:
+        z = se2.between(truth[i], truth[j]) + rng.normal(0, [0.05, 0.05, 0.02])
+        fg.add(gtsam.BetweenFactorPose2(i, j, se2.pose2(z), noise))
+    fg.add(gtsam.PriorFactorPose2(0, se2.pose2(truth[0]), noise))
+    values = gtsam.Values()
+    for k in range(n):
+        values.insert(k, se2.pose2(truth[k]))
+    chi2s = [optimize_batch(fg, values, ordering=o).chi2 for o in ("natural", "colamd", "emd")]
+    assert chi2s[0] == pytest.approx(chi2s[1], rel=1e-6)
+    assert chi2s[0] == pytest.approx(chi2s[2], rel=1e-6)
+
+
+def test_manhattan_edges_only_optimum(posegraph_dir: Path) -> None:
+    chi2 = _solve(posegraph_dir / "manhattan.g2o", use_vertices=False, method="gn", ordering="emd")
+    assert chi2 == pytest.approx(3549.04, rel=1e-3)
+
+
+@pytest.mark.slow
+def test_city10000_optimum(posegraph_dir: Path) -> None:
+    chi2 = _solve(posegraph_dir / "city10000.g2o", use_vertices=False, method="gn", ordering="emd")
+    assert chi2 == pytest.approx(511.99, rel=1e-3)
+
+
+def test_unknown_ordering_and_method() -> None:
+    fg = gtsam.NonlinearFactorGraph()
+    with pytest.raises(ValueError, match="unknown ordering"):
+        compute_ordering(fg, "amd")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="unknown method"):
+        optimize_batch(fg, gtsam.Values(), method="sgd")  # type: ignore[arg-type]
+
+
+@pytest.mark.slow
+def test_isam2_incremental_reaches_batch_optimum(posegraph_dir: Path) -> None:
+    g = read_g2o(posegraph_dir / "intel.g2o")
+    solver = Isam2Solver(Isam2Config(relinearize_threshold=0.01, relinearize_skip=1))
+    by_newest: dict[int, list[int]] = {}
+    for m, (i, j) in enumerate(g.edge_ij.tolist()):
+        by_newest.setdefault(max(i, j), []).append(m)
+    n = len(g.node_ids)
+    last = gtsam.Pose2()
+    for k in range(n):
+        fg = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        if k == 0:
+            prior_noise = gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)
+            fg.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(), prior_noise))
+            values.insert(0, gtsam.Pose2())
+        else:
+            guess = None
+            for m in by_newest.get(k, []):
+                i, j = (int(v) for v in g.edge_ij[m])
+                noise = gtsam.noiseModel.Gaussian.Information(g.edge_info[m])
+                fg.add(gtsam.BetweenFactorPose2(i, j, se2.pose2(g.edge_z[m]), noise))
+                if (i, j) == (k - 1, k):
+                    guess = last.compose(se2.pose2(g.edge_z[m]))
+            assert guess is not None
+            values.insert(k, guess)
+        solver.update(fg, values)
+        last = solver.estimate_pose(k)
+    for _ in range(3):
+        solver.update(gtsam.NonlinearFactorGraph(), gtsam.Values())
+    estimate = solver.estimate()
+    assert g.chi2(estimate) == pytest.approx(45.004, rel=1e-2)
+    fg, _ = to_gtsam(g, prior_sigma=1e-6)
+    batch = optimize_batch(fg, estimate, method="gn")
+    a = np.array([se2.pose_vec(estimate.atPose2(k)) for k in range(n)])
+    b = np.array([se2.pose_vec(batch.values.atPose2(k)) for k in range(n)])
+    assert np.abs(a[:, :2] - b[:, :2]).max() < 0.05
