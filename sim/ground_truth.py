@@ -28,7 +28,7 @@ import numpy as np
 
 from sim.world_generator import Ooi, Solid, World
 
-__all__ = ["GroundTruth", "rasterize"]
+__all__ = ["GroundTruth", "rasterize", "step_map"]
 
 #: An obstacle counts as a vertical structure if it reaches below robot height and above this.
 _MIN_OBSTACLE_ABOVE_GROUND_M = 0.05
@@ -124,10 +124,15 @@ def rasterize(world: World, *, step_max_m: float = 0.12) -> GroundTruth:
     grow = res / 2
     obstacles = [s for s in world.solids if s.layer == "obstacle"]
     obstacles += [
-        Solid("ooi", "cylinder", "obstacle", (o.xy_m[0], o.xy_m[1], o.ground_z_m + o.height_m / 2),
-              (o.radius_m, o.radius_m, o.height_m / 2))
+        Solid(
+            "ooi",
+            "cylinder",
+            "obstacle",
+            (o.xy_m[0], o.xy_m[1], o.ground_z_m + o.height_m / 2),
+            (o.radius_m, o.radius_m, o.height_m / 2),
+        )
         for o in world.oois
-    ]  # fmt: skip
+    ]
     for s in obstacles:
         win = _window(s, res, shape, grow)
         if win is None:
@@ -147,14 +152,7 @@ def rasterize(world: World, *, step_max_m: float = 0.12) -> GroundTruth:
         j0, j1 = int(x0 / res), int(math.ceil(x1 / res))
         slip[i0:i1, j0:j1] = np.maximum(slip[i0:i1, j0:j1], extra)
 
-    step = np.zeros(shape, dtype=np.float32)
-    dv = np.abs(np.diff(height, axis=0))
-    dh = np.abs(np.diff(height, axis=1))
-    step[1:, :] = np.maximum(step[1:, :], dv)
-    step[:-1, :] = np.maximum(step[:-1, :], dv)
-    step[:, 1:] = np.maximum(step[:, 1:], dh)
-    step[:, :-1] = np.maximum(step[:, :-1], dh)
-    cliff = step > step_max_m
+    cliff = step_map(height) > step_max_m
     drivable = ~occ & ~cliff
 
     # Configuration space of the robot's centre, then flood fill from the start zone.
@@ -176,3 +174,15 @@ def rasterize(world: World, *, step_max_m: float = 0.12) -> GroundTruth:
         reachable=reachable,
         oois=world.oois,
     )
+
+
+def step_map(height_m: np.ndarray) -> np.ndarray:
+    """Largest absolute height difference of each cell to its 4 neighbours."""
+    step = np.zeros(height_m.shape, dtype=np.float32)
+    dv = np.abs(np.diff(height_m, axis=0))
+    dh = np.abs(np.diff(height_m, axis=1))
+    step[1:, :] = np.maximum(step[1:, :], dv)
+    step[:-1, :] = np.maximum(step[:-1, :], dv)
+    step[:, 1:] = np.maximum(step[:, 1:], dh)
+    step[:, :-1] = np.maximum(step[:, :-1], dh)
+    return step

@@ -48,11 +48,7 @@ def _check_rgba(name: str, c: Rgba) -> None:
         raise ValueError(f"{name} components must be in [0, 1], got {list(c)}")
 
 
-class _Cfg(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    pass
-
-
-class RobotsConfig(_Cfg):
+class RobotsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """The team (paper 2): sensor robots explore; disruptors only neutralize static OOIs.
 
     Ids: sensor robots ``0 .. sensors-1``, then the disruptors. ``spacing_m``: grid spacing in
@@ -65,14 +61,14 @@ class RobotsConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.sensors < 0 or self.disruptors < 0 or self.sensors + self.disruptors < 1:
-            raise ValueError("robots: need sensors >= 0, disruptors >= 0 and at least one robot")
+            raise ValueError("sensors and disruptors must be >= 0 with at least one robot in all")
         if self.sensors + self.disruptors > 587:
-            raise ValueError("robots: at most 587 robots (AprilTag 36h11 has 587 ids)")
+            raise ValueError("sensors + disruptors must be <= 587 (AprilTag 36h11 has 587 ids)")
         if not self.spacing_m >= 1.0:
-            raise ValueError(f"robots.spacing_m must be >= 1.0, got {self.spacing_m}")
+            raise ValueError(f"spacing_m must be >= 1.0, got {self.spacing_m}")
 
 
-class BuildingsConfig(_Cfg):
+class BuildingsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Buildings: a corridor along the long axis with rooms on both sides, doorways."""
 
     count: int = 2
@@ -86,20 +82,20 @@ class BuildingsConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.count < 0:
-            raise ValueError(f"buildings.count must be >= 0, got {self.count}")
-        _check_range("buildings.size_m", self.size_m, lo=6.0)
-        _check_range("buildings.room_width_m", self.room_width_m, lo=1.5)
+            raise ValueError(f"count must be >= 0, got {self.count}")
+        _check_range("size_m", self.size_m, lo=6.0)
+        _check_range("room_width_m", self.room_width_m, lo=1.5)
         if not 0.05 <= self.wall_thickness_m <= 0.5:
-            raise ValueError("buildings.wall_thickness_m must be in [0.05, 0.5]")
+            raise ValueError("wall_thickness_m must be in [0.05, 0.5]")
         if not 0.8 <= self.door_width_m <= 3.0:
-            raise ValueError("buildings.door_width_m must be in [0.8, 3.0]")
+            raise ValueError("door_width_m must be in [0.8, 3.0]")
         if not 1.2 <= self.corridor_width_m <= 4.0:
-            raise ValueError("buildings.corridor_width_m must be in [1.2, 4.0]")
+            raise ValueError("corridor_width_m must be in [1.2, 4.0]")
         if not self.wall_height_m >= 1.5:
-            raise ValueError("buildings.wall_height_m must be >= 1.5")
+            raise ValueError("wall_height_m must be >= 1.5")
 
 
-class FencesConfig(_Cfg):
+class FencesConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Chain-link fences: thin, tall, each with one gate gap; plus one around the phase."""
 
     count: int = 3
@@ -111,13 +107,13 @@ class FencesConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.count < 0:
-            raise ValueError(f"fences.count must be >= 0, got {self.count}")
-        _check_range("fences.length_m", self.length_m, lo=2.0)
+            raise ValueError(f"count must be >= 0, got {self.count}")
+        _check_range("length_m", self.length_m, lo=2.0)
         if not 0.01 <= self.thickness_m <= 0.3:
-            raise ValueError("fences.thickness_m must be in [0.01, 0.3]")
+            raise ValueError("thickness_m must be in [0.01, 0.3]")
 
 
-class CurbsConfig(_Cfg):
+class CurbsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Sidewalks raised by a curb of ``height_m`` (paper 3.1: robots mount 10 cm curbs)."""
 
     count: int = 3
@@ -127,14 +123,14 @@ class CurbsConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.count < 0:
-            raise ValueError(f"curbs.count must be >= 0, got {self.count}")
+            raise ValueError(f"count must be >= 0, got {self.count}")
         if not 0.0 < self.height_m <= 0.3:
-            raise ValueError(f"curbs.height_m must be in (0, 0.3], got {self.height_m}")
-        _check_range("curbs.length_m", self.length_m, lo=1.0)
-        _check_range("curbs.width_m", self.width_m, lo=1.0)
+            raise ValueError(f"height_m must be in (0, 0.3], got {self.height_m}")
+        _check_range("length_m", self.length_m, lo=1.0)
+        _check_range("width_m", self.width_m, lo=1.0)
 
 
-class RampsConfig(_Cfg):
+class RampsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Loading docks: a raised platform reached by one ramp of ``slope_deg``."""
 
     count: int = 1
@@ -145,17 +141,17 @@ class RampsConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.count < 0:
-            raise ValueError(f"ramps.count must be >= 0, got {self.count}")
+            raise ValueError(f"count must be >= 0, got {self.count}")
         if not 1.0 <= self.slope_deg <= 30.0:
-            raise ValueError(f"ramps.slope_deg must be in [1, 30], got {self.slope_deg}")
+            raise ValueError(f"slope_deg must be in [1, 30], got {self.slope_deg}")
         if not 0.05 <= self.platform_height_m <= 2.0:
-            raise ValueError("ramps.platform_height_m must be in [0.05, 2]")
-        _check_range("ramps.platform_size_m", self.platform_size_m, lo=1.5)
+            raise ValueError("platform_height_m must be in [0.05, 2]")
+        _check_range("platform_size_m", self.platform_size_m, lo=1.5)
         if not 1.0 <= self.ramp_width_m <= self.platform_size_m[0]:
-            raise ValueError("ramps.ramp_width_m must be in [1, platform_size_m min]")
+            raise ValueError("ramp_width_m must be in [1, platform_size_m min]")
 
 
-class SandConfig(_Cfg):
+class SandConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Sand pits: flat, but the wheels slip more (``slip`` fraction of wheel speed lost)."""
 
     count: int = 1
@@ -164,13 +160,13 @@ class SandConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.count < 0:
-            raise ValueError(f"sand.count must be >= 0, got {self.count}")
-        _check_range("sand.size_m", self.size_m, lo=1.0)
+            raise ValueError(f"count must be >= 0, got {self.count}")
+        _check_range("size_m", self.size_m, lo=1.0)
         if not 0.0 <= self.slip < 1.0:
-            raise ValueError(f"sand.slip must be in [0, 1), got {self.slip}")
+            raise ValueError(f"slip must be in [0, 1), got {self.slip}")
 
 
-class TreesConfig(_Cfg):
+class TreesConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Trees: a trunk and a canopy cylinder whose underside is at ``canopy_bottom_m``."""
 
     count: int = 6
@@ -181,20 +177,20 @@ class TreesConfig(_Cfg):
 
     def __post_init__(self) -> None:
         if self.count < 0:
-            raise ValueError(f"trees.count must be >= 0, got {self.count}")
+            raise ValueError(f"count must be >= 0, got {self.count}")
         for name in ("trunk_radius_m", "canopy_radius_m", "canopy_bottom_m", "canopy_depth_m"):
-            _check_range(f"trees.{name}", getattr(self, name), lo=0.01)
+            _check_range(name, getattr(self, name), lo=0.01)
 
 
-class CarsConfig(_Cfg):
+class CarsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     count: int = 3
 
     def __post_init__(self) -> None:
         if self.count < 0:
-            raise ValueError(f"cars.count must be >= 0, got {self.count}")
+            raise ValueError(f"count must be >= 0, got {self.count}")
 
 
-class ObjectsConfig(_Cfg):
+class ObjectsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Cylindrical objects of interest: static OOIs (bombs) and toxic vats (paper 2, Fig. 3)."""
 
     count: int = 2
@@ -205,12 +201,14 @@ class ObjectsConfig(_Cfg):
     def __post_init__(self) -> None:
         if self.count < 0:
             raise ValueError(f"count must be >= 0, got {self.count}")
-        if not (0.05 <= self.radius_m <= 1.0 and 0.1 <= self.height_m <= 3.0):
-            raise ValueError("radius_m must be in [0.05, 1] and height_m in [0.1, 3]")
+        if not 0.05 <= self.radius_m <= 1.0:
+            raise ValueError(f"radius_m must be in [0.05, 1], got {self.radius_m}")
+        if not 0.1 <= self.height_m <= 3.0:
+            raise ValueError(f"height_m must be in [0.1, 3], got {self.height_m}")
         _check_rgba("rgba", self.rgba)
 
 
-class HumansConfig(_Cfg):
+class HumansConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """People (paper 2): civilians wear blue, hostiles red; ``mobile_fraction`` of them walk
     a looped patrol route at ``speed_m_s`` (mobile OOIs), the rest stand still."""
 
@@ -231,7 +229,7 @@ class HumansConfig(_Cfg):
         _check_rgba("rgba", self.rgba)
 
 
-class WorldConfig(_Cfg):
+class WorldConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """A phase of the contest: its size, seed, team and contents (``configs/world/*.yaml``).
 
     ``resolution_m`` is the ground-truth raster cell (10 cm). ``robot_height_m``: obstacles
@@ -317,13 +315,16 @@ class Ooi:
     ground_z_m: float = 0.0
 
 
+HumanKind = Literal["civilian", "hostile"]
+
+
 @dataclass(frozen=True)
 class Human:
     """A civilian or hostile walking the closed polyline ``route_m`` (``(K, 2)``) at
     ``speed_m_s``; one waypoint means standing still. Hostiles are the mobile OOIs."""
 
     human_id: int
-    kind: Literal["civilian", "hostile"]
+    kind: HumanKind
     route_m: tuple[tuple[float, float], ...]
     speed_m_s: float
     radius_m: float
@@ -457,17 +458,17 @@ def _wall(
     rgba: Rgba = _WALL_RGBA,
 ) -> list[Solid]:
     """Axis-aligned wall from ``a0`` to ``a1`` along ``axis`` at ``fixed``, minus ``gaps``."""
-    pieces: list[Solid] = []
+    pieces: list[tuple[float, float]] = []
     cur = a0
     for g0, g1 in sorted(gaps):
         if g0 > cur + 0.05:
-            pieces.append((cur, g0))  # type: ignore[arg-type]
+            pieces.append((cur, g0))
         cur = max(cur, g1)
     if a1 > cur + 0.05:
-        pieces.append((cur, a1))  # type: ignore[arg-type]
+        pieces.append((cur, a1))
     out: list[Solid] = []
     t = thickness / 2
-    for p0, p1 in pieces:  # type: ignore[misc]
+    for p0, p1 in pieces:
         if axis == "x":
             out.append(_box(kind, "obstacle", p0, fixed - t, 0.0, p1, fixed + t, height, rgba))
         else:
@@ -490,14 +491,10 @@ def _building(
     two_rows = (v1 - v0) >= cw + 2 * cfg.room_width_m[0]
 
     def wall_u(v: float, a: float, b: float, gaps: list[tuple[float, float]]) -> list[Solid]:
-        return _wall(
-            "x" if along_x else "y", v, a, b, gaps, thickness=th, height=hgt
-        )
+        return _wall("x" if along_x else "y", v, a, b, gaps, thickness=th, height=hgt)
 
     def wall_v(u: float, a: float, b: float, gaps: list[tuple[float, float]]) -> list[Solid]:
-        return _wall(
-            "y" if along_x else "x", u, a, b, gaps, thickness=th, height=hgt
-        )
+        return _wall("y" if along_x else "x", u, a, b, gaps, thickness=th, height=hgt)
 
     if two_rows:
         c0, c1 = vc - cw / 2, vc + cw / 2
@@ -524,9 +521,7 @@ def _building(
                 # occasionally a door to the outside as well
                 if rng.random() < 0.3 and b - a >= dw + 0.6:
                     oc = float(rng.uniform(a + dw / 2 + 0.3, b - dw / 2 - 0.3))
-                    (long_gaps_lo if row == 0 else long_gaps_hi).append(
-                        (oc - dw / 2, oc + dw / 2)
-                    )
+                    (long_gaps_lo if row == 0 else long_gaps_hi).append((oc - dw / 2, oc + dw / 2))
             corridor_wall_v = c0 if row == 0 else c1
             solids += wall_u(corridor_wall_v, u0, u1, door_gaps)
             for cut in cuts[1:-1]:
@@ -596,7 +591,9 @@ def generate_world(config: WorldConfig) -> World:
         r, c = divmod(k, cols)
         x = zx0 + 0.5 + sp / 2 + (rows - 1 - r) * sp
         y = zy0 + 0.5 + sp / 2 + c * sp
-        role: Literal["sensor", "disruptor"] = "sensor" if k < config.robots.sensors else "disruptor"
+        role: Literal["sensor", "disruptor"] = (
+            "sensor" if k < config.robots.sensors else "disruptor"
+        )
         robots.append(RobotStart(k, role, (x, y, 0.0)))
     gcs_antenna = (1.0, H / 2, 3.0)
 
@@ -712,30 +709,43 @@ def generate_world(config: WorldConfig) -> World:
         bottom = float(rng.uniform(*tc.canopy_bottom_m))
         depth = float(rng.uniform(*tc.canopy_depth_m))
         solids.append(
-            Solid("trunk", "cylinder", "obstacle", (cx, cy, bottom / 2), (tr, tr, bottom / 2),
-                  rgba=_TRUNK_RGBA)
-        )  # fmt: skip
+            Solid(
+                "trunk",
+                "cylinder",
+                "obstacle",
+                (cx, cy, bottom / 2),
+                (tr, tr, bottom / 2),
+                rgba=_TRUNK_RGBA,
+            )
+        )
         solids.append(
-            Solid("canopy", "cylinder", "obstacle", (cx, cy, bottom + depth / 2),
-                  (cr, cr, depth / 2), rgba=_CANOPY_RGBA)
-        )  # fmt: skip
+            Solid(
+                "canopy",
+                "cylinder",
+                "obstacle",
+                (cx, cy, bottom + depth / 2),
+                (cr, cr, depth / 2),
+                rgba=_CANOPY_RGBA,
+            )
+        )
 
     # Objects and people go where a robot can go (reachable from the start zone).
-    pre = World(config, (W, H), tuple(solids), (), (), tuple(robots), start_zone, gcs_antenna,
-                tuple(sand))  # fmt: skip
+    pre = World(
+        config, (W, H), tuple(solids), (), (), tuple(robots), start_zone, gcs_antenna, tuple(sand)
+    )
     truth = rasterize(pre)
     res = truth.resolution_m
-    reach = truth.reachable
-    iy, ix = np.nonzero(reach)
-    if len(ix) == 0:
-        raise ValueError("world has no area reachable from the start zone")
-    cand = np.stack([(ix + 0.5) * res, (iy + 0.5) * res], axis=1)
-    # distance of each reachable cell from anything blocking (for clearances)
+    # candidate places: reachable cells on a 0.5 m lattice (keeps memory small on big phases)
+    stride = max(1, int(round(_PLACE_RES_M / res)))
     import cv2
 
-    blocked = (~truth.drivable).astype(np.uint8)
-    dist_m = cv2.distanceTransform(1 - blocked, cv2.DIST_L2, 5) * res
-    clear_of = dist_m[iy, ix]
+    dist_m = cv2.distanceTransform(truth.drivable.astype(np.uint8), cv2.DIST_L2, 5) * res
+    iy, ix = np.nonzero(truth.reachable[::stride, ::stride])
+    if len(ix) == 0:
+        raise ValueError("world has no area reachable from the start zone")
+    iy, ix = iy * stride, ix * stride
+    cand = np.stack([(ix + 0.5) * res, (iy + 0.5) * res], axis=1)
+    clear_of = dist_m[iy, ix]  # distance of each candidate from anything blocking
     zc = np.array([(start_zone[0] + start_zone[2]) / 2, (start_zone[1] + start_zone[3]) / 2])
     from_start = np.linalg.norm(cand - zc, axis=1)
 
@@ -754,31 +764,48 @@ def generate_world(config: WorldConfig) -> World:
             return k
         return None
 
-    for kind, oc in (("static_ooi", config.static_oois), ("toxic_vat", config.toxic_vats)):
+    ooi_kinds: tuple[tuple[OoiKind, ObjectsConfig], ...] = (
+        ("static_ooi", config.static_oois),
+        ("toxic_vat", config.toxic_vats),
+    )
+    for ooi_kind, oc in ooi_kinds:
         for _ in range(oc.count):
-            k = pick(oc.radius_m + 1.0, 14.0 + zone_w, 4.0, placed)
-            if k is None:
+            cell = pick(oc.radius_m + 1.0, 14.0 + zone_w, 4.0, placed)
+            if cell is None:
                 continue
-            p = cand[k]
+            p = cand[cell]
             placed = np.vstack([placed, p])
             gz = float(truth.height_at(p[0], p[1]))
-            oois.append(Ooi(len(oois), kind, (float(p[0]), float(p[1])), oc.radius_m,
-                            oc.height_m, oc.rgba, gz))  # type: ignore[arg-type]  # fmt: skip
+            oois.append(
+                Ooi(
+                    len(oois),
+                    ooi_kind,
+                    (float(p[0]), float(p[1])),
+                    oc.radius_m,
+                    oc.height_m,
+                    oc.rgba,
+                    gz,
+                )
+            )
     bombs = np.array([o.xy_m for o in oois if o.kind == "static_ooi"]).reshape(-1, 2)
     free_walk = truth.drivable & (dist_m >= 0.45)
 
     humans: list[Human] = []
     hostile_routes: list[np.ndarray] = []
-    for kind, hc in (("hostile", config.hostiles), ("civilian", config.civilians)):
+    human_kinds: tuple[tuple[HumanKind, HumansConfig], ...] = (
+        ("hostile", config.hostiles),
+        ("civilian", config.civilians),
+    )
+    for kind, hc in human_kinds:
         n_mobile = int(round(hc.count * hc.mobile_fraction))
         for n in range(hc.count):
             min_start = 12.0 + zone_w if kind == "hostile" else 4.0 + zone_w
             route: np.ndarray | None = None
             for _ in range(40):
-                k = pick(0.6, min_start, 3.0, placed)
-                if k is None:
+                cell = pick(0.6, min_start, 3.0, placed)
+                if cell is None:
                     break
-                pts = [cand[k]]
+                pts = [cand[cell]]
                 if n < n_mobile:
                     for _ in range(int(rng.integers(1, 4))):
                         for _ in range(30):
@@ -799,9 +826,7 @@ def generate_world(config: WorldConfig) -> World:
                 if kind == "civilian":
                     if _seg_min_dist(cand_route, bombs) < 4.0:
                         continue
-                    if any(
-                        _seg_min_dist(cand_route, _densify(hr)) < 4.0 for hr in hostile_routes
-                    ):
+                    if any(_seg_min_dist(cand_route, _densify(hr)) < 4.0 for hr in hostile_routes):
                         continue
                 route = cand_route
                 break
@@ -811,12 +836,28 @@ def generate_world(config: WorldConfig) -> World:
                 hostile_routes.append(route)
             placed = np.vstack([placed, route[0]])
             humans.append(
-                Human(len(humans), kind, tuple((float(x), float(y)) for x, y in route),  # type: ignore[arg-type]
-                      hc.speed_m_s, hc.radius_m, hc.height_m, hc.rgba)
-            )  # fmt: skip
+                Human(
+                    len(humans),
+                    kind,
+                    tuple((float(x), float(y)) for x, y in route),
+                    hc.speed_m_s,
+                    hc.radius_m,
+                    hc.height_m,
+                    hc.rgba,
+                )
+            )
 
-    return World(config, (W, H), tuple(solids), tuple(oois), tuple(humans), tuple(robots),
-                 start_zone, gcs_antenna, tuple(sand))  # fmt: skip
+    return World(
+        config,
+        (W, H),
+        tuple(solids),
+        tuple(oois),
+        tuple(humans),
+        tuple(robots),
+        start_zone,
+        gcs_antenna,
+        tuple(sand),
+    )
 
 
 def _densify(route: np.ndarray, step_m: float = 0.5) -> np.ndarray:

@@ -27,6 +27,9 @@ __all__ = ["SUITES", "BenchError", "median_time_s", "run_suite", "write_json"]
 #: Suite name -> module that implements it. A suite appears here when its issue lands.
 SUITES: dict[str, str] = {
     "link": "mission.bench.link",
+    "graph": "mission.bench.graph",
+    "sim": "mission.bench.sim",
+    "robot": "mission.bench.robot",
 }
 
 

@@ -1,0 +1,199 @@
+"""``magic bench robot``: on-robot autonomy (issue 4; paper 5.3, 5.4).
+
+One small function per metric group; :func:`run` merges them (add odometry, node CPU and
+uplink groups the same way). Times are medians of repeats, wall clock, after warm-up (numba
+kernels are compiled and cached before anything is timed).
+
+Terrain classification (:func:`terrain_speed`, :func:`terrain_quality`):
+
+- ``terrain_ms_400x400``: :func:`robot.terrain.classifier.classify_sweep` of one synthetic
+  sweep of about 50k points (the MAGIC sensor's density) into a 400 x 400 grid at 5 cm
+  (the paper's 400 m^2 map: about 300 ms in-system). Target <= 30 ms.
+- ``terrain_fuse_ms_12``: fusing the last 12 sweeps into a 400 x 400 map.
+- ``terrain_obstacle_recall`` (>= 0.99) and ``terrain_false_obstacle_frac`` (<= 0.01): pooled
+  over generated scenes (:mod:`robot.terrain.synthetic_scene`, boxes, walls, curbs, 5-15 deg
+  ramps, trees with overhanging canopy) against their known truth: the fraction of cells with a
+  LIDAR hit on an obstacle face >= 10 cm above nearby ground that have an obstacle within one
+  cell, and the fraction of drivable-ground cells marked obstacle. ``..._recall_exact``: the
+  same in the exact cell.
+
+Path planning (:func:`plan_speed`):
+
+- ``plan_ms_400x400``: :meth:`robot.planning.planner.PathPlanner.plan` (configuration space,
+  Dijkstra with the exact octile A* ordering, relaxation, smoothing) on a fused 400 x 400 map
+  of a generated scene, to random goals 6-9 m away that have a path (goals inside obstacles,
+  answered in well under a millisecond, are not timed; ``plan_found_frac`` is the fraction
+  of random goals with a path). Target <= 20 ms.
+- ``dijkstra_ms_400x400_full``: plain Dijkstra (no heuristic) over the same maps, to the
+  farthest reachable cell, i.e. nearly the whole grid: the worst case without A*.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from functools import partial
+
+import numpy as np
+
+from mission.bench import median_time_s
+from robot.planning.config_space import configuration_space
+from robot.planning.dijkstra import dijkstra_grid
+from robot.planning.planner import PathPlanner, PlannerConfig
+from robot.terrain.classifier import TerrainConfig, classify_sweep
+from robot.terrain.grid import OBSTACLE
+from robot.terrain.map_fusion import TerrainMapFusion
+from robot.terrain.synthetic_scene import (
+    cast_sweep,
+    issue_scene,
+    random_scene,
+    score_classification,
+    truth_grids,
+)
+
+__all__ = ["plan_speed", "run", "terrain_quality", "terrain_speed"]
+
+#: Nodding-LIDAR pattern giving about 50k points per sweep (paper 3.1).
+DENSE = {"beams": 1081, "lines": 80}
+
+
+def terrain_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    progress("terrain: classification speed")
+    cfg = TerrainConfig()
+    rng = np.random.default_rng(11)
+    hits = cast_sweep(issue_scene(), (0.2, -0.1, 0.3), rng=rng, **DENSE)
+    pts, pose = hits.points_in_base, hits.odom_from_base
+    classify_ms = 1e3 * median_time_s(
+        lambda: classify_sweep(pts, pose, config=cfg), repeats=10 if quick else 40, warmup=2
+    )
+    fusion = TerrainMapFusion(memory_sweeps=cfg.memory_sweeps)
+    geo = None
+    for k in range(cfg.memory_sweeps):
+        classes, geo = classify_sweep(pts, pose + np.array([0.1 * k, 0.03 * k, 0.0]), config=cfg)
+        fusion.add(classes, geo)
+    assert geo is not None
+    fuse_ms = 1e3 * median_time_s(lambda: fusion.fused(geo), repeats=10 if quick else 40)
+    return {
+        "terrain_ms_400x400": classify_ms,
+        "terrain_fuse_ms_12": fuse_ms,
+        "terrain_points_per_sweep": float(len(pts)),
+    }
+
+
+def terrain_quality(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    cfg = TerrainConfig()
+    found = found_exact = total = false = drivable_total = 0.0
+    scenes = 16 if quick else 60
+    for seed in range(scenes):
+        progress(f"terrain: quality scene {seed + 1}/{scenes}")
+        rng = np.random.default_rng(1000 + seed)
+        scene = issue_scene() if seed == 0 else random_scene(rng)
+        pose = (
+            float(rng.uniform(-0.5, 0.5)),
+            float(rng.uniform(-0.5, 0.5)),
+            float(rng.uniform(-np.pi, np.pi)),
+        )
+        hits = cast_sweep(scene, pose, rng=rng)
+        classes, geo = classify_sweep(hits.points_in_base, hits.odom_from_base, config=cfg)
+        must_obstacle, must_drivable = truth_grids(
+            hits,
+            geo,
+            scene,
+            overhead_clearance_m=cfg.overhead_clearance_m,
+            margin_cells=cfg.iterations + 1,
+        )
+        recall, exact, false_frac = score_classification(
+            classes == OBSTACLE, must_obstacle, must_drivable
+        )
+        n_obs, n_drv = float(must_obstacle.sum()), float(must_drivable.sum())
+        found += recall * n_obs
+        found_exact += exact * n_obs
+        total += n_obs
+        false += false_frac * n_drv
+        drivable_total += n_drv
+    return {
+        "terrain_obstacle_recall": found / total,
+        "terrain_obstacle_recall_exact": found_exact / total,
+        "terrain_false_obstacle_frac": false / drivable_total,
+        "terrain_truth_obstacle_cells": total,
+        "terrain_truth_drivable_cells": drivable_total,
+    }
+
+
+def _fused_map(seed: int, cfg: TerrainConfig):  # type: ignore[no-untyped-def]
+    """A 400 x 400 fused map of 12 sweeps along a short drive through a random scene."""
+    rng = np.random.default_rng(seed)
+    scene = random_scene(rng)
+    fusion = TerrainMapFusion(memory_sweeps=cfg.memory_sweeps)
+    for k in range(cfg.memory_sweeps):
+        hits = cast_sweep(scene, (0.05 * k, 0.02 * k, 0.3 * k), rng=rng)
+        classes, _ = classify_sweep(hits.points_in_base, hits.odom_from_base, config=cfg)
+        fusion.add(classes, cfg.geometry_around((0.0, 0.0)))
+    geo = cfg.geometry_around((0.0, 0.0))
+    return fusion.fused(geo), geo
+
+
+def plan_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    tcfg = TerrainConfig()
+    pcfg = PlannerConfig()
+    planner = PathPlanner(pcfg)
+    samples: list[float] = []
+    full: list[float] = []
+    ok = tried = 0
+    maps = 3 if quick else 8
+    for m in range(maps):
+        progress(f"planning: map {m + 1}/{maps}")
+        classes, geo = _fused_map(500 + m, tcfg)
+        rng = np.random.default_rng(m)
+        timed = 0
+        while timed < (4 if quick else 10) and tried < 200:
+            ang, dist = rng.uniform(-np.pi, np.pi), rng.uniform(6.0, 9.0)
+            goal = (dist * np.cos(ang), dist * np.sin(ang))
+            result = planner.plan(classes, geo, (0.0, 0.0), goal)
+            tried += 1
+            if not result.ok:  # a goal inside an obstacle: quick to reject, not timed
+                continue
+            ok += 1
+            timed += 1
+
+            plan_once = partial(planner.plan, classes, geo, (0.0, 0.0), goal)
+            samples.append(median_time_s(plan_once, repeats=3 if quick else 7, warmup=0))
+        blocked = configuration_space(
+            classes == OBSTACLE, robot_radius_m=pcfg.robot_radius_m, resolution_m=geo.resolution_m
+        )
+        cost = np.where(blocked, np.inf, 1.0)
+        start = geo.cell_index((0.0, 0.0))
+        far = dijkstra_grid(cost, start, None, resolution_m=geo.resolution_m)
+        reach = np.where(np.isfinite(far.distance_m), far.distance_m, -1.0)
+        r, c = np.unravel_index(np.argmax(reach), reach.shape)
+        goal_rc = (int(r), int(c))
+        t0 = time.perf_counter()
+        for _ in range(3):
+            dijkstra_grid(cost, start, goal_rc, resolution_m=geo.resolution_m)
+        full.append((time.perf_counter() - t0) / 3)
+    return {
+        "plan_ms_400x400": 1e3 * statistics.median(samples),
+        "plan_ms_400x400_max": 1e3 * max(samples),
+        "plan_found_frac": ok / tried,
+        "dijkstra_ms_400x400_full": 1e3 * statistics.median(full),
+    }
+
+
+def _warm_up() -> None:
+    """Compile (or load from cache) every numba kernel once, untimed."""
+    cfg = TerrainConfig(size_cells=40)
+    pts = np.array([[1.0, 0.0, 0.0], [1.0, 0.2, 0.3]], dtype=np.float32)
+    classes, geo = classify_sweep(pts, np.zeros(3), config=cfg)
+    PathPlanner().plan(classes, geo, (0.0, 0.0), (0.5, 0.5))
+    dijkstra_grid(np.ones((3, 3)), (0, 0), (2, 2), astar=True)
+    dijkstra_grid(np.ones((3, 3)), (0, 0), (2, 2), astar=False)
+
+
+def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    progress("warm-up: compiling kernels")
+    _warm_up()
+    metrics: dict[str, float] = {}
+    for group in (terrain_speed, terrain_quality, plan_speed):
+        metrics.update(group(quick=quick, progress=progress))
+    return metrics

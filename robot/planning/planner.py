@@ -1,0 +1,263 @@
+"""On-robot path planner (paper 5.4): the composition of configuration space, Dijkstra,
+relaxation and smoothing over the fused terrain map.
+
+Plan in two stages, as the paper argues (potential fields fail with a 15 s map memory):
+first the minimum-*distance* path (:mod:`robot.planning.dijkstra`) through the configuration
+space (:mod:`robot.planning.config_space`), then optimize it for clearance
+(:mod:`robot.planning.path_relaxation`) and smoothness (:mod:`robot.planning.path_smoothing`).
+
+Unknown cells follow ``PlannerConfig.unknown``: ``"free"`` (drive through unseen terrain),
+``"obstacle"`` (never), or ``"cost"`` (allowed, each metre costing ``unknown_cost`` metres, so
+the path prefers seen terrain). The default is ``"free"``: a single sweep leaves most far
+cells unknown between scan lines, so a cost makes paths weave along the observed rings, and
+the robot re-plans with every sweep as it sees what it drives into. Unknown cells under the
+robot itself (within ``robot_radius_m`` of the start, which the LIDAR cannot see) are always
+free.
+
+When no path exists the result says so (``status`` and ``reason``) with an empty path: the
+robot node stops, waits for the map to change (the memory forgets old sweeps) and reports it.
+Everything is in the terrain map's frame (``odom``), metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import msgspec
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from robot.planning.config_space import configuration_space
+from robot.planning.dijkstra import dijkstra_grid
+from robot.planning.path_relaxation import clearance_field, path_clearance, relax_path
+from robot.planning.path_smoothing import smooth_path
+from robot.terrain.grid import OBSTACLE, UNKNOWN, GridGeometry
+
+__all__ = ["PlanResult", "PlanStatus", "PathPlanner", "PlannerConfig"]
+
+PlanStatus = Literal["ok", "no_path", "start_blocked", "goal_blocked"]
+
+
+class PlannerConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """``robot_radius_m``: disc enclosing the footprint (configuration space).
+    ``clearance_m``: the clearance relaxation aims for (bounded: not more).
+    ``unknown``: policy for unknown cells; ``unknown_cost``: per-metre cost factor for
+    ``"cost"``. ``relax_step_m``/``relax_iterations``/``max_offset_m``: relaxation;
+    ``smooth_weight``/``smooth_iterations``: smoothing. ``astar``: order Dijkstra's heap with
+    the octile distance to the goal (same path length, fewer cells expanded). ``escape``: a
+    start inside the configuration-space margin (but not on an obstacle) may leave it, see
+    :meth:`PathPlanner.plan`. ``goal_tolerance_m``: a goal inside the margin is replaced by the
+    nearest free cell within this distance (0: report ``goal_blocked``)."""
+
+    robot_radius_m: float = 0.4
+    clearance_m: float = 0.7
+    unknown: Literal["free", "obstacle", "cost"] = "free"
+    unknown_cost: float = 1.5
+    relax_step_m: float = 0.025
+    relax_iterations: int = 40
+    max_offset_m: float = 0.6
+    smooth_weight: float = 0.5
+    smooth_iterations: int = 60
+    astar: bool = True
+    escape: bool = True
+    goal_tolerance_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("robot_radius_m", "clearance_m", "max_offset_m", "goal_tolerance_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v}")
+        if not (math.isfinite(self.unknown_cost) and self.unknown_cost >= 1):
+            raise ValueError(f"unknown_cost must be >= 1, got {self.unknown_cost}")
+        if not (math.isfinite(self.relax_step_m) and self.relax_step_m > 0):
+            raise ValueError(f"relax_step_m must be > 0, got {self.relax_step_m}")
+        if not 0 < self.smooth_weight <= 1:
+            raise ValueError(f"smooth_weight must be in (0, 1], got {self.smooth_weight}")
+        if self.relax_iterations < 0 or self.smooth_iterations < 0:
+            raise ValueError("relax_iterations and smooth_iterations must be >= 0")
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    """``path_in_odom`` ``(K, 2)`` metres from start to goal (empty unless ``status == "ok"``);
+    ``dijkstra_cells`` the minimum-distance path ``(row, col)`` before relaxation;
+    ``dijkstra_length_m`` its cost-weighted length (``inf`` without a path); ``length_m`` the
+    final polyline's length; ``min_clearance_m`` the smallest vertex clearance; ``reason``
+    says why there is no path. ``escaped``: the start was inside the configuration-space
+    margin and the path first leaves it; ``goal_in_odom``: the goal planned to (moved when
+    ``goal_tolerance_m`` applied)."""
+
+    status: PlanStatus
+    path_in_odom: NDArray[np.float64]
+    dijkstra_cells: NDArray[np.int64]
+    dijkstra_length_m: float
+    length_m: float
+    min_clearance_m: float
+    reason: str = ""
+    escaped: bool = False
+    goal_in_odom: tuple[float, float] | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def _xy(name: str, v: ArrayLike) -> NDArray[np.float64]:
+    a = np.asarray(v, dtype=np.float64)
+    if a.shape != (2,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected 2 finite numbers (x, y) in odom, got {v!r}")
+    return a
+
+
+class PathPlanner:
+    """Plans over fused terrain maps (:class:`robot.terrain.map_fusion.TerrainMapFusion`)."""
+
+    def __init__(self, config: PlannerConfig | None = None) -> None:
+        self.config = config or PlannerConfig()
+
+    def plan(
+        self,
+        classes: NDArray[np.uint8],
+        geometry: GridGeometry,
+        start_in_odom: ArrayLike,
+        goal_in_odom: ArrayLike,
+    ) -> PlanResult:
+        """Plan from ``start_in_odom`` to ``goal_in_odom`` (``(x, y)`` m) over ``classes``
+        (``uint8`` UNKNOWN/DRIVABLE/OBSTACLE laid out by ``geometry``).
+
+        Raises ValueError for bad input: wrong map shape or dtype, class values out of range,
+        non-finite or off-map start/goal (the caller clips far goals to the map).
+
+        Escape (``config.escape``): odometry drift or a newly seen obstacle can put the robot
+        within ``robot_radius_m`` of an obstacle, i.e. inside the configuration-space margin
+        where no path starts. Rather than wait for the map memory to forget (which never
+        happens for a real doorway jamb), the cells of the margin within ``robot_radius_m`` of
+        the start whose clearance is at least the start's become passable: the robot may
+        leave the margin but never gets closer to an obstacle than it already is. A start on
+        an obstacle cell (clearance 0) is ``start_blocked``.
+        """
+        cfg = self.config
+        cls = np.asarray(classes)
+        if cls.shape != geometry.shape:
+            raise ValueError(f"classes: shape {cls.shape} does not match geometry {geometry.shape}")
+        if cls.dtype != np.uint8:
+            raise ValueError(f"classes: expected dtype uint8, got {cls.dtype}")
+        if cls.size and int(cls.max()) > OBSTACLE:
+            raise ValueError(f"classes: values must be 0, 1 or 2, got {int(cls.max())}")
+        start = _xy("start_in_odom", start_in_odom)
+        goal = _xy("goal_in_odom", goal_in_odom)
+        x0, y0 = geometry.origin_m
+        x1 = x0 + geometry.cols * geometry.resolution_m
+        y1 = y0 + geometry.rows * geometry.resolution_m
+        for name, p in (("start_in_odom", start), ("goal_in_odom", goal)):
+            if not geometry.contains(p):
+                raise ValueError(
+                    f"{name} ({p[0]:.3f}, {p[1]:.3f}) is outside the map "
+                    f"x [{x0:.3f}, {x1:.3f}) y [{y0:.3f}, {y1:.3f})"
+                )
+        s_rc = geometry.cell_index(start)
+        g_rc = geometry.cell_index(goal)
+        res = geometry.resolution_m
+
+        unknown = cls == UNKNOWN
+        rr, cc = np.ogrid[0 : geometry.rows, 0 : geometry.cols]
+        reach2 = (cfg.robot_radius_m / res) ** 2 + 1e-9  # the same disc as the C-space kernel
+        under_robot = (rr - s_rc[0]) ** 2 + (cc - s_rc[1]) ** 2 <= reach2
+        unknown &= ~under_robot
+        obstacle = cls == OBSTACLE
+        hard = obstacle | unknown if cfg.unknown == "obstacle" else obstacle
+        blocked = configuration_space(hard, robot_radius_m=cfg.robot_radius_m, resolution_m=res)
+        cost = np.ones(geometry.shape)
+        if cfg.unknown == "cost":
+            cost[unknown] = cfg.unknown_cost
+        cost[blocked] = np.inf
+
+        def fail(status: PlanStatus, reason: str, length: float = math.inf) -> PlanResult:
+            return PlanResult(
+                status, np.empty((0, 2)), np.empty((0, 2), np.int64), length, math.inf, 0.0, reason
+            )
+
+        clearance = clearance_field(hard, resolution_m=res)
+        escaped = False
+        if blocked[s_rc]:
+            start_clearance = float(clearance[s_rc])
+            if not (cfg.escape and start_clearance > 0.0):
+                return fail(
+                    "start_blocked",
+                    f"start cell {s_rc} is within robot_radius_m ({cfg.robot_radius_m} m) of an "
+                    f"obstacle (clearance {start_clearance:.3f} m)",
+                )
+            exit_cells = blocked & under_robot & (clearance >= start_clearance - 1e-9)
+            cost[exit_cells] = np.where(
+                unknown[exit_cells] & (cfg.unknown == "cost"), cfg.unknown_cost, 1.0
+            )
+            escaped = True
+        if blocked[g_rc]:
+            snapped = self._snap_goal(blocked, g_rc, cfg.goal_tolerance_m / res)
+            if snapped is None:
+                return fail(
+                    "goal_blocked",
+                    f"goal cell {g_rc} is within robot_radius_m ({cfg.robot_radius_m} m) of an "
+                    f"obstacle and no free cell is within goal_tolerance_m "
+                    f"({cfg.goal_tolerance_m} m)",
+                )
+            g_rc = snapped
+            goal = geometry.center_of(g_rc)
+        found = dijkstra_grid(cost, s_rc, g_rc, resolution_m=res, astar=cfg.astar)
+        if not found.found:
+            return fail("no_path", "no path from start to goal through configuration space")
+
+        path = found.path_cells.astype(np.float64)
+        path = relax_path(
+            path,
+            clearance,
+            blocked,
+            resolution_m=res,
+            target_clearance_m=cfg.clearance_m,
+            step_m=cfg.relax_step_m,
+            max_offset_m=cfg.max_offset_m,
+            iterations=cfg.relax_iterations,
+        )
+        path = smooth_path(
+            path,
+            clearance,
+            blocked,
+            target_clearance_m=cfg.clearance_m,
+            weight=cfg.smooth_weight,
+            iterations=cfg.smooth_iterations,
+        )
+        xy = geometry.center_of(path)
+        xy[0], xy[-1] = start, goal
+        length = float(np.sum(np.hypot(*np.diff(xy, axis=0).T))) if len(xy) > 1 else 0.0
+        return PlanResult(
+            "ok",
+            xy,
+            found.path_cells,
+            found.length_m,
+            length,
+            float(path_clearance(path, clearance).min()),
+            "",
+            escaped,
+            (float(goal[0]), float(goal[1])),
+        )
+
+    @staticmethod
+    def _snap_goal(
+        blocked: NDArray[np.bool_], goal: tuple[int, int], radius_cells: float
+    ) -> tuple[int, int] | None:
+        """The free cell nearest to ``goal`` within ``radius_cells``, or None."""
+        k = int(math.floor(radius_cells))
+        if k < 1:
+            return None
+        r0, c0 = max(0, goal[0] - k), max(0, goal[1] - k)
+        window = blocked[r0 : goal[0] + k + 1, c0 : goal[1] + k + 1]
+        rr, cc = np.nonzero(~window)
+        if len(rr) == 0:
+            return None
+        d2 = (rr + r0 - goal[0]) ** 2 + (cc + c0 - goal[1]) ** 2
+        best = int(np.argmin(d2))
+        if d2[best] > radius_cells**2 + 1e-9:
+            return None
+        return int(rr[best] + r0), int(cc[best] + c0)

@@ -1,0 +1,160 @@
+"""Single-sweep terrain classification (paper 5.3, stages 1 and 2) and its configuration.
+
+One 3D LIDAR sweep becomes a drivability map in the robot's private frame ``odom``: points
+``points_in_base`` are levelled (optional roll/pitch of ``base``), moved into ``odom`` with the
+sweep's ``odom_from_base`` pose (one pose, or one per point to de-skew a sweep taken while
+driving), the ground model is built (:mod:`robot.terrain.ground_model`) and the up-detector
+(:mod:`robot.terrain.up_detector`) marks obstacles. Cells with ground-filtered points that
+are not obstacles are drivable; cells without such points are unknown.
+
+The grid is axis-aligned with ``odom`` and snapped to the ``resolution_m`` lattice, so maps
+from successive sweeps fuse by integer shifts (:mod:`robot.terrain.map_fusion`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import msgspec
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from robot.terrain.grid import DRIVABLE, OBSTACLE, UNKNOWN, GridGeometry, check_points
+from robot.terrain.ground_model import ground_model
+from robot.terrain.up_detector import filter_height_range, up_detector
+
+__all__ = ["TerrainConfig", "classify_sweep", "points_in_odom"]
+
+
+class TerrainConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Terrain classification (paper 5.3). The paper's map: 400 m^2 at 5 cm.
+
+    ``ground_slope_deg``: ground-model prior (20 deg in the paper). ``overhead_clearance_m``:
+    points higher than this above the ground pass over the robot (canopy). ``climb_slope_deg``
+    and ``step_m``: Eq. 2's ``a = tan(climb_slope_deg) * resolution_m`` and ``b``.
+    ``iterations``: message-passing rounds (two in the paper). ``memory_sweeps``: sweeps fused
+    pessimistically (12, about 15 s). ``max_range_m``: points farther from the sensor
+    (horizontally) are dropped.
+    """
+
+    resolution_m: float = 0.05
+    size_cells: int = 400
+    ground_slope_deg: float = 20.0
+    overhead_clearance_m: float = 1.1
+    climb_slope_deg: float = 20.0
+    step_m: float = 0.04
+    iterations: int = 4
+    memory_sweeps: int = 12
+    max_range_m: float = 30.0
+    fill_unobserved: bool = False
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.resolution_m) and 0 < self.resolution_m <= 10):
+            raise ValueError(f"resolution_m must be in (0, 10], got {self.resolution_m}")
+        if not 2 <= self.size_cells <= 10000:
+            raise ValueError(f"size_cells must be in [2, 10000], got {self.size_cells}")
+        if not 0 <= self.ground_slope_deg < 90:
+            raise ValueError(f"ground_slope_deg must be in [0, 90), got {self.ground_slope_deg}")
+        if not 0 <= self.climb_slope_deg < 90:
+            raise ValueError(f"climb_slope_deg must be in [0, 90), got {self.climb_slope_deg}")
+        if not (math.isfinite(self.overhead_clearance_m) and self.overhead_clearance_m > 0):
+            raise ValueError(f"overhead_clearance_m must be > 0, got {self.overhead_clearance_m}")
+        if not (math.isfinite(self.step_m) and self.step_m >= 0):
+            raise ValueError(f"step_m must be >= 0, got {self.step_m}")
+        if not 0 <= self.iterations <= 100:
+            raise ValueError(f"iterations must be in [0, 100], got {self.iterations}")
+        if not 1 <= self.memory_sweeps <= 1000:
+            raise ValueError(f"memory_sweeps must be in [1, 1000], got {self.memory_sweeps}")
+        if not (math.isfinite(self.max_range_m) and self.max_range_m > 0):
+            raise ValueError(f"max_range_m must be > 0, got {self.max_range_m}")
+
+    def geometry_around(self, center_in_odom_m: ArrayLike) -> GridGeometry:
+        """The ``size_cells`` square grid about ``center_in_odom_m``, snapped to the lattice."""
+        return GridGeometry.centered(
+            center_in_odom_m,
+            resolution_m=self.resolution_m,
+            rows=self.size_cells,
+            cols=self.size_cells,
+        )
+
+
+def _level(points: NDArray[np.float64], roll_rad: float, pitch_rad: float) -> NDArray[np.float64]:
+    """Rotate body-frame points by the body's roll and pitch into a gravity-aligned frame with
+    the body's yaw (``R = Ry(pitch) @ Rx(roll)``, ZYX convention without the yaw)."""
+    if roll_rad == 0.0 and pitch_rad == 0.0:
+        return points
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    rot = np.array([[cp, sp * sr, sp * cr], [0.0, cr, -sr], [-sp, cp * sr, cp * cr]])
+    return points @ rot.T
+
+
+def points_in_odom(
+    points_in_base: ArrayLike,
+    odom_from_base: ArrayLike,
+    *,
+    roll_rad: float = 0.0,
+    pitch_rad: float = 0.0,
+    pose_name: str = "odom_from_base",
+) -> NDArray[np.float64]:
+    """``(N, 3)`` points in ``odom`` (z unchanged by the planar pose: heights stay relative to
+    the base's ground contact). ``odom_from_base``: one pose ``(3,)`` for the whole sweep or
+    ``(N, 3)`` poses, one per point (de-skew). Raises ValueError naming bad input (the pose
+    argument as ``pose_name``)."""
+    pts = check_points("points_in_base", points_in_base)
+    pose = np.asarray(odom_from_base, dtype=np.float64)
+    if not (pose.shape == (3,) or pose.shape == (len(pts), 3)):
+        raise ValueError(f"{pose_name}: expected shape (3,) or ({len(pts)}, 3), got {pose.shape}")
+    if not np.all(np.isfinite(pose)):
+        raise ValueError(f"{pose_name}: pose is not finite")
+    if not (math.isfinite(roll_rad) and math.isfinite(pitch_rad)):
+        raise ValueError(f"roll_rad/pitch_rad must be finite, got {roll_rad}, {pitch_rad}")
+    pts = _level(pts, roll_rad, pitch_rad)
+    c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+    out = np.empty_like(pts)
+    out[:, 0] = pose[..., 0] + c * pts[:, 0] - s * pts[:, 1]
+    out[:, 1] = pose[..., 1] + s * pts[:, 0] + c * pts[:, 1]
+    out[:, 2] = pts[:, 2]
+    return out
+
+
+def classify_sweep(
+    points_in_base: ArrayLike,
+    odom_from_base: ArrayLike,
+    *,
+    config: TerrainConfig,
+    geometry: GridGeometry | None = None,
+    roll_rad: float = 0.0,
+    pitch_rad: float = 0.0,
+) -> tuple[NDArray[np.uint8], GridGeometry]:
+    """Classify one sweep into ``(classes, geometry)``: a ``uint8`` grid of
+    :data:`~robot.terrain.grid.UNKNOWN` / ``DRIVABLE`` / ``OBSTACLE`` in ``odom``.
+
+    ``geometry`` defaults to ``config.geometry_around`` the sweep's (first) base position.
+    ``O(N + iterations * rows * cols)``; about 10 ms for 50k points into 400 x 400 cells.
+    """
+    pts = points_in_odom(points_in_base, odom_from_base, roll_rad=roll_rad, pitch_rad=pitch_rad)
+    pose = np.asarray(odom_from_base, dtype=np.float64)
+    origin = pose[:2] if pose.ndim == 1 else pose[0, :2]
+    if geometry is None:
+        geometry = config.geometry_around(origin)
+    sensor_xy = pose[..., :2]
+    keep = np.sum((pts[:, :2] - sensor_xy) ** 2, axis=1) <= config.max_range_m**2
+    if not keep.all():
+        pts = pts[keep]
+    ground = ground_model(pts, geometry, ground_slope_deg=config.ground_slope_deg)
+    z_min, z_max = filter_height_range(
+        pts, geometry, ground, overhead_clearance_m=config.overhead_clearance_m
+    )
+    obstacle = up_detector(
+        z_min,
+        z_max,
+        slope_per_cell_m=math.tan(math.radians(config.climb_slope_deg)) * geometry.resolution_m,
+        step_m=config.step_m,
+        iterations=config.iterations,
+        ground_m=ground if config.fill_unobserved else None,
+    )
+    classes = np.full(geometry.shape, UNKNOWN, dtype=np.uint8)
+    classes[np.isfinite(z_max)] = DRIVABLE
+    classes[obstacle] = OBSTACLE
+    return classes, geometry

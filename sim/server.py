@@ -1,0 +1,264 @@
+"""``magic sim``: the simulator server (issue 3, DESIGN section 4).
+
+Steps a :class:`~sim.simulator.Simulator` and, over zenoh (``protocol.link``):
+
+- publishes each robot's sensor frames on ``magic/<mission>/sim/robot/<id>/sensors`` and takes
+  its commands from ``.../commands`` (a robot node uses ``Link.remote_driver(id)``);
+- publishes the mission clock (a ``ClockTick``) on ``magic/<mission>/sim/clock`` every step;
+- publishes every robot's radio grant on ``magic/<mission>/sim/radio/<id>`` when the radio
+  model updates (endpoints that follow the radio apply it);
+- publishes ground truth for evaluation only on ``magic/<mission>/sim/truth/events`` (each rule
+  event, JSON) and ``.../truth/poses`` (all robots' poses once per mission second, JSON).
+
+Pacing: ``--rtf R`` runs at R times real time (0: as fast as possible); ``--lockstep``
+advances only when every live robot node has consumed its latest sweep (a remote node
+acknowledges a sweep by sending any command stamped at or after the sweep's ``time_s``),
+which makes a seeded run repeatable. Bad commands (NaN/inf, undecodable) are refused, counted
+and logged; the server runs on. Progress goes to stdout every ``--progress-s`` wall seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from mission.config import CONFIGS_DIR, ConfigError, load_config
+from protocol import keys
+from protocol.radio import RadioConfig
+from protocol.sensors import ClockTick, RobotCommand, encode_sensor_frame
+from sim.simulator import CommandError, Simulator, SimulatorConfig, load_world_config
+
+__all__ = ["SimServer", "main"]
+
+log = logging.getLogger(__name__)
+
+
+class SimServer:
+    """Runs ``sim``; with ``link`` (a ``protocol.link.Link``) it serves the robots over zenoh,
+    without it the simulator is only stepped (in-process drivers still work)."""
+
+    def __init__(
+        self,
+        sim: Simulator,
+        *,
+        link: Any | None = None,
+        mission: str = "default",
+        rtf: float = 1.0,
+        lockstep: bool = False,
+        progress: Callable[[str], None] | None = None,
+        progress_period_s: float = 2.0,
+    ) -> None:
+        if not rtf >= 0:
+            raise ValueError(f"rtf must be >= 0, got {rtf}")
+        self.sim = sim
+        self.link = link
+        self.mission = mission
+        self.rtf = rtf
+        self.lockstep = lockstep
+        self.progress = progress
+        self.progress_period_s = progress_period_s
+        self.rejected_commands = 0
+        self.stop_event = threading.Event()
+        self._ports: dict[int, Any] = {}
+        self._radio_seen = -1
+        self._events_sent = 0
+        if link is not None:
+            self._clock_key = keys.sim_clock(mission)
+            self._events_key = keys.sim_truth(mission, "events")
+            self._poses_key = keys.sim_truth(mission, "poses")
+            for rid in sim.robot_ids:
+                self._ports[rid] = link.driver_port(rid, self._on_command(rid))
+
+    def _on_command(self, robot_id: int) -> Callable[[RobotCommand], None]:
+        def handle(command: RobotCommand) -> None:
+            try:
+                self.sim.command(robot_id, command)
+            except CommandError as err:
+                self.rejected_commands += 1
+                log.warning("refused command: %s", err)
+
+        return handle
+
+    def _publish(self) -> None:
+        sim, link = self.sim, self.link
+        if link is None:
+            return
+        for rid, port in self._ports.items():
+            for frame in sim.driver(rid).take_frames():
+                port.publish(frame)
+        link.publish(self._clock_key, encode_sensor_frame(ClockTick(time_s=sim.time_s)))
+        if sim.radio_updates != self._radio_seen:
+            self._radio_seen = sim.radio_updates
+            for rid, grant in sim.radio_grants().items():
+                link.publish_grant(rid, grant)
+        events = sim.events
+        while self._events_sent < len(events):
+            link.publish(self._events_key, msgspec.json.encode(events[self._events_sent]))
+            self._events_sent += 1
+        if sim.steps % max(1, int(round(1.0 / sim.config.step_s))) == 0:
+            poses = {
+                str(r): p for r, p in zip(sim.robot_ids, sim.robot_poses().tolist(), strict=True)
+            }
+            link.publish(
+                self._poses_key, msgspec.json.encode({"time_s": sim.time_s, "poses": poses})
+            )
+
+    def run(self, duration_s: float | None = None) -> None:
+        """Step until ``duration_s`` of mission time has passed (None: until :meth:`stop`)."""
+        sim = self.sim
+        t_end = None if duration_s is None else sim.time_s + duration_s
+        wall0, sim0 = time.monotonic(), sim.time_s
+        last_report = wall0
+        while not self.stop_event.is_set():
+            if t_end is not None and sim.time_s >= t_end - 1e-9:
+                break
+            if self.lockstep and not sim.wait_ready(0.5):
+                continue
+            sim.step()
+            self._publish()
+            if self.rtf > 0:
+                target = wall0 + (sim.time_s - sim0) / self.rtf
+                delay = target - time.monotonic()
+                if delay > 0:
+                    self.stop_event.wait(delay)
+            now = time.monotonic()
+            if self.progress is not None and now - last_report >= self.progress_period_s:
+                last_report = now
+                self.progress(self.status_line(now - wall0, sim.time_s - sim0))
+        if self.progress is not None:
+            self.progress(self.status_line(time.monotonic() - wall0, sim.time_s - sim0))
+
+    def status_line(self, wall_s: float, sim_s: float) -> str:
+        sim = self.sim
+        alive = int(sim.alive().sum())
+        sweeps = sum(max(0, sim.driver(r).last_sweep_sent + 1) for r in sim.robot_ids)
+        rtf = sim_s / wall_s if wall_s > 0 else 0.0
+        return (
+            f"t={sim.time_s:8.2f} s  rtf={rtf:5.2f}  robots alive {alive}/{len(sim.robot_ids)}"
+            f"  sweeps={sweeps}  events={len(sim.events)}"
+            f"  refused commands={sim.rejected_commands + self.rejected_commands}"
+        )
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    def close(self) -> None:
+        for port in self._ports.values():
+            port.close()
+        self._ports.clear()
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="magic sim", description="Run the PyBullet simulator server.")
+    p.add_argument(
+        "--world",
+        type=Path,
+        default=CONFIGS_DIR / "world" / "small.yaml",
+        help="world config (configs/world/*.yaml)",
+    )
+    p.add_argument("--sim-config", type=Path, help="simulator config YAML (SimulatorConfig)")
+    p.add_argument(
+        "--radio",
+        type=Path,
+        default=CONFIGS_DIR / "radio" / "magic2010.yaml",
+        help="radio config (configs/radio/*.yaml)",
+    )
+    p.add_argument("--mission", default="default", help="mission name in the zenoh keys")
+    p.add_argument(
+        "--rtf", type=float, default=1.0, help="target real-time factor; 0 runs as fast as possible"
+    )
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="advance only when every robot node consumed its last sweep",
+    )
+    p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
+    p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on")
+    p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect")
+    p.add_argument("--no-zenoh", action="store_true", help="step the world without serving it")
+    p.add_argument("--progress-s", type=float, default=2.0, help="wall seconds between reports")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    """``magic sim``: returns the exit status (2 on bad arguments or configuration)."""
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as exit_:  # --help, or bad arguments (argparse printed why)
+        return int(exit_.code or 0)
+    out = sys.stdout
+    try:
+        world_cfg = load_world_config(args.world)
+        sim_cfg = (
+            load_config(args.sim_config, SimulatorConfig) if args.sim_config else SimulatorConfig()
+        )
+        radio_cfg = load_config(args.radio, RadioConfig)
+        if not (args.rtf >= 0 and (args.duration is None or args.duration >= 0)):
+            raise ValueError("--rtf and --duration must be >= 0")
+        keys.sim_clock(args.mission)
+    except (ConfigError, ValueError) as err:
+        print(f"magic sim: {err}", file=sys.stderr)
+        return 2
+    print(f"magic sim: generating {args.world} ...", file=out, flush=True)
+    try:
+        sim = Simulator(world_cfg, config=sim_cfg, radio=radio_cfg)
+    except ValueError as err:
+        print(f"magic sim: {args.world}: {err}", file=sys.stderr)
+        return 2
+    link = None
+    if not args.no_zenoh:
+        from protocol.link import Link, LinkConfig
+
+        fields: dict[str, Any] = {"radio": radio_cfg}
+        if args.listen:
+            fields["listen"] = tuple(args.listen)
+        if args.connect:
+            fields["connect"] = tuple(args.connect)
+        link = Link(LinkConfig(**fields), mission=args.mission, clock=sim.clock)
+    w = sim.world
+    print(
+        f"magic sim: world {w.size_m[0]:.0f} x {w.size_m[1]:.0f} m, {len(w.solids)} solids, "
+        f"{len(w.oois)} objects of interest, {len(w.humans)} people, {len(w.robots)} robots "
+        f"({sum(r.role == 'disruptor' for r in w.robots)} disruptors); mission {args.mission!r}"
+        + ("" if link is None else ", serving over zenoh")
+        + (", lockstep" if args.lockstep else f", rtf {args.rtf:g}"),
+        file=out,
+        flush=True,
+    )
+    server = SimServer(
+        sim,
+        link=link,
+        mission=args.mission,
+        rtf=args.rtf,
+        lockstep=args.lockstep,
+        progress=lambda s: print(s, file=out, flush=True),
+        progress_period_s=args.progress_s,
+    )
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGINT, lambda *_: server.stop())
+    try:
+        server.run(args.duration)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+        server.close()
+        if link is not None:
+            link.close()
+        sim.close()
+    for ev in sim.events:
+        print(f"event t={ev.time_s:.2f} {ev.kind} {ev.subject} ({ev.cause})", file=out)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main(sys.argv[1:]))

@@ -1,0 +1,186 @@
+"""The composed on-robot planner (paper 5.4) over terrain maps in odom."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.sparse.csgraph import dijkstra as scipy_dijkstra
+
+from robot.planning.config_space import configuration_space
+from robot.planning.dijkstra import grid_graph
+from robot.planning.path_relaxation import clearance_field, path_clearance, segments_free
+from robot.planning.planner import PathPlanner, PlannerConfig
+from robot.terrain.classifier import TerrainConfig, classify_sweep
+from robot.terrain.grid import DRIVABLE, OBSTACLE, UNKNOWN, GridGeometry
+from robot.terrain.synthetic_scene import cast_sweep, random_scene
+
+GEO = GridGeometry((-5.0, -5.0), 0.05, 200, 200)
+
+
+def _doorway_map() -> np.ndarray:
+    classes = np.full(GEO.shape, DRIVABLE, dtype=np.uint8)
+    classes[99:101, :] = OBSTACLE
+    classes[99:101, 90:122] = DRIVABLE  # 1.6 m doorway
+    return classes
+
+
+def _cells_to_xy_path(result) -> np.ndarray:  # type: ignore[no-untyped-def]
+    return np.stack(
+        [
+            (result.path_in_odom[:, 1] - GEO.origin_m[1]) / GEO.resolution_m - 0.5,
+            (result.path_in_odom[:, 0] - GEO.origin_m[0]) / GEO.resolution_m - 0.5,
+        ],
+        axis=1,
+    )
+
+
+@pytest.mark.parametrize("unknown", ["free", "obstacle", "cost"])
+def test_dijkstra_length_equals_scipy_and_clearance_is_kept(unknown: str) -> None:
+    cfg = PlannerConfig(unknown=unknown, robot_radius_m=0.3, clearance_m=0.6)  # type: ignore[arg-type]
+    classes = _doorway_map()
+    classes[150:170, 20:180] = UNKNOWN
+    start, goal = np.array([-4.0, -4.0]), np.array([-3.5, 4.0])
+    result = PathPlanner(cfg).plan(classes, GEO, start, goal)
+    assert result.ok, result.reason
+
+    # The oracle: the same graph built independently, solved by scipy.
+    hard = classes == OBSTACLE
+    if unknown == "obstacle":
+        hard |= classes == UNKNOWN
+    blocked = configuration_space(hard, robot_radius_m=0.3, resolution_m=0.05)
+    cost = np.ones(GEO.shape)
+    if unknown == "cost":
+        cost[classes == UNKNOWN] = cfg.unknown_cost
+    cost[blocked] = np.inf
+    s = GEO.cell_of(start)
+    g = GEO.cell_of(goal)
+    ref = scipy_dijkstra(grid_graph(cost, resolution_m=0.05), indices=s[0] * 200 + s[1])
+    assert result.dijkstra_length_m == pytest.approx(ref[g[0] * 200 + g[1]], rel=1e-12)
+
+    # After relaxation and smoothing: collision-free, and through the doorway with the
+    # configured clearance (the doorway is wider than twice the clearance).
+    cells = _cells_to_xy_path(result)
+    assert segments_free(cells[1:-1], blocked)
+    clearance = path_clearance(cells, clearance_field(hard, resolution_m=0.05))
+    assert result.min_clearance_m >= 0.3
+    crossing = np.abs(result.path_in_odom[:, 1] - 0.0) < 0.15
+    assert crossing.any() and clearance[crossing].min() >= 0.6 - 0.05
+    np.testing.assert_allclose(result.path_in_odom[[0, -1]], [start, goal])
+    assert result.length_m >= math.dist(start, goal)
+
+
+def test_cost_policy_prefers_seen_terrain() -> None:
+    classes = np.full(GEO.shape, DRIVABLE, dtype=np.uint8)
+    classes[60:140, 60:140] = UNKNOWN  # unseen block in the straight line
+    start, goal = (-3.0, 0.0), (3.0, 0.0)
+    free = PathPlanner(PlannerConfig(unknown="free")).plan(classes, GEO, start, goal)
+    cost = PathPlanner(PlannerConfig(unknown="cost", unknown_cost=3.0)).plan(
+        classes, GEO, start, goal
+    )
+    blocked = PathPlanner(PlannerConfig(unknown="obstacle")).plan(classes, GEO, start, goal)
+    assert free.ok and cost.ok and blocked.ok
+    through = lambda r: (np.abs(r.path_in_odom) < 1.5).all(axis=1).any()  # noqa: E731
+    assert through(free) and not through(cost) and not through(blocked)
+
+
+def test_no_path_is_reported() -> None:
+    classes = _doorway_map()
+    classes[99:101, :] = OBSTACLE  # close the door
+    result = PathPlanner().plan(classes, GEO, (0.0, -3.0), (0.0, 3.0))
+    assert result.status == "no_path" and not result.ok
+    assert result.path_in_odom.shape == (0, 2) and math.isinf(result.dijkstra_length_m)
+    assert "no path" in result.reason
+
+
+def test_blocked_start_and_goal_are_reported() -> None:
+    classes = _doorway_map()
+    planner = PathPlanner(PlannerConfig(robot_radius_m=0.4, escape=False))
+    assert planner.plan(classes, GEO, (-3.0, -0.2), (0.0, 3.0)).status == "start_blocked"
+    assert planner.plan(classes, GEO, (-3.0, 3.0), (-3.0, 0.1)).status == "goal_blocked"
+    # Escape cannot leave an obstacle cell itself.
+    on_wall = PathPlanner(PlannerConfig(robot_radius_m=0.4)).plan(
+        classes, GEO, (-3.0, 0.0), (0.0, 3.0)
+    )
+    assert on_wall.status == "start_blocked" and "clearance 0.000" in on_wall.reason
+
+
+def test_start_inside_the_margin_escapes_without_getting_closer() -> None:
+    classes = _doorway_map()
+    cfg = PlannerConfig(robot_radius_m=0.4)
+    start = (-3.0, -0.2)  # 0.15 m from the wall's face: inside the 0.4 m margin
+    result = PathPlanner(cfg).plan(classes, GEO, start, (-3.0, -3.0))
+    assert result.ok and result.escaped
+    hard = classes == OBSTACLE
+    clearance = clearance_field(hard, resolution_m=GEO.resolution_m)
+    cells = result.dijkstra_cells
+    s = GEO.cell_index(start)
+    assert (clearance[cells[:, 0], cells[:, 1]] >= clearance[s] - 1e-9).all()
+    blocked = configuration_space(hard, robot_radius_m=0.4, resolution_m=GEO.resolution_m)
+    assert not blocked[cells[-1, 0], cells[-1, 1]]
+
+
+def test_goal_tolerance_moves_a_blocked_goal_to_the_nearest_free_cell() -> None:
+    classes = _doorway_map()
+    cfg = PlannerConfig(robot_radius_m=0.4, goal_tolerance_m=0.5)
+    result = PathPlanner(cfg).plan(classes, GEO, (-3.0, 3.0), (-3.0, 0.3))
+    assert result.ok and result.goal_in_odom is not None
+    gx, gy = result.goal_in_odom
+    assert gx == pytest.approx(-3.0, abs=0.05) and 0.4 <= gy <= 0.5 + 1e-9
+    tight = PathPlanner(PlannerConfig(robot_radius_m=0.4, goal_tolerance_m=0.05))
+    assert tight.plan(classes, GEO, (-3.0, 3.0), (-3.0, 0.1)).status == "goal_blocked"
+
+
+def test_unknown_cells_under_the_robot_do_not_block_it() -> None:
+    classes = np.full(GEO.shape, UNKNOWN, dtype=np.uint8)
+    classes[:, 120:] = DRIVABLE
+    cfg = PlannerConfig(unknown="obstacle", robot_radius_m=0.3)
+    result = PathPlanner(cfg).plan(classes, GEO, (1.1, 0.0), (4.0, 0.0))
+    assert result.ok, result.reason
+
+
+def test_plans_on_a_classified_sweep() -> None:
+    rng = np.random.default_rng(3)
+    hits = cast_sweep(random_scene(rng), (0.0, 0.0, 0.0), rng=rng)
+    classes, geo = classify_sweep(hits.points_in_base, hits.odom_from_base, config=TerrainConfig())
+    result = PathPlanner().plan(classes, geo, (0.0, 0.0), (8.0, 6.0))
+    assert result.ok, result.reason
+    assert result.min_clearance_m >= PlannerConfig().robot_radius_m
+
+
+@pytest.mark.parametrize(
+    ("classes", "start", "goal", "match"),
+    [
+        (np.zeros((10, 10), np.uint8), (0, 0), (1, 1), "classes: shape"),
+        (np.zeros(GEO.shape, np.int64), (0, 0), (1, 1), "classes: expected dtype uint8"),
+        (np.full(GEO.shape, 5, np.uint8), (0, 0), (1, 1), "classes: values"),
+        (np.zeros(GEO.shape, np.uint8), (0, 0), (np.nan, 1), "goal_in_odom: expected 2 finite"),
+        (np.zeros(GEO.shape, np.uint8), (0, 0), (1, 2, 3), "goal_in_odom: expected 2 finite"),
+        (
+            np.zeros(GEO.shape, np.uint8),
+            (0, 0),
+            (12.0, 1.0),
+            r"goal_in_odom \(12.000, 1.000\) is "
+            r"outside the map x \[-5.000, 5.000\)",
+        ),
+        (np.zeros(GEO.shape, np.uint8), (-9, 0), (1, 1), "start_in_odom .* outside the map"),
+    ],
+)
+def test_bad_input_names_the_problem(classes, start, goal, match) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(ValueError, match=match):
+        PathPlanner().plan(classes, GEO, start, goal)
+
+
+def test_config_rejects_bad_values() -> None:
+    with pytest.raises(ValueError, match="unknown_cost"):
+        PlannerConfig(unknown_cost=0.5)
+    with pytest.raises(ValueError, match="robot_radius_m"):
+        PlannerConfig(robot_radius_m=-1.0)
+
+
+def test_start_equals_goal() -> None:
+    classes = _doorway_map()
+    result = PathPlanner().plan(classes, GEO, (-2.99, -2.99), (-2.96, -2.97))
+    assert result.ok and result.length_m == 0.0 and result.dijkstra_length_m == 0.0
+    np.testing.assert_allclose(result.path_in_odom, [[-2.96, -2.97]])

@@ -1,0 +1,79 @@
+"""Pessimistic fusion of the last sweeps in odom (paper 5.3, stage 3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robot.terrain.grid import DRIVABLE, OBSTACLE, UNKNOWN, GridGeometry
+from robot.terrain.map_fusion import TerrainMapFusion
+
+
+def _geo(cx: float, cy: float, n: int = 20) -> GridGeometry:
+    return GridGeometry.centered([cx, cy], resolution_m=0.1, rows=n, cols=n)
+
+
+def _brute_fuse(maps, out_geo):  # type: ignore[no-untyped-def]
+    """Per output cell, look up every map by world coordinates of the cell center."""
+    out = np.full(out_geo.shape, UNKNOWN, dtype=np.uint8)
+    for r in range(out_geo.rows):
+        for c in range(out_geo.cols):
+            xy = out_geo.center_of((r, c))
+            seen = []
+            for classes, geo in maps:
+                mr, mc = geo.cell_of(xy)
+                if 0 <= mr < geo.rows and 0 <= mc < geo.cols:
+                    seen.append(classes[mr, mc])
+            if OBSTACLE in seen:
+                out[r, c] = OBSTACLE
+            elif DRIVABLE in seen:
+                out[r, c] = DRIVABLE
+    return out
+
+
+def test_fusion_matches_brute_force_and_forgets_old_sweeps() -> None:
+    rng = np.random.default_rng(0)
+    fusion = TerrainMapFusion(memory_sweeps=3)
+    maps = []
+    for k in range(5):
+        geo = _geo(0.37 * k, -0.21 * k)
+        classes = rng.integers(0, 3, geo.shape).astype(np.uint8)
+        fusion.add(classes, geo)
+        maps.append((classes, geo))
+    assert len(fusion) == 3
+    out_geo = _geo(0.9, -0.5, n=30)
+    np.testing.assert_array_equal(fusion.fused(out_geo), _brute_fuse(maps[-3:], out_geo))
+
+
+def test_one_obstacle_anywhere_wins() -> None:
+    geo = _geo(0.0, 0.0)
+    fusion = TerrainMapFusion()
+    drivable = np.full(geo.shape, DRIVABLE, dtype=np.uint8)
+    one = drivable.copy()
+    one[5, 7] = OBSTACLE
+    for classes in (drivable, one, drivable):
+        fusion.add(classes, geo)
+    out = fusion.fused(geo)
+    assert out[5, 7] == OBSTACLE
+    assert (out == DRIVABLE).sum() == out.size - 1
+    for _ in range(12):  # after 12 newer sweeps the obstacle is forgotten
+        fusion.add(drivable, geo)
+    assert (fusion.fused(geo) == DRIVABLE).all()
+
+
+def test_bad_input_names_the_problem() -> None:
+    fusion = TerrainMapFusion()
+    geo = _geo(0.0, 0.0)
+    with pytest.raises(ValueError, match="shape"):
+        fusion.add(np.zeros((3, 3), np.uint8), geo)
+    with pytest.raises(ValueError, match="dtype"):
+        fusion.add(np.zeros(geo.shape, np.int32), geo)
+    with pytest.raises(ValueError, match="values"):
+        fusion.add(np.full(geo.shape, 7, np.uint8), geo)
+    with pytest.raises(ValueError, match="lattice"):
+        fusion.fused(GridGeometry((0.05, 0.0), 0.1, 4, 4))
+    fusion.add(np.zeros(geo.shape, np.uint8), geo)
+    with pytest.raises(ValueError, match="resolution_m"):
+        fusion.fused(GridGeometry((0.0, 0.0), 0.2, 4, 4))
+    with pytest.raises(ValueError, match="memory_sweeps"):
+        TerrainMapFusion(memory_sweeps=0)

@@ -1,0 +1,137 @@
+"""Kinematic skid-steer bodies: walls stop them, 10 cm curbs do not, slip, battery (3.1)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from simworlds import box, make_world
+
+from sim.ground_truth import rasterize
+from sim.robot_body import RobotBodyConfig, SkidSteerBodies
+from sim.world_generator import Solid
+
+
+def _bodies(solids, starts, **kw):
+    world = make_world(solids=solids, robots=[(x, y, yaw, "sensor") for x, y, yaw in starts], **kw)
+    return SkidSteerBodies(np.array(starts, dtype=float), rasterize(world), seed=3)
+
+
+def _drive(b: SkidSteerBodies, v: float, w: float, seconds: float, dt: float = 0.05) -> list:
+    poses = []
+    n = b.count
+    for _ in range(int(round(seconds / dt))):
+        b.step(dt, np.full(n, v), np.full(n, w))
+        poses.append(b.state.pose.copy())
+    return poses
+
+
+def test_robot_cannot_drive_through_a_wall_or_a_thin_fence() -> None:
+    wall = box("wall", 10.0, 5.0, 10.15, 15.0, 2.5)
+    fence = box("fence", 10.0, 15.5, 10.05, 19.5, 2.0)
+    b = _bodies([wall, fence], [(7.0, 10.0, 0.0), (7.0, 17.0, 0.0)])
+    poses = np.array(_drive(b, 1.0, 0.0, 8.0))
+    front = poses[:, :, 0] + RobotBodyConfig().length_m / 2
+    assert front[:, 0].max() <= 10.0 + 1e-6  # the wall's face
+    assert front[:, 1].max() <= 10.0 + 1e-6  # the fence's face
+    assert front[-1, 0] > 9.7 and front[-1, 1] > 9.7  # they did get there
+    assert (b.state.blocked_steps > 0).all()
+    assert np.allclose(b.state.wheel_linear_m_s, 0.0)  # stalled against it
+
+
+def test_robot_never_passes_walls_from_any_angle() -> None:
+    room = [
+        box("wall", 8, 8, 22, 8.15, 2.5),
+        box("wall", 8, 11.85, 22, 12, 2.5),
+        box("wall", 8, 8, 8.15, 12, 2.5),
+        box("wall", 21.85, 8, 22, 12, 2.5),
+    ]
+    starts = [(12.0, 10.0, a) for a in np.linspace(-math.pi, math.pi, 7, endpoint=False)]
+    b = _bodies(room, starts)
+    for k in range(6):
+        poses = np.array(_drive(b, 1.0, 0.8 * (-1) ** k, 4.0))
+        assert (poses[:, :, 0] > 8.15 + 0.2).all() and (poses[:, :, 0] < 21.85 - 0.2).all()
+        assert (poses[:, :, 1] > 8.15 + 0.2).all() and (poses[:, :, 1] < 11.85 - 0.2).all()
+
+
+def test_robot_climbs_a_10cm_curb_but_not_a_15cm_step() -> None:
+    curb = box("curb", 10.0, 5.0, 16.0, 9.0, 0.10, layer="ground")
+    step = box("step", 10.0, 11.0, 16.0, 15.0, 0.15, layer="ground")
+    b = _bodies([curb, step], [(8.0, 7.0, 0.0), (8.0, 13.0, 0.0)])
+    poses = np.array(_drive(b, 0.6, 0.0, 8.0))
+    assert poses[-1, 0, 0] > 12.0  # over the curb
+    assert b.state.z_m[0] == pytest.approx(0.10, abs=1e-6)
+    assert poses[:, 1, 0].max() + 0.3 < 10.0  # stopped at the step
+    assert b.state.z_m[1] == pytest.approx(0.0)
+
+
+def test_terrain_following_on_a_15_degree_ramp() -> None:
+    slope = math.radians(15.0)
+    length = 0.5 / math.tan(slope)
+    ramp = Solid(
+        "ramp", "wedge", "ground", (10.0 + length / 2, 10.0, 0.25), (length / 2, 1.0, 0.25)
+    )
+    dock = box("dock", 10.0 + length, 8.5, 14.0 + length, 11.5, 0.5, layer="ground")
+    b = _bodies([ramp, dock], [(8.0, 10.0, 0.0)])
+    pitches = []
+    for _ in range(240):
+        b.step(0.05, np.array([0.5]), np.array([0.0]))
+        pitches.append(b.state.pitch_rad[0])
+    assert min(pitches) == pytest.approx(-slope, abs=0.03)  # nose up on the ramp
+    assert b.state.z_m[0] == pytest.approx(0.5)  # on the dock
+    assert b.state.pose[0, 0] > 10.0 + length + 1.0
+
+
+def test_roll_on_a_sideways_curb() -> None:
+    curb = box("curb", 5.0, 10.0, 25.0, 14.0, 0.10, layer="ground")
+    b = _bodies([curb], [(8.0, 10.0, 0.0)])  # left wheels on the curb, right wheels off
+    assert b.state.roll_rad[0] == pytest.approx(math.atan2(0.10, 0.45), abs=1e-6)
+
+
+def test_slip_when_turning_and_more_on_sand() -> None:
+    b = _bodies([], [(10.0, 10.0, 0.0)])
+    _drive(b, 0.0, 1.0, 3.0)
+    enc_yaw = (b.state.right_m[0] - b.state.left_m[0]) / RobotBodyConfig().track_m
+    true_yaw = np.unwrap([0.0, b.state.pose[0, 2]])[1]
+    assert enc_yaw > 0 and true_yaw < 0.9 * enc_yaw  # encoders overestimate yaw (4.3.1)
+
+    def travelled(sand: bool) -> float:
+        world_sand = [(5.0, 5.0, 25.0, 15.0, 0.25)] if sand else []
+        bb = _bodies([], [(8.0, 10.0, 0.0)], sand=world_sand)
+        _drive(bb, 1.0, 0.0, 5.0)
+        wheel = (bb.state.left_m[0] + bb.state.right_m[0]) / 2
+        return (bb.state.pose[0, 0] - 8.0) / wheel
+
+    assert travelled(sand=True) < travelled(sand=False) - 0.15
+
+
+def test_acceleration_limits_and_battery_and_disabled_robots() -> None:
+    b = _bodies([], [(8.0, 10.0, 0.0), (8.0, 14.0, 0.0)])
+    b.step(0.05, np.array([1.0, 1.0]), np.array([0.0, 0.0]))
+    assert b.state.wheel_linear_m_s[0] == pytest.approx(
+        RobotBodyConfig().max_linear_accel_m_s2 * 0.05
+    )
+    b.state.disabled[1] = True
+    start = b.state.pose.copy()
+    battery = b.state.battery_wh.copy()
+    _drive(b, 1.0, 0.0, 2.0)
+    assert b.state.battery_wh[0] < battery[0]
+    assert np.allclose(b.state.pose[1], start[1])  # a disabled robot does not move
+    b.state.battery_wh[0] = 1e-6
+    _drive(b, 1.0, 0.0, 0.5)
+    assert b.state.disabled[0]  # empty battery
+
+
+def test_robots_do_not_drive_through_each_other_or_people() -> None:
+    b = _bodies([], [(8.0, 10.0, 0.0), (12.0, 10.0, math.pi)])
+    for _ in range(120):
+        b.step(
+            0.05,
+            np.array([1.0, 1.0]),
+            np.array([0.0, 0.0]),
+            others_xy_m=np.array([[10.0, 14.0]]),
+            others_radius_m=np.array([0.3]),
+        )
+        d = np.linalg.norm(b.state.pose[0, :2] - b.state.pose[1, :2])
+        assert d >= 2 * RobotBodyConfig().radius_m - 1e-9

@@ -1,0 +1,93 @@
+"""The PyBullet scene: ray casts (ground clipping, chunking, attribution) and ray workers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from simworlds import box, make_world
+
+from sim.scene import MAX_RAYS_PER_CALL, Scene
+from sim.world_generator import Ooi
+
+
+def _world():
+    wall = box("wall", 10.0, 2.0, 10.2, 18.0, 2.5)
+    ooi = Ooi(0, "static_ooi", (6.0, 5.0), 0.25, 0.8, (1, 0.3, 0, 1))
+    return make_world(solids=[wall], oois=[ooi], robots=[(4.0, 10.0, 0.0, "sensor")])
+
+
+def _robot_at(x: float, y: float) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, 3] = (x, y, 0.0)
+    return m[None]
+
+
+def test_ray_cast_hits_walls_ground_objects_and_robots() -> None:
+    scene = Scene(_world())
+    try:
+        scene.set_robot_poses(_robot_at(4.0, 10.0))
+        scene.sync()
+        f = np.array(
+            [
+                [0.5, 10.0, 1.0],
+                [0.5, 10.0, 1.0],
+                [0.5, 5.0, 0.4],
+                [1.0, 10.0, 0.3],
+                [0.5, 15.0, 1.0],
+            ]
+        )
+        t = np.array(
+            [
+                [20.5, 10.0, 1.0],
+                [0.5, 10.0, -1.0],
+                [10.5, 5.0, 0.4],
+                [7.0, 10.0, 0.3],
+                [0.5, 15.0, 5.0],
+            ]
+        )
+        frac, body = scene.ray_cast(f, t)
+        assert scene.body_kind[int(body[0])] == ("solid", "wall")
+        assert frac[0] * 20.0 == pytest.approx(9.5, abs=1e-4)
+        assert body[1] == scene.ground_body and frac[1] == pytest.approx(0.5)
+        assert scene.ooi_of_body[body[2]] == 0 and frac[2] * 10.0 == pytest.approx(5.25, abs=1e-3)
+        assert scene.robot_of_body[body[3]] == 0  # the chassis (x from 3.7)
+        assert frac[3] * 6.0 == pytest.approx(2.7, abs=1e-3)
+        assert body[4] == -1 and frac[4] == 1.0  # into the sky
+    finally:
+        scene.close()
+
+
+def test_batches_larger_than_one_call_are_chunked() -> None:
+    scene = Scene(_world())
+    try:
+        n = 2 * MAX_RAYS_PER_CALL + 17
+        f = np.tile([[0.5, 10.0, 1.0]], (n, 1))
+        t = np.tile([[20.5, 10.0, 1.0]], (n, 1))
+        frac, body = scene.ray_cast(f, t)
+        assert (body == body[0]).all() and np.allclose(frac, 9.5 / 20.0)
+    finally:
+        scene.close()
+
+
+def test_a_ray_worker_process_gives_exactly_the_same_hits() -> None:
+    world = _world()
+    alone, pooled = Scene(world), Scene(world, ray_workers=1)
+    try:
+        rng = np.random.default_rng(5)
+        n = 9000
+        f = np.column_stack([rng.uniform(1, 19, n), rng.uniform(1, 19, n), rng.uniform(0.1, 2, n)])
+        t = f + rng.normal(size=(n, 3)) * 10.0
+        for x in (4.0, 8.5):  # the robot moves; the worker follows
+            for s in (alone, pooled):
+                s.set_robot_poses(_robot_at(x, 10.0))
+                s.sync()
+            a, b = alone.ray_cast(f, t), pooled.ray_cast(f, t)
+            assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+        for s in (alone, pooled):
+            s.hide_ooi(0)
+        a, b = alone.ray_cast(f, t), pooled.ray_cast(f, t)
+        assert np.array_equal(a[1], b[1])
+        assert not (alone.ooi_of_body[np.clip(a[1], 0, None)] == 0).any()
+    finally:
+        alone.close()
+        pooled.close()
