@@ -14,8 +14,6 @@ __all__ = ["main"]
 
 #: Subcommands that are specified but not built yet, and the issue that brings each.
 _NOT_BUILT = {
-    "sim": "the PyBullet simulator server (simulated world, issue 3)",
-    "robot": "a robot node (robot autonomy, issue 4)",
     "gcs": "the ground-control station node (loop closing and the GCS node, issue 7)",
     "console": "the operator console (operator interfaces)",
     "replay": "replay of CARMEN laser logs through the GCS (loop closing, issue 7)",
@@ -41,6 +39,13 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("--duration", type=float, metavar="S", help="mission seconds to run")
     run.add_argument("--seed", type=int, help="seed of the scripted goals")
     run.add_argument("--quiet", action="store_true", help="no live table, only the summary")
+
+    for name, what in (
+        ("sim", "the simulator server: world, robots, sensors, rules, radio over zenoh"),
+        ("robot", "one robot node, fed by a simulator (or hardware) over zenoh"),
+    ):
+        p = sub.add_parser(name, help=what, add_help=False)
+        p.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 
     for name, what in _NOT_BUILT.items():
         p = sub.add_parser(name, help=f"{what} [not built yet]", add_help=True)
@@ -110,6 +115,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in ("sim", "robot"):  # processes with their own option parsers
+        if argv[0] == "sim":
+            from sim.server import main as sim_main
+
+            return sim_main(argv[1:])
+        from mission.robot_process import main as robot_main
+
+        return robot_main(argv[1:])
     parser = _build_parser()
     # Unbuilt subcommands take whatever options they will have (``magic robot --id 3``).
     args, unknown = parser.parse_known_args(argv)

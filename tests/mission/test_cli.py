@@ -11,7 +11,7 @@ import pytest
 from mission.bench import SUITES
 from mission.cli import main
 
-UNBUILT = ["sim", "robot", "gcs", "console", "replay", "report"]
+UNBUILT = ["gcs", "console", "replay", "report"]
 
 
 @pytest.mark.parametrize("command", UNBUILT)
