@@ -10,12 +10,16 @@ Terrain classification (:func:`terrain_speed`, :func:`terrain_quality`):
   sweep of about 50k points (the MAGIC sensor's density) into a 400 x 400 grid at 5 cm
   (the paper's 400 m^2 map: about 300 ms in-system). Target <= 30 ms.
 - ``terrain_fuse_ms_12``: fusing the last 12 sweeps into a 400 x 400 map.
+- ``vertical_grid_ms_400x400``: the 10 cm vertical-surface grid (40 x 40 m) of the same sweep.
 - ``terrain_obstacle_recall`` (>= 0.99) and ``terrain_false_obstacle_frac`` (<= 0.01): pooled
   over generated scenes (:mod:`robot.terrain.synthetic_scene`, boxes, walls, curbs, 5-15 deg
-  ramps, trees with overhanging canopy) against their known truth: the fraction of cells with a
-  LIDAR hit on an obstacle face >= 10 cm above nearby ground that have an obstacle within one
-  cell, and the fraction of drivable-ground cells marked obstacle. ``..._recall_exact``: the
-  same in the exact cell.
+  ramps, trees with overhanging canopy), one sweep each, against their known truth
+  (:func:`robot.terrain.synthetic_scene.truth_grids`): the fraction of cells with a LIDAR hit
+  on the face of an obstacle whose rim rises >= 9 cm (10 cm less range noise) above a ground
+  hit within 15 cm that have an obstacle within one cell, and the fraction of drivable-ground
+  cells (ground, ramp or under-canopy hits away from faces) marked obstacle.
+  ``..._recall_exact``: the same in the exact cell (the up-detector marks the higher cell,
+  often the curb top next to the face cell).
 
 Path planning (:func:`plan_speed`):
 
@@ -24,6 +28,8 @@ Path planning (:func:`plan_speed`):
   of a generated scene, to random goals 6-9 m away that have a path (goals inside obstacles,
   answered in well under a millisecond, are not timed; ``plan_found_frac`` is the fraction
   of random goals with a path). Target <= 20 ms.
+- ``plan_ms_400x400_unknown_cost``: the same with ``unknown="cost"`` (unknown cells cost 1.5x):
+  the octile heuristic is weaker there, so more cells are expanded.
 - ``dijkstra_ms_400x400_full``: plain Dijkstra (no heuristic) over the same maps, to the
   farthest reachable cell, i.e. nearly the whole grid: the worst case without A*.
 """
@@ -51,6 +57,7 @@ from robot.terrain.synthetic_scene import (
     score_classification,
     truth_grids,
 )
+from robot.terrain.vertical_surface_grid import VerticalSurfaceConfig, vertical_surface_grid
 
 __all__ = ["plan_speed", "run", "terrain_quality", "terrain_speed"]
 
@@ -74,10 +81,15 @@ def terrain_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, 
         fusion.add(classes, geo)
     assert geo is not None
     fuse_ms = 1e3 * median_time_s(lambda: fusion.fused(geo), repeats=10 if quick else 40)
+    vcfg = VerticalSurfaceConfig()
+    vertical_ms = 1e3 * median_time_s(
+        lambda: vertical_surface_grid(pts, config=vcfg), repeats=10 if quick else 40
+    )
     return {
         "terrain_ms_400x400": classify_ms,
         "terrain_fuse_ms_12": fuse_ms,
         "terrain_points_per_sweep": float(len(pts)),
+        "vertical_grid_ms_400x400": vertical_ms,
     }
 
 
@@ -138,6 +150,8 @@ def plan_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, flo
     tcfg = TerrainConfig()
     pcfg = PlannerConfig()
     planner = PathPlanner(pcfg)
+    cost_planner = PathPlanner(PlannerConfig(unknown="cost"))
+    cost_samples: list[float] = []
     samples: list[float] = []
     full: list[float] = []
     ok = tried = 0
@@ -159,6 +173,8 @@ def plan_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, flo
 
             plan_once = partial(planner.plan, classes, geo, (0.0, 0.0), goal)
             samples.append(median_time_s(plan_once, repeats=3 if quick else 7, warmup=0))
+            plan_cost = partial(cost_planner.plan, classes, geo, (0.0, 0.0), goal)
+            cost_samples.append(median_time_s(plan_cost, repeats=1 if quick else 3, warmup=0))
         blocked = configuration_space(
             classes == OBSTACLE, robot_radius_m=pcfg.robot_radius_m, resolution_m=geo.resolution_m
         )
@@ -176,6 +192,7 @@ def plan_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, flo
         "plan_ms_400x400": 1e3 * statistics.median(samples),
         "plan_ms_400x400_max": 1e3 * max(samples),
         "plan_found_frac": ok / tried,
+        "plan_ms_400x400_unknown_cost": 1e3 * statistics.median(cost_samples),
         "dijkstra_ms_400x400_full": 1e3 * statistics.median(full),
     }
 

@@ -123,9 +123,16 @@ class PathPlanner:
         geometry: GridGeometry,
         start_in_odom: ArrayLike,
         goal_in_odom: ArrayLike,
+        *,
+        cost_multiplier: NDArray[np.floating] | None = None,
     ) -> PlanResult:
         """Plan from ``start_in_odom`` to ``goal_in_odom`` (``(x, y)`` m) over ``classes``
         (``uint8`` UNKNOWN/DRIVABLE/OBSTACLE laid out by ``geometry``).
+
+        ``cost_multiplier``: optional per-cell step-cost factors ``>= 1`` on the same grid (e.g.
+        AOJRF traversability learned from measured vs requested speed,
+        ``robot.control.traversability``), multiplied into the unknown-cell cost. The first
+        stage then finds the minimum-*cost* path; relaxation and smoothing are unchanged.
 
         Raises ValueError for bad input: wrong map shape or dtype, class values out of range,
         non-finite or off-map start/goal (the caller clips far goals to the map).
@@ -170,13 +177,23 @@ class PathPlanner:
         hard = obstacle | unknown if cfg.unknown == "obstacle" else obstacle
         blocked = configuration_space(hard, robot_radius_m=cfg.robot_radius_m, resolution_m=res)
         cost = np.ones(geometry.shape)
+        if cost_multiplier is not None:
+            m = np.asarray(cost_multiplier, dtype=np.float64)
+            if m.shape != geometry.shape:
+                raise ValueError(
+                    f"cost_multiplier: shape {m.shape} does not match geometry {geometry.shape}"
+                )
+            if not (np.all(np.isfinite(m)) and np.all(m >= 1.0)):
+                raise ValueError("cost_multiplier: values must be finite and >= 1")
+            cost *= m
         if cfg.unknown == "cost":
-            cost[unknown] = cfg.unknown_cost
+            cost[unknown] *= cfg.unknown_cost
         cost[blocked] = np.inf
 
-        def fail(status: PlanStatus, reason: str, length: float = math.inf) -> PlanResult:
+        def fail(status: PlanStatus, reason: str) -> PlanResult:
+            empty = np.empty((0, 2))
             return PlanResult(
-                status, np.empty((0, 2)), np.empty((0, 2), np.int64), length, math.inf, 0.0, reason
+                status, empty, empty.astype(np.int64), math.inf, math.inf, 0.0, reason
             )
 
         clearance = clearance_field(hard, resolution_m=res)
@@ -190,9 +207,7 @@ class PathPlanner:
                     f"obstacle (clearance {start_clearance:.3f} m)",
                 )
             exit_cells = blocked & under_robot & (clearance >= start_clearance - 1e-9)
-            cost[exit_cells] = np.where(
-                unknown[exit_cells] & (cfg.unknown == "cost"), cfg.unknown_cost, 1.0
-            )
+            cost[exit_cells] = 1.0 if cost_multiplier is None else cost_multiplier[exit_cells]
             escaped = True
         if blocked[g_rc]:
             snapped = self._snap_goal(blocked, g_rc, cfg.goal_tolerance_m / res)

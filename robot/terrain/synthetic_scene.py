@@ -325,7 +325,7 @@ def truth_grids(
     *,
     min_obstacle_m: float = 0.09,
     overhead_clearance_m: float = 1.1,
-    evidence_radius_m: float = 0.25,
+    evidence_radius_m: float = 0.15,
     margin_cells: int = 5,
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """``(must_be_obstacle, must_be_drivable)`` cells of ``geometry`` from one sweep's hits.
@@ -333,9 +333,10 @@ def truth_grids(
     Obstacle: a cell holding a hit on an obstacle's vertical face (below the overhead
     clearance) where the obstacle's rim is evidenced: within one cell a face or top hit lies
     at least ``min_obstacle_m`` above a ground (or ramp) hit within ``evidence_radius_m``.
-    ``min_obstacle_m`` is the issue's 10 cm less the 1 cm range noise, so a 10 cm curb counts.
-    Without a lower hit nearby the sweep cannot tell a face from a slope (grazing views,
-    shadows behind boxes), so no classifier could be held to it.
+    ``min_obstacle_m`` is the issue's 10 cm less the 1 cm range noise, so a 10 cm curb counts;
+    with the default 15 cm radius that is a rise steeper than 30 deg, beyond any climbable
+    slope. Without a lower hit that close the sweep cannot tell a face from a slope (grazing
+    views from afar, shadows behind boxes), so no classifier could be held to it.
     Drivable: a cell holding only ground, ramp or canopy hits, farther than ``margin_cells``
     (the up-detector's reach) from any cell holding a face or top hit and from any vertical
     face of ``scene`` (the rim of a drop, such as a ramp's side, is an obstacle too, seen or

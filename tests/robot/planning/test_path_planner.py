@@ -184,3 +184,27 @@ def test_start_equals_goal() -> None:
     result = PathPlanner().plan(classes, GEO, (-2.99, -2.99), (-2.96, -2.97))
     assert result.ok and result.length_m == 0.0 and result.dijkstra_length_m == 0.0
     np.testing.assert_allclose(result.path_in_odom, [[-2.96, -2.97]])
+
+
+def test_cost_multiplier_steers_the_path_and_matches_scipy() -> None:
+    classes = np.full(GEO.shape, DRIVABLE, dtype=np.uint8)
+    mult = np.ones(GEO.shape)
+    mult[80:120, 95:105] = 5.0  # a sandy strip across the straight line
+    start, goal = (-3.0, 0.0), (3.0, 0.0)
+    plain = PathPlanner().plan(classes, GEO, start, goal)
+    sandy = PathPlanner().plan(classes, GEO, start, goal, cost_multiplier=mult)
+    assert plain.ok and sandy.ok
+    assert sandy.dijkstra_length_m > plain.dijkstra_length_m
+    cells = sandy.dijkstra_cells
+    assert (mult[cells[:, 0], cells[:, 1]] == 1.0).all()  # goes around the strip
+    blocked = configuration_space(
+        classes == OBSTACLE, robot_radius_m=PlannerConfig().robot_radius_m, resolution_m=0.05
+    )
+    cost = np.where(blocked, np.inf, mult)
+    s, g = GEO.cell_index(start), GEO.cell_index(goal)
+    ref = scipy_dijkstra(grid_graph(cost, resolution_m=0.05), indices=s[0] * 200 + s[1])
+    assert sandy.dijkstra_length_m == pytest.approx(ref[g[0] * 200 + g[1]], rel=1e-12)
+    with pytest.raises(ValueError, match="cost_multiplier: values"):
+        PathPlanner().plan(classes, GEO, start, goal, cost_multiplier=np.zeros(GEO.shape))
+    with pytest.raises(ValueError, match="cost_multiplier: shape"):
+        PathPlanner().plan(classes, GEO, start, goal, cost_multiplier=np.ones((3, 3)))

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from robot.planning.config_space import configuration_space
 from robot.planning.dijkstra import dijkstra_grid
@@ -134,3 +136,33 @@ def test_bad_input_names_the_problem() -> None:
         smooth_path(np.zeros((2, 2)), np.ones((4, 4)), blocked, target_clearance_m=1)
     with pytest.raises(ValueError, match="obstacle"):
         clearance_field(np.zeros((3, 3)), resolution_m=RES)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 100_000))
+def test_relax_then_smooth_on_random_maps(seed: int) -> None:
+    """Collision-free, endpoints fixed, and every vertex keeps at least
+    min(target, its clearance on Dijkstra's path)."""
+    rng = np.random.default_rng(seed)
+    obstacle = np.zeros((80, 80), dtype=bool)
+    for _ in range(int(rng.integers(3, 12))):
+        r, c = rng.integers(0, 80, 2)
+        h, w = rng.integers(2, 15, 2)
+        obstacle[r : r + h, c : c + w] = True
+    blocked = configuration_space(obstacle, robot_radius_m=RADIUS, resolution_m=RES)
+    free = np.argwhere(~blocked)
+    if len(free) < 2:
+        return
+    start, goal = (tuple(int(v) for v in free[i]) for i in rng.choice(len(free), 2))
+    found = dijkstra_grid(np.where(blocked, np.inf, 1.0), start, goal, resolution_m=RES)  # type: ignore[arg-type]
+    if not found.found:
+        return
+    clearance = clearance_field(obstacle, resolution_m=RES)
+    path = found.path_cells.astype(float)
+    before = path_clearance(path, clearance)
+    final = smooth_path(
+        _relax(path, clearance, blocked), clearance, blocked, target_clearance_m=TARGET
+    )
+    assert segments_free(final, blocked)
+    assert np.array_equal(final[[0, -1]], path[[0, -1]])
+    assert np.all(path_clearance(final, clearance) >= np.minimum(TARGET, before) - 1e-9)
