@@ -26,9 +26,8 @@ def test_unbuilt_subcommands_exit_2(command: str, capsys: pytest.CaptureFixture[
 @pytest.mark.parametrize(
     "argv",
     [
-        ["robot", "--id", "3"],
         ["gcs", "--connect", "tcp/10.0.0.2:7447", "--listen", "tcp/0.0.0.0:7447"],
-        ["sim", "--world", "configs/worlds/x.yaml", "extra"],
+        ["console", "--mission", "demo"],
         ["replay", "log.carmen"],
     ],
 )
@@ -82,3 +81,19 @@ def test_console_script() -> None:
     assert proc.returncode == 2
     assert proc.stdout == ""
     assert proc.stderr.startswith("magic report: not built yet")
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["robot"], "the following arguments are required: --id"),
+        (["robot", "--id", "-2"], "--id must be >= 0"),
+        (["sim", "--world", "configs/worlds/x.yaml"], "cannot read"),
+        (["sim", "--bogus"], "unrecognized arguments: --bogus"),
+    ],
+)
+def test_process_commands_refuse_bad_arguments(
+    argv: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(argv) == 2
+    assert message in capsys.readouterr().err
