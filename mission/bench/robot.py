@@ -1,8 +1,7 @@
 """``magic bench robot``: on-robot autonomy (issue 4; paper 5.3, 5.4).
 
-One small function per metric group; :func:`run` merges them (add odometry, node CPU and
-uplink groups the same way). Times are medians of repeats, wall clock, after warm-up (numba
-kernels are compiled and cached before anything is timed).
+One small function per metric group; :func:`run` merges them. Times are medians of repeats,
+wall clock, after warm-up (numba kernels are compiled and cached before anything is timed).
 
 Terrain classification (:func:`terrain_speed`, :func:`terrain_quality`):
 
@@ -20,6 +19,18 @@ Terrain classification (:func:`terrain_speed`, :func:`terrain_quality`):
   cells (ground, ramp or under-canopy hits away from faces) marked obstacle.
   ``..._recall_exact``: the same in the exact cell (the up-detector marks the higher cell,
   often the curb top next to the face cell).
+
+Odometry and the node, against the simulator (:func:`odometry`, :func:`node`; trials in
+:mod:`mission.evaluation`):
+
+- ``odom_drift_frac`` (<= 0.02): final position error over distance after a scripted
+  ~200 m zigzag drive with stops (UMBmark-like) in an open world, default simulator noise;
+  ``odom_heading_drift_deg_per_min`` (<= 1); ``odom_bias_error_rad_s`` after the first stop.
+- ``node_cpu_ms_per_sweep``: the whole node pipeline (odometry, control, terrain
+  classification and fusion, pose node, vertical grid and its compression, planning) between
+  consecutive sweeps, thread CPU time, median, in the small world.
+- ``uplink_bps_per_robot``: what that node put on the air (metered frames plus framing) per
+  mission second, with the default codec.
 
 Path planning (:func:`plan_speed`):
 
@@ -59,7 +70,7 @@ from robot.terrain.synthetic_scene import (
 )
 from robot.terrain.vertical_surface_grid import VerticalSurfaceConfig, vertical_surface_grid
 
-__all__ = ["plan_speed", "run", "terrain_quality", "terrain_speed"]
+__all__ = ["node", "odometry", "plan_speed", "run", "terrain_quality", "terrain_speed"]
 
 #: Nodding-LIDAR pattern giving about 50k points per sweep (paper 3.1).
 DENSE = {"beams": 1081, "lines": 80}
@@ -197,6 +208,30 @@ def plan_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, flo
     }
 
 
+def odometry(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    from mission.evaluation import odometry_drive
+
+    progress("odometry: scripted 200 m drive in the simulator")
+    trial = odometry_drive()
+    return {
+        "odom_drift_frac": trial.drift_frac,
+        "odom_heading_drift_deg_per_min": trial.heading_drift_deg_per_min,
+        "odom_bias_error_rad_s": abs(trial.bias_error_rad_s),
+        "odom_drive_m": trial.distance_m,
+    }
+
+
+def node(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    from mission.evaluation import node_pipeline
+
+    progress("robot node in the small world")
+    trial = node_pipeline(duration_s=30.0 if quick else 90.0)
+    return {
+        "node_cpu_ms_per_sweep": statistics.median(trial.cpu_ms_per_sweep),
+        "uplink_bps_per_robot": trial.uplink_bps,
+    }
+
+
 def _warm_up() -> None:
     """Compile (or load from cache) every numba kernel once, untimed."""
     cfg = TerrainConfig(size_cells=40)
@@ -211,6 +246,6 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     progress("warm-up: compiling kernels")
     _warm_up()
     metrics: dict[str, float] = {}
-    for group in (terrain_speed, terrain_quality, plan_speed):
+    for group in (terrain_speed, terrain_quality, plan_speed, odometry, node):
         metrics.update(group(quick=quick, progress=progress))
     return metrics
