@@ -26,7 +26,7 @@ from protocol.meter import Meter
 from protocol.radio_channel import RadioChannel
 from protocol.se2 import relative, wrap_angle
 from protocol.sensors import ImuSample, LidarSweep, VelocityCommand, WheelTicks
-from robot.node import RobotNode
+from robot.node import RobotNode, RobotNodeConfig
 from robot.odometry.inertial_odometry import InertialOdometry, OdometryConfig
 from sim.imu import ImuConfig
 from sim.simulator import Simulator, SimulatorConfig
@@ -154,7 +154,10 @@ class NodeTrial:
 
 
 def node_pipeline(
-    *, duration_s: float = 40.0, goal_odom: tuple[float, float] = (12.0, 2.0)
+    *,
+    duration_s: float = 40.0,
+    goal_odom: tuple[float, float] = (12.0, 2.0),
+    config: RobotNodeConfig | None = None,
 ) -> NodeTrial:
     """Robot 0 of the small world drives to a goal; times its node per sweep (thread CPU)."""
     from mission.config import CONFIGS_DIR
@@ -165,7 +168,7 @@ def node_pipeline(
         driver = sim.driver(rid)
         meter = Meter()
         uplink = RadioChannel(rid, Direction.UP, meter=meter)  # unlimited rate, metered
-        node = RobotNode(rid, send=uplink.send)
+        node = RobotNode(rid, send=uplink.send, config=config)
         node.handle_downlink(GoToTask(1, 0.0, [goal_odom]))
         per_sweep: list[float] = []
         acc = 0.0
