@@ -27,7 +27,7 @@ import numpy as np
 from mission.config import CONFIGS_DIR, load_config
 from protocol.clock import ManualClock
 from protocol.link import Link, LinkConfig
-from protocol.loopback import free_loopback_port
+from protocol.loopback import free_loopback_port, unique_mission
 from protocol.messages import (
     Direction,
     GoToTask,
@@ -209,9 +209,12 @@ def run_mission(
     clock = ManualClock()
     port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    ground_link = Link(LinkConfig(listen=(endpoint,), radio=radio_cfg), mission="run", clock=clock)
+    mission = unique_mission("run")
+    ground_link = Link(
+        LinkConfig(listen=(endpoint,), radio=radio_cfg), mission=mission, clock=clock
+    )
     robot_link = Link(
-        LinkConfig(listen=(), connect=(endpoint,), radio=radio_cfg), mission="run", clock=clock
+        LinkConfig(listen=(), connect=(endpoint,), radio=radio_cfg), mission=mission, clock=clock
     )
     t_wall = time.perf_counter()
     try:

@@ -10,13 +10,21 @@ the same the other way. Runs are therefore repeatable and as fast as the machine
 from __future__ import annotations
 
 import socket
+import uuid
 from dataclasses import dataclass
 
 from protocol.clock import ManualClock
 from protocol.link import GcsEndpoint, Link, LinkConfig, RobotEndpoint
 from protocol.meter import Meter
 
-__all__ = ["LockstepPair", "free_loopback_port", "open_pair"]
+__all__ = ["LockstepPair", "free_loopback_port", "open_pair", "unique_mission"]
+
+
+def unique_mission(prefix: str) -> str:
+    """A mission name no other process uses: sessions of different processes on one machine
+    can find each other (gossip, reused loopback ports), and the mission name is what keeps
+    their key spaces apart."""
+    return f"{prefix}-{uuid.uuid4().hex[:10]}"
 
 
 def free_loopback_port() -> int:
@@ -28,12 +36,14 @@ def free_loopback_port() -> int:
 
 def open_pair(
     *,
-    mission: str = "loopback",
+    mission: str | None = None,
     config: LinkConfig | None = None,
     clock: object | None = None,
     seed: int = 0,
 ) -> tuple[Link, Link]:
-    """Open a listening (GCS) link and a connecting (robot) link on a free loopback port."""
+    """Open a listening (GCS) link and a connecting (robot) link on a free loopback port
+    (``mission`` defaults to a fresh :func:`unique_mission`)."""
+    mission = mission or unique_mission("loopback")
     base = config or LinkConfig()
     port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -65,7 +75,7 @@ class LockstepPair:
         robot_id: int = 1,
         *,
         config: LinkConfig | None = None,
-        mission: str = "lockstep",
+        mission: str | None = None,
         seed: int = 0,
         timeout_s: float = 10.0,
     ) -> LockstepPair:
@@ -73,6 +83,7 @@ class LockstepPair:
         base = config or LinkConfig()
         fields = {f: getattr(base, f) for f in base.__struct_fields__}
         cfg = LinkConfig(**{**fields, "pump_period_s": 0.0})
+        mission = mission or unique_mission("lockstep")
         gcs_link, robot_link = open_pair(mission=mission, config=cfg, clock=clock, seed=seed)
         try:
             gcs = gcs_link.gcs_endpoint()

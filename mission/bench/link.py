@@ -154,7 +154,7 @@ def ack_overhead(*, duration_s: float) -> dict[str, float]:
 
 def loopback_throughput(*, n: int) -> float:
     """Messages per wall second through two real sessions, with the pump thread running."""
-    gcs_link, robot_link = open_pair(mission="bench-throughput", clock=WallClock())
+    gcs_link, robot_link = open_pair(clock=WallClock())
     try:
         done = threading.Event()
         count = [0]

@@ -10,7 +10,7 @@ import pytest
 from mission.robot_process import RobotProcess
 from protocol.clock import ManualClock
 from protocol.link import Link, LinkConfig
-from protocol.loopback import free_loopback_port
+from protocol.loopback import free_loopback_port, unique_mission
 from protocol.messages import GoToTask, PoseNode, TaskState, TaskStatus
 from robot.node import RobotNodeConfig
 from sim.server import SimServer
@@ -21,13 +21,14 @@ pytestmark = pytest.mark.slow
 
 def test_remote_robot_reaches_a_goal_sent_over_the_radio() -> None:
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    mission = unique_mission("remote")
     sim = Simulator(load_world_config("configs/world/small.yaml"))
-    sim_link = Link(LinkConfig(listen=(endpoint,)), mission="remote", clock=sim.clock)
+    sim_link = Link(LinkConfig(listen=(endpoint,)), mission=mission, clock=sim.clock)
     robot_clock = ManualClock()
     # every peer listens (on an ephemeral loopback port): peers do not route for each other,
     # they find each other through the simulator's session and connect directly
-    robot_link = Link(LinkConfig(connect=(endpoint,)), mission="remote", clock=robot_clock)
-    ground_link = Link(LinkConfig(connect=(endpoint,)), mission="remote")
+    robot_link = Link(LinkConfig(connect=(endpoint,)), mission=mission, clock=robot_clock)
+    ground_link = Link(LinkConfig(connect=(endpoint,)), mission=mission)
     rid = sim.robot_ids[0]
     done = threading.Event()
     reports: list = []
@@ -40,7 +41,7 @@ def test_remote_robot_reaches_a_goal_sent_over_the_radio() -> None:
     ground = ground_link.gcs_endpoint(on_message=on_message)
     # lockstep waits for every robot's node: run one per robot, as a deployment would
     procs = [RobotProcess(robot_link, r, robot_clock, RobotNodeConfig()) for r in sim.robot_ids]
-    server = SimServer(sim, link=sim_link, mission="remote", rtf=0.0, lockstep=True)
+    server = SimServer(sim, link=sim_link, mission=mission, rtf=0.0, lockstep=True)
     threads = [threading.Thread(target=server.run, kwargs={"duration_s": 60.0}, daemon=True)]
     threads += [
         threading.Thread(target=p.run, kwargs={"duration_s": 60.0}, daemon=True) for p in procs

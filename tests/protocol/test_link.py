@@ -10,7 +10,7 @@ import pytest
 from protocol import keys
 from protocol.clock import ManualClock, WallClock
 from protocol.link import Link, LinkConfig
-from protocol.loopback import LockstepPair, open_pair
+from protocol.loopback import LockstepPair, open_pair, unique_mission
 from protocol.messages import (
     AutonomyMode,
     Direction,
@@ -127,7 +127,7 @@ def test_callback_errors_do_not_stop_delivery() -> None:
         if msg.task_id == 2:
             done.set()
 
-    gcs_link, robot_link = open_pair(mission="cb", clock=WallClock())
+    gcs_link, robot_link = open_pair(clock=WallClock())
     try:
         gcs = gcs_link.gcs_endpoint(on_message=on_message)
         robot = robot_link.robot_endpoint(9)
@@ -143,7 +143,7 @@ def test_callback_errors_do_not_stop_delivery() -> None:
 
 
 def test_radio_grants_follow_the_simulator() -> None:
-    gcs_link, robot_link = open_pair(mission="grants", clock=WallClock())
+    gcs_link, robot_link = open_pair(clock=WallClock())
     try:
         gcs = gcs_link.gcs_endpoint(follow_radio=True)
         robot = robot_link.robot_endpoint(5, follow_radio=True)
@@ -163,7 +163,7 @@ def test_radio_grants_follow_the_simulator() -> None:
 
 
 def test_downlink_task_reaches_robot_with_pump_thread() -> None:
-    gcs_link, robot_link = open_pair(mission="down", clock=WallClock())
+    gcs_link, robot_link = open_pair(clock=WallClock())
     try:
         gcs = gcs_link.gcs_endpoint()
         robot = robot_link.robot_endpoint(6)
@@ -201,7 +201,8 @@ def test_remote_driver_carries_sensor_frames_and_commands() -> None:
         commands.append(cmd)
         got_command.set()
 
-    sim_link, robot_link = open_pair(mission="driver", clock=WallClock())
+    mission = unique_mission("driver")
+    sim_link, robot_link = open_pair(mission=mission, clock=WallClock())
     try:
         port = sim_link.driver_port(2, on_command)
         driver = robot_link.remote_driver(2)
@@ -215,7 +216,7 @@ def test_remote_driver_carries_sensor_frames_and_commands() -> None:
             frames = driver.poll(0.05)
         assert frames, "no sensor frame arrived"
         assert np.array_equal(frames[0].points_in_base, sweep.points_in_base)
-        sim_link.publish(keys.sim_sensors("driver", 2), b"not a frame")
+        sim_link.publish(keys.sim_sensors(mission, 2), b"not a frame")
         cmd = VelocityCommand(1.0, 0.5, -0.1)
         while not got_command.is_set() and time.monotonic() < deadline:
             driver.send(cmd)
