@@ -18,10 +18,14 @@ camera pose recorded at the requested time (:mod:`sim.camera`), applies the rule
 ``radio_period_s``, the radio model (:mod:`sim.radio_model`). Frames go to each robot's
 driver queue (bounded: the oldest are dropped and counted when nobody reads).
 
-Lockstep (repeatable runs): :meth:`ready` is true when every live robot's node has consumed
-its latest sweep (polled it in process, or sent a command stamped at or after the sweep's
-time over the network); a runner steps only then (:meth:`wait_ready`). Threads: drivers may be
-used from any thread; stepping happens on one thread.
+Lockstep (repeatable runs): :meth:`ready` is true when every live robot's node has answered
+its latest sweep with a command (any command stamped at or after the sweep's ``time_s``, in
+process or over the network); a runner steps only then (:meth:`wait_ready`). A robot counts
+once its node has polled its driver or sent a command: robots nobody drives never hold the
+world back. Because the answer is the command itself, it is always applied at the same
+step: a seeded run repeats exactly. ``lockstep_ack: poll`` also counts a sweep polled in
+process as consumed (for nodes that never command; not repeatable if they do). Threads:
+drivers may be used from any thread; stepping happens on one thread.
 
 Seeded throughout: the same world config and ``SimulatorConfig.seed`` with the same commands
 at the same steps give the same sweeps.
@@ -37,6 +41,7 @@ import os
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import msgspec
 import numpy as np
@@ -45,6 +50,7 @@ from mission.config import load_config
 from protocol.clock import ManualClock
 from protocol.radio import RadioConfig, RadioGrant
 from protocol.sensors import (
+    BatteryState,
     CameraImage,
     ImageRequest,
     ImuSample,
@@ -76,6 +82,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: Renders cost tens of milliseconds: a node may ask for this many images per step.
+_MAX_IMAGE_REQUESTS_PER_STEP = 4
+
 
 class SimulatorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``step_s``: simulation step; ``seed``: sensor noise and slip (the world has its own);
@@ -95,6 +104,8 @@ class SimulatorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     ray_threads: int = 2
     ray_workers: int = -1
     queue_limit_frames: int = 4000
+    lockstep_ack: Literal["command", "poll"] = "command"
+    battery_period_s: float = 1.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.step_s) and 0.001 <= self.step_s <= 0.5):
@@ -105,6 +116,8 @@ class SimulatorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
             raise ValueError(f"ray_threads must be in [0, 64], got {self.ray_threads}")
         if not -1 <= self.ray_workers <= 16:
             raise ValueError(f"ray_workers must be in [-1, 16], got {self.ray_workers}")
+        if not (math.isfinite(self.battery_period_s) and self.battery_period_s > 0):
+            raise ValueError(f"battery_period_s must be > 0, got {self.battery_period_s}")
         if self.queue_limit_frames < 10:
             raise ValueError(f"queue_limit_frames must be >= 10, got {self.queue_limit_frames}")
 
@@ -181,6 +194,7 @@ class SimDriver:
                 self._cond.wait_for(lambda: bool(self._frames), timeout=timeout_s)
             out = list(self._frames)
             self._frames.clear()
+        self._sim._attach(self.robot_id)
         for f in out:
             if isinstance(f, LidarSweep):
                 self._sim._ack_sweep(self.robot_id, f.sweep_index)
@@ -278,6 +292,7 @@ class Simulator:
         self._ready = threading.Condition()
         self._acked = np.full(n, -1, dtype=np.int64)
         self._acked_time = np.full(n, -math.inf)
+        self._attached = np.zeros(n, dtype=bool)  # a node has polled or commanded
         self.rejected_commands = 0
         self._history: collections.deque[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = (
             collections.deque(maxlen=max(2, int(cfg.camera.history_s / cfg.step_s) + 1))
@@ -316,9 +331,17 @@ class Simulator:
             elif isinstance(command, LaserPointerCommand):
                 ib.laser[robot_id] = command
             else:
+                pending = sum(1 for rid, _ in ib.images if rid == robot_id)
+                if pending >= _MAX_IMAGE_REQUESTS_PER_STEP:
+                    self.rejected_commands += 1
+                    raise CommandError(
+                        f"robot {robot_id}: ImageRequest refused: {pending} already pending"
+                        f" this step (at most {_MAX_IMAGE_REQUESTS_PER_STEP})"
+                    )
                 ib.images.append((robot_id, command))
         with self._ready:
             k = self.robot_ids.index(robot_id)
+            self._attached[k] = True
             self._acked_time[k] = max(self._acked_time[k], float(command.time_s))
             self._ready.notify_all()
 
@@ -346,18 +369,27 @@ class Simulator:
     def _ready_locked(self) -> bool:
         alive = self.alive()
         for k, rid in enumerate(self.robot_ids):
-            if not alive[k]:
+            if not (alive[k] and self._attached[k]):
                 continue
             d = self._drivers[rid]
             if d.last_sweep_sent < 0:
                 continue
-            if self._acked[k] < d.last_sweep_sent and self._acked_time[k] < d.last_sweep_time_s:
+            # commands carry float32-rounded times on the wire: allow half a step
+            by_command = self._acked_time[k] >= d.last_sweep_time_s - self.config.step_s / 2
+            by_poll = self.config.lockstep_ack == "poll" and self._acked[k] >= d.last_sweep_sent
+            if not (by_command or by_poll):
                 return False
         return True
 
     def wait_ready(self, timeout_s: float) -> bool:
         with self._ready:
             return self._ready.wait_for(self._ready_locked, timeout=timeout_s)
+
+    def _attach(self, robot_id: int) -> None:
+        k = self.robot_ids.index(robot_id)
+        if not self._attached[k]:
+            with self._ready:
+                self._attached[k] = True
 
     def _ack_sweep(self, robot_id: int, sweep_index: int) -> None:
         with self._ready:
@@ -441,6 +473,10 @@ class Simulator:
         )
         ticks = wheel_ticks(st.left_m, st.right_m, cfg.encoders)
         gyro_l, accel_l, ticks_l = gyro.tolist(), accel.tolist(), ticks.tolist()
+        period = cfg.battery_period_s
+        battery_due = math.floor(t_new / period + 1e-9) != math.floor(
+            t_new / period - dt / period + 1e-9
+        )
         for k, rid in enumerate(self.robot_ids):
             if not alive[k]:
                 out[rid] = []
@@ -455,6 +491,9 @@ class Simulator:
             out[rid].append(
                 WheelTicks(time_s=t_new, left_ticks=ticks_l[k][0], right_ticks=ticks_l[k][1])
             )
+            if battery_due:
+                charge = min(1.0, max(0.0, float(st.battery_wh[k]) / cfg.body.battery_wh))
+                out[rid].append(BatteryState(time_s=t_new, charge_frac=charge))
 
         self._record()
         for rid, req in inbox.images:

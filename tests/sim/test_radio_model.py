@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from simworlds import REPO
 
 from mission.config import load_config
 from protocol.radio import RadioConfig
 from sim.radio_model import RadioModel
+from tests.sim.simworlds import REPO
 
 RES = 0.1
 

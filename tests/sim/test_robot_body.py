@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 import pytest
-from simworlds import box, make_world
 
 from sim.ground_truth import rasterize
 from sim.robot_body import RobotBodyConfig, SkidSteerBodies
 from sim.world_generator import Solid
+from tests.sim.simworlds import box, make_world
 
 
 def _bodies(solids, starts, **kw):

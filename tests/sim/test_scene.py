@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from simworlds import box, make_world
 
 from sim.scene import MAX_RAYS_PER_CALL, Scene
 from sim.world_generator import Ooi
+from tests.sim.simworlds import box, make_world
 
 
 def _world():

@@ -7,13 +7,12 @@ import math
 import threading
 import time
 
-from simworlds import REPO, make_world
-
 from protocol.clock import WallClock
-from protocol.loopback import open_pair
+from protocol.loopback import open_pair, unique_mission
 from protocol.sensors import ImuSample, LidarSweep, VelocityCommand
 from sim.server import SimServer, main
 from sim.simulator import Simulator
+from tests.sim.simworlds import REPO, make_world
 
 SMALL = str(REPO / "configs/world/small.yaml")
 
@@ -42,9 +41,10 @@ def _serve(server: SimServer, duration_s: float | None = None) -> threading.Thre
 
 
 def test_frames_and_commands_over_zenoh_and_bad_commands_are_refused() -> None:
-    sim_link, robot_link = open_pair(mission="simtest", clock=WallClock())
+    mission = unique_mission("simtest")
+    sim_link, robot_link = open_pair(mission=mission, clock=WallClock())
     sim = Simulator(make_world(robots=[(5.0, 10.0, 0.0, "sensor"), (5.0, 14.0, 0.0, "sensor")]))
-    server = SimServer(sim, link=sim_link, mission="simtest", rtf=4.0)
+    server = SimServer(sim, link=sim_link, mission=mission, rtf=4.0)
     driver = robot_link.remote_driver(0)
     thread = _serve(server)
     try:
@@ -75,9 +75,10 @@ def test_frames_and_commands_over_zenoh_and_bad_commands_are_refused() -> None:
 
 
 def test_lockstep_over_zenoh_waits_for_the_remote_node() -> None:
-    sim_link, robot_link = open_pair(mission="lockstep", clock=WallClock())
+    mission = unique_mission("lockstep")
+    sim_link, robot_link = open_pair(mission=mission, clock=WallClock())
     sim = Simulator(make_world())
-    server = SimServer(sim, link=sim_link, mission="lockstep", rtf=0.0, lockstep=True)
+    server = SimServer(sim, link=sim_link, mission=mission, rtf=0.0, lockstep=True)
     driver = robot_link.remote_driver(0)
     thread = _serve(server)
     try:

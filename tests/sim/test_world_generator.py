@@ -7,12 +7,12 @@ import math
 import msgspec
 import numpy as np
 import pytest
-from simworlds import REPO
 
 from mission.config import ConfigError, load_config_text
 from sim.ground_truth import rasterize
 from sim.simulator import load_world_config
 from sim.world_generator import WorldConfig, generate_world
+from tests.sim.simworlds import REPO
 
 SMALL = REPO / "configs/world/small.yaml"
 PHASE = REPO / "configs/world/magic_phase.yaml"
@@ -140,3 +140,20 @@ def test_team_too_big_for_the_phase_is_a_clear_error() -> None:
     cfg = load_config_text("size_m: [20.0, 20.0]\nrobots:\n  sensors: 300\n", WorldConfig)
     with pytest.raises(ValueError, match="too small for 301 robots"):
         generate_world(cfg)
+
+
+def test_magic_phase_world_places_everything_reachably() -> None:
+    cfg = load_world_config(PHASE)
+    world = generate_world(cfg)
+    gt = rasterize(world)
+    assert sum(s.kind == "roof" for s in world.solids) == cfg.buildings.count
+    assert sum(o.kind == "static_ooi" for o in world.oois) == cfg.static_oois.count
+    assert sum(h.kind == "hostile" for h in world.humans) == cfg.hostiles.count
+    assert sum(len(h.route_m) > 1 for h in world.humans) >= 4  # mobile OOIs and civilians
+    for r in world.robots:
+        i, j = gt.cells(np.array(r.pose_m[:2]))
+        assert gt.reachable[i, j]
+    for h in world.humans:
+        route = np.array(h.route_m)
+        i, j = gt.cells(route)
+        assert gt.drivable[i, j].all()  # people walk where robots could drive
