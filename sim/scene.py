@@ -213,44 +213,34 @@ class Scene:
         self.body_kind[b] = ("solid", s.kind)
         return int(b)
 
-    def _add_ooi(self, o: Ooi) -> int:
+    def _add_cylinder(
+        self,
+        radius_m: float,
+        height_m: float,
+        rgba: tuple[float, ...],
+        base_m: tuple[float, float, float],
+    ) -> int:
+        """A static upright cylinder whose centre is at ``base_m`` (x, y, z of the centre)."""
         c = self.client
         col = pb.createCollisionShape(
-            pb.GEOM_CYLINDER, radius=o.radius_m, height=o.height_m, physicsClientId=c
+            pb.GEOM_CYLINDER, radius=radius_m, height=height_m, physicsClientId=c
         )
         vis = pb.createVisualShape(
-            pb.GEOM_CYLINDER,
-            radius=o.radius_m,
-            length=o.height_m,
-            rgbaColor=o.rgba,
-            physicsClientId=c,
+            pb.GEOM_CYLINDER, radius=radius_m, length=height_m, rgbaColor=rgba, physicsClientId=c
         )
-        b = pb.createMultiBody(
-            0,
-            col,
-            vis,
-            basePosition=(o.xy_m[0], o.xy_m[1], o.ground_z_m + o.height_m / 2),
-            physicsClientId=c,
-        )
+        return int(pb.createMultiBody(0, col, vis, basePosition=base_m, physicsClientId=c))
+
+    def _add_ooi(self, o: Ooi) -> int:
+        centre = (o.xy_m[0], o.xy_m[1], o.ground_z_m + o.height_m / 2)
+        b = self._add_cylinder(o.radius_m, o.height_m, o.rgba, centre)
         self.body_kind[b] = ("ooi", o.ooi_id)
-        return int(b)
+        return b
 
     def _add_human(self, h: Human) -> int:
-        c = self.client
-        col = pb.createCollisionShape(
-            pb.GEOM_CYLINDER, radius=h.radius_m, height=h.height_m, physicsClientId=c
-        )
-        vis = pb.createVisualShape(
-            pb.GEOM_CYLINDER,
-            radius=h.radius_m,
-            length=h.height_m,
-            rgbaColor=h.rgba,
-            physicsClientId=c,
-        )
         x, y = h.route_m[0]
-        b = pb.createMultiBody(0, col, vis, basePosition=(x, y, h.height_m / 2), physicsClientId=c)
+        b = self._add_cylinder(h.radius_m, h.height_m, h.rgba, (x, y, h.height_m / 2))
         self.body_kind[b] = ("human", h.human_id)
-        return int(b)
+        return b
 
     def _add_robot(self, robot_id: int) -> tuple[int, int]:
         """Two bodies: the chassis (origin at its centre) whose collision shape is the chassis
