@@ -226,16 +226,8 @@ def merge_gaussian_edges(
     mean, which is the part of the chi2 the single merged edge no longer carries.
     """
     info_sum = infos.sum(axis=0)
-    z = se2.pose2(zs_a_from_b[0])
+    z = se2.weighted_mean(zs_a_from_b, infos, iterations=iterations, tol=1e-14)
     poses = [se2.pose2(zk) for zk in zs_a_from_b]
-    for _ in range(iterations):
-        rhs = np.zeros(3)
-        for pk, ik in zip(poses, infos, strict=True):
-            rhs += ik @ gtsam.Pose2.Logmap(z.between(pk))
-        step = np.linalg.solve(info_sum, rhs)
-        z = z.compose(gtsam.Pose2.Expmap(step))
-        if np.abs(step).max() < 1e-14:
-            break
     offset = 0.0
     for pk, ik in zip(poses, infos, strict=True):
         r = gtsam.Pose2.Logmap(z.between(pk))

@@ -28,6 +28,7 @@ __all__ = [
     "pose2",
     "pose_vec",
     "propagate_covariance",
+    "weighted_mean",
     "wrap_angle",
 ]
 
@@ -59,3 +60,30 @@ def propagate_covariance(
     """
     ad = adjoint(inverse(step_a_from_b))
     return ad @ cov_a @ ad.T + cov_step
+
+
+def weighted_mean(
+    poses: FloatArray,
+    infos: FloatArray,
+    *,
+    start: int = 0,
+    iterations: int = 5,
+    tol: float = 1e-12,
+) -> gtsam.Pose2:
+    """Information-weighted mean of poses ``(K, 3)`` on the manifold.
+
+    Gauss-Newton on ``sum_k ||Log(mean^-1 pose_k)||^2_{infos_k}`` starting from ``poses[start]``;
+    stops after ``iterations`` or once a step is below ``tol``.
+    """
+    info_sum = infos.sum(axis=0)
+    mean = pose2(poses[start])
+    ps = [pose2(p) for p in poses]
+    for _ in range(iterations):
+        rhs = np.zeros(3)
+        for pk, ik in zip(ps, infos, strict=True):
+            rhs += ik @ gtsam.Pose2.Logmap(mean.between(pk))
+        step = np.linalg.solve(info_sum, rhs)
+        mean = mean.compose(gtsam.Pose2.Expmap(step))
+        if np.abs(step).max() < tol:
+            break
+    return mean

@@ -15,7 +15,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
@@ -41,17 +40,7 @@ def _weighted_mean(preds: FloatArray, covs: FloatArray, *, iterations: int = 3) 
     """Information-weighted manifold mean of poses ``preds`` (K, 3) with covariances."""
     k0 = int(np.argmin(np.trace(covs, axis1=1, axis2=2)))
     infos = np.linalg.inv(covs + 1e-12 * np.eye(3))
-    info_sum = infos.sum(axis=0)
-    mean = se2.pose2(preds[k0])
-    poses = [se2.pose2(p) for p in preds]
-    for _ in range(iterations):
-        rhs = np.zeros(3)
-        for pk, ik in zip(poses, infos, strict=True):
-            rhs += ik @ gtsam.Pose2.Logmap(mean.between(pk))
-        step = np.linalg.solve(info_sum, rhs)
-        mean = mean.compose(gtsam.Pose2.Expmap(step))
-        if np.abs(step).max() < 1e-12:
-            break
+    mean = se2.weighted_mean(preds, infos, start=k0, iterations=iterations, tol=1e-12)
     return se2.pose_vec(mean)
 
 
