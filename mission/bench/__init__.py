@@ -30,6 +30,7 @@ SUITES: dict[str, str] = {
     "graph": "mission.bench.graph",
     "sim": "mission.bench.sim",
     "robot": "mission.bench.robot",
+    "loops": "mission.bench.loops",
 }
 
 
