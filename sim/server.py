@@ -31,8 +31,8 @@ from typing import Any
 
 import msgspec
 
-from mission.config import CONFIGS_DIR, ConfigError, load_config
 from protocol import keys
+from protocol.config import CONFIGS_DIR, ConfigError, load_config
 from protocol.radio import RadioConfig
 from protocol.sensors import ClockTick, RobotCommand, encode_sensor_frame
 from sim.simulator import CommandError, Simulator, SimulatorConfig, load_world_config

@@ -46,8 +46,8 @@ from typing import Literal
 import msgspec
 import numpy as np
 
-from mission.config import load_config
 from protocol.clock import ManualClock
+from protocol.config import load_config
 from protocol.radio import RadioConfig, RadioGrant
 from protocol.sensors import (
     BatteryState,

@@ -7,7 +7,7 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from mission.config import CONFIGS_DIR, ConfigError, decode_config, load_config, load_config_text
+from protocol.config import CONFIGS_DIR, ConfigError, decode_config, load_config, load_config_text
 from protocol.radio import RadioConfig
 
 
