@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import msgspec
+import numpy as np
 from msgspec.structs import force_setattr
 
 from protocol.wire import (
@@ -73,6 +74,8 @@ __all__ = [
     "TaskStatus",
     "TeleopTask",
     "Telemetry",
+    "covariance_from_upper",
+    "covariance_to_upper",
     "TerrainGrid",
     "UplinkFrame",
     "UplinkMessage",
@@ -84,6 +87,29 @@ __all__ = [
 F2 = tuple[float, float]
 F3 = tuple[float, float, float]
 F6 = tuple[float, float, float, float, float, float]
+
+
+_UPPER_ROWS = (0, 0, 0, 1, 1, 2)
+_UPPER_COLS = (0, 1, 2, 1, 2, 2)
+
+
+def covariance_to_upper(covariance: Any) -> F6:
+    """A 3x3 pose covariance as its upper triangle ``(xx, xy, xθ, yy, yθ, θθ)`` (g2o order)."""
+    c = np.asarray(covariance, dtype=float)
+    if c.shape != (3, 3):
+        raise ValueError(f"covariance: expected a 3x3 matrix, got shape {c.shape}")
+    return tuple(float(c[i, j]) for i, j in zip(_UPPER_ROWS, _UPPER_COLS, strict=True))  # type: ignore[return-value]
+
+
+def covariance_from_upper(upper: Any) -> Any:
+    """The symmetric 3x3 matrix (numpy) of an upper triangle ``(xx, xy, xθ, yy, yθ, θθ)``."""
+    u = np.asarray(upper, dtype=float)
+    if u.shape != (6,):
+        raise ValueError(f"covariance: expected 6 upper-triangle values, got shape {u.shape}")
+    c = np.empty((3, 3))
+    c[_UPPER_ROWS, _UPPER_COLS] = u
+    c[_UPPER_COLS, _UPPER_ROWS] = u
+    return c
 
 
 class _Message(msgspec.Struct, array_like=True, frozen=True, gc=False, omit_defaults=True):

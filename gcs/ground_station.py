@@ -1,0 +1,399 @@
+"""The ground-control station's estimation core, sans-IO (paper 4.1, 4.2, 4.5, 4.8).
+
+:class:`GroundStation` takes the robots' uplink messages and owns the only global estimate:
+
+* ``PoseNode`` -> a pose of that robot in the :class:`~gcs.graph.pose_graph.PoseGraph`, chained
+  to the previous one by its odometry constraint. A robot's first node starts a new component
+  (its pose in ``map`` unknown until a constraint links it; paper 4.2 and the UvA manifolds).
+* ``TerrainGrid`` -> decoded by its header (``compression.decode_grid``), its vertical-surface
+  cells handed to the loop closer (4.3.3) and the rasterizer (4.8). A grid that arrives before
+  its pose node waits for it.
+* ``FiducialObservation`` -> a ``FIDUCIAL`` edge between the observer's node and the observed
+  robot's node nearest in time (4.3.2).
+* ``Detection`` of a dangerous object -> a hazard in ``map`` (merged with hazards nearby).
+
+:meth:`GroundStation.step` runs loop closing within a time budget, optimizes incrementally
+(iSAM2) and returns the downlink messages: a :class:`~protocol.messages.HazardUpdate` per robot
+with every robot's ``map_from_odom`` (paper 4.1: robots never receive the map).
+
+Bad input never raises: it is rejected with a reason naming the robot, message and field,
+counted in :attr:`GroundStation.stats` and logged. Nothing accepted is lost: pose nodes that
+arrive out of order wait for the missing ones; a gap that does not fill within
+``max_pending_nodes`` is bridged from the reported ``pose_in_odom`` values with the summed
+covariance of the messages that did arrive, inflated.
+
+The GCS node (:mod:`gcs.node`) is the thin zenoh shell around this class; the CARMEN replay
+(:mod:`mission.replay`) drives it directly.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from compression import CodecError, decode_grid
+from gcs.graph.pose_graph import PoseGraph, PoseGraphConfig, PoseGraphError, Provenance
+from protocol.messages import (
+    Detection,
+    DetectionImage,
+    FiducialObservation,
+    Hazard,
+    HazardUpdate,
+    ObjectKind,
+    PoseNode,
+    RobotFrame,
+    TaskStatus,
+    Telemetry,
+    TerrainGrid,
+    covariance_from_upper,
+)
+from protocol.se2 import transform_points
+
+__all__ = [
+    "GridRecord",
+    "GroundStation",
+    "GroundStationConfig",
+    "GroundStationStats",
+]
+
+log = logging.getLogger("magic.gcs")
+
+#: Dangerous objects and the keep-out radius robots must respect (paper section 2: trigger
+#: radius 2.5 m for static OOIs and hostiles, plus a margin the robot adds itself).
+HAZARD_KINDS = {ObjectKind.STATIC_OOI: 2.5, ObjectKind.HOSTILE: 5.0}
+
+
+class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Configuration of :class:`GroundStation`.
+
+    ``robots``: the team roster; messages from other ids are rejected (empty: accept any id).
+    ``frames_period_s``: mission seconds between hazard/frame updates to each robot.
+    ``max_pending_nodes``: out-of-order pose nodes held per robot before a gap is bridged.
+    ``max_pending_grids``: grids held per robot while their pose node has not arrived.
+    ``max_grid_resolution_m`` / ``min_grid_resolution_m``: accepted grid cell sizes.
+    ``gap_covariance_scale``: inflation of the odometry covariance across a bridged gap.
+    ``hazard_merge_m``: detections of one kind closer than this are the same hazard.
+    """
+
+    robots: tuple[int, ...] = ()
+    graph: PoseGraphConfig = msgspec.field(default_factory=PoseGraphConfig)
+    frames_period_s: float = 2.0
+    max_pending_nodes: int = 32
+    max_pending_grids: int = 64
+    min_grid_resolution_m: float = 0.02
+    max_grid_resolution_m: float = 1.0
+    gap_covariance_scale: float = 4.0
+    hazard_merge_m: float = 1.5
+    error_log_size: int = 100
+
+    def __post_init__(self) -> None:
+        for name in ("frames_period_s", "gap_covariance_scale", "hazard_merge_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive finite number, got {v}")
+        for name in ("max_pending_nodes", "max_pending_grids", "error_log_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+        if any(r < 0 for r in self.robots):
+            raise ValueError(f"robots: ids must be >= 0, got {self.robots}")
+
+
+@dataclass
+class GroundStationStats:
+    """Counters of what the station accepted and rejected (rejections by reason)."""
+
+    pose_nodes: int = 0
+    terrain_grids: int = 0
+    fiducials: int = 0
+    detections: int = 0
+    duplicates: int = 0
+    gaps_bridged: int = 0
+    optimizations: int = 0
+    rejected: collections.Counter[str] = field(default_factory=collections.Counter)
+    errors: collections.deque[str] = field(default_factory=lambda: collections.deque(maxlen=100))
+
+    @property
+    def rejected_total(self) -> int:
+        return sum(self.rejected.values())
+
+
+@dataclass(frozen=True)
+class GridRecord:
+    """A decoded vertical-surface grid of pose ``key`` (cells in the node's ``base`` frame)."""
+
+    key: int
+    time_s: float
+    grid: np.ndarray  # bool (height, width)
+    origin_in_base: tuple[float, float]
+    resolution_m: float
+
+
+@dataclass
+class _Track:
+    """What the station knows of one robot's stream of pose nodes."""
+
+    next_index: int = 0
+    keys: dict[int, int] = field(default_factory=dict)  # node_index -> graph key
+    times: list[float] = field(default_factory=list)  # node times, in graph order
+    graph_keys: list[int] = field(default_factory=list)
+    pending_nodes: dict[int, PoseNode] = field(default_factory=dict)
+    pending_grids: dict[int, TerrainGrid] = field(default_factory=dict)
+    telemetry: Telemetry | None = None
+    last_status: TaskStatus | None = None
+
+
+class _Rejected(Exception):
+    """Internal: a message is refused; ``reason`` is the counter name, the text says why."""
+
+    def __init__(self, reason: str, text: str) -> None:
+        super().__init__(text)
+        self.reason = reason
+
+
+def _finite(values: Any, what: str) -> np.ndarray:
+    a = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise _Rejected("non_finite", f"{what}: non-finite value in {tuple(a.ravel())}")
+    return a
+
+
+class GroundStation:
+    """Sans-IO core of the GCS: uplink messages in, graph and maps inside, downlink out."""
+
+    def __init__(self, config: GroundStationConfig | None = None) -> None:
+        self.config = config or GroundStationConfig()
+        self.graph = PoseGraph(self.config.graph)
+        self.stats = GroundStationStats(errors=collections.deque(maxlen=self.config.error_log_size))
+        self.grids: dict[int, GridRecord] = {}
+        self.hazards: list[Hazard] = []
+        self._tracks: dict[int, _Track] = {}
+        self._dirty = False
+        self._last_frames_s: dict[int, float] = {}
+        self._grid_listeners: list[Any] = []
+        self._key_time: dict[int, float] = {}
+
+    # ---- input -----------------------------------------------------------------------------
+
+    def handle(self, robot_id: int, msg: object, *, now_s: float) -> bool:
+        """Take one uplink message of ``robot_id``; returns whether it was accepted.
+
+        Never raises on bad input: a refused message is counted by reason in
+        :attr:`stats` and its explanation kept in ``stats.errors`` and logged.
+        """
+        try:
+            if self.config.robots and robot_id not in self.config.robots:
+                raise _Rejected("unknown_robot", f"robot {robot_id} is not on the roster")
+            track = self._tracks.setdefault(robot_id, _Track())
+            if isinstance(msg, PoseNode):
+                self._on_pose_node(robot_id, track, msg)
+            elif isinstance(msg, TerrainGrid):
+                self._on_grid(robot_id, track, msg)
+            elif isinstance(msg, FiducialObservation):
+                self._on_fiducial(robot_id, track, msg)
+            elif isinstance(msg, Detection):
+                self._on_detection(robot_id, track, msg)
+            elif isinstance(msg, Telemetry):
+                track.telemetry = msg
+            elif isinstance(msg, TaskStatus):
+                track.last_status = msg
+            elif isinstance(msg, DetectionImage):
+                pass  # images are for operators' views
+            else:
+                raise _Rejected("unknown_message", f"unexpected message {type(msg).__name__}")
+        except _Rejected as err:
+            self._reject(robot_id, msg, err.reason, str(err))
+            return False
+        except (PoseGraphError, ValueError) as err:  # the graph refused it: same treatment
+            self._reject(robot_id, msg, "graph_refused", str(err))
+            return False
+        return True
+
+    def _reject(self, robot_id: int, msg: object, reason: str, text: str) -> None:
+        line = f"robot {robot_id} {type(msg).__name__}: {text}"
+        self.stats.rejected[reason] += 1
+        self.stats.errors.append(line)
+        log.warning("rejected %s", line)
+
+    def _on_pose_node(self, robot_id: int, track: _Track, msg: PoseNode) -> None:
+        what = f"node {msg.node_index}"
+        _finite(msg.pose_in_odom, f"{what} pose_in_odom")
+        _finite(msg.odom_covariance, f"{what} odom_covariance")
+        if msg.node_index < track.next_index or msg.node_index in track.pending_nodes:
+            self.stats.duplicates += 1
+            return
+        track.pending_nodes[msg.node_index] = msg
+        self._drain_nodes(robot_id, track)
+        if len(track.pending_nodes) > self.config.max_pending_nodes:
+            # The missing nodes are lost for good (a robot restart, a dropped queue): bridge.
+            self.stats.gaps_bridged += 1
+            track.next_index = min(track.pending_nodes)
+            self._drain_nodes(robot_id, track, bridging=True)
+
+    def _drain_nodes(self, robot_id: int, track: _Track, *, bridging: bool = False) -> None:
+        while track.next_index in track.pending_nodes:
+            msg = track.pending_nodes.pop(track.next_index)
+            cov = None
+            if track.graph_keys:
+                cov = covariance_from_upper(msg.odom_covariance)
+                if bridging:
+                    cov = cov * self.config.gap_covariance_scale
+                    bridging = False
+                if not np.all(np.linalg.eigvalsh(cov) > 0):
+                    raise _Rejected(
+                        "bad_covariance",
+                        f"node {msg.node_index} odom_covariance is not positive definite",
+                    )
+            key = self.graph.add_pose(
+                robot_id,
+                odom_from_base=np.asarray(msg.pose_in_odom, dtype=float),
+                time_s=msg.time_s,
+                odometry_covariance=cov,
+            )
+            track.keys[msg.node_index] = key
+            track.graph_keys.append(key)
+            track.times.append(msg.time_s)
+            self._key_time[key] = msg.time_s
+            track.next_index = msg.node_index + 1
+            self.stats.pose_nodes += 1
+            self._dirty = True
+            grid = track.pending_grids.pop(msg.node_index, None)
+            if grid is not None:
+                self._attach_grid(key, msg.time_s, grid)
+
+    def _on_grid(self, robot_id: int, track: _Track, msg: TerrainGrid) -> None:
+        what = f"grid of node {msg.node_index}"
+        res = msg.resolution_m
+        if not (self.config.min_grid_resolution_m <= res <= self.config.max_grid_resolution_m):
+            raise _Rejected("bad_grid", f"{what}: resolution_m {res} outside accepted range")
+        _finite(msg.origin_in_base, f"{what} origin_in_base")
+        key = track.keys.get(msg.node_index)
+        if key is None:
+            if msg.node_index < track.next_index:
+                raise _Rejected("orphan_grid", f"{what}: its pose node was never received")
+            if len(track.pending_grids) >= self.config.max_pending_grids:
+                raise _Rejected("orphan_grid", f"{what}: too many grids wait for pose nodes")
+            self._decode(msg)  # refuse bad bytes now, not when the node arrives
+            track.pending_grids[msg.node_index] = msg
+            return
+        if key in self.grids:
+            self.stats.duplicates += 1
+            return
+        self._attach_grid(key, self._key_time[key], msg)
+
+    def _decode(self, msg: TerrainGrid) -> np.ndarray:
+        what = f"grid of node {msg.node_index}"
+        try:
+            grid = decode_grid(msg.data)
+        except CodecError as err:
+            raise _Rejected("bad_grid", f"{what}: {err}") from None
+        if grid.shape != (msg.height, msg.width):
+            raise _Rejected(
+                "bad_grid",
+                f"{what}: message says {msg.height}x{msg.width} cells, "
+                f"stream holds {grid.shape[0]}x{grid.shape[1]}",
+            )
+        return grid
+
+    def _attach_grid(self, key: int, time_s: float, msg: TerrainGrid) -> None:
+        grid = self._decode(msg)
+        record = GridRecord(
+            key,
+            time_s,
+            grid,
+            (float(msg.origin_in_base[0]), float(msg.origin_in_base[1])),
+            float(msg.resolution_m),
+        )
+        self.grids[key] = record
+        self.stats.terrain_grids += 1
+        for listener in self._grid_listeners:
+            listener(record)
+
+    def _on_fiducial(self, robot_id: int, track: _Track, msg: FiducialObservation) -> None:
+        what = f"fiducial of node {msg.node_index}"
+        z = _finite(msg.observed_in_base, f"{what} observed_in_base")
+        cov = covariance_from_upper(_finite(msg.covariance, f"{what} covariance"))
+        key_a = track.keys.get(msg.node_index)
+        if key_a is None:
+            raise _Rejected("orphan_fiducial", f"{what}: pose node not received")
+        other = self._tracks.get(msg.observed_robot_id)
+        if msg.observed_robot_id == robot_id or other is None or not other.graph_keys:
+            raise _Rejected(
+                "unknown_robot",
+                f"{what}: observed robot {msg.observed_robot_id} has no pose nodes here",
+            )
+        i = int(np.argmin(np.abs(np.asarray(other.times) - msg.time_s)))
+        self.graph.add_edge(
+            key_a,
+            other.graph_keys[i],
+            a_from_b=z,
+            covariance=cov,
+            provenance=Provenance.FIDUCIAL,
+            time_s=msg.time_s,
+        )
+        self.stats.fiducials += 1
+        self._dirty = True
+
+    def _on_detection(self, robot_id: int, track: _Track, msg: Detection) -> None:
+        what = f"detection {msg.detection_id}"
+        p = _finite(msg.position_in_base, f"{what} position_in_base")
+        key = track.keys.get(msg.node_index)
+        if key is None:
+            raise _Rejected("orphan_detection", f"{what}: pose node {msg.node_index} not received")
+        self.stats.detections += 1
+        radius = HAZARD_KINDS.get(msg.kind)
+        if radius is None:
+            return
+        xy = transform_points(self.graph.pose(key), p[None, :])[0]
+        for i, h in enumerate(self.hazards):
+            if h.kind == msg.kind and math.dist(h.position_in_map, xy) < self.config.hazard_merge_m:
+                self.hazards[i] = Hazard(h.hazard_id, h.kind, h.position_in_map, h.radius_m)
+                return
+        self.hazards.append(
+            Hazard(len(self.hazards) + 1, msg.kind, (float(xy[0]), float(xy[1])), radius)
+        )
+
+    # ---- output ----------------------------------------------------------------------------
+
+    def key_of(self, robot_id: int, node_index: int) -> int | None:
+        """Graph key of a robot's pose node, None if it has not been added."""
+        track = self._tracks.get(robot_id)
+        return None if track is None else track.keys.get(node_index)
+
+    def step(self, *, now_s: float, budget_s: float | None = None) -> list[tuple[int, Any]]:
+        """Optimize what changed and return ``(robot_id, message)`` downlink messages."""
+        del budget_s  # the loop closer's budget (issue 7) joins here
+        if self._dirty:
+            self.graph.optimize_incremental()
+            self.stats.optimizations += 1
+            self._dirty = False
+        out: list[tuple[int, Any]] = []
+        robots = self.graph.robots
+        due = [
+            r
+            for r in robots
+            if now_s - self._last_frames_s.get(r, -math.inf) >= self.config.frames_period_s
+        ]
+        if due:
+            frames = self.frames()
+            update = HazardUpdate(now_s, list(self.hazards), frames)
+            for r in due:
+                out.append((r, update))
+                self._last_frames_s[r] = now_s
+        return out
+
+    def frames(self) -> list[RobotFrame]:
+        """``map_from_odom`` of every robot whose trajectory is linked to ``map``."""
+        anchored = self.graph.anchored_components()
+        comp = self.graph.components()
+        out = []
+        for r in self.graph.robots:
+            if comp[self.graph.last_key(r)] in anchored:
+                x, y, t = self.graph.map_from_odom(r)
+                out.append(RobotFrame(r, (float(x), float(y), float(t))))
+        return out

@@ -1,0 +1,147 @@
+"""The GCS core: pose nodes into the graph, grids by header, frames out, bad input counted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from compression import encode_grid
+from gcs.ground_station import GroundStation, GroundStationConfig
+from protocol.messages import (
+    Detection,
+    FiducialObservation,
+    HazardUpdate,
+    ObjectKind,
+    PoseNode,
+    TerrainGrid,
+    covariance_to_upper,
+)
+from protocol.se2 import compose, relative
+
+COV = covariance_to_upper(np.diag([0.01**2, 0.01**2, 0.002**2]))
+
+
+def nodes_along(path_in_odom: np.ndarray, t0: float = 0.0) -> list[PoseNode]:
+    out = []
+    for i, pose in enumerate(path_in_odom):
+        delta = (0.0, 0.0, 0.0) if i == 0 else tuple(relative(path_in_odom[i - 1], pose))
+        cov = (0.0,) * 6 if i == 0 else COV
+        out.append(PoseNode(i, t0 + i, tuple(pose), delta, cov))  # type: ignore[arg-type]
+    return out
+
+
+def straight(n: int, heading: float = 0.0) -> np.ndarray:
+    s = np.arange(n) * 0.5
+    return np.stack([s * np.cos(heading), s * np.sin(heading), np.full(n, heading)], axis=1)
+
+
+def grid_msg(index: int, grid: np.ndarray, *, res: float = 0.1) -> TerrainGrid:
+    h, w = grid.shape
+    return TerrainGrid(index, "zlib", res, w, h, (-w * res / 2, -h * res / 2), encode_grid(grid))
+
+
+def test_map_robot_gets_its_frame_and_others_wait_until_linked() -> None:
+    gs = GroundStation(GroundStationConfig(robots=(0, 1)))
+    for msg in nodes_along(straight(6)):
+        assert gs.handle(0, msg, now_s=0.0)
+    path1 = straight(6, heading=0.3)
+    for msg in nodes_along(path1):
+        assert gs.handle(1, msg, now_s=0.0)
+    out = gs.step(now_s=10.0)
+    assert {rid for rid, _ in out} == {0, 1}
+    update = out[0][1]
+    assert isinstance(update, HazardUpdate)
+    assert [f.robot_id for f in update.frames] == [0]  # robot 1 is not linked to map yet
+    np.testing.assert_allclose(update.frames[0].map_from_odom, (0, 0, 0), atol=1e-6)
+
+    # Robot 1 truly starts at (3, 2, 0.5) in map: its node 2 sees robot 0's node 4 via a tag.
+    map_from_odom1 = np.array([3.0, 2.0, 0.5])
+    map_from_base1 = compose(map_from_odom1, path1[2])
+    map_from_base0 = straight(6)[4]
+    seen = relative(map_from_base1, map_from_base0)
+    tag = FiducialObservation(2, 4.0, 0, 7, tuple(seen), COV)  # type: ignore[arg-type]
+    assert gs.handle(1, tag, now_s=11.0)
+    assert gs.step(now_s=11.0) == []  # frames are periodic
+    out = gs.step(now_s=12.0)
+    frames = {f.robot_id: np.array(f.map_from_odom) for f in out[0][1].frames}
+    assert set(frames) == {0, 1}
+    np.testing.assert_allclose(frames[1], map_from_odom1, atol=1e-4)
+    assert gs.stats.fiducials == 1
+
+
+def test_out_of_order_nodes_wait_duplicates_count_and_a_lasting_gap_is_bridged() -> None:
+    gs = GroundStation(GroundStationConfig(max_pending_nodes=3))
+    msgs = nodes_along(straight(12))
+    for i in (0, 2, 1, 1, 3):
+        gs.handle(0, msgs[i], now_s=0.0)
+    assert gs.stats.pose_nodes == 4 and gs.stats.duplicates == 1
+    for i in (5, 6, 7, 8):  # node 4 is lost for good
+        gs.handle(0, msgs[i], now_s=0.0)
+    assert gs.stats.gaps_bridged == 1 and gs.stats.pose_nodes == 8
+    gs.step(now_s=1.0)
+    keys, poses = gs.graph.poses(0)
+    np.testing.assert_allclose(poses[-1], straight(12)[8], atol=1e-6)
+    assert gs.key_of(0, 8) == keys[-1] and gs.key_of(0, 4) is None
+
+
+def test_grids_are_decoded_by_header_and_wait_for_their_pose_node() -> None:
+    gs = GroundStation()
+    rng = np.random.default_rng(3)
+    grid = rng.random((40, 60)) < 0.1
+    msgs = nodes_along(straight(3))
+    gs.handle(0, msgs[0], now_s=0.0)
+    assert gs.handle(0, grid_msg(1, grid), now_s=0.0)  # before its node: held
+    assert gs.stats.terrain_grids == 0
+    gs.handle(0, msgs[1], now_s=0.0)
+    key = gs.key_of(0, 1)
+    assert key is not None and gs.stats.terrain_grids == 1
+    np.testing.assert_array_equal(gs.grids[key].grid, grid)
+    assert gs.grids[key].origin_in_base == pytest.approx((-3.0, -2.0))
+
+
+def test_bad_input_is_rejected_counted_and_the_station_keeps_going() -> None:
+    gs = GroundStation(GroundStationConfig(robots=(0,)))
+    msgs = nodes_along(straight(4))
+    gs.handle(0, msgs[0], now_s=0.0)
+    gs.handle(0, msgs[1], now_s=0.0)
+    grid = np.zeros((10, 10), dtype=bool)
+    grid[3, 4] = True
+    good = grid_msg(1, grid)
+    cases = {
+        "unknown_robot": (5, msgs[0]),
+        "bad_grid": (0, TerrainGrid(1, "zlib", 0.1, 10, 10, (0.0, 0.0), good.data[:-3])),
+    }
+    for reason, (rid, msg) in cases.items():
+        assert not gs.handle(rid, msg, now_s=0.0)
+        assert gs.stats.rejected[reason] == 1, reason
+    # dimensions that disagree with the stream's header, a silly resolution, a NaN pose
+    assert not gs.handle(0, TerrainGrid(1, "zlib", 0.1, 11, 10, (0.0, 0.0), good.data), now_s=0)
+    assert not gs.handle(0, TerrainGrid(1, "zlib", 50.0, 10, 10, (0.0, 0.0), good.data), now_s=0)
+    nan = PoseNode(2, 2.0, (float("nan"), 0.0, 0.0), (0.5, 0.0, 0.0), COV)
+    assert not gs.handle(0, nan, now_s=0.0)
+    assert gs.stats.rejected["bad_grid"] == 3 and gs.stats.rejected["non_finite"] == 1
+    assert "message says 10x11 cells" in "\n".join(gs.stats.errors)
+    assert not gs.handle(0, "hello", now_s=0.0)
+    # ... and still accepts good input
+    assert gs.handle(0, good, now_s=0.0) and gs.handle(0, msgs[2], now_s=0.0)
+    assert gs.stats.terrain_grids == 1 and gs.stats.pose_nodes == 3
+
+
+def test_dangerous_detections_become_hazards_in_map() -> None:
+    gs = GroundStation()
+    path = straight(3, heading=np.pi / 2)
+    for msg in nodes_along(path):
+        gs.handle(0, msg, now_s=0.0)
+    for det_id, offset in ((1, 0.0), (2, 0.3)):  # the same bomb seen twice
+        det = Detection(
+            det_id, 2, 2.0, ObjectKind.STATIC_OOI, (4.0 + offset, 0.0), (0.1, 0, 0.1), 0.3, 0.5, 0.9
+        )
+        assert gs.handle(0, det, now_s=0.0)
+    civilian = Detection(3, 2, 2.0, ObjectKind.CIVILIAN, (1.0, 1.0), (0.1, 0, 0.1), 0.3, 1.7, 0.9)
+    gs.handle(0, civilian, now_s=0.0)
+    (update,) = [m for _, m in gs.step(now_s=5.0)]
+    assert len(update.hazards) == 1
+    h = update.hazards[0]
+    np.testing.assert_allclose(h.position_in_map, (0.0, 1.0 + 4.0), atol=1e-5)
+    assert h.radius_m == 2.5
+    assert gs.stats.detections == 3
