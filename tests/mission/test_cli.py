@@ -11,7 +11,7 @@ import pytest
 from mission.bench import SUITES
 from mission.cli import main
 
-UNBUILT = ["gcs", "console", "replay", "report"]
+UNBUILT = ["console", "replay", "report"]
 
 
 @pytest.mark.parametrize("command", UNBUILT)
@@ -26,7 +26,6 @@ def test_unbuilt_subcommands_exit_2(command: str, capsys: pytest.CaptureFixture[
 @pytest.mark.parametrize(
     "argv",
     [
-        ["gcs", "--connect", "tcp/10.0.0.2:7447", "--listen", "tcp/0.0.0.0:7447"],
         ["console", "--mission", "demo"],
         ["replay", "log.carmen"],
     ],

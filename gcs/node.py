@@ -1,0 +1,180 @@
+"""``magic gcs``: the ground-control station as its own process (DESIGN section 4, paper 4.1).
+
+A thin shell around :class:`~gcs.ground_station.GroundStation`: uplink messages arrive on the
+link's thread and are queued; the node's loop hands them to the station, runs
+:meth:`~gcs.ground_station.GroundStation.step` every ``step_period_s`` (mission time) and sends
+what it returns on each robot's downlink. Mission time follows the simulator's clock ticks
+(``--clock sim``, the default) or the host's clock (``--clock wall``) on real robots.
+"""
+
+from __future__ import annotations
+
+import argparse
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from gcs.ground_station import GroundStation, GroundStationConfig
+from protocol import keys
+from protocol.clock import ManualClock, WallClock
+from protocol.config import CONFIGS_DIR, ConfigError, load_config
+from protocol.link import Link, LinkConfig
+from protocol.radio import RadioConfig
+from protocol.radio_channel import LinkBackpressure
+from protocol.sensors import ClockTick, decode_sensor_frame
+from protocol.wire import ProtocolError
+
+__all__ = ["GcsProcess", "main"]
+
+
+class GcsProcess:
+    """A :class:`GroundStation` wired to the robots' radios over ``link``."""
+
+    def __init__(
+        self,
+        link: Link,
+        clock: Any,
+        config: GroundStationConfig | None = None,
+        *,
+        step_period_s: float = 0.5,
+        budget_s: float = 0.2,
+    ) -> None:
+        self.link = link
+        self.clock = clock
+        self.station = GroundStation(config)
+        self.step_period_s = step_period_s
+        self.budget_s = budget_s
+        self.refused = 0
+        self._inbox: queue.Queue[tuple[int, Any]] = queue.Queue()
+        self.radio = link.gcs_endpoint(
+            on_message=lambda rid, msg: self._inbox.put((rid, msg)), follow_radio=True
+        )
+        self._clock_sub = None
+        if isinstance(clock, ManualClock):
+            self._clock_sub = link.subscribe(keys.sim_clock(link.mission), self._on_clock)
+        self._stop = threading.Event()
+        self._last_step_s = -float("inf")
+
+    def _on_clock(self, _key: str, payload: bytes) -> None:
+        try:
+            tick = decode_sensor_frame(payload)
+        except ProtocolError:
+            return
+        if isinstance(tick, ClockTick) and tick.time_s > self.clock.now():
+            self.clock.set(tick.time_s)
+
+    def spin_once(self, timeout_s: float = 0.05) -> int:
+        """Hand the queued messages to the station; step it when due. Returns messages taken."""
+        n = 0
+        try:
+            item: tuple[int, Any] | None = self._inbox.get(timeout=timeout_s)
+        except queue.Empty:
+            item = None
+        now = self.clock.now()
+        while item is not None:
+            self.station.handle(item[0], item[1], now_s=now)
+            n += 1
+            try:
+                item = self._inbox.get_nowait()
+            except queue.Empty:
+                item = None
+        if now - self._last_step_s >= self.step_period_s:
+            self._last_step_s = now
+            for robot_id, msg in self.station.step(now_s=now, budget_s=self.budget_s):
+                try:
+                    self.radio.send(robot_id, msg)
+                except LinkBackpressure:
+                    self.refused += 1  # the next periodic update supersedes it
+        return n
+
+    def run(
+        self,
+        *,
+        duration_s: float | None = None,
+        progress: Callable[[str], None] | None = None,
+        progress_period_s: float = 5.0,
+    ) -> None:
+        last = time.monotonic()
+        start = self.clock.now()
+        while not self._stop.is_set():
+            self.spin_once()
+            if duration_s is not None and self.clock.now() - start >= duration_s:
+                return
+            if progress is not None and time.monotonic() - last >= progress_period_s:
+                progress(self.status_line())
+                last = time.monotonic()
+
+    def status_line(self) -> str:
+        s = self.station.stats
+        g = self.station.graph
+        return (
+            f"gcs t={self.clock.now():7.1f}s robots {len(g.robots)} "
+            f"linked {len(self.station.frames())} nodes {s.pose_nodes} grids {s.terrain_grids} "
+            f"edges {len(g.edges())} rejected {s.rejected_total}"
+        )
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def close(self) -> None:
+        """Release the clock subscription (the link owns the radio endpoint)."""
+        if self._clock_sub is not None:
+            self._clock_sub.close()
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="magic gcs", description="Run the ground-control station.")
+    p.add_argument("--mission", default="default", help="mission name in the zenoh keys")
+    p.add_argument("--config", type=Path, help="GCS config YAML (GroundStationConfig)")
+    p.add_argument("--radio", type=Path, default=CONFIGS_DIR / "radio" / "magic2010.yaml")
+    p.add_argument("--clock", choices=("sim", "wall"), default="sim", help="mission time source")
+    p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to")
+    p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on")
+    p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
+    p.add_argument("--progress-s", type=float, default=5.0, help="wall seconds between reports")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    """``magic gcs``: returns the exit status (2 on bad arguments or configuration)."""
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as exit_:
+        return int(exit_.code or 0)
+    try:
+        keys.gcs(args.mission, "state")
+        config = load_config(args.config, GroundStationConfig) if args.config else None
+        radio = load_config(args.radio, RadioConfig)
+    except (ConfigError, ValueError) as err:
+        print(f"magic gcs: {err}", file=sys.stderr)
+        return 2
+    fields: dict[str, Any] = {"radio": radio}
+    if args.connect:
+        fields["connect"] = tuple(args.connect)
+    if args.listen:
+        fields["listen"] = tuple(args.listen)
+    clock: Any = ManualClock() if args.clock == "sim" else WallClock()
+    link = Link(LinkConfig(**fields), mission=args.mission, clock=clock)
+    proc = GcsProcess(link, clock, config)
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGINT, lambda *_: proc.stop())
+    print(f"magic gcs: mission {args.mission!r}, waiting for robots", flush=True)
+    try:
+        proc.run(
+            duration_s=args.duration,
+            progress=lambda s: print(s, flush=True),
+            progress_period_s=args.progress_s,
+        )
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+        proc.close()
+        link.close()
+    print(proc.status_line(), flush=True)
+    return 0
