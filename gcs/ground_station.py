@@ -53,7 +53,7 @@ from protocol.messages import (
     TerrainGrid,
     covariance_from_upper,
 )
-from protocol.se2 import transform_points
+from protocol.se2 import compose, relative, transform_points
 
 __all__ = [
     "GridRecord",
@@ -177,6 +177,7 @@ class GroundStation:
         self._last_frames_s: dict[int, float] = {}
         self._grid_listeners: list[Any] = []
         self._key_time: dict[int, float] = {}
+        self._hints: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
     # ---- input -----------------------------------------------------------------------------
 
@@ -262,9 +263,63 @@ class GroundStation:
             track.next_index = msg.node_index + 1
             self.stats.pose_nodes += 1
             self._dirty = True
+            if len(track.graph_keys) == 1:
+                self._apply_hints()
             grid = track.pending_grids.pop(msg.node_index, None)
             if grid is not None:
                 self._attach_grid(key, msg.time_s, grid)
+
+    def add_start_hint(
+        self,
+        robot_id: int,
+        *,
+        map_from_odom: Any,
+        sigma_xy_m: float,
+        sigma_yaw_rad: float,
+    ) -> None:
+        """Operator hint (paper 6.1): where ``robot_id``'s private frame starts in ``map``.
+
+        Becomes a loose ``LOOP_OPERATOR`` edge from the map robot's first pose to this robot's
+        first pose (applied once both exist), so the robot's trajectory is linked to ``map``
+        with that uncertainty and the loop closer searches it against the others.
+        """
+        z = np.asarray(map_from_odom, dtype=float)
+        if z.shape != (3,) or not np.all(np.isfinite(z)):
+            raise ValueError(f"start hint of robot {robot_id}: bad map_from_odom {z}")
+        if not (sigma_xy_m > 0 and sigma_yaw_rad > 0):
+            raise ValueError(f"start hint of robot {robot_id}: sigmas must be > 0")
+        if robot_id == self.config.graph.map_robot_id:
+            raise ValueError(f"robot {robot_id} defines map; it takes no start hint")
+        cov = np.diag([sigma_xy_m**2, sigma_xy_m**2, sigma_yaw_rad**2])
+        self._hints[robot_id] = (z, cov)
+        self._apply_hints()
+
+    def _apply_hints(self) -> None:
+        anchor = self._tracks.get(self.config.graph.map_robot_id)
+        if anchor is None or not anchor.graph_keys:
+            return
+        key0 = anchor.graph_keys[0]
+        map_from_base0 = compose(
+            np.asarray(self.config.graph.map_from_odom, dtype=float),
+            self.graph.nodes(self.config.graph.map_robot_id)[0].odom_from_base,
+        )
+        for robot_id, (map_from_odom, cov) in list(self._hints.items()):
+            track = self._tracks.get(robot_id)
+            if track is None or not track.graph_keys:
+                continue
+            key = track.graph_keys[0]
+            odom_from_base = self.graph.nodes(robot_id)[0].odom_from_base
+            z = relative(map_from_base0, compose(map_from_odom, odom_from_base))
+            self.graph.add_edge(
+                key0,
+                key,
+                a_from_b=z,
+                covariance=cov,
+                provenance=Provenance.LOOP_OPERATOR,
+                time_s=self._key_time[key],
+            )
+            del self._hints[robot_id]
+            self._dirty = True
 
     def _on_grid(self, robot_id: int, track: _Track, msg: TerrainGrid) -> None:
         what = f"grid of node {msg.node_index}"
