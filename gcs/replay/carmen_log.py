@@ -95,6 +95,22 @@ class CarmenLog:
     def __len__(self) -> int:
         return int(self.ranges_m.shape[0])
 
+    def subset(self, scans: slice | NDArray[np.int64] | list[int]) -> CarmenLog:
+        """The log restricted to some scans (a slice or indices), e.g. its first minutes."""
+        idx = np.arange(len(self))[scans]
+        return CarmenLog(
+            path=self.path,
+            ranges_m=self.ranges_m[idx],
+            angles_rad=self.angles_rad,
+            laser_in_log=self.laser_in_log[idx],
+            odometry_in_log=self.odometry_in_log[idx],
+            base_in_log=self.base_in_log[idx],
+            time_s=self.time_s[idx],
+            laser_offset_m=self.laser_offset_m,
+            line_numbers=self.line_numbers[idx],
+            skipped=dict(self.skipped),
+        )
+
     @property
     def has_timestamps(self) -> bool:
         return bool(len(self) > 0 and np.all(np.isfinite(self.time_s)))

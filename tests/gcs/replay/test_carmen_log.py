@@ -68,6 +68,10 @@ def test_flaser_scans_poses_times_offset_and_points() -> None:
     assert log.points_in_base(1, max_range_m=1.5).shape == (178, 2)
     with pytest.raises(IndexError, match="scan 2 out of range"):
         log.points_in_base(2)
+    second = log.subset([1])
+    assert len(second) == 1 and second.time_s.tolist() == [11.5]
+    np.testing.assert_array_equal(second.base_in_log, log.base_in_log[1:])
+    assert len(log.subset(slice(0, 1))) == 1
 
 
 def test_dpslam_format_uses_the_preceding_odometry() -> None:

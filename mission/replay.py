@@ -1,0 +1,410 @@
+"""``magic replay --carmen FILE``: a real 2-D laser log through the GCS pipeline (issue 7 item 7).
+
+A CARMEN log (:mod:`gcs.replay.carmen_log`) becomes exactly what a robot sends (paper 4.2,
+4.3.3, 4.3.4): a :class:`~protocol.messages.PoseNode` per scan after which the robot moved or
+turned enough (:class:`robot.odometry.pose_node_maker.PoseNodeMaker`, the robot's own rule and
+covariance model), with its odometry constraint, and a :class:`~protocol.messages.TerrainGrid`
+whose 10 cm binary grid holds the scan's endpoints in the node's ``base`` frame (a 2-D laser
+sees only vertical surfaces), compressed by the robot's codec. The messages go through the
+same :class:`gcs.ground_station.GroundStation` the GCS node runs (loop closing, incremental
+optimization); the result is evaluated against
+
+* the log's reference poses, when it has some (a *corrected* log whose odometry was made noisy
+  here, or a log whose laser poses differ from its odometry): the ATE after alignment
+  (:mod:`gcs.replay.trajectory_error`), for the GCS estimate and for odometry alone;
+* a relations file (Kuemmerle et al. 2009, :mod:`gcs.replay.relations`): the mean translation
+  and rotation error of the relations whose two timestamps fall on nodes, and how many did.
+
+Odometry. A raw log's odometry (the Duke DP-SLAM log) is used as is. A corrected log has no
+raw odometry (its odometry fields repeat the corrected poses), so ``noise.scale`` adds seeded
+noise to each scan-to-scan increment ``(ds, dyaw, dt)`` drawn from the pose-node covariance
+model itself, ``σ_ds² = slip²|ds|``, ``σ_dyaw² = turn²|dyaw| + gyro²·dt``, with every σ
+multiplied by ``scale``; the nodes' covariances then use the same scaled model, so they state
+the noise that was really added.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+
+from compression import encode_grid
+from gcs.graph.pose_graph import Provenance
+from gcs.ground_station import GroundStation, GroundStationConfig
+from gcs.replay.carmen_log import CarmenLog
+from gcs.replay.relations import (
+    MatchedRelations,
+    Relations,
+    RelationsError,
+    estimate_time_offset_s,
+    match_relations,
+    relations_error,
+)
+from gcs.replay.trajectory_error import TrajectoryError, trajectory_error
+from protocol.messages import PoseNode, TerrainGrid
+from protocol.se2 import compose, relative
+from robot.odometry.inertial_odometry import OdometryIncrement
+from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
+
+__all__ = [
+    "OdometryNoiseConfig",
+    "ReplayConfig",
+    "ReplayNode",
+    "ReplayResult",
+    "ScanGridConfig",
+    "replay_messages",
+    "replay_odometry",
+    "run_replay",
+    "scan_grid",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+class OdometryNoiseConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Noise added to the log's odometry: ``scale`` times the pose-node model's sigmas (0: the
+    log's odometry as is), drawn with ``numpy.random.default_rng(seed)``."""
+
+    scale: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.scale) and self.scale >= 0):
+            raise ValueError(f"noise.scale: expected a finite number >= 0, got {self.scale}")
+
+
+class ScanGridConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """A scan's binary grid: cell size, the longest range kept, and the codec that carries it."""
+
+    resolution_m: float = 0.10
+    max_range_m: float = 10.0
+    codec: str = "ctx4a"  # the robot node's default
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.resolution_m) and 0.01 <= self.resolution_m <= 1.0):
+            raise ValueError(f"grid.resolution_m: expected 0.01..1 m, got {self.resolution_m}")
+        if not (math.isfinite(self.max_range_m) and self.max_range_m > 0):
+            raise ValueError(f"grid.max_range_m: expected > 0, got {self.max_range_m}")
+        if 2 * self.max_range_m / self.resolution_m > 1000:
+            raise ValueError(
+                f"grid: {self.max_range_m} m at {self.resolution_m} m exceeds 1000 cells a side"
+            )
+
+
+def _replay_node_config() -> PoseNodeConfig:
+    # Half the robot's node spacing: the logs' scans are sparse already (Intel: ~1 m apart).
+    return PoseNodeConfig(min_distance_m=0.5)
+
+
+class ReplayConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Everything a replay runs with.
+
+    ``robot_id`` the log's robot (the map robot by default, so the map is its first node);
+    ``period_s`` the scan period assumed for logs without timestamps; ``step_every_nodes``
+    how many pose nodes between two calls of ``GroundStation.step`` and ``step_budget_s`` the
+    budget each call gets (None: unbounded); ``reference`` whether to evaluate against the log's
+    poses (None: when they can be a reference, see :func:`run_replay`);
+    ``relations_tolerance_s`` how close a relation timestamp must fall to a node's.
+    """
+
+    robot_id: int = 0
+    nodes: PoseNodeConfig = msgspec.field(default_factory=_replay_node_config)
+    grid: ScanGridConfig = msgspec.field(default_factory=ScanGridConfig)
+    noise: OdometryNoiseConfig = msgspec.field(default_factory=OdometryNoiseConfig)
+    station: GroundStationConfig = msgspec.field(default_factory=GroundStationConfig)
+    period_s: float = 0.5
+    step_every_nodes: int = 1
+    step_budget_s: float | None = None
+    reference: bool | None = None
+    relations_tolerance_s: float = 0.006
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.period_s) and self.period_s > 0):
+            raise ValueError(f"period_s: expected > 0, got {self.period_s}")
+        if self.step_every_nodes < 1:
+            raise ValueError(f"step_every_nodes: expected >= 1, got {self.step_every_nodes}")
+        if self.step_budget_s is not None and not self.step_budget_s > 0:
+            raise ValueError(f"step_budget_s: expected > 0 or None, got {self.step_budget_s}")
+
+
+def scan_grid(
+    points_in_base: FloatArray, *, resolution_m: float
+) -> tuple[NDArray[np.bool_], tuple[float, float]]:
+    """The binary grid of a scan's endpoints ``(K, 2)`` in ``base``: ``(grid, origin_in_base)``.
+
+    A cell is occupied when an endpoint falls into it; the grid is cropped to the occupied
+    cells' bounding box on the lattice anchored at the ``base`` origin (cell ``(r, c)`` covers
+    ``origin_in_base + (c, r) * resolution_m``, the ``TerrainGrid`` convention). No points:
+    an empty ``0 x 0`` grid at the origin.
+    """
+    pts = np.asarray(points_in_base, dtype=np.float64).reshape(-1, 2)
+    if len(pts) == 0:
+        return np.zeros((0, 0), dtype=bool), (0.0, 0.0)
+    cells = np.floor(pts / resolution_m).astype(np.int64)
+    c0, r0 = cells.min(axis=0)
+    c1, r1 = cells.max(axis=0)
+    grid = np.zeros((int(r1 - r0 + 1), int(c1 - c0 + 1)), dtype=bool)
+    grid[cells[:, 1] - r0, cells[:, 0] - c0] = True
+    return grid, (float(c0 * resolution_m), float(r0 * resolution_m))
+
+
+def _scan_times(log: CarmenLog, period_s: float) -> FloatArray:
+    """Mission time of each scan from 0: the log's clock, else a constant period."""
+    if log.has_timestamps:
+        return log.time_s - log.time_s[0]  # type: ignore[no-any-return]
+    return np.arange(len(log), dtype=np.float64) * period_s
+
+
+def _scaled_model(cfg: PoseNodeConfig, scale: float) -> PoseNodeConfig:
+    return msgspec.structs.replace(
+        cfg,
+        slip_std_m_per_sqrt_m=cfg.slip_std_m_per_sqrt_m * scale,
+        turn_std_rad_per_sqrt_rad=cfg.turn_std_rad_per_sqrt_rad * scale,
+        gyro_noise_rad_per_sqrt_s=cfg.gyro_noise_rad_per_sqrt_s * scale,
+    )
+
+
+def replay_odometry(
+    log: CarmenLog, config: ReplayConfig
+) -> tuple[FloatArray, list[OdometryIncrement], PoseNodeConfig]:
+    """The odometry the replay reports: ``(odometry (N, 3), increments, node model)``.
+
+    ``increments[k]`` is the motion from scan ``k`` to ``k + 1`` for the covariance model;
+    the node model is ``config.nodes`` with its sigmas scaled when noise is added.
+    """
+    odom = log.odometry_in_log
+    times = _scan_times(log, config.period_s)
+    steps = relative(odom[:-1], odom[1:]).reshape(-1, 3)
+    ds = np.hypot(steps[:, 0], steps[:, 1]) * np.where(steps[:, 0] < 0, -1.0, 1.0)
+    dt = np.maximum(np.diff(times), 0.0)  # corrected logs have a few stamps out of order
+    increments = [
+        OdometryIncrement(distance_m=float(a), dyaw_rad=float(b), dt_s=float(c))
+        for a, b, c in zip(ds, steps[:, 2], dt, strict=True)
+    ]
+    scale = config.noise.scale
+    if scale == 0.0:
+        return odom.copy(), increments, config.nodes
+    model = _scaled_model(config.nodes, scale)
+    rng = np.random.default_rng(config.noise.seed)
+    sd_ds = model.slip_std_m_per_sqrt_m * np.sqrt(np.abs(ds))
+    sd_yaw = np.sqrt(
+        model.turn_std_rad_per_sqrt_rad**2 * np.abs(steps[:, 2])
+        + model.gyro_noise_rad_per_sqrt_s**2 * dt
+    )
+    e_ds = rng.normal(size=len(steps)) * sd_ds
+    e_yaw = rng.normal(size=len(steps)) * sd_yaw
+    # Lengthen or shorten each step along its own direction by e_ds; turn it by e_yaw.
+    stretch = np.where(np.abs(ds) > 1e-12, 1.0 + e_ds / np.maximum(np.abs(ds), 1e-12), 1.0)
+    noisy = np.column_stack([steps[:, 0] * stretch, steps[:, 1] * stretch, steps[:, 2] + e_yaw])
+    out = np.empty_like(odom)
+    out[0] = odom[0]
+    for k, step in enumerate(noisy):
+        out[k + 1] = compose(out[k], step)
+    return out, increments, model
+
+
+@dataclass(frozen=True)
+class ReplayNode:
+    """One pose node of the replay: the scan it was made at and the two messages it sends."""
+
+    scan: int
+    pose_node: PoseNode
+    terrain_grid: TerrainGrid
+
+
+def replay_messages(log: CarmenLog, config: ReplayConfig | None = None) -> list[ReplayNode]:
+    """Pose nodes and terrain grids of a log, in order (see the module docstring)."""
+    cfg = config or ReplayConfig()
+    odom, increments, model = replay_odometry(log, cfg)
+    times = _scan_times(log, cfg.period_s)
+    maker = PoseNodeMaker(model)
+    res = cfg.grid.resolution_m
+    out: list[ReplayNode] = []
+    for k in range(len(log)):
+        if k > 0:
+            maker.add_increment(increments[k - 1])
+        if not maker.due(odom[k], float(times[k])):
+            continue
+        node = maker.make(odom[k], float(times[k]))
+        grid, origin = scan_grid(
+            log.points_in_base(k, max_range_m=cfg.grid.max_range_m), resolution_m=res
+        )
+        data = encode_grid(grid, cfg.grid.codec)
+        msg = TerrainGrid(
+            node.node_index, cfg.grid.codec, res, grid.shape[1], grid.shape[0], origin, data
+        )
+        out.append(ReplayNode(scan=k, pose_node=node, terrain_grid=msg))
+    return out
+
+
+@dataclass
+class ReplayResult:
+    """What a replay produced and how good it is.
+
+    Per node ``(M,)``: ``scans`` (index into the log), ``time_s`` (the log's own clock, NaN
+    without timestamps), ``odometry`` and ``estimate`` ``(M, 3)`` (``odom`` and ``map``),
+    ``reference`` ``(M, 3)`` in the log's frame or None. ``ate``/``ate_odometry`` against the
+    reference; ``relations``/``relations_odometry`` with ``relations_matched`` (None without a
+    relations file); ``loop_closures`` automatic loop-closure edges in the final graph.
+    """
+
+    log_path: str
+    scans_total: int
+    scans: NDArray[np.int64]
+    time_s: FloatArray
+    odometry: FloatArray
+    estimate: FloatArray
+    reference: FloatArray | None
+    loop_closures: int
+    station_stats: dict[str, Any]
+    wall_s: float
+    ate: TrajectoryError | None = None
+    ate_odometry: TrajectoryError | None = None
+    relations_matched: MatchedRelations | None = None
+    relations: RelationsError | None = None
+    relations_odometry: RelationsError | None = None
+    files: dict[str, str] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        """The numbers, JSON-ready."""
+        out: dict[str, Any] = {
+            "log": self.log_path,
+            "scans": self.scans_total,
+            "nodes": int(len(self.scans)),
+            "loop_closures": self.loop_closures,
+            "wall_s": round(self.wall_s, 3),
+            "station": self.station_stats,
+        }
+        for name, ate in (("ate", self.ate), ("ate_odometry", self.ate_odometry)):
+            if ate is not None:
+                out[f"{name}_rmse_m"] = ate.rmse_m
+                out[f"{name}_max_m"] = ate.max_m
+                out[f"{name}_yaw_rmse_deg"] = ate.yaw_rmse_deg
+        if self.relations_matched is not None:
+            out["relations_matched"] = len(self.relations_matched)
+            out["relations_total"] = self.relations_matched.total
+        for name, rel in (
+            ("relations", self.relations),
+            ("relations_odometry", self.relations_odometry),
+        ):
+            if rel is not None:
+                out[f"{name}_trans_err_m"] = rel.trans_mean_m
+                out[f"{name}_trans_std_m"] = rel.trans_std_m
+                out[f"{name}_rot_err_deg"] = rel.rot_mean_deg
+                out[f"{name}_rot_std_deg"] = math.degrees(rel.rot_std_rad)
+        out["files"] = dict(self.files)
+        return out
+
+
+ProgressFn = Callable[[int, int, str], None]
+
+
+def _has_reference(log: CarmenLog, config: ReplayConfig) -> bool:
+    if config.reference is not None:
+        return config.reference
+    # The log's poses are a reference when noise was added to them, or when they are not
+    # simply the odometry (a corrected log that kept its raw odometry).
+    differs = not np.allclose(log.odometry_in_log, log.laser_in_log, atol=1e-6)
+    return config.noise.scale > 0 or differs
+
+
+def run_replay(
+    log: CarmenLog,
+    *,
+    config: ReplayConfig | None = None,
+    relations: Relations | None = None,
+    out_dir: str | Path | None = None,
+    progress: ProgressFn | None = None,
+) -> ReplayResult:
+    """Replay ``log`` through a :class:`GroundStation` and evaluate (module docstring).
+
+    ``progress(scans_done, scans_total, text)`` is called after every ``GroundStation.step``.
+    With ``out_dir``, writes ``summary.json`` and ``poses.txt`` there (and the map image, once
+    the station can rasterize). Raises ValueError when ``relations`` are given for a log
+    without timestamps or on another clock.
+    """
+    cfg = config or ReplayConfig()
+    t_start = time.perf_counter()
+    if relations is not None and not log.has_timestamps:
+        raise ValueError(f"{log.path}: relations need scan timestamps, and this log has none")
+    nodes = replay_messages(log, cfg)
+    station = GroundStation(cfg.station)
+    rid = cfg.robot_id
+    for n, rn in enumerate(nodes, start=1):
+        now = rn.pose_node.time_s
+        station.handle(rid, rn.pose_node, now_s=now)
+        station.handle(rid, rn.terrain_grid, now_s=now)
+        if n % cfg.step_every_nodes == 0 or n == len(nodes):
+            station.step(now_s=now, budget_s=cfg.step_budget_s)
+            if progress is not None:
+                closures = len(station.graph.edges(Provenance.LOOP_AUTO))
+                progress(rn.scan + 1, len(log), f"{n} nodes, {closures} loop closures")
+    scans = np.array([rn.scan for rn in nodes], dtype=np.int64)
+    odometry = np.array([rn.pose_node.pose_in_odom for rn in nodes], dtype=np.float64)
+    keys = [station.key_of(rid, rn.pose_node.node_index) for rn in nodes]
+    missing = [rn.pose_node.node_index for rn, k in zip(nodes, keys, strict=True) if k is None]
+    if missing:
+        raise RuntimeError(f"the ground station dropped pose nodes {missing[:10]}: {station.stats}")
+    estimate = np.array([station.graph.pose(k) for k in keys if k is not None]).reshape(-1, 3)
+    stats = station.stats
+    result = ReplayResult(
+        log_path=log.path,
+        scans_total=len(log),
+        scans=scans,
+        time_s=log.time_s[scans],
+        odometry=odometry,
+        estimate=estimate,
+        reference=log.base_in_log[scans] if _has_reference(log, cfg) else None,
+        loop_closures=len(station.graph.edges(Provenance.LOOP_AUTO)),
+        station_stats={
+            "pose_nodes": stats.pose_nodes,
+            "terrain_grids": stats.terrain_grids,
+            "optimizations": stats.optimizations,
+            "rejected": dict(stats.rejected),
+        },
+        wall_s=0.0,
+    )
+    if result.reference is not None:
+        result.ate = trajectory_error(estimate, result.reference)
+        result.ate_odometry = trajectory_error(odometry, result.reference)
+    if relations is not None:
+        offset = estimate_time_offset_s(relations, log.time_s)
+        matched = match_relations(
+            relations, result.time_s, time_offset_s=offset, tolerance_s=cfg.relations_tolerance_s
+        )
+        result.relations_matched = matched
+        if len(matched):
+            result.relations = relations_error(estimate, matched)
+            result.relations_odometry = relations_error(odometry, matched)
+    result.wall_s = time.perf_counter() - t_start
+    if out_dir is not None:
+        _write_outputs(result, Path(out_dir))
+    return result
+
+
+def _write_outputs(result: ReplayResult, out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    poses = out / "poses.txt"
+    ref = (
+        result.reference if result.reference is not None else np.full_like(result.estimate, np.nan)
+    )
+    table = np.column_stack([result.scans, result.time_s, result.estimate, result.odometry, ref])
+    np.savetxt(
+        poses,
+        table,
+        fmt=["%d", "%.6f"] + ["%.6f"] * 9,
+        header="scan time_s map_x map_y map_yaw odom_x odom_y odom_yaw ref_x ref_y ref_yaw",
+    )
+    result.files["poses"] = str(poses)
+    summary = out / "summary.json"
+    result.files["summary"] = str(summary)
+    summary.write_text(json.dumps(result.summary(), indent=2) + "\n", encoding="utf-8")

@@ -1,0 +1,238 @@
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from compression import decode_grid
+from gcs.replay.carmen_log import CarmenLog, parse_carmen_log, read_carmen_log
+from gcs.replay.relations import parse_relations, read_relations
+from mission.replay import (
+    OdometryNoiseConfig,
+    ReplayConfig,
+    ScanGridConfig,
+    replay_messages,
+    replay_odometry,
+    run_replay,
+    scan_grid,
+)
+from protocol.messages import covariance_from_upper
+from protocol.se2 import compose, relative
+
+LASER = Path(__file__).resolve().parents[2] / ".." / "shared" / "datasets" / "laser"
+
+# ---------------------------------------------------------------- a synthetic corrected log
+
+#: Walls of a 20 x 14 m hall around a 10 x 4 m block, with a few asymmetric boxes so that
+#: places look different from each other (x0, y0, x1, y1 per segment).
+_BOXES = [(-10, -7, 10, 7), (-5, -2, 5, 2), (-8.6, 5.2, -7.9, 5.9), (2.0, -6.3, 3.1, -5.8),
+          (8.4, -1.0, 9.0, 0.4), (-2.5, 4.1, -1.6, 5.0)]  # fmt: skip
+
+
+def _segments() -> np.ndarray:
+    segs = []
+    for x0, y0, x1, y1 in _BOXES:
+        segs += [(x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)]
+    return np.array(segs, dtype=float)
+
+
+def _ranges(pose: np.ndarray, angles: np.ndarray, max_m: float = 8.0) -> np.ndarray:
+    segs = _segments()
+    d = np.stack([np.cos(pose[2] + angles), np.sin(pose[2] + angles)], axis=1)  # (B, 2)
+    a, e = segs[:, :2], segs[:, 2:] - segs[:, :2]  # (S, 2)
+    w = a[None, :, :] - pose[None, None, :2]
+    den = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) / den
+        u = (w[..., 0] * d[:, None, 1] - w[..., 1] * d[:, None, 0]) / den
+    hit = (np.abs(den) > 1e-12) & (t > 0) & (u >= 0) & (u <= 1)
+    r = np.where(hit, t, np.inf).min(axis=1)
+    return np.where(r < max_m, r, 8.183)  # the SICK's "no return"
+
+
+def _loop_route(laps: float, step_m: float) -> np.ndarray:
+    """Counter-clockwise around the block along the corridor centre line, from (-7.5, -4.5)."""
+    corners = np.array([[-7.5, -4.5], [7.5, -4.5], [7.5, 4.5], [-7.5, 4.5]])
+    perimeter = 2 * (15 + 9)
+    s = np.arange(0.0, laps * perimeter, step_m)
+    out = []
+    for si in s:
+        si %= perimeter
+        for k in range(4):
+            a, b = corners[k], corners[(k + 1) % 4]
+            seg = float(np.linalg.norm(b - a))
+            if si <= seg:
+                p = a + (b - a) * si / seg
+                out.append([p[0], p[1], math.atan2(b[1] - a[1], b[0] - a[0])])
+                break
+            si -= seg
+    return np.array(out)
+
+
+def synthetic_log(laps: float = 1.2, step_m: float = 0.3) -> CarmenLog:
+    """A corrected FLASER log (its odometry fields repeat the true poses), 181 beams."""
+    poses = _loop_route(laps, step_m)
+    angles = np.radians(np.arange(-90.0, 90.5, 1.0))
+    lines = ["PARAM robot_frontlaser_offset 0.0 nohost 0"]
+    for k, p in enumerate(poses):
+        r = " ".join(f"{v:.3f}" for v in _ranges(p, angles))
+        pose = " ".join(repr(float(v)) for v in p)
+        t = 100.0 + 0.5 * k
+        lines.append(f"FLASER 181 {r} {pose} {pose} {t:.4f} synth {t:.4f}")
+    return parse_carmen_log("\n".join(lines) + "\n", path="synthetic.log")
+
+
+# ---------------------------------------------------------------- tests
+
+
+def test_scan_grid_marks_endpoint_cells_on_the_base_lattice() -> None:
+    pts = np.array([[1.02, -0.31], [1.08, -0.39], [-0.55, 2.0], [0.0, 0.0]])
+    grid, origin = scan_grid(pts, resolution_m=0.1)
+    np.testing.assert_allclose(origin, (-0.6, -0.4))
+    assert grid.shape == (25, 17) and grid.sum() == 3  # two points share a cell
+    # Every point lies in an occupied cell under the TerrainGrid convention.
+    cells = np.floor((pts - np.array(origin)) / 0.1 + 1e-9).astype(int)
+    assert grid[cells[:, 1], cells[:, 0]].all()
+    empty, o = scan_grid(np.zeros((0, 2)), resolution_m=0.1)
+    assert empty.shape == (0, 0) and o == (0.0, 0.0)
+
+
+def test_messages_follow_the_node_rule_and_carry_the_scan() -> None:
+    log = synthetic_log(laps=0.5)
+    cfg = ReplayConfig()
+    nodes = replay_messages(log, cfg)
+    scans = [n.scan for n in nodes]
+    assert scans[0] == 0 and [n.pose_node.node_index for n in nodes] == list(range(len(nodes)))
+    # 0.3 m steps and nodes every 0.5 m (or a 15 deg turn): every second scan on straights.
+    assert set(np.diff(scans).tolist()) <= {1, 2} and len(nodes) >= len(log) // 2
+    for prev, cur in zip(nodes, nodes[1:], strict=False):
+        d = relative(prev.pose_node.pose_in_odom, cur.pose_node.pose_in_odom)
+        np.testing.assert_allclose(cur.pose_node.odom_delta, d, atol=1e-5)
+        assert np.all(np.linalg.eigvalsh(covariance_from_upper(cur.pose_node.odom_covariance)) > 0)
+    n = nodes[5]
+    grid = decode_grid(n.terrain_grid.data)
+    assert grid.shape == (n.terrain_grid.height, n.terrain_grid.width)
+    expect, origin = scan_grid(log.points_in_base(n.scan, max_range_m=10.0), resolution_m=0.1)
+    np.testing.assert_array_equal(grid, expect)
+    np.testing.assert_allclose(n.terrain_grid.origin_in_base, origin, atol=1e-6)
+    assert n.terrain_grid.codec == "ctx4a" and n.terrain_grid.resolution_m == pytest.approx(0.1)
+    # The map is in the grid: walls are where the log's pose puts them (x = -10 or y = -7...).
+    rows, cols = np.nonzero(grid)
+    pts = np.column_stack([cols, rows]) * 0.1 + np.array(origin) + 0.05
+    world = compose(log.base_in_log[n.scan], np.column_stack([pts, np.zeros(len(pts))]))[:, :2]
+    near_wall = np.zeros(len(world), dtype=bool)
+    for x0, y0, x1, y1 in [b for b in [(-10, -7, 10, 7), (-5, -2, 5, 2)]]:
+        near_wall |= (np.abs(world[:, 0] - x0) < 0.1) | (np.abs(world[:, 0] - x1) < 0.1)
+        near_wall |= (np.abs(world[:, 1] - y0) < 0.1) | (np.abs(world[:, 1] - y1) < 0.1)
+    assert near_wall.mean() > 0.9  # the rest are the boxes' faces
+
+
+def test_odometry_noise_is_seeded_and_drawn_from_the_node_model() -> None:
+    log = synthetic_log(laps=2.0, step_m=0.3)
+    clean, inc, model = replay_odometry(log, ReplayConfig())
+    np.testing.assert_array_equal(clean, log.odometry_in_log)
+    assert model == ReplayConfig().nodes
+    noisy_cfg = ReplayConfig(noise=OdometryNoiseConfig(scale=2.0, seed=7))
+    a, _, scaled = replay_odometry(log, noisy_cfg)
+    b, _, _ = replay_odometry(log, noisy_cfg)
+    c, _, _ = replay_odometry(log, ReplayConfig(noise=OdometryNoiseConfig(scale=2.0, seed=8)))
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+    assert scaled.slip_std_m_per_sqrt_m == pytest.approx(2 * model.slip_std_m_per_sqrt_m)
+    # Normalized step errors have unit spread (the model's sigma times the scale).
+    true_steps = relative(clean[:-1], clean[1:])
+    noisy_steps = relative(a[:-1], a[1:])
+    ds = np.array([i.distance_m for i in inc])
+    dt = np.array([i.dt_s for i in inc])
+    e_ds = np.hypot(noisy_steps[:, 0], noisy_steps[:, 1]) - np.abs(ds)
+    z_ds = e_ds / (scaled.slip_std_m_per_sqrt_m * np.sqrt(np.abs(ds)))
+    sd_yaw = np.sqrt(
+        scaled.turn_std_rad_per_sqrt_rad**2 * np.abs(true_steps[:, 2])
+        + scaled.gyro_noise_rad_per_sqrt_s**2 * dt
+    )
+    z_yaw = (noisy_steps[:, 2] - true_steps[:, 2]) / sd_yaw
+    assert len(z_ds) > 300
+    assert 0.85 < np.std(z_ds) < 1.15 and abs(np.mean(z_ds)) < 0.15
+    assert 0.85 < np.std(z_yaw) < 1.15 and abs(np.mean(z_yaw)) < 0.15
+
+
+def test_replay_through_the_ground_station_evaluates_against_the_reference(
+    tmp_path: Path,
+) -> None:
+    log = synthetic_log(laps=1.2)
+    cfg = ReplayConfig(noise=OdometryNoiseConfig(scale=3.0, seed=2))
+    lines: list[tuple[int, int, str]] = []
+    res = run_replay(
+        log, config=cfg, out_dir=tmp_path, progress=lambda d, n, t: lines.append((d, n, t))
+    )
+    nodes = replay_messages(log, cfg)
+    assert len(res.scans) == len(nodes) and res.scans_total == len(log)
+    assert res.station_stats["pose_nodes"] == len(nodes)
+    assert res.station_stats["terrain_grids"] == len(nodes) and not res.station_stats["rejected"]
+    assert lines[-1][0] == nodes[-1].scan + 1 and lines[-1][1] == len(log)
+    assert res.reference is not None and res.ate is not None and res.ate_odometry is not None
+    np.testing.assert_allclose(res.reference, log.base_in_log[res.scans])
+    # Three times the model's noise over a 58 m loop: odometry is decimetres off.
+    assert res.ate_odometry.rmse_m > 0.1
+    # The log's robot is the map robot: map and its odom coincide at its first node.
+    np.testing.assert_allclose(res.estimate[0], res.odometry[0], atol=1e-3)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["nodes"] == len(nodes) and summary["ate_odometry_rmse_m"] > 0.1
+    table = np.loadtxt(tmp_path / "poses.txt")
+    assert table.shape == (len(nodes), 11)
+    np.testing.assert_allclose(table[:, 8:], res.reference, atol=1e-5)
+
+
+def test_relations_need_timestamps_and_are_evaluated_on_nodes() -> None:
+    log = synthetic_log(laps=0.4)
+    rows = []
+    for i in range(0, len(log) - 4, 2):
+        d = relative(log.base_in_log[i], log.base_in_log[i + 4])
+        fields = (log.time_s[i] + 5000.0, log.time_s[i + 4] + 5000.0, d[0], d[1], 0, 0, 0, d[2])
+        rows.append(" ".join(repr(float(v)) for v in fields))
+    text = "\n".join(rows)
+    rel = parse_relations(text)
+    res = run_replay(log, relations=rel)
+    assert res.relations_matched is not None and res.relations is not None
+    assert len(res.relations_matched) >= 5 and res.relations_matched.total == len(rel)
+    assert res.relations.trans_mean_m < 1e-3 and res.relations.rot_mean_deg < 0.01
+    no_time = parse_carmen_log("Odometry 0 0 0\nLaser 3 1 1 1\n", path="old.log")
+    with pytest.raises(ValueError, match="old.log: relations need scan timestamps"):
+        run_replay(no_time, relations=rel)
+
+
+def test_configs_refuse_bad_values() -> None:
+    with pytest.raises(ValueError, match="noise.scale"):
+        OdometryNoiseConfig(scale=-1.0)
+    with pytest.raises(ValueError, match="exceeds 1000 cells"):
+        ScanGridConfig(max_range_m=80.0)
+    with pytest.raises(ValueError, match="step_every_nodes"):
+        ReplayConfig(step_every_nodes=0)
+
+
+@pytest.fixture
+def laser_dir() -> Path:
+    if not LASER.is_dir():
+        pytest.skip(f"shared laser logs not found at {LASER.resolve()}")
+    return LASER
+
+
+def test_real_logs_become_messages_and_noise_shows_in_the_relations(laser_dir: Path) -> None:
+    duke = read_carmen_log(laser_dir / "dpslam_loop5.log")
+    nodes = replay_messages(duke)
+    assert 100 <= len(nodes) <= 150  # 56 m of raw odometry at one node per 0.5 m or 15 deg
+    intel = read_carmen_log(laser_dir / "intel-corrected.log.gz").subset(slice(0, 300))
+    rel = read_relations(laser_dir / "intel.relations")
+    clean = run_replay(intel, relations=rel)
+    assert clean.reference is None  # the corrected poses are the odometry: nothing to compare
+    assert clean.relations is not None and clean.relations_matched is not None
+    assert len(clean.relations_matched) >= 20
+    assert clean.relations.trans_mean_m < 0.06
+    noisy = run_replay(
+        intel, relations=rel, config=ReplayConfig(noise=OdometryNoiseConfig(scale=1.0, seed=1))
+    )
+    assert noisy.relations_odometry is not None and noisy.ate_odometry is not None
+    assert noisy.relations_odometry.trans_mean_m > 3 * clean.relations.trans_mean_m
