@@ -236,3 +236,38 @@ def test_real_logs_become_messages_and_noise_shows_in_the_relations(laser_dir: P
     )
     assert noisy.relations_odometry is not None and noisy.ate_odometry is not None
     assert noisy.relations_odometry.trans_mean_m > 3 * clean.relations.trans_mean_m
+
+
+def test_magic_replay_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from mission.cli import main
+
+    log = synthetic_log(laps=0.6)
+    lines = [
+        f"FLASER {log.ranges_m.shape[1]} "
+        + " ".join(f"{v:.3f}" for v in log.ranges_m[k])
+        + " "
+        + " ".join(repr(float(v)) for v in (*log.laser_in_log[k], *log.laser_in_log[k]))
+        + f" {log.time_s[k]:.4f} synth {log.time_s[k]:.4f}"
+        for k in range(len(log))
+    ]
+    path = tmp_path / "synthetic.log"
+    path.write_text("\n".join(lines) + "\n")
+    out_dir = tmp_path / "out"
+    argv = ["replay", "--carmen", str(path), "--odom-noise", "2", "--seed", "4"]
+    assert main([*argv, "--out", str(out_dir), "--progress-every", "10"]) == 0
+    out, err = capsys.readouterr()
+    assert "pose nodes" in out and "ATE vs the log's poses" in out and "wrote summary" in out
+    progress = [line for line in err.splitlines() if line.startswith("replay [")]
+    assert len(progress) >= 3 and f"{len(log)}/{len(log)} scans" in progress[-1]
+    assert json.loads((out_dir / "summary.json").read_text())["scans"] == len(log)
+    assert main([*argv, "--quiet", "--scans", "20"]) == 0
+    out, err = capsys.readouterr()
+    assert "20 scans" in out and err == ""
+    (tmp_path / "bad.log").write_text("FLASER 3 1 1\n")
+    assert main(["replay", "--carmen", str(tmp_path / "bad.log")]) == 2
+    assert "bad.log:1: FLASER with 3 beams" in capsys.readouterr().err
+    assert main(["replay", "--carmen", str(path), "--odom-noise", "-1"]) == 2
+    assert "noise.scale" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main(["replay"])
+    assert info.value.code == 2
