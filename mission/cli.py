@@ -15,7 +15,6 @@ __all__ = ["main"]
 #: Subcommands that are specified but not built yet, and the issue that brings each.
 _NOT_BUILT = {
     "console": "the operator console (operator interfaces)",
-    "replay": "replay of CARMEN laser logs through the GCS (loop closing, issue 7)",
     "report": "mission reports against ground truth (metrics)",
 }
 
@@ -43,6 +42,7 @@ def _build_parser() -> argparse.ArgumentParser:
         ("sim", "the simulator server: world, robots, sensors, rules, radio over zenoh"),
         ("robot", "one robot node, fed by a simulator (or hardware) over zenoh"),
         ("gcs", "the ground-control station: pose graph, loop closing, maps, over zenoh"),
+        ("replay", "replay a CARMEN laser log through the GCS and evaluate it (--carmen FILE)"),
     ):
         p = sub.add_parser(name, help=what, add_help=False)
         p.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
@@ -116,11 +116,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in ("sim", "robot", "gcs"):  # processes with their own option parsers
+    if argv and argv[0] in ("sim", "robot", "gcs", "replay"):  # commands with their own parsers
         if argv[0] == "sim":
             from sim.server import main as sim_main
 
             return sim_main(argv[1:])
+        if argv[0] == "replay":
+            from mission.replay import main as replay_main
+
+            return replay_main(argv[1:])
         if argv[0] == "gcs":
             from gcs.node import main as gcs_main
 

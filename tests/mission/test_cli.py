@@ -11,7 +11,7 @@ import pytest
 from mission.bench import SUITES
 from mission.cli import main
 
-UNBUILT = ["console", "replay", "report"]
+UNBUILT = ["console", "report"]
 
 
 @pytest.mark.parametrize("command", UNBUILT)
@@ -27,7 +27,7 @@ def test_unbuilt_subcommands_exit_2(command: str, capsys: pytest.CaptureFixture[
     "argv",
     [
         ["console", "--mission", "demo"],
-        ["replay", "log.carmen"],
+        ["report", "run.json"],
     ],
 )
 def test_unbuilt_subcommands_with_arguments(
