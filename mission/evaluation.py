@@ -58,10 +58,16 @@ def open_world(*, size_m: float = 140.0, seed: int = 5, robots: int = 1) -> Worl
 
 
 def odometry_config_for(sim_config: SimulatorConfig) -> OdometryConfig:
-    """Odometry tuned to the simulated sensors' specification (its "datasheet")."""
+    """Odometry tuned to the simulated sensors' specification (its "datasheet") and the
+    body's nominal wheel slip on hard ground (what a calibration drive measures; the body
+    slips ``slip_linear_per_rad_s`` per rad/s of *wheel* turn rate, the gyro sees the body's,
+    ``1 - slip_turn`` of it)."""
     imu: ImuConfig = sim_config.imu
+    body = sim_config.body
     return OdometryConfig(
         m_per_tick=sim_config.encoders.metres_per_tick,
+        wheel_slip_frac=body.slip_linear,
+        wheel_slip_per_rad_s=body.slip_linear_per_rad_s / (1.0 - body.slip_turn),
         gyro_noise_density_rad_s_sqrt_hz=max(
             imu.gyro_noise_rad_s * math.sqrt(sim_config.step_s), 1e-6
         ),
@@ -76,6 +82,12 @@ class OdometryTrial:
     position_error_m: float
     heading_error_rad: float
     bias_error_rad_s: float  # after the first stop
+    odometry_distance_m: float = math.nan  # what the odometry says it drove
+
+    @property
+    def distance_scale_error(self) -> float:
+        """Relative error of the odometry's distance (wheel slip calibration, 4.3.1)."""
+        return self.odometry_distance_m / max(self.distance_m, 1e-9) - 1.0
 
     @property
     def drift_frac(self) -> float:
@@ -94,25 +106,44 @@ def odometry_drive(
     stop_s: float = 8.0,
     sim_config: SimulatorConfig | None = None,
     seed: int = 5,
+    out_and_back: bool = True,
+    slip_calibrated: bool = True,
 ) -> OdometryTrial:
     """Drive ``legs`` legs of ``leg_s`` at ``speed_m_s`` (gentle alternating curves), stopping
-    ``stop_s`` and turning half a turn in place after each; about 200 m with the defaults."""
+    ``stop_s`` and turning in place after each; about 200 m with the defaults.
+
+    ``out_and_back``: half turns, so the legs go back and forth (a scale error of the wheel
+    odometry largely cancels: this measures the heading's contribution); otherwise quarter
+    turns alternately left and right, a serpentine that keeps going away from the start, so the
+    final error shows the distance scale error: headings east, north, east, south, east, ...
+    (half the distance ends up as displacement from the start). ``slip_calibrated=False``
+    turns the odometry's wheel slip model off (to show what it corrects)."""
     base = sim_config or SimulatorConfig()
     lidar_off = msgspec.structs.replace(base.lidar, enabled=False)  # odometry needs no LIDAR
     cfg = msgspec.structs.replace(base, lidar=lidar_off, seed=seed)
     plan: list[tuple[float, float, float]] = [(5.0, 0.0, 0.0)]
     for k in range(legs):
         turn_rate = 0.6
+        if out_and_back:
+            turn = (math.pi / turn_rate, 0.0, turn_rate)
+        else:
+            sign = 1.0 if k % 4 in (0, 3) else -1.0
+            turn = (0.5 * math.pi / turn_rate, 0.0, turn_rate * sign)
         plan += [
             (leg_s, speed_m_s, 0.02 * (-1) ** k),
             (stop_s, 0.0, 0.0),
-            (math.pi / turn_rate, 0.0, turn_rate),
+            turn,
             (3.0, 0.0, 0.0),
         ]
     with Simulator(open_world(seed=seed), config=cfg) as sim:
         rid = sim.robot_ids[0]
         driver = sim.driver(rid)
-        odo = InertialOdometry(odometry_config_for(cfg))
+        odo_cfg = odometry_config_for(cfg)
+        if not slip_calibrated:
+            odo_cfg = msgspec.structs.replace(
+                odo_cfg, wheel_slip_frac=0.0, wheel_slip_per_rad_s=0.0
+            )
+        odo = InertialOdometry(odo_cfg)
         start = sim.robot_poses()[0].copy()
         prev = start[:2].copy()
         distance = 0.0
@@ -139,6 +170,7 @@ def odometry_drive(
             position_error_m=float(np.hypot(*(est[:2] - truth[:2]))),
             heading_error_rad=float(wrap_angle(est[2] - truth[2])),
             bias_error_rad_s=bias_error,
+            odometry_distance_m=odo.distance_m,
         )
 
 

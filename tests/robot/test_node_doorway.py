@@ -62,15 +62,6 @@ def indoor_goal(sim: Simulator, k: int) -> tuple[np.ndarray, np.ndarray]:
     return path[-1], path
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "known gap (issue 4): the node reaches the building (about 35 m) but does not yet pass "
-        "its 1.1 m doorway: dilated by the 0.4 m robot disc the fused local map leaves no "
-        "passage there (jamb cells, fusion drift); the paper's doorway clearance relaxation "
-        "on the Dijkstra path needs the passage to exist first"
-    ),
-)
 def test_reaches_an_indoor_goal_40m_away_through_a_doorway() -> None:
     with Simulator(load_world_config("configs/world/small.yaml")) as sim:
         k = 0
