@@ -1,0 +1,122 @@
+"""A covering of the pose graph's nodes: skip nodes whose observations are all overwritten
+(paper 4.8; Strom and Olson 2011).
+
+The global map gives each cell the value of the *latest* node, by ``(time, key)``, that
+observes it (:mod:`gcs.mapping.rasterization`). A node that is the latest observer of no cell
+can be left out without changing a single cell, and so can any set of such nodes (every
+cell's latest observer stays). Finding them needs each node's *footprint*: which map cells it
+observes at its current pose. Footprints are kept on a lattice of 16 x 16-cell blocks aligned
+with the map lattice: per block the node touches, a 256-bit mask of its observed cells (four
+``uint64`` words, bit ``16 r + c`` for the block's cell ``(r, c)``). They come from the very
+samples the rasterizer paints with (:func:`footprint` of a node's map-aligned patch), so they
+are exact, and they are cached while the node's pose holds still.
+
+:func:`cover_sweep` visits nodes from the latest to the earliest with the union of the masks
+seen so far: a node whose every mask is inside that union is redundant. This is exact (a
+node is dropped if and only if it is the latest observer of no cell), unlike the sensor-origin
+heuristic the paper used, because the naive and covered maps must agree cell for cell.
+``O(blocks touched)`` per node and sweep.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numba.typed import List as TypedList
+from numpy.typing import NDArray
+
+__all__ = ["BLOCK_CELLS", "cover_sweep", "footprint"]
+
+#: Side of a covering block in map cells (a block's mask is 16 x 16 = 256 bits).
+BLOCK_CELLS = 16
+
+
+@numba.njit(cache=True, nogil=True)
+def _footprint(patch, row0, col0):  # type: ignore[no-untyped-def]
+    rows, cols = patch.shape
+    bi0 = row0 // 16
+    bj0 = col0 // 16
+    nbi = (row0 + rows - 1) // 16 - bi0 + 1
+    nbj = (col0 + cols - 1) // 16 - bj0 + 1
+    masks = np.zeros((nbi, nbj, 4), dtype=np.int64)
+    for r in range(rows):
+        gi = row0 + r
+        bi = gi // 16 - bi0
+        sub_r = gi - (gi // 16) * 16
+        for c in range(cols):
+            if patch[r, c] != 0:
+                gj = col0 + c
+                bj = gj // 16 - bj0
+                bit = sub_r * 16 + gj - (gj // 16) * 16
+                masks[bi, bj, bit >> 6] |= np.int64(1) << np.int64(bit & 63)
+    n = 0
+    for bi in range(nbi):
+        for bj in range(nbj):
+            if masks[bi, bj, 0] | masks[bi, bj, 1] | masks[bi, bj, 2] | masks[bi, bj, 3]:
+                n += 1
+    out = np.empty((n, 6), dtype=np.int64)
+    k = 0
+    for bi in range(nbi):
+        for bj in range(nbj):
+            if masks[bi, bj, 0] | masks[bi, bj, 1] | masks[bi, bj, 2] | masks[bi, bj, 3]:
+                out[k, 0] = bi + bi0
+                out[k, 1] = bj + bj0
+                out[k, 2:6] = masks[bi, bj]
+                k += 1
+    return out
+
+
+def footprint(patch: NDArray[np.int8], row0: int, col0: int) -> NDArray[np.int64]:
+    """The footprint ``(blocks, 6)`` of a node from its map-aligned ``patch`` (non-zero where
+    it observes; cell ``(0, 0)`` is map cell ``(row0, col0)``): rows ``(block_row, block_col,
+    mask0..mask3)`` for every block with an observed cell (masks are uint64 bit patterns held
+    as int64)."""
+    if patch.size == 0:
+        return np.zeros((0, 6), dtype=np.int64)
+    return _footprint(patch, int(row0), int(col0))  # type: ignore[no-any-return]
+
+
+@numba.njit(cache=True, nogil=True)
+def _cover_sweep(order, feet, n_nodes, bi_lo, bj_lo, nbi, nbj):  # type: ignore[no-untyped-def]
+    kept = np.zeros(n_nodes, dtype=np.bool_)
+    covered = np.zeros((max(nbi, 0), max(nbj, 0), 4), dtype=np.int64)
+    for q in range(order.shape[0]):
+        m = order[q]
+        f = feet[m]
+        redundant = True
+        for k in range(f.shape[0]):
+            bi = f[k, 0] - bi_lo
+            bj = f[k, 1] - bj_lo
+            for w in range(4):
+                if f[k, 2 + w] & ~covered[bi, bj, w]:
+                    redundant = False
+            if not redundant:
+                break
+        kept[m] = not redundant
+        if not redundant:  # a redundant node's cells are all in the union already
+            for k in range(f.shape[0]):
+                bi = f[k, 0] - bi_lo
+                bj = f[k, 1] - bj_lo
+                for w in range(4):
+                    covered[bi, bj, w] |= f[k, 2 + w]
+    return kept
+
+
+def cover_sweep(
+    order: NDArray[np.int64],
+    feet: TypedList,  # type: ignore[type-arg]
+    n_nodes: int,
+    blocks: tuple[int, int, int, int],
+) -> NDArray[np.bool_]:
+    """The covering: ``kept`` ``(n_nodes,)`` bool, False for every node that is the latest
+    observer of no cell.
+
+    ``order``: indices of the nodes with a pose, latest first; ``feet``: typed list of every
+    node's :func:`footprint` (indexed by node); ``blocks`` ``(row_lo, row_hi, col_lo,
+    col_hi)`` block range holding every footprint of ``order``. Nodes not in ``order`` come
+    out False.
+    """
+    bi_lo, bi_hi, bj_lo, bj_hi = blocks
+    return _cover_sweep(  # type: ignore[no-any-return]
+        order, feet, n_nodes, bi_lo, bj_lo, bi_hi - bi_lo, bj_hi - bj_lo
+    )
