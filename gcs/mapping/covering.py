@@ -25,7 +25,7 @@ import numpy as np
 from numba.typed import List as TypedList
 from numpy.typing import NDArray
 
-__all__ = ["BLOCK_CELLS", "cover_sweep", "footprint"]
+__all__ = ["BLOCK_CELLS", "compact_footprint", "cover_sweep", "footprint"]
 
 #: Side of a covering block in map cells (a block's mask is 16 x 16 = 256 bits).
 BLOCK_CELLS = 16
@@ -70,10 +70,37 @@ def footprint(patch: NDArray[np.int8], row0: int, col0: int) -> NDArray[np.int64
     """The footprint ``(blocks, 6)`` of a node from its map-aligned ``patch`` (non-zero where
     it observes; cell ``(0, 0)`` is map cell ``(row0, col0)``): rows ``(block_row, block_col,
     mask0..mask3)`` for every block with an observed cell (masks are uint64 bit patterns held
-    as int64)."""
+    as int64), in row-major block order."""
     if patch.size == 0:
         return np.zeros((0, 6), dtype=np.int64)
     return _footprint(patch, int(row0), int(col0))  # type: ignore[no-any-return]
+
+
+@numba.njit(cache=True, nogil=True)
+def _compact(masks, bi0, bj0):  # type: ignore[no-untyped-def]
+    nbi, nbj, _ = masks.shape
+    n = 0
+    for bi in range(nbi):
+        for bj in range(nbj):
+            if masks[bi, bj, 0] | masks[bi, bj, 1] | masks[bi, bj, 2] | masks[bi, bj, 3]:
+                n += 1
+    out = np.empty((n, 6), dtype=np.int64)
+    k = 0
+    for bi in range(nbi):
+        for bj in range(nbj):
+            if masks[bi, bj, 0] | masks[bi, bj, 1] | masks[bi, bj, 2] | masks[bi, bj, 3]:
+                out[k, 0] = bi + bi0
+                out[k, 1] = bj + bj0
+                out[k, 2:6] = masks[bi, bj]
+                k += 1
+    return out
+
+
+def compact_footprint(masks: NDArray[np.int64], bi0: int, bj0: int) -> NDArray[np.int64]:
+    """The :func:`footprint` rows of a dense ``(blocks_r, blocks_c, 4)`` mask array whose
+    block ``(0, 0)`` is block ``(bi0, bj0)`` of the map (the rasterizer fills one while it
+    samples a node)."""
+    return _compact(masks, int(bi0), int(bj0))  # type: ignore[no-any-return]
 
 
 @numba.njit(cache=True, nogil=True)

@@ -49,7 +49,7 @@ import numpy as np
 from numba.typed import List as TypedList
 from numpy.typing import ArrayLike, NDArray
 
-from gcs.mapping.covering import BLOCK_CELLS, cover_sweep, footprint
+from gcs.mapping.covering import BLOCK_CELLS, compact_footprint, cover_sweep
 from gcs.mapping.visibility import LocalRaster, local_raster
 
 __all__ = [
@@ -70,6 +70,9 @@ OCCUPIED = 100
 
 #: Samples of moved nodes kept within one rasterization to draw them without sampling again.
 _PATCH_BUDGET_BYTES = 192 * 1024 * 1024
+#: Placeholders for the optional arguments of :func:`_sample`.
+_NO_MASKS = np.zeros((0, 0, 4), dtype=np.int64)
+_NO_PRIO = np.zeros(0, dtype=np.int64)
 
 
 class RasterConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -160,12 +163,20 @@ class RasterStats:
 
 @dataclass
 class _Submap:
+    """Consecutive nodes of one robot and the latest-wins codes of those ``drawn``.
+
+    ``codes`` is dense over a tile-aligned box whose cell ``(0, 0)`` is map cell ``(row0,
+    col0)``; ``tiles`` the map tiles where it has cells; ``poses`` the poses the drawn nodes
+    were drawn at (``drawn`` and ``poses`` may be shorter than ``nodes``: later nodes were
+    added since)."""
+
     nodes: list[int]
-    built: bool = False
-    active: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    drawn: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
     poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
-    kept: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    tiles: dict[tuple[int, int], NDArray[np.int32]] = field(default_factory=dict)
+    codes: NDArray[np.int32] = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int32))
+    row0: int = 0
+    col0: int = 0
+    tiles: set[tuple[int, int]] = field(default_factory=set)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -195,11 +206,17 @@ def _band_xrange(qx, qy, y_lo, y_hi):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True, nogil=True)
-def _sample(buf, row0, col0, base, cells, ox, oy, lres, x, y, yaw, res, bbox):  # type: ignore[no-untyped-def]
+def _sample(
+    buf, row0, col0, base, cells, ox, oy, lres, x, y, yaw, res, bbox, prio, node_prio, masks
+):  # type: ignore[no-untyped-def]  # noqa: E501
     """Write ``base + v`` into ``buf`` (whose cell ``(0, 0)`` is map cell ``(row0, col0)``)
     at every map cell of ``bbox`` whose centre falls into an observed cell ``v`` (1 free,
     2 occupied) of the node's local raster ``cells``. The only sampling code: every path
-    draws through it, so they agree bit for bit."""
+    draws through it, so they agree bit for bit.
+
+    ``node_prio >= 0``: keep a cell whose code names a node of larger ``prio`` (latest wins);
+    ``masks`` ``(blocks_r, blocks_c, 4)`` non-empty: also set the footprint bit of every
+    observed cell (blocks counted from ``bbox``'s first block)."""
     h, w = buf.shape
     rows, cols = cells.shape
     c = math.cos(yaw)
@@ -212,6 +229,9 @@ def _sample(buf, row0, col0, base, cells, ox, oy, lres, x, y, yaw, res, bbox):  
         by = oy + (rows * lres if k >= 2 else 0.0)
         qx[k] = x + c * bx - s * by
         qy[k] = y + s * bx + c * by
+    footprint = masks.shape[0] > 0
+    bi0 = bbox[0] // 16
+    bj0 = bbox[2] // 16
     i_lo = max(bbox[0], row0)
     i_hi = min(bbox[1], row0 + h)
     for gi in range(i_lo, i_hi):
@@ -225,6 +245,8 @@ def _sample(buf, row0, col0, base, cells, ox, oy, lres, x, y, yaw, res, bbox):  
         dy = yc - y
         a = s * dy - ox
         b = c * dy - oy
+        bi = gi // 16 - bi0
+        bit_row = (gi - (gi // 16) * 16) * 16
         for gj in range(max(j_lo, col0), min(j_hi, col0 + w)):
             dx = (gj + 0.5) * res - x
             fc = (c * dx + a) * inv
@@ -236,25 +258,43 @@ def _sample(buf, row0, col0, base, cells, ox, oy, lres, x, y, yaw, res, bbox):  
             if lc >= cols or lr >= rows:
                 continue
             v = cells[lr, lc]
-            if v != 0:
-                buf[gi - row0, gj - col0] = base + v
+            if v == 0:
+                continue
+            if footprint:
+                bit = bit_row + gj - (gj // 16) * 16
+                masks[bi, gj // 16 - bj0, bit >> 6] |= np.int64(1) << np.int64(bit & 63)
+            if node_prio >= 0:
+                o = buf[gi - row0, gj - col0]
+                if o != 0 and prio[(o >> 1) - 1] > node_prio:
+                    continue
+            buf[gi - row0, gj - col0] = base + v
 
 
 @numba.njit(cache=True, nogil=True)
-def _draw_patch(buf, row0, col0, patch, p_row0, p_col0, base):  # type: ignore[no-untyped-def]
+def _draw_patch(buf, row0, col0, patch, p_row0, p_col0, base, prio, node_prio):  # type: ignore[no-untyped-def]
     """``buf = base + patch`` where ``patch`` (a node's samples, cell ``(0, 0)`` at map cell
-    ``(p_row0, p_col0)``) is non-zero."""
+    ``(p_row0, p_col0)``) is non-zero; with ``node_prio >= 0`` only where ``buf`` holds no
+    later node (by ``prio``)."""
     h, w = buf.shape
     ph, pw = patch.shape
     i_lo = max(row0, p_row0)
     i_hi = min(row0 + h, p_row0 + ph)
     j_lo = max(col0, p_col0)
     j_hi = min(col0 + w, p_col0 + pw)
+    if node_prio < 0:
+        for gi in range(i_lo, i_hi):
+            for gj in range(j_lo, j_hi):
+                v = patch[gi - p_row0, gj - p_col0]
+                o = buf[gi - row0, gj - col0]
+                buf[gi - row0, gj - col0] = o if v == 0 else base + v
+        return
     for gi in range(i_lo, i_hi):
         for gj in range(j_lo, j_hi):
             v = patch[gi - p_row0, gj - p_col0]
             if v != 0:
-                buf[gi - row0, gj - col0] = base + v
+                o = buf[gi - row0, gj - col0]
+                if o == 0 or prio[(o >> 1) - 1] < node_prio:
+                    buf[gi - row0, gj - col0] = base + v
 
 
 @numba.njit(cache=True, nogil=True)
@@ -320,30 +360,29 @@ class Rasterizer:
     def __init__(self, config: RasterConfig | None = None) -> None:
         self.config = config if config is not None else RasterConfig()
         self.stats = RasterStats()
+        self._n = 0
         self._keys: list[int] = []
-        self._times: list[float] = []
         self._rasters: list[LocalRaster] = []
         self._index: dict[int, int] = {}
-        self._submaps: list[_Submap] = []
-        self._open: dict[int, _Submap] = {}  # robot -> submap still taking nodes
-        # arrays derived from the lists above, rebuilt when nodes were added
-        self._n_arrays = -1
+        # per-node arrays with spare capacity (rows [0, _n) are valid)
         self._keys_arr = np.zeros(0, dtype=np.int64)
         self._times_arr = np.zeros(0)
-        self._rect = np.zeros((0, 4))
+        self._rect = np.zeros((0, 4))  # local raster rectangle in base: ox, oy, width, height
+        self._feet_pose = np.zeros((0, 3))  # pose each footprint was sampled at (NaN: none)
+        self._feet = TypedList.empty_list(numba.types.int64[:, ::1])
+        self._sorted_n = -1
         self._sorted_keys = np.zeros(0, dtype=np.int64)
         self._sorted_idx = np.zeros(0, dtype=np.int64)
-        # covering footprints per node, valid at the pose in _feet_pose (NaN: none yet)
-        self._feet = TypedList.empty_list(numba.types.int64[:, ::1])
-        self._feet_pose = np.zeros((0, 3))
-        # the combined map, by tile: values, and which submaps have cells there
+        self._submaps: list[_Submap] = []
+        self._open: dict[int, int] = {}  # robot -> index of its submap still taking nodes
+        # the combined map by tile: values, and which submaps have cells there
         self._tile_values: dict[tuple[int, int], NDArray[np.int8]] = {}
         self._tile_subs: dict[tuple[int, int], set[int]] = {}
 
     # -- input ------------------------------------------------------------------------------
 
     def __len__(self) -> int:
-        return len(self._keys)
+        return self._n
 
     def __contains__(self, key: object) -> bool:
         return key in self._index
@@ -379,19 +418,26 @@ class Rasterizer:
             grid, origin_in_base, resolution_m, free_range_m=self.config.free_range_m, where=where
         )
         robot = int(robot_id) if robot_id is not None else (key >> 32 if key >= 0 else -1)
-        idx = len(self._keys)
+        n = self._n
+        if n == len(self._keys_arr):
+            self._grow(max(64, 2 * n))
         self._keys.append(key)
-        self._times.append(t)
         self._rasters.append(raster)
-        self._index[key] = idx
+        self._index[key] = n
+        self._keys_arr[n] = key
+        self._times_arr[n] = t
+        rows, cols = raster.cells.shape
+        res = raster.resolution_m
+        self._rect[n] = (*raster.origin_in_base, cols * res, rows * res)
+        self._feet_pose[n] = np.nan
         self._feet.append(np.zeros((0, 6), dtype=np.int64))
-        sub = self._open.get(robot)
-        if sub is None or len(sub.nodes) >= self.config.submap_nodes:
-            sub = _Submap(nodes=[])
-            self._submaps.append(sub)
-            self._open[robot] = sub
-        sub.nodes.append(idx)
-        sub.built = False
+        self._n = n + 1
+        sid = self._open.get(robot)
+        if sid is None or len(self._submaps[sid].nodes) >= self.config.submap_nodes:
+            sid = len(self._submaps)
+            self._submaps.append(_Submap(nodes=[]))
+            self._open[robot] = sid
+        self._submaps[sid].nodes.append(n)
 
     def local_raster(self, key: int) -> LocalRaster:
         """The occupied / free / unknown raster of node ``key`` in its ``base`` frame."""
@@ -409,7 +455,7 @@ class Rasterizer:
         cfg = self.config
         poses, posed, unknown = self._poses(poses_in_map)
         prio = self._prio()
-        bbox = _node_bboxes(poses, self._rect, cfg.resolution_m)
+        bbox = _node_bboxes(poses, self._rect[: self._n], cfg.resolution_m)
         bounds = self._bounds(bbox, posed)
         patches: dict[int, NDArray[np.int8]] = {}
         sampled = 0
@@ -423,7 +469,7 @@ class Rasterizer:
                 bounds[2] // BLOCK_CELLS,
                 -(-bounds[3] // BLOCK_CELLS),
             )
-            kept = cover_sweep(order, self._feet, len(self._keys), blocks)
+            kept = cover_sweep(order, self._feet, self._n, blocks)
         else:
             kept = posed.copy()
         stats = RasterStats(
@@ -449,10 +495,9 @@ class Rasterizer:
         """The reference map: every node with a pose drawn in ``(time, key)`` order, latest
         on top; no covering, no cache. Leaves the caches alone."""
         t0 = time.perf_counter()
-        cfg = self.config
         poses, posed, unknown = self._poses(poses_in_map)
         prio = self._prio()
-        bbox = _node_bboxes(poses, self._rect, cfg.resolution_m)
+        bbox = _node_bboxes(poses, self._rect[: self._n], self.config.resolution_m)
         bounds = self._bounds(bbox, posed)
         nodes = np.flatnonzero(posed)
         codes = self._draw_all(nodes, prio, poses, bbox, bounds, {})
@@ -467,35 +512,42 @@ class Rasterizer:
         )
         return self._result(values, bounds)
 
+    def latest_observers(self, poses_in_map: PosesInMap) -> NDArray[np.int64]:
+        """Keys of the nodes that are the latest observer of at least one cell, by the naive
+        path: exactly the nodes the covering must keep (sorted)."""
+        poses, posed, _ = self._poses(poses_in_map)
+        prio = self._prio()
+        bbox = _node_bboxes(poses, self._rect[: self._n], self.config.resolution_m)
+        codes = self._draw_all(
+            np.flatnonzero(posed), prio, poses, bbox, self._bounds(bbox, posed), {}
+        )
+        owners = np.unique(codes[codes != 0] >> 1) - 1
+        return np.sort(self._keys_arr[owners])
+
     # -- internals --------------------------------------------------------------------------
 
-    def _arrays(self) -> None:
-        n = len(self._keys)
-        if self._n_arrays == n:
-            return
-        self._keys_arr = np.asarray(self._keys, dtype=np.int64)
-        self._times_arr = np.asarray(self._times, dtype=np.float64)
-        rect = np.zeros((n, 4))
-        for i, r in enumerate(self._rasters):
-            rect[i] = (
-                r.origin_in_base[0],
-                r.origin_in_base[1],
-                r.cells.shape[1] * r.resolution_m,
-                r.cells.shape[0] * r.resolution_m,
-            )
-        self._rect = rect
-        self._sorted_idx = np.argsort(self._keys_arr, kind="stable")
-        self._sorted_keys = self._keys_arr[self._sorted_idx]
-        grown = np.full((n, 3), np.nan)
-        grown[: len(self._feet_pose)] = self._feet_pose
-        self._feet_pose = grown
-        self._n_arrays = n
+    def _grow(self, cap: int) -> None:
+        n = self._n
+
+        def grown(a: NDArray[np.generic], fill: float) -> NDArray[np.generic]:
+            out = np.full((cap, *a.shape[1:]), fill, dtype=a.dtype)
+            out[:n] = a[:n]
+            return out
+
+        self._keys_arr = grown(self._keys_arr, 0)  # type: ignore[assignment]
+        self._times_arr = grown(self._times_arr, 0.0)  # type: ignore[assignment]
+        self._rect = grown(self._rect, 0.0)  # type: ignore[assignment]
+        self._feet_pose = grown(self._feet_pose, np.nan)  # type: ignore[assignment]
 
     def _poses(
         self, poses_in_map: PosesInMap
     ) -> tuple[NDArray[np.float64], NDArray[np.bool_], int]:
         """``(poses (N, 3), posed (N,), unknown key count)`` aligned with node indices."""
-        self._arrays()
+        n = self._n
+        if self._sorted_n != n:
+            self._sorted_idx = np.argsort(self._keys_arr[:n], kind="stable")
+            self._sorted_keys = self._keys_arr[:n][self._sorted_idx]
+            self._sorted_n = n
         if isinstance(poses_in_map, Mapping):
             keys = np.fromiter(
                 (int(k) for k in poses_in_map), dtype=np.int64, count=len(poses_in_map)
@@ -520,7 +572,6 @@ class Rasterizer:
         bad = ~np.all(np.isfinite(given), axis=1)
         if bad.any():
             raise ValueError(f"pose of node {int(keys[np.argmax(bad)])} is not finite")
-        n = len(self._keys)
         poses = np.zeros((n, 3))
         posed = np.zeros(n, dtype=bool)
         if len(keys) == 0 or n == 0:
@@ -537,7 +588,7 @@ class Rasterizer:
     def _prio(self) -> NDArray[np.int64]:
         """Rank of every node in ``(time, key)`` order (later = larger). Adding nodes never
         changes the relative order of the others, so cached codes stay comparable."""
-        order = np.lexsort((self._keys_arr, self._times_arr))
+        order = np.lexsort((self._keys_arr[: self._n], self._times_arr[: self._n]))
         prio = np.empty(len(order), dtype=np.int64)
         prio[order] = np.arange(len(order))
         return prio
@@ -566,28 +617,32 @@ class Rasterizer:
 
     def _draw(
         self,
-        buf: NDArray[np.int32] | NDArray[np.int8],
+        buf: NDArray[np.int32],
         row0: int,
         col0: int,
         n: int,
-        base: int,
         poses: NDArray[np.float64],
         bbox: NDArray[np.int64],
+        prio: NDArray[np.int64],
         patches: dict[int, NDArray[np.int8]],
+        *,
+        latest_wins: bool,
     ) -> None:
-        """Draw node ``n`` into ``buf`` as ``base + value``: from its patch when this call
-        sampled it already, else by sampling."""
+        """Draw node ``n`` into ``buf`` (codes ``2 (n + 1) + occupied``): from its patch when
+        this call sampled it already, else by sampling. ``latest_wins``: keep cells of later
+        nodes; otherwise overwrite (the caller draws in ``(time, key)`` order)."""
+        node_prio = int(prio[n]) if latest_wins else -1
         patch = patches.get(n)
         if patch is not None:
-            _draw_patch(buf, row0, col0, patch, bbox[n, 0], bbox[n, 2], base)
+            _draw_patch(buf, row0, col0, patch, bbox[n, 0], bbox[n, 2], 2 * n + 1, prio, node_prio)
             return
         r = self._rasters[n]
         if r.cells.size == 0:
             return
         x, y, yaw = poses[n]
         ox, oy = r.origin_in_base
-        _sample(buf, row0, col0, base, r.cells, ox, oy, r.resolution_m, x, y, yaw,
-                self.config.resolution_m, bbox[n])  # fmt: skip
+        _sample(buf, row0, col0, 2 * n + 1, r.cells, ox, oy, r.resolution_m, x, y, yaw,
+                self.config.resolution_m, bbox[n], prio, node_prio, _NO_MASKS)  # fmt: skip
 
     def _draw_all(
         self,
@@ -599,8 +654,9 @@ class Rasterizer:
         patches: dict[int, NDArray[np.int8]],
     ) -> NDArray[np.int32]:
         codes = np.zeros((bounds[1] - bounds[0], bounds[3] - bounds[2]), dtype=np.int32)
-        for n in nodes[np.argsort(prio[nodes], kind="stable")]:
-            self._draw(codes, bounds[0], bounds[2], int(n), 2 * int(n) + 1, poses, bbox, patches)
+        for n in nodes[np.argsort(prio[nodes], kind="stable")].tolist():
+            self._draw(codes, bounds[0], bounds[2], n, poses, bbox, prio, patches,
+                       latest_wins=False)  # fmt: skip
         return codes
 
     def _update_feet(
@@ -610,77 +666,44 @@ class Rasterizer:
         bbox: NDArray[np.int64],
         patches: dict[int, NDArray[np.int8]],
     ) -> int:
-        """Recompute the footprints of nodes whose pose changed; keep their samples."""
-        changed = np.flatnonzero(posed & ~np.all(self._feet_pose == poses, axis=1))
+        """Sample the nodes whose pose changed: their footprints, and patches to draw from."""
+        n_all = self._n
+        same = np.all(self._feet_pose[:n_all] == poses, axis=1)
+        changed = np.flatnonzero(posed & ~same)
         budget = _PATCH_BUDGET_BYTES
+        res = self.config.resolution_m
         for n in changed.tolist():
             b = bbox[n]
             r = self._rasters[n]
             patch = np.zeros((int(b[1] - b[0]), int(b[3] - b[2])), dtype=np.int8)
+            bi0, bj0 = int(b[0]) // BLOCK_CELLS, int(b[2]) // BLOCK_CELLS
+            masks = np.zeros(
+                (
+                    (int(b[1]) - 1) // BLOCK_CELLS - bi0 + 1,
+                    (int(b[3]) - 1) // BLOCK_CELLS - bj0 + 1,
+                    4,
+                ),
+                dtype=np.int64,
+            )
             if r.cells.size:
                 x, y, yaw = poses[n]
                 ox, oy = r.origin_in_base
-                _sample(patch, b[0], b[2], 0, r.cells, ox, oy, r.resolution_m, x, y, yaw,
-                        self.config.resolution_m, b)  # fmt: skip
-            self._feet[n] = footprint(patch, int(b[0]), int(b[2]))
+                _sample(patch, b[0], b[2], 0, r.cells, ox, oy, r.resolution_m, x, y, yaw, res, b,
+                        _NO_PRIO, -1, masks)  # fmt: skip
+            self._feet[n] = compact_footprint(masks, bi0, bj0)
             self._feet_pose[n] = poses[n]
             if patch.nbytes <= budget:
                 patches[n] = patch
                 budget -= patch.nbytes
         return len(changed)
 
-    def _reusable(
-        self,
-        sub: _Submap,
-        active: NDArray[np.bool_],
-        keep: NDArray[np.bool_],
-        poses: NDArray[np.float64],
-    ) -> bool:
-        if not sub.built or not np.array_equal(sub.active, active):
-            return False
-        if np.any(keep & ~sub.kept):
-            return False
+    def _moved(self, now: NDArray[np.float64], then: NDArray[np.float64]) -> bool:
         cfg = self.config
-        now = poses[active]
-        then = sub.poses[active]
         if cfg.pose_tolerance_m == 0 and cfg.pose_tolerance_rad == 0:
-            return bool(np.array_equal(now, then))
+            return not bool(np.array_equal(now, then))
         dxy = np.hypot(now[:, 0] - then[:, 0], now[:, 1] - then[:, 1])
         dth = np.abs((now[:, 2] - then[:, 2] + np.pi) % (2 * np.pi) - np.pi)
-        return bool(np.all(dxy <= cfg.pose_tolerance_m) and np.all(dth <= cfg.pose_tolerance_rad))
-
-    def _build(
-        self,
-        sub: _Submap,
-        idx: NDArray[np.int64],
-        active: NDArray[np.bool_],
-        keep: NDArray[np.bool_],
-        poses: NDArray[np.float64],
-        bbox: NDArray[np.int64],
-        prio: NDArray[np.int64],
-        patches: dict[int, NDArray[np.int8]],
-    ) -> int:
-        """Redraw ``sub`` from its kept nodes into fresh tiles; returns how many were drawn."""
-        t = self.config.tile_cells
-        sub.built = True
-        sub.active = active.copy()
-        sub.kept = keep & active
-        sub.poses = poses[idx].copy()
-        sub.tiles = {}
-        draw = idx[sub.kept]
-        if len(draw) == 0:
-            return 0
-        draw = draw[np.argsort(prio[draw], kind="stable")]
-        b = bbox[draw]
-        ti0, tj0 = int(b[:, 0].min()) // t, int(b[:, 2].min()) // t
-        ti1, tj1 = -(-int(b[:, 1].max()) // t), -(-int(b[:, 3].max()) // t)
-        buf = np.zeros(((ti1 - ti0) * t, (tj1 - tj0) * t), dtype=np.int32)
-        for n in draw:
-            self._draw(buf, ti0 * t, tj0 * t, int(n), 2 * int(n) + 1, poses, bbox, patches)
-        blocks = buf.reshape(ti1 - ti0, t, tj1 - tj0, t)
-        for i, j in zip(*np.nonzero(blocks.any(axis=(1, 3))), strict=True):
-            sub.tiles[(ti0 + int(i), tj0 + int(j))] = np.ascontiguousarray(blocks[i, :, j, :])
-        return len(draw)
+        return bool(np.any(dxy > cfg.pose_tolerance_m) or np.any(dth > cfg.pose_tolerance_rad))
 
     def _cached(
         self,
@@ -693,24 +716,38 @@ class Rasterizer:
         patches: dict[int, NDArray[np.int8]],
         stats: RasterStats,
     ) -> NDArray[np.int8]:
+        """Bring every submap up to date (reuse, extend by newly kept nodes, or redraw), then
+        combine again only the tiles whose submaps changed, and assemble the map."""
+        t = self.config.tile_cells
         dirty: set[tuple[int, int]] = set()
         for sid, sub in enumerate(self._submaps):
             idx = np.asarray(sub.nodes, dtype=np.int64)
-            active = posed[idx]
-            keep = kept[idx]
-            if self._reusable(sub, active, keep, poses[idx]):
-                stats.reused += 1
-                continue
-            old = set(sub.tiles)
-            stats.drawn += self._build(sub, idx, active, keep, poses, bbox, prio, patches)
-            stats.rebuilt += 1
-            new = set(sub.tiles)
-            for key in old - new:
-                self._tile_subs[key].discard(sid)
-            for key in new - old:
-                self._tile_subs.setdefault(key, set()).add(sid)
-            dirty |= old | new
-        t = self.config.tile_cells
+            k = len(sub.drawn)
+            drawn = np.zeros(len(idx), dtype=bool)
+            drawn[:k] = sub.drawn
+            old = sub.poses
+            redraw = bool(drawn.any()) and (
+                not bool(posed[idx[drawn]].all()) or self._moved(poses[idx[drawn]], old[drawn[:k]])
+            )
+            # the poses drawn nodes were drawn at (a tolerance must not let them creep)
+            new_poses = np.zeros((len(idx), 3))
+            new_poses[:k] = old
+            if redraw:
+                now = kept[idx]
+                self._redraw(sid, sub, idx[now], poses, bbox, prio, patches, dirty)
+                stats.rebuilt += 1
+            else:
+                now = kept[idx] & ~drawn
+                if now.any():
+                    self._extend(sid, sub, idx[now], poses, bbox, prio, patches, dirty)
+                    stats.rebuilt += 1
+                else:
+                    stats.reused += 1
+                drawn |= now
+            stats.drawn += int(now.sum())
+            new_poses[now] = poses[idx[now]]
+            sub.drawn = now.copy() if redraw else drawn
+            sub.poses = new_poses
         for key in dirty:
             subs = self._tile_subs.get(key)
             if not subs:
@@ -719,7 +756,9 @@ class Rasterizer:
                 continue
             codes = np.zeros((t, t), dtype=np.int32)
             for sid in subs:
-                _combine(codes, self._submaps[sid].tiles[key], prio)
+                sub = self._submaps[sid]
+                i0, j0 = key[0] * t - sub.row0, key[1] * t - sub.col0
+                _combine(codes, sub.codes[i0 : i0 + t, j0 : j0 + t], prio)
             self._tile_values[key] = _values(codes)
         stats.dirty_tiles = len(dirty)
         row0, row1, col0, col1 = bounds
@@ -733,3 +772,91 @@ class Rasterizer:
                     a0 - i0 : a1 - i0, b0 - j0 : b1 - j0
                 ]
         return values
+
+    def _tiles_of(self, sub: _Submap, box: tuple[int, int, int, int]) -> set[tuple[int, int]]:
+        """Tiles of ``sub`` within map-cell ``box`` (tile-aligned) that hold a cell."""
+        t = self.config.tile_cells
+        i0, i1, j0, j1 = box
+        view = sub.codes[i0 - sub.row0 : i1 - sub.row0, j0 - sub.col0 : j1 - sub.col0]
+        nz = view.reshape((i1 - i0) // t, t, (j1 - j0) // t, t).any(axis=(1, 3))
+        return {(i0 // t + int(a), j0 // t + int(b)) for a, b in zip(*np.nonzero(nz), strict=True)}
+
+    def _tile_box(self, bbox: NDArray[np.int64]) -> tuple[int, int, int, int]:
+        """Tile-aligned map-cell box around the boxes ``bbox`` ``(K, 4)``."""
+        t = self.config.tile_cells
+        return (
+            int(bbox[:, 0].min()) // t * t,
+            -(-int(bbox[:, 1].max()) // t) * t,
+            int(bbox[:, 2].min()) // t * t,
+            -(-int(bbox[:, 3].max()) // t) * t,
+        )
+
+    def _set_tiles(self, sid: int, sub: _Submap, tiles: set[tuple[int, int]]) -> None:
+        for key in sub.tiles - tiles:
+            self._tile_subs[key].discard(sid)
+        for key in tiles - sub.tiles:
+            self._tile_subs.setdefault(key, set()).add(sid)
+        sub.tiles = tiles
+
+    def _redraw(
+        self,
+        sid: int,
+        sub: _Submap,
+        draw: NDArray[np.int64],
+        poses: NDArray[np.float64],
+        bbox: NDArray[np.int64],
+        prio: NDArray[np.int64],
+        patches: dict[int, NDArray[np.int8]],
+        dirty: set[tuple[int, int]],
+    ) -> None:
+        """Draw ``sub`` afresh from the nodes ``draw``, earliest first."""
+        dirty |= sub.tiles
+        if len(draw) == 0:
+            sub.codes = np.zeros((0, 0), dtype=np.int32)
+            self._set_tiles(sid, sub, set())
+            return
+        box = self._tile_box(bbox[draw])
+        sub.row0, sub.col0 = box[0], box[2]
+        sub.codes = np.zeros((box[1] - box[0], box[3] - box[2]), dtype=np.int32)
+        for n in draw[np.argsort(prio[draw], kind="stable")].tolist():
+            self._draw(sub.codes, sub.row0, sub.col0, n, poses, bbox, prio, patches,
+                       latest_wins=False)  # fmt: skip
+        self._set_tiles(sid, sub, self._tiles_of(sub, box))
+        dirty |= sub.tiles
+
+    def _extend(
+        self,
+        sid: int,
+        sub: _Submap,
+        add: NDArray[np.int64],
+        poses: NDArray[np.float64],
+        bbox: NDArray[np.int64],
+        prio: NDArray[np.int64],
+        patches: dict[int, NDArray[np.int8]],
+        dirty: set[tuple[int, int]],
+    ) -> None:
+        """Draw the nodes ``add`` into ``sub`` keeping later nodes' cells (latest wins is
+        associative, so this equals drawing the submap afresh)."""
+        box = self._tile_box(bbox[add])
+        if sub.codes.size:
+            h, w = sub.codes.shape
+            grown = (
+                min(box[0], sub.row0),
+                max(box[1], sub.row0 + h),
+                min(box[2], sub.col0),
+                max(box[3], sub.col0 + w),
+            )
+        else:
+            grown = box
+        if sub.codes.size == 0 or grown != (sub.row0, sub.row0 + h, sub.col0, sub.col0 + w):
+            codes = np.zeros((grown[1] - grown[0], grown[3] - grown[2]), dtype=np.int32)
+            if sub.codes.size:
+                i0, j0 = sub.row0 - grown[0], sub.col0 - grown[2]
+                codes[i0 : i0 + h, j0 : j0 + w] = sub.codes
+            sub.codes, sub.row0, sub.col0 = codes, grown[0], grown[2]
+        for n in add.tolist():
+            self._draw(sub.codes, sub.row0, sub.col0, n, poses, bbox, prio, patches,
+                       latest_wins=True)  # fmt: skip
+        touched = self._tiles_of(sub, box)
+        self._set_tiles(sid, sub, sub.tiles | touched)
+        dirty |= touched
