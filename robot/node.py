@@ -127,7 +127,10 @@ class RobotNode:
         self.stats = NodeStats()
         self.odometry = InertialOdometry(cfg.odometry)
         self.nodes = PoseNodeMaker(cfg.pose_nodes)
-        self.fusion = TerrainMapFusion(memory_sweeps=cfg.terrain.memory_sweeps)
+        self.fusion = TerrainMapFusion(
+            memory_sweeps=cfg.terrain.memory_sweeps,
+            clear_after_sweeps=cfg.terrain.clear_after_sweeps,
+        )
         self.planner = PathPlanner(cfg.planner)
         self.follower = PathFollower(cfg.follower)
         self.tasks = TaskExecutor(cfg.tasks)

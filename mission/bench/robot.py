@@ -86,7 +86,9 @@ def terrain_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, 
     classify_ms = 1e3 * median_time_s(
         lambda: classify_sweep(pts, pose, config=cfg), repeats=10 if quick else 40, warmup=2
     )
-    fusion = TerrainMapFusion(memory_sweeps=cfg.memory_sweeps)
+    fusion = TerrainMapFusion(
+        memory_sweeps=cfg.memory_sweeps, clear_after_sweeps=cfg.clear_after_sweeps
+    )
     geo = None
     for k in range(cfg.memory_sweeps):
         classes, geo = classify_sweep(pts, pose + np.array([0.1 * k, 0.03 * k, 0.0]), config=cfg)
@@ -149,7 +151,9 @@ def _fused_map(seed: int, cfg: TerrainConfig):  # type: ignore[no-untyped-def]
     """A 400 x 400 fused map of 12 sweeps along a short drive through a random scene."""
     rng = np.random.default_rng(seed)
     scene = random_scene(rng)
-    fusion = TerrainMapFusion(memory_sweeps=cfg.memory_sweeps)
+    fusion = TerrainMapFusion(
+        memory_sweeps=cfg.memory_sweeps, clear_after_sweeps=cfg.clear_after_sweeps
+    )
     for k in range(cfg.memory_sweeps):
         hits = cast_sweep(scene, (0.05 * k, 0.02 * k, 0.3 * k), rng=rng)
         classes, _ = classify_sweep(hits.points_in_base, hits.odom_from_base, config=cfg)

@@ -6,6 +6,17 @@ first the minimum-*distance* path (:mod:`robot.planning.dijkstra`) through the c
 space (:mod:`robot.planning.config_space`), then optimize it for clearance
 (:mod:`robot.planning.path_relaxation`) and smoothness (:mod:`robot.planning.path_smoothing`).
 
+Clearance as a cost, not a wall (``PlannerConfig.clearance_cost``): the configuration space
+uses the robot's real radius, so a doorway barely wider than the robot stays open, and cells
+closer to an obstacle than the comfort distance ``clearance_m`` cost more per metre, rising
+linearly from 1 at ``clearance_m`` to ``1 + clearance_cost`` at ``robot_radius_m``. The first
+stage then finds the path of least *cost*: of two ways around, it takes the roomy one unless
+the tight one is clearly shorter (e.g. around a teammate rather than through the gap between
+two of them), while a doorway with no alternative costs only its few extra metres. This is a
+bounded, local term (it reaches ``clearance_m`` from obstacles only), not the potential field
+the paper warns about: unknown cells never feel it, and relaxation then centres the path
+where it is still tight. ``clearance_cost = 0`` gives the paper's pure minimum distance.
+
 Unknown cells follow ``PlannerConfig.unknown``: ``"free"`` (drive through unseen terrain),
 ``"obstacle"`` (never), or ``"cost"`` (allowed, each metre costing ``unknown_cost`` metres, so
 the path prefers seen terrain). The default is ``"free"``: a single sweep leaves most far
@@ -42,7 +53,8 @@ PlanStatus = Literal["ok", "no_path", "start_blocked", "goal_blocked"]
 
 class PlannerConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``robot_radius_m``: disc enclosing the footprint (configuration space).
-    ``clearance_m``: the clearance relaxation aims for (bounded: not more).
+    ``clearance_m``: the clearance relaxation aims for (bounded: not more), and below which
+    ``clearance_cost`` applies (see the module doc; 0: minimum distance).
     ``unknown``: policy for unknown cells; ``unknown_cost``: per-metre cost factor for
     ``"cost"``. ``relax_step_m``/``relax_iterations``/``max_offset_m``: relaxation;
     ``smooth_weight``/``smooth_iterations``: smoothing. ``astar``: order Dijkstra's heap with
@@ -53,6 +65,7 @@ class PlannerConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
 
     robot_radius_m: float = 0.4
     clearance_m: float = 0.7
+    clearance_cost: float = 2.0
     unknown: Literal["free", "obstacle", "cost"] = "free"
     unknown_cost: float = 1.5
     relax_step_m: float = 0.025
@@ -65,7 +78,13 @@ class PlannerConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     goal_tolerance_m: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("robot_radius_m", "clearance_m", "max_offset_m", "goal_tolerance_m"):
+        for name in (
+            "robot_radius_m",
+            "clearance_m",
+            "clearance_cost",
+            "max_offset_m",
+            "goal_tolerance_m",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
@@ -188,6 +207,13 @@ class PathPlanner:
             cost *= m
         if cfg.unknown == "cost":
             cost[unknown] *= cfg.unknown_cost
+        clearance = clearance_field(hard, resolution_m=res)
+        comfort = cfg.clearance_m - cfg.robot_radius_m
+        if cfg.clearance_cost > 0 and comfort > 0:
+            tight = clearance < cfg.clearance_m
+            cost[tight] *= 1.0 + cfg.clearance_cost * np.minimum(
+                1.0, (cfg.clearance_m - clearance[tight]) / comfort
+            )
         cost[blocked] = np.inf
 
         def fail(status: PlanStatus, reason: str) -> PlanResult:
@@ -196,7 +222,6 @@ class PathPlanner:
                 status, empty, empty.astype(np.int64), math.inf, math.inf, 0.0, reason
             )
 
-        clearance = clearance_field(hard, resolution_m=res)
         escaped = False
         if blocked[s_rc]:
             start_clearance = float(clearance[s_rc])

@@ -39,7 +39,9 @@ class TerrainConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     sparser scan lines. ``fill_unobserved``: cells without points send their ground-model
     estimate (see :func:`robot.terrain.up_detector.up_detector`; off by default: it lets the
     rims of raised drivable surfaces be compared with distant ground).
-    ``memory_sweeps``: sweeps fused pessimistically (12, about 15 s). ``max_range_m``: points
+    ``memory_sweeps``: sweeps fused pessimistically (12, about 15 s); ``clear_after_sweeps``:
+    an obstacle mark that this many later sweeps saw drivable is dropped (moving teammates'
+    trails, :mod:`robot.terrain.map_fusion`; 0: pure pessimism). ``max_range_m``: points
     farther from the sensor (horizontally) are dropped.
     """
 
@@ -51,6 +53,7 @@ class TerrainConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     step_m: float = 0.04
     iterations: int = 4
     memory_sweeps: int = 12
+    clear_after_sweeps: int = 2
     max_range_m: float = 30.0
     fill_unobserved: bool = False
 
@@ -71,6 +74,10 @@ class TerrainConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError(f"iterations must be in [0, 100], got {self.iterations}")
         if not 1 <= self.memory_sweeps <= 1000:
             raise ValueError(f"memory_sweeps must be in [1, 1000], got {self.memory_sweeps}")
+        if not 0 <= self.clear_after_sweeps <= 1000:
+            raise ValueError(
+                f"clear_after_sweeps must be in [0, 1000], got {self.clear_after_sweeps}"
+            )
         if not (math.isfinite(self.max_range_m) and self.max_range_m > 0):
             raise ValueError(f"max_range_m must be > 0, got {self.max_range_m}")
 

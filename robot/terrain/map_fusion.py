@@ -8,6 +8,14 @@ sweep saw it drivable and none marked it, unknown otherwise. Only the most recen
 obstacles appear in the wrong place, and forgetting them lets a robot stuck behind such an
 artifact move again once it is gone.
 
+Newer evidence of free ground (``clear_after_sweeps``, 0 = the paper's pure pessimism): an
+obstacle mark is dropped once at least that many *later* sweeps saw the same cell drivable
+(ground-level points in the cell and no step). A moving teammate or person leaves a trail of
+obstacle marks along its way that pure pessimism keeps for 15 s, closing corridors it has
+long left; two fresh looks at bare ground there are a better account of the present. A
+static obstacle is marked again by nearly every sweep that sees the cell, so it stays: a
+cell is only cleared by sweeps that saw points on the ground in it and nothing higher.
+
 All maps share one cell lattice in ``odom`` (:meth:`GridGeometry.centered` snaps origins), so
 fusion is integer shifts and logical ors, ``O(memory_sweeps * rows * cols)``.
 """
@@ -28,10 +36,13 @@ __all__ = ["TerrainMapFusion"]
 class TerrainMapFusion:
     """The last ``memory_sweeps`` single-sweep maps in ``odom`` and their pessimistic union."""
 
-    def __init__(self, *, memory_sweeps: int = 12) -> None:
+    def __init__(self, *, memory_sweeps: int = 12, clear_after_sweeps: int = 0) -> None:
         if memory_sweeps < 1:
             raise ValueError(f"memory_sweeps must be >= 1, got {memory_sweeps}")
+        if not 0 <= clear_after_sweeps <= 1000:
+            raise ValueError(f"clear_after_sweeps must be in [0, 1000], got {clear_after_sweeps}")
         self.memory_sweeps = memory_sweeps
+        self.clear_after_sweeps = clear_after_sweeps
         self._maps: deque[tuple[tuple[int, int], NDArray[np.bool_], NDArray[np.bool_]]] = deque(
             maxlen=memory_sweeps
         )
@@ -75,12 +86,15 @@ class TerrainMapFusion:
                 )
 
     def fused(self, geometry: GridGeometry) -> NDArray[np.uint8]:
-        """The pessimistic union of the remembered maps over ``geometry`` (same lattice)."""
+        """The pessimistic union of the remembered maps over ``geometry`` (same lattice),
+        less obstacle marks that ``clear_after_sweeps`` later sweeps saw drivable."""
         self._check_lattice(geometry)
         r0, c0 = geometry.lattice_index()
         obstacle = np.zeros(geometry.shape, dtype=bool)
         drivable = np.zeros(geometry.shape, dtype=bool)
-        for (mr, mc), obs, drv in self._maps:
+        k = self.clear_after_sweeps
+        later_drivable = np.zeros(geometry.shape, dtype=np.uint16) if k else None
+        for (mr, mc), obs, drv in reversed(self._maps):  # newest first
             dr, dc = mr - r0, mc - c0  # map cell (i, j) is output cell (i + dr, j + dc)
             out_r = slice(max(0, dr), min(geometry.rows, dr + obs.shape[0]))
             out_c = slice(max(0, dc), min(geometry.cols, dc + obs.shape[1]))
@@ -88,7 +102,12 @@ class TerrainMapFusion:
                 continue
             in_r = slice(out_r.start - dr, out_r.stop - dr)
             in_c = slice(out_c.start - dc, out_c.stop - dc)
-            obstacle[out_r, out_c] |= obs[in_r, in_c]
+            if later_drivable is None:
+                obstacle[out_r, out_c] |= obs[in_r, in_c]
+            else:
+                seen_free = later_drivable[out_r, out_c]
+                obstacle[out_r, out_c] |= obs[in_r, in_c] & (seen_free < k)
+                seen_free += drv[in_r, in_c]
             drivable[out_r, out_c] |= drv[in_r, in_c]
         out = np.full(geometry.shape, UNKNOWN, dtype=np.uint8)
         out[drivable] = DRIVABLE

@@ -62,9 +62,9 @@ def indoor_goal(sim: Simulator, k: int) -> tuple[np.ndarray, np.ndarray]:
     return path[-1], path
 
 
-def test_reaches_an_indoor_goal_40m_away_through_a_doorway() -> None:
+@pytest.mark.parametrize("k", [0, 2])  # robot 2 starts right behind robot 0 (parked)
+def test_reaches_an_indoor_goal_40m_away_through_a_doorway(k: int) -> None:
     with Simulator(load_world_config("configs/world/small.yaml")) as sim:
-        k = 0
         rid = sim.robot_ids[k]
         goal, path = indoor_goal(sim, k)
         steps = np.cumsum(np.hypot(*np.diff(path, axis=0).T))

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.ndimage import distance_transform_edt
 from scipy.sparse.csgraph import dijkstra as scipy_dijkstra
 
 from robot.planning.config_space import configuration_space
@@ -36,9 +37,17 @@ def _cells_to_xy_path(result) -> np.ndarray:  # type: ignore[no-untyped-def]
     )
 
 
+@pytest.mark.parametrize("clearance_cost", [0.0, 2.0])
 @pytest.mark.parametrize("unknown", ["free", "obstacle", "cost"])
-def test_dijkstra_length_equals_scipy_and_clearance_is_kept(unknown: str) -> None:
-    cfg = PlannerConfig(unknown=unknown, robot_radius_m=0.3, clearance_m=0.6)  # type: ignore[arg-type]
+def test_dijkstra_length_equals_scipy_and_clearance_is_kept(
+    unknown: str, clearance_cost: float
+) -> None:
+    cfg = PlannerConfig(
+        unknown=unknown,  # type: ignore[arg-type]
+        robot_radius_m=0.3,
+        clearance_m=0.6,
+        clearance_cost=clearance_cost,
+    )
     classes = _doorway_map()
     classes[150:170, 20:180] = UNKNOWN
     start, goal = np.array([-4.0, -4.0]), np.array([-3.5, 4.0])
@@ -53,11 +62,14 @@ def test_dijkstra_length_equals_scipy_and_clearance_is_kept(unknown: str) -> Non
     cost = np.ones(GEO.shape)
     if unknown == "cost":
         cost[classes == UNKNOWN] = cfg.unknown_cost
+    # comfort cost: 1 at 0.6 m from the nearest obstacle, 1 + clearance_cost at 0.3 m
+    dist_m = distance_transform_edt(~hard) * 0.05
+    cost *= 1.0 + clearance_cost * np.clip((0.6 - dist_m) / 0.3, 0.0, 1.0)
     cost[blocked] = np.inf
     s = GEO.cell_of(start)
     g = GEO.cell_of(goal)
     ref = scipy_dijkstra(grid_graph(cost, resolution_m=0.05), indices=s[0] * 200 + s[1])
-    assert result.dijkstra_length_m == pytest.approx(ref[g[0] * 200 + g[1]], rel=1e-12)
+    assert result.dijkstra_length_m == pytest.approx(ref[g[0] * 200 + g[1]], rel=1e-6)
 
     # After relaxation and smoothing: collision-free, and through the doorway with the
     # configured clearance (the doorway is wider than twice the clearance).
@@ -208,3 +220,29 @@ def test_cost_multiplier_steers_the_path_and_matches_scipy() -> None:
         PathPlanner().plan(classes, GEO, start, goal, cost_multiplier=np.zeros(GEO.shape))
     with pytest.raises(ValueError, match="cost_multiplier: shape"):
         PathPlanner().plan(classes, GEO, start, goal, cost_multiplier=np.ones((3, 3)))
+
+
+def test_clearance_cost_prefers_going_around_over_squeezing_between() -> None:
+    # two robot-sized boxes 1.0 m apart: the straight line squeezes between them (0.1 m to
+    # spare on each side of a 0.4 m disc); a little detour around them is roomy
+    classes = np.full(GEO.shape, DRIVABLE, dtype=np.uint8)
+    for y0 in (0.5, -1.0):
+        r0, c0 = GEO.cell_index((-0.3, y0))
+        classes[r0 : r0 + 10, c0 : c0 + 12] = OBSTACLE
+    start, goal = (-3.0, 0.0), (3.0, 0.0)
+
+    def crossing_y(clearance_cost: float) -> float:
+        cfg = PlannerConfig(clearance_cost=clearance_cost)
+        result = PathPlanner(cfg).plan(classes, GEO, start, goal)
+        assert result.ok, result.reason
+        xy = result.path_in_odom
+        return float(np.interp(0.0, xy[:, 0], xy[:, 1]))
+
+    assert abs(crossing_y(0.0)) < 0.2  # minimum distance: through the gap
+    assert abs(crossing_y(2.0)) > 1.0  # comfort as a cost: around the boxes
+    # with no way around (a wall with a doorway 1.1 m wide) the cost still lets it through
+    door = np.full(GEO.shape, DRIVABLE, dtype=np.uint8)
+    door[99:101, :] = OBSTACLE
+    door[99:101, 89:111] = DRIVABLE
+    result = PathPlanner(PlannerConfig(clearance_cost=2.0)).plan(door, GEO, (0, -3), (0, 3))
+    assert result.ok and result.min_clearance_m >= 0.4

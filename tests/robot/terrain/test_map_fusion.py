@@ -61,6 +61,36 @@ def test_one_obstacle_anywhere_wins() -> None:
     assert (fusion.fused(geo) == DRIVABLE).all()
 
 
+def test_later_drivable_sweeps_clear_a_moving_obstacles_trail() -> None:
+    geo = _geo(0.0, 0.0)
+    drivable = np.full(geo.shape, DRIVABLE, dtype=np.uint8)
+    trail = []
+    for k in range(5):  # a teammate crossing the grid, one cell per sweep, seen where it is
+        classes = drivable.copy()
+        classes[10, 5 + k] = OBSTACLE
+        trail.append(classes)
+    wall = drivable.copy()
+    wall[3, :] = OBSTACLE  # a static obstacle that every sweep sees
+    for k, pessimistic in ((0, True), (2, False)):
+        fusion = TerrainMapFusion(clear_after_sweeps=k)
+        for classes in trail:
+            fusion.add(np.maximum(classes, wall), geo)
+        out = fusion.fused(geo)
+        assert (out[3, :] == OBSTACLE).all()  # the wall stays
+        assert out[10, 9] == OBSTACLE  # where it is now
+        assert out[10, 8] == OBSTACLE  # seen free only once since
+        assert (out[10, 5:8] == OBSTACLE).all() == pessimistic  # seen free twice since
+    # a cell that is marked only now and then (a thin pole) is kept while marks keep coming
+    fusion = TerrainMapFusion(clear_after_sweeps=2)
+    pole = drivable.copy()
+    pole[15, 15] = OBSTACLE
+    for classes in (pole, drivable, pole, drivable):
+        fusion.add(classes, geo)
+    assert fusion.fused(geo)[15, 15] == OBSTACLE
+    with pytest.raises(ValueError, match="clear_after_sweeps"):
+        TerrainMapFusion(clear_after_sweeps=-1)
+
+
 def test_bad_input_names_the_problem() -> None:
     fusion = TerrainMapFusion()
     geo = _geo(0.0, 0.0)
