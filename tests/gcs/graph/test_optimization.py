@@ -8,7 +8,16 @@ import pytest
 
 from gcs.graph import se2
 from gcs.graph.g2o import chained_odometry, read_g2o, to_gtsam
-from gcs.graph.optimization import Isam2Config, Isam2Solver, compute_ordering, optimize_batch
+from gcs.graph.optimization import (
+    Isam2Config,
+    Isam2Solver,
+    compute_ordering,
+    optimize_batch,
+    optimize_pose2,
+    pose2_factors,
+    pose2_factors_from_g2o,
+    values_from_poses,
+)
 
 
 def _solve(path: Path, *, use_vertices: bool, method: str, ordering: str) -> float:
@@ -54,6 +63,89 @@ def test_natural_ordering_same_optimum() -> None:
     chi2s = [optimize_batch(fg, values, ordering=o).chi2 for o in ("natural", "colamd", "emd")]
     assert chi2s[0] == pytest.approx(chi2s[1], rel=1e-6)
     assert chi2s[0] == pytest.approx(chi2s[2], rel=1e-6)
+
+
+@pytest.mark.parametrize("ordering", ["emd", "colamd", "metis"])
+def test_block_gn_from_arrays_reaches_manhattan_olson3500_optimum(
+    posegraph_dir: Path, ordering: str
+) -> None:
+    g = read_g2o(posegraph_dir / "manhattan_olson3500.g2o")
+    odo = chained_odometry(g)
+    fg, values = to_gtsam(g, poses=odo)
+    factors, keys = pose2_factors_from_g2o(g, odo)
+    res = optimize_pose2(fg, values, factors, keys, ordering=ordering, initial_poses=odo)  # type: ignore[arg-type]
+    assert g.chi2(res.values) == pytest.approx(146.08, rel=1e-3)
+    assert res.chi2 + g.chi2_offset == pytest.approx(g.chi2(res.values), rel=1e-12)
+    # Same optimum as GTSAM's Gauss-Newton, in as many iterations.
+    ref = optimize_batch(fg, values, method="gn", ordering="colamd")
+    assert res.iterations == ref.iterations
+    assert res.chi2 == pytest.approx(ref.chi2, rel=1e-9)
+
+
+@pytest.mark.parametrize("name", ["intel.g2o", "manhattan.g2o"])
+def test_block_gn_through_optimize_batch(posegraph_dir: Path, name: str) -> None:
+    g = read_g2o(posegraph_dir / name)
+    fg, values = to_gtsam(g, poses=None if name == "intel.g2o" else chained_odometry(g))
+    res = optimize_batch(fg, values, method="block_gn", ordering="colamd")
+    expected = 45.004 if name == "intel.g2o" else 3549.04
+    assert g.chi2(res.values) == pytest.approx(expected, rel=1e-3)
+
+
+def test_block_gn_city10000_optimum(posegraph_dir: Path) -> None:
+    g = read_g2o(posegraph_dir / "city10000.g2o")
+    odo = chained_odometry(g)
+    fg, values = to_gtsam(g, poses=odo)
+    factors, keys = pose2_factors_from_g2o(g, odo)
+    res = optimize_pose2(fg, values, factors, keys, ordering="emd", initial_poses=odo)
+    assert g.chi2(res.values) == pytest.approx(511.99, rel=1e-3)
+
+
+def test_pose2_factors_read_the_graph() -> None:
+    fg = gtsam.NonlinearFactorGraph()
+    info = np.array([[4.0, 1.0, 0.2], [1.0, 3.0, 0.1], [0.2, 0.1, 9.0]])
+    fg.add(
+        gtsam.BetweenFactorPose2(
+            10, 30, gtsam.Pose2(1, 2, 0.3), gtsam.noiseModel.Gaussian.Information(info)
+        )
+    )
+    fg.add(
+        gtsam.PriorFactorPose2(30, gtsam.Pose2(-1, 0, 2), gtsam.noiseModel.Isotropic.Sigma(3, 0.5))
+    )
+    f = pose2_factors(fg, np.array([10, 20, 30]))
+    assert f.n == 3
+    np.testing.assert_array_equal(f.ij, [[0, 2]])
+    np.testing.assert_allclose(f.z, [[1, 2, 0.3]])
+    np.testing.assert_allclose(f.info[0], info)
+    np.testing.assert_array_equal(f.prior_index, [2])
+    np.testing.assert_allclose(f.prior_pose, [[-1, 0, 2]])
+    np.testing.assert_allclose(f.prior_info[0], 4 * np.eye(3))
+    with pytest.raises(ValueError, match="a between factor refers to key 10, not a variable"):
+        pose2_factors(fg, np.array([20, 30]))
+    robust = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(1.0), gtsam.noiseModel.Unit.Create(3)
+    )
+    fg.add(gtsam.BetweenFactorPose2(10, 20, gtsam.Pose2(), robust))
+    with pytest.raises(ValueError, match="factor 2 .* needs a Gaussian noise model"):
+        pose2_factors(fg, np.array([10, 20, 30]))
+    other = gtsam.NonlinearFactorGraph()
+    other.add(gtsam.PriorFactorPoint2(10, np.zeros(2), gtsam.noiseModel.Unit.Create(2)))
+    with pytest.raises(ValueError, match="factor 0 is a PriorFactorPoint2"):
+        pose2_factors(other, np.array([10]))
+
+
+def test_values_from_poses_round_trip() -> None:
+    rng = np.random.default_rng(7)
+    keys = np.array([3, 8, 100])
+    template = gtsam.Values()
+    for k in keys.tolist():
+        template.insert(k, se2.pose2(rng.normal(0, 2, 3)))
+    poses = rng.normal(0, 3, (3, 3))
+    poses[:, 2] = [0.1, -3.0, 3.1]
+    out = values_from_poses(template, keys, poses)
+    got = np.array([se2.pose_vec(out.atPose2(k)) for k in keys.tolist()])
+    np.testing.assert_allclose(got, poses, atol=1e-12)
+    with pytest.raises(ValueError, match="template keys differ"):
+        values_from_poses(template, np.array([3, 8, 9]), poses)
 
 
 def test_manhattan_edges_only_optimum(posegraph_dir: Path) -> None:
