@@ -12,6 +12,7 @@ from gcs.loops.correlative_matcher import (
     MatcherConfig,
     brute_force_match,
     grid_points,
+    points_grid,
 )
 from protocol.se2 import inverse, transform_points
 
@@ -136,3 +137,130 @@ def test_bad_input_is_refused() -> None:
         matcher.match(ref, np.ones((3, 2)), np.array([0.0, math.inf, 0.0]))
     with pytest.raises(ValueError, match="outlier"):
         MatcherConfig(outlier_likelihood=0.0)
+
+
+# ---- tables, realistic scenes and real logs --------------------------------------------------
+
+
+def test_pyramid_levels_are_sliding_maxima_of_the_kernel_table() -> None:
+    """Level 0 is the quantized kernel of the Euclidean distance to the nearest wall (checked
+    against OpenCV's exact distance transform); level k is the 2^k x 2^k forward sliding
+    maximum of level 0 over the whole zero-padded table."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    grid = rng.random((37, 53)) < 0.03
+    cfg = MatcherConfig(search_xy_m=0.8)
+    table = CorrelativeMatcher(cfg).reference_table(grid, origin_m=(0.0, 0.0), resolution_m=RES)
+    dist = cv2.distanceTransform((~grid).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    eps = cfg.outlier_likelihood
+    loglik = np.log(np.exp(-0.5 * (dist * RES / cfg.sigma_m) ** 2) + eps)
+    lo, hi = math.log(eps), math.log(1 + eps)
+    expected0 = np.round(255 * (loglik - lo) / (hi - lo)).astype(np.uint8)
+    p = table.pad
+    level0 = table.level(0)
+    assert np.array_equal(level0[p : p + 37, p : p + 53], expected0)
+    assert level0.sum() == expected0.sum()  # nothing outside the grid
+    for k in range(1, table.levels):
+        win = 1 << k
+        padded = np.pad(level0, ((0, win), (0, win)))
+        naive = np.zeros_like(level0)
+        for dr in range(win):
+            for dc in range(win):
+                naive = np.maximum(
+                    naive, padded[dr : dr + level0.shape[0], dc : dc + level0.shape[1]]
+                )
+        assert np.array_equal(table.level(k), naive), f"level {k}"
+
+
+def _scene_pairs(n: int, seed: int):
+    from gcs.loops.synthetic_scenes import random_world, scan_grid, scan_points
+    from protocol.se2 import compose, relative
+
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < n:
+        world = random_world(rng, size_m=40.0, buildings=10, walls=15, boxes=40)
+        a = np.array([*rng.uniform(-15, 15, 2), rng.uniform(-math.pi, math.pi)])
+        b = compose(a, np.array([*rng.uniform(-1.5, 1.5, 2), rng.uniform(-0.35, 0.35)]))
+        ga, oa = scan_grid(scan_points(world, a, rng=rng))
+        gb, ob = scan_grid(scan_points(world, b, rng=rng))
+        if ga.sum() < 200 or gb.sum() < 200:
+            continue
+        truth = relative(a, b)
+        guess = truth + np.array([*rng.uniform(-1.5, 1.5, 2), rng.uniform(-0.25, 0.25)])
+        out.append((ga, oa, gb, ob, truth, guess))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_branch_and_bound_equals_brute_force_on_scans_with_the_full_window(seed: int) -> None:
+    """150 x 150 ray-cast scans (one-sided walls, occlusion), +-3 m and +-30 deg."""
+    matcher = CorrelativeMatcher()
+    for ga, oa, gb, ob, truth, guess in _scene_pairs(2, seed):
+        ref = matcher.reference_table(ga, origin_m=oa, resolution_m=RES)
+        pts = grid_points(gb, origin_m=ob, resolution_m=RES)
+        bnb = matcher.match(ref, pts, guess)
+        brute = brute_force_match(matcher, ref, pts, guess)
+        assert bnb is not None and brute is not None
+        assert bnb.score == brute.score
+        assert np.array_equal(bnb.a_from_b_discrete, brute.a_from_b_discrete)
+        assert np.hypot(*(bnb.a_from_b[:2] - truth[:2])) < 0.1
+
+
+def test_guess_far_from_the_grid_drops_points_and_still_equals_brute_force() -> None:
+    """Points that can never reach the table score 0 (and count in the normalization)."""
+    rng = np.random.default_rng(9)
+    ref_grid = rng.random((60, 60)) < 0.05
+    query = grid_points(rng.random((60, 60)) < 0.05, origin_m=(-3.0, -3.0), resolution_m=RES)
+    matcher = CorrelativeMatcher(MatcherConfig(search_xy_m=1.0, search_yaw_rad=0.2))
+    ref = matcher.reference_table(ref_grid, origin_m=(0.0, 0.0), resolution_m=RES)
+    for guess in ([7.5, 3.0, 2.0], [-2.9, 6.4, -3.0], [30.0, 30.0, 0.0]):
+        g = np.array(guess)
+        bnb = matcher.match(ref, query, g)
+        brute = brute_force_match(matcher, ref, query, g)
+        assert bnb is not None and brute is not None
+        assert (bnb.score, *bnb.a_from_b_discrete) == (brute.score, *brute.a_from_b_discrete)
+        assert -math.pi <= bnb.a_from_b[2] < math.pi
+
+
+def test_real_laser_scans_branch_and_bound_equals_brute_force(intel_log) -> None:  # type: ignore[no-untyped-def]
+    """Corpus pairs: real Intel Research Lab scans near each other (corrected poses)."""
+    from protocol.se2 import relative
+
+    matcher = CorrelativeMatcher()
+    poses = intel_log.base_in_log
+    rng = np.random.default_rng(5)
+    done = 0
+    while done < 3:
+        i, j = (int(v) for v in rng.integers(0, len(intel_log), 2))
+        truth = relative(poses[i], poses[j])
+        if abs(i - j) < 20 or np.hypot(*truth[:2]) > 1.5 or abs(truth[2]) > 0.4:
+            continue
+        ga, oa = points_grid(intel_log.points_in_base(i), resolution_m=RES)
+        ref = matcher.reference_table(ga, origin_m=oa, resolution_m=RES)
+        pts = intel_log.points_in_base(j)
+        guess = truth + np.array([*rng.uniform(-1.0, 1.0, 2), rng.uniform(-0.2, 0.2)])
+        bnb = matcher.match(ref, pts, guess)
+        brute = brute_force_match(matcher, ref, pts, guess)
+        assert bnb is not None and brute is not None
+        assert (bnb.score, *bnb.a_from_b_discrete) == (brute.score, *brute.a_from_b_discrete)
+        done += 1
+
+
+def test_points_grid_round_trips_cell_centres() -> None:
+    rng = np.random.default_rng(2)
+    grid = rng.random((30, 45)) < 0.1
+    pts = grid_points(grid, origin_m=(-1.2, 3.4), resolution_m=RES)
+    back, origin = points_grid(pts, resolution_m=RES, margin_cells=0)
+    again = grid_points(back, origin_m=origin, resolution_m=RES)
+    assert np.allclose(np.sort(again, axis=0), np.sort(pts, axis=0))
+    with pytest.raises(ValueError, match="no points"):
+        points_grid(np.zeros((0, 2)), resolution_m=RES)
+
+
+def test_a_table_from_another_window_is_refused() -> None:
+    small = CorrelativeMatcher(MatcherConfig(search_xy_m=0.5))
+    ref = small.reference_table(np.eye(20, dtype=bool), origin_m=(0.0, 0.0), resolution_m=RES)
+    with pytest.raises(ValueError, match="same matcher"):
+        CorrelativeMatcher().match(ref, np.ones((3, 2)), np.zeros(3))
