@@ -41,6 +41,7 @@ __all__ = [
     "Pose2Factors",
     "exp_se2",
     "gauss_newton_pose2",
+    "linearize_pose2",
     "local_coordinates",
     "log_se2",
     "pose2_chi2",
@@ -363,6 +364,24 @@ def pose2_chi2(factors: Pose2Factors, poses: FloatArray) -> float:
     p = _check_poses(factors, poses)
     f = factors
     return float(_chi2(p, f.ij, f.z, f.info, f.prior_index, f.prior_pose, f.prior_info))
+
+
+def linearize_pose2(
+    factors: Pose2Factors, poses: FloatArray, sym: BlockSymbolic
+) -> tuple[FloatArray, FloatArray, float]:
+    """Normal equations of ``factors`` at ``poses`` (n, 3) in the pattern of ``sym``: the lower
+    blocks of ``H`` as :func:`gcs.graph.block_cholesky.factorize` takes them, the gradient
+    ``g = sum J' Omega e`` (n, 3) and the chi2; the step solves ``H delta = -g``."""
+    f = factors
+    p = _check_poses(f, poses)
+    if sym.n != f.n:
+        raise ValueError(f"symbolic factorization of {sym.n} variables, factors have {f.n}")
+    lhs = np.zeros((sym.nnz_blocks, 3, 3))
+    rhs = np.zeros((f.n, 3))
+    args = (f.ij, f.z, f.info, f.prior_index, f.prior_pose, f.prior_info)
+    slots = (sym.position, sym.colptr[sym.position], block_slots(sym, f.ij))
+    total = float(_linearize(p, *args, *slots, lhs, rhs))
+    return lhs, rhs, total
 
 
 def gauss_newton_pose2(

@@ -6,10 +6,16 @@ Metrics (times are medians of repeats, wall clock, after warm-up):
   ordering ``o`` in ``emd``, ``colamd``, ``metis`` (and ``natural`` without ``--quick``):
   ``{g}_order_s_{o}`` (ordering time, EMD's including reading the graph's adjacency),
   ``{g}_nnz_{o}`` (non-zeros of the Cholesky factor), ``{g}_solve_s_{o}`` (linearize, factor,
-  back-substitute once at the chained-odometry start), ``{g}_table_total_s_{o}``.
-- ``m3500_chi2``, ``m3500_total_s`` (EMD ordering + Gauss-Newton from chained odometry to the
-  optimum), ``m3500_total_s_colamd`` (the same with COLAMD), ``intel_chi2``,
-  ``city10k_chi2``, ``city10k_total_s``.
+  back-substitute once at the chained-odometry start, GTSAM multifrontal Cholesky),
+  ``{g}_table_total_s_{o}``; ``{g}_block_solve_s_{o}`` the same step on the compiled block
+  Cholesky of ``block_gn`` (:mod:`gcs.graph.pose2_gauss_newton`).
+- ``m3500_chi2``, ``m3500_total_s``: from the loaded graph with chained odometry to the optimum
+  with ``block_gn`` and the EMD ordering; timed are the factor arrays (from the loaded g2o
+  arrays), the ordering, every Gauss-Newton iteration, the result as ``gtsam.Values`` and
+  GTSAM's chi2 of it. ``m3500_iterations``; ``m3500_total_s_colamd`` the same with COLAMD;
+  ``m3500_total_s_gtsam`` GTSAM's Gauss-Newton (EMD ordering) from the same start, the
+  reference. ``intel_chi2``, ``intel_total_s``, ``city10k_chi2``, ``city10k_total_s`` likewise
+  (``block_gn``, EMD), ``city10k_total_s_gtsam``.
 - ``m3500b_chi2_odom_init``, ``m3500b_chi2_tree_init``, ``m3500b_chi2_lago_dogleg``: Dogleg
   from chained odometry, from the spanning-tree initialization (paper 4.6) and from GTSAM's
   LAGO, in the same run; ``m3500b_tree_init_s``.
@@ -35,16 +41,22 @@ import gtsam
 import numpy as np
 
 from gcs.graph import se2
+from gcs.graph.block_cholesky import BlockSymbolic, factorize, solve, symbolic_factorization
 from gcs.graph.dijkstra_projection import Adjacency, dijkstra_projection
 from gcs.graph.emd_ordering import minimum_degree_ordering
 from gcs.graph.g2o import G2oGraph, chained_odometry, read_g2o, to_gtsam
 from gcs.graph.optimization import (
+    BatchResult,
     Isam2Solver,
     chi2,
     compute_ordering,
     optimize_batch,
+    optimize_pose2,
+    ordering_keys,
     ordering_nnz,
+    pose2_factors_from_g2o,
 )
+from gcs.graph.pose2_gauss_newton import linearize_pose2
 from gcs.graph.simplification import SimplificationConfig, simplify_graph
 from gcs.graph.spanning_tree_init import GlobalAnchor, spanning_tree_initialization
 from mission.bench import BenchError, median_time_s
@@ -62,7 +74,9 @@ def _load(name: str) -> G2oGraph:
 def _table_rows(
     tag: str, g: G2oGraph, orderings: tuple[str, ...], repeats: int
 ) -> dict[str, float]:
-    fg, values = to_gtsam(g, poses=chained_odometry(g))
+    odo = chained_odometry(g)
+    fg, values = to_gtsam(g, poses=odo)
+    factors, keys = pose2_factors_from_g2o(g, odo)
     out: dict[str, float] = {}
     for kind in orderings:
 
@@ -72,32 +86,48 @@ def _table_rows(
         order_s = median_time_s(order, repeats=repeats)
         ordering = order()
 
-        def solve(o: gtsam.Ordering = ordering) -> None:
+        def solve_gtsam(o: gtsam.Ordering = ordering) -> None:
             fg.linearize(values).eliminateMultifrontal(o).optimize()
-
-        solve_s = median_time_s(solve, repeats=repeats)
 
         def total(k: str = kind) -> None:
             fg.linearize(values).eliminateMultifrontal(compute_ordering(fg, k)).optimize()  # type: ignore[arg-type]
 
+        sym = symbolic_factorization(
+            factors.n, factors.ij, np.searchsorted(keys, ordering_keys(ordering))
+        )
+
+        def solve_block(sym: BlockSymbolic = sym) -> None:
+            lhs, rhs, _ = linearize_pose2(factors, odo, sym)
+            factorize(sym, lhs)
+            solve(sym, lhs, -rhs)
+
         out[f"{tag}_order_s_{kind}"] = order_s
         out[f"{tag}_nnz_{kind}"] = float(ordering_nnz(fg, ordering))
-        out[f"{tag}_solve_s_{kind}"] = solve_s
+        out[f"{tag}_solve_s_{kind}"] = median_time_s(solve_gtsam, repeats=repeats)
         out[f"{tag}_table_total_s_{kind}"] = median_time_s(total, repeats=repeats)
+        out[f"{tag}_block_solve_s_{kind}"] = median_time_s(solve_block, repeats=repeats)
     return out
 
 
 def _solve_from_odometry(
-    g: G2oGraph, ordering: str, repeats: int, *, use_vertices: bool = False
-) -> tuple[float, float]:
-    fg, values = to_gtsam(g, poses=None if use_vertices else chained_odometry(g))
-    results = []
+    g: G2oGraph, ordering: str, repeats: int, *, use_vertices: bool = False, gtsam_gn: bool = False
+) -> tuple[BatchResult, float]:
+    """``(result, median total s)`` of ``block_gn`` (or GTSAM's GN) from the loaded graph."""
+    poses = g.vertex_poses if use_vertices else chained_odometry(g)
+    fg, values = to_gtsam(g, poses=poses)
+    results: list[BatchResult] = []
 
     def run() -> None:
-        results.append(optimize_batch(fg, values, method="gn", ordering=ordering))  # type: ignore[arg-type]
+        if gtsam_gn:
+            results.append(optimize_batch(fg, values, method="gn", ordering=ordering))  # type: ignore[arg-type]
+            return
+        factors, keys = pose2_factors_from_g2o(g, poses)
+        results.append(
+            optimize_pose2(fg, values, factors, keys, ordering=ordering, initial_poses=poses)  # type: ignore[arg-type]
+        )
 
     total_s = median_time_s(run, repeats=repeats)
-    return g.chi2(results[-1].values), total_s
+    return results[-1], total_s
 
 
 def _m3500b(progress: Callable[[str], None]) -> dict[str, float]:
@@ -220,14 +250,18 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     metrics |= _table_rows("city10k", city, tuple(o for o in orderings if o != "natural"), repeats)
 
     progress("Gauss-Newton from chained odometry")
-    metrics["m3500_chi2"], metrics["m3500_total_s"] = _solve_from_odometry(
-        m3500, "emd", 2 * repeats + 1
-    )
+    res, metrics["m3500_total_s"] = _solve_from_odometry(m3500, "emd", 2 * repeats + 1)
+    metrics["m3500_chi2"] = m3500.chi2(res.values)
+    metrics["m3500_iterations"] = res.iterations
     _, metrics["m3500_total_s_colamd"] = _solve_from_odometry(m3500, "colamd", 2 * repeats + 1)
-    metrics["intel_chi2"], metrics["intel_total_s"] = _solve_from_odometry(
-        intel, "emd", repeats, use_vertices=True
+    _, metrics["m3500_total_s_gtsam"] = _solve_from_odometry(
+        m3500, "emd", 2 * repeats + 1, gtsam_gn=True
     )
-    metrics["city10k_chi2"], metrics["city10k_total_s"] = _solve_from_odometry(city, "emd", repeats)
+    res, metrics["intel_total_s"] = _solve_from_odometry(intel, "emd", repeats, use_vertices=True)
+    metrics["intel_chi2"] = intel.chi2(res.values)
+    res, metrics["city10k_total_s"] = _solve_from_odometry(city, "emd", repeats)
+    metrics["city10k_chi2"] = city.chi2(res.values)
+    _, metrics["city10k_total_s_gtsam"] = _solve_from_odometry(city, "emd", 1, gtsam_gn=True)
 
     metrics |= _m3500b(progress)
 
