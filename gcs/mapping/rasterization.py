@@ -70,6 +70,8 @@ OCCUPIED = 100
 
 #: Samples of moved nodes kept within one rasterization to draw them without sampling again.
 _PATCH_BUDGET_BYTES = 192 * 1024 * 1024
+#: Submap codes are uint8 ``2 (local index + 1) + occupied``.
+MAX_SUBMAP_NODES = 126
 #: Placeholders for the optional arguments of :func:`_sample`.
 _NO_MASKS = np.zeros((0, 0, 4), dtype=np.int64)
 _NO_PRIO = np.zeros(0, dtype=np.int64)
@@ -102,8 +104,10 @@ class RasterConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
             raise ValueError(f"resolution_m must be in [0.001, 10], got {self.resolution_m}")
         if not (math.isfinite(self.free_range_m) and 0 <= self.free_range_m <= 1000):
             raise ValueError(f"free_range_m must be in [0, 1000], got {self.free_range_m}")
-        if not 1 <= self.submap_nodes <= 100_000:
-            raise ValueError(f"submap_nodes must be in [1, 100000], got {self.submap_nodes}")
+        if not 1 <= self.submap_nodes <= MAX_SUBMAP_NODES:
+            raise ValueError(
+                f"submap_nodes must be in [1, {MAX_SUBMAP_NODES}], got {self.submap_nodes}"
+            )
         if not 8 <= self.tile_cells <= 1024:
             raise ValueError(f"tile_cells must be in [8, 1024], got {self.tile_cells}")
         for name in ("pose_tolerance_m", "pose_tolerance_rad"):
@@ -163,17 +167,14 @@ class RasterStats:
 
 @dataclass
 class _Submap:
-    """Consecutive nodes of one robot and the latest-wins codes of those ``drawn``.
+    """Consecutive nodes of one robot and the latest-wins codes of those drawn into it.
 
-    ``codes`` is dense over a tile-aligned box whose cell ``(0, 0)`` is map cell ``(row0,
-    col0)``; ``tiles`` the map tiles where it has cells; ``poses`` the poses the drawn nodes
-    were drawn at (``drawn`` and ``poses`` may be shorter than ``nodes``: later nodes were
-    added since)."""
+    ``codes`` (``2 (i + 1) + occupied`` for ``nodes[i]``) is dense over a tile-aligned box
+    whose cell ``(0, 0)`` is map cell ``(row0, col0)``; ``tiles`` the map tiles where it has
+    cells."""
 
     nodes: list[int]
-    drawn: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    poses: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
-    codes: NDArray[np.int32] = field(default_factory=lambda: np.zeros((0, 0), dtype=np.int32))
+    codes: NDArray[np.uint8] = field(default_factory=lambda: np.zeros((0, 0), dtype=np.uint8))
     row0: int = 0
     col0: int = 0
     tiles: set[tuple[int, int]] = field(default_factory=set)
@@ -184,25 +185,21 @@ class _Submap:
 
 
 @numba.njit(cache=True, nogil=True)
-def _band_xrange(qx, qy, y_lo, y_hi):  # type: ignore[no-untyped-def]
-    """x extent of the convex quad ``(qx, qy)`` (corners in order) within ``y_lo <= y <=
-    y_hi``; ``(inf, -inf)`` when they do not meet."""
-    x_min = math.inf
-    x_max = -math.inf
-    for k in range(4):
-        ax = qx[k]
-        ay = qy[k]
-        bx = qx[(k + 1) % 4]
-        by = qy[(k + 1) % 4]
-        if y_lo <= ay <= y_hi:
-            x_min = min(x_min, ax)
-            x_max = max(x_max, ax)
-        for yl in (y_lo, y_hi):
-            if (ay - yl) * (by - yl) < 0.0:
-                xc = ax + (yl - ay) * (bx - ax) / (by - ay)
-                x_min = min(x_min, xc)
-                x_max = max(x_max, xc)
-    return x_min, x_max
+def _span(alpha, beta, lo, hi):  # type: ignore[no-untyped-def]
+    """Integers ``j`` with ``lo <= alpha + beta j < hi``, as ``[j0, j1)`` (up to rounding at
+    the ends: the caller clamps)."""
+    big = 1e15
+    if beta > 0.0:
+        u = min(max((lo - alpha) / beta, -big), big)
+        v = min(max((hi - alpha) / beta, -big), big)
+        return int(math.ceil(u)), int(math.ceil(v))
+    if beta < 0.0:
+        u = min(max((hi - alpha) / beta, -big), big)
+        v = min(max((lo - alpha) / beta, -big), big)
+        return int(math.floor(u)) + 1, int(math.floor(v)) + 1
+    if lo <= alpha < hi:
+        return -(1 << 50), 1 << 50
+    return 0, 0
 
 
 @numba.njit(cache=True, nogil=True)
@@ -210,64 +207,76 @@ def _sample(
     buf, row0, col0, base, cells, ox, oy, lres, x, y, yaw, res, bbox, prio, node_prio, masks
 ):  # type: ignore[no-untyped-def]  # noqa: E501
     """Write ``base + v`` into ``buf`` (whose cell ``(0, 0)`` is map cell ``(row0, col0)``)
-    at every map cell of ``bbox`` whose centre falls into an observed cell ``v`` (1 free,
+    at the map cells of ``bbox`` whose centres fall into an observed cell ``v`` (1 free,
     2 occupied) of the node's local raster ``cells``. The only sampling code: every path
-    draws through it, so they agree bit for bit.
+    draws through it, and which cells it samples and how depends on the node, its pose and
+    the cell's global indices only (never on ``buf``), so all paths agree bit for bit.
+
+    Per map row, the columns whose centres fall inside the raster rectangle are solved for,
+    the raster indices computed in a vectorizable pass and clamped (a centre within rounding
+    of the rectangle's edge samples the edge cell), then looked up.
 
     ``node_prio >= 0``: keep a cell whose code names a node of larger ``prio`` (latest wins);
     ``masks`` ``(blocks_r, blocks_c, 4)`` non-empty: also set the footprint bit of every
     observed cell (blocks counted from ``bbox``'s first block)."""
     h, w = buf.shape
     rows, cols = cells.shape
+    flat = cells.ravel()
     c = math.cos(yaw)
     s = math.sin(yaw)
     inv = 1.0 / lres
-    qx = np.empty(4)
-    qy = np.empty(4)
-    for k in range(4):
-        bx = ox + (cols * lres if k == 1 or k == 2 else 0.0)
-        by = oy + (rows * lres if k >= 2 else 0.0)
-        qx[k] = x + c * bx - s * by
-        qy[k] = y + s * bx + c * by
     footprint = masks.shape[0] > 0
     bi0 = bbox[0] // 16
     bj0 = bbox[2] // 16
-    i_lo = max(bbox[0], row0)
-    i_hi = min(bbox[1], row0 + h)
-    for gi in range(i_lo, i_hi):
-        yc = (gi + 0.5) * res
-        x_min, x_max = _band_xrange(qx, qy, yc - res, yc + res)
-        if x_min > x_max:
-            continue
-        # The column range depends on the node and the row only (never on the buffer).
-        j_lo = max(bbox[2], int(math.floor(x_min / res - 0.5)) - 1)
-        j_hi = min(bbox[3], int(math.ceil(x_max / res - 0.5)) + 2)
-        dy = yc - y
+    lin = np.empty(max(bbox[3] - bbox[2], 0), dtype=np.int64)
+    vals = np.empty(max(bbox[3] - bbox[2], 0), dtype=np.int8)
+    for gi in range(max(bbox[0], row0), min(bbox[1], row0 + h)):
+        dy = (gi + 0.5) * res - y
         a = s * dy - ox
         b = c * dy - oy
-        bi = gi // 16 - bi0
-        bit_row = (gi - (gi // 16) * 16) * 16
-        for gj in range(max(j_lo, col0), min(j_hi, col0 + w)):
-            dx = (gj + 0.5) * res - x
-            fc = (c * dx + a) * inv
-            fr = (b - s * dx) * inv
-            if fc < 0.0 or fr < 0.0:
-                continue
-            lc = int(fc)
-            lr = int(fr)
-            if lc >= cols or lr >= rows:
-                continue
-            v = cells[lr, lc]
+        # raster column (row) of map column gj: (c dx + a) / lres ((b - s dx) / lres) with
+        # dx = (gj + 0.5) res - x
+        j0, j1 = _span((c * (0.5 * res - x) + a) * inv, c * res * inv, 0.0, cols)
+        k0, k1 = _span((b - s * (0.5 * res - x)) * inv, -s * res * inv, 0.0, rows)
+        j0 = max(j0, k0, bbox[2], col0)
+        j1 = min(j1, k1, bbox[3], col0 + w)
+        n = j1 - j0
+        if n <= 0:
+            continue
+        for q in range(n):
+            dx = (j0 + q + 0.5) * res - x
+            lc = min(max(int((c * dx + a) * inv), 0), cols - 1)
+            lr = min(max(int((b - s * dx) * inv), 0), rows - 1)
+            lin[q] = lr * cols + lc
+        for q in range(n):
+            vals[q] = flat[lin[q]]
+        if footprint:
+            # this row's 16 bits of each block it crosses, OR-ed in once per block
+            bi = gi // 16 - bi0
+            sub_row = gi - (gi // 16) * 16
+            word = sub_row >> 2
+            shift = np.int64((sub_row & 3) * 16)
+            for bj in range(j0 // 16, (j1 - 1) // 16 + 1):
+                q_lo = max(j0, bj * 16) - j0
+                q_hi = min(j1, bj * 16 + 16) - j0
+                first = j0 - bj * 16
+                bits = np.int64(0)
+                for q in range(q_lo, q_hi):
+                    if vals[q] != 0:
+                        bits |= np.int64(1) << np.int64(first + q)
+                if bits:
+                    masks[bi, bj - bj0, word] |= bits << shift
+        r = gi - row0
+        for q in range(n):
+            v = vals[q]
             if v == 0:
                 continue
-            if footprint:
-                bit = bit_row + gj - (gj // 16) * 16
-                masks[bi, gj // 16 - bj0, bit >> 6] |= np.int64(1) << np.int64(bit & 63)
+            gj = j0 + q
             if node_prio >= 0:
-                o = buf[gi - row0, gj - col0]
+                o = buf[r, gj - col0]
                 if o != 0 and prio[(o >> 1) - 1] > node_prio:
                     continue
-            buf[gi - row0, gj - col0] = base + v
+            buf[r, gj - col0] = base + v
 
 
 @numba.njit(cache=True, nogil=True)
@@ -283,10 +292,11 @@ def _draw_patch(buf, row0, col0, patch, p_row0, p_col0, base, prio, node_prio): 
     j_hi = min(col0 + w, p_col0 + pw)
     if node_prio < 0:
         for gi in range(i_lo, i_hi):
-            for gj in range(j_lo, j_hi):
-                v = patch[gi - p_row0, gj - p_col0]
-                o = buf[gi - row0, gj - col0]
-                buf[gi - row0, gj - col0] = o if v == 0 else base + v
+            src = patch[gi - p_row0, j_lo - p_col0 : j_hi - p_col0]
+            dst = buf[gi - row0, j_lo - col0 : j_hi - col0]
+            for q in range(j_hi - j_lo):
+                v = src[q]
+                dst[q] = dst[q] if v == 0 else base + v
         return
     for gi in range(i_lo, i_hi):
         for gj in range(j_lo, j_hi):
@@ -298,17 +308,52 @@ def _draw_patch(buf, row0, col0, patch, p_row0, p_col0, base, prio, node_prio): 
 
 
 @numba.njit(cache=True, nogil=True)
-def _combine(out, sub, prio):  # type: ignore[no-untyped-def]
-    """``out = latest(out, sub)`` per cell of two same-shape code arrays, by the ``prio`` of
-    the node each code names."""
-    h, w = out.shape
-    for i in range(h):
-        for j in range(w):
-            v = sub[i, j]
-            if v != 0:
-                o = out[i, j]
-                if o == 0 or prio[(v >> 1) - 1] > prio[(o >> 1) - 1]:
-                    out[i, j] = v
+def _combine_tiles(slots, ptr, sub_ids, sub_i0, sub_j0, sub_codes, rank, store):  # type: ignore[no-untyped-def]
+    """Combine tile ``k`` (into ``store[slots[k]]`` as values) from the submaps
+    ``sub_ids[ptr[k]:ptr[k+1]]``, whose codes hold the tile at ``(sub_i0, sub_j0)``: per cell
+    the latest node's value. ``rank[sid, code]`` is ``2 (prio + 1) + occupied`` of the node
+    submap ``sid``'s code names (0 for no node), so latest-wins is a plain maximum."""
+    t = store.shape[1]
+    best = np.zeros((t, t), dtype=np.int32)
+    for k in range(slots.shape[0]):
+        best[:, :] = 0
+        for p in range(ptr[k], ptr[k + 1]):
+            sid = sub_ids[p]
+            sub = sub_codes[sid]
+            table = rank[sid]
+            i0 = sub_i0[p]
+            j0 = sub_j0[p]
+            for i in range(t):
+                row = sub[i0 + i, j0 : j0 + t]
+                out = best[i]
+                for j in range(t):
+                    out[j] = max(out[j], table[row[j]])
+        values = store[slots[k]]
+        for i in range(t):
+            for j in range(t):
+                v = best[i, j]
+                values[i, j] = -1 if v == 0 else (100 if v & 1 else 0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _assemble(values, row0, col0, store, used, tile_rc):  # type: ignore[no-untyped-def]
+    """Copy every used tile of ``store`` (map tile ``tile_rc[slot]``) into ``values``, whose
+    cell ``(0, 0)`` is map cell ``(row0, col0)``."""
+    h, w = values.shape
+    t = store.shape[1]
+    for slot in range(used.shape[0]):
+        if not used[slot]:
+            continue
+        i0 = tile_rc[slot, 0] * t
+        j0 = tile_rc[slot, 1] * t
+        a0 = max(i0, row0)
+        a1 = min(i0 + t, row0 + h)
+        b0 = max(j0, col0)
+        b1 = min(j0 + t, col0 + w)
+        if a0 < a1 and b0 < b1:
+            values[a0 - row0 : a1 - row0, b0 - col0 : b1 - col0] = store[
+                slot, a0 - i0 : a1 - i0, b0 - j0 : b1 - j0
+            ]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -373,11 +418,23 @@ class Rasterizer:
         self._sorted_n = -1
         self._sorted_keys = np.zeros(0, dtype=np.int64)
         self._sorted_idx = np.zeros(0, dtype=np.int64)
+        # submaps: each node's submap, whether it is drawn there and at which pose
         self._submaps: list[_Submap] = []
+        self._sub_codes = TypedList.empty_list(numba.types.uint8[:, ::1])
+        self._sub_table = np.full((0, MAX_SUBMAP_NODES), -1, dtype=np.int64)  # sid, i -> node
         self._open: dict[int, int] = {}  # robot -> index of its submap still taking nodes
-        # the combined map by tile: values, and which submaps have cells there
-        self._tile_values: dict[tuple[int, int], NDArray[np.int8]] = {}
+        self._sub_of = np.zeros(0, dtype=np.int64)
+        self._local = np.zeros(0, dtype=np.int64)  # index of each node in its submap
+        self._drawn = np.zeros(0, dtype=bool)
+        self._drawn_pose = np.zeros((0, 3))
+        # the combined map by tile: values in slots of a store, and the submaps with cells there
         self._tile_subs: dict[tuple[int, int], set[int]] = {}
+        self._tile_slot: dict[tuple[int, int], int] = {}
+        self._free_slots: list[int] = []
+        t = self.config.tile_cells
+        self._tile_store = np.zeros((0, t, t), dtype=np.int8)
+        self._tile_used = np.zeros(0, dtype=bool)
+        self._tile_rc = np.zeros((0, 2), dtype=np.int64)
 
     # -- input ------------------------------------------------------------------------------
 
@@ -436,8 +493,18 @@ class Rasterizer:
         if sid is None or len(self._submaps[sid].nodes) >= self.config.submap_nodes:
             sid = len(self._submaps)
             self._submaps.append(_Submap(nodes=[]))
+            self._sub_codes.append(self._submaps[sid].codes)
             self._open[robot] = sid
-        self._submaps[sid].nodes.append(n)
+            if sid == len(self._sub_table):
+                table = np.full((max(16, 2 * sid), MAX_SUBMAP_NODES), -1, dtype=np.int64)
+                table[:sid] = self._sub_table
+                self._sub_table = table
+        sub = self._submaps[sid]
+        self._local[n] = len(sub.nodes)
+        self._sub_table[sid, len(sub.nodes)] = n
+        sub.nodes.append(n)
+        self._sub_of[n] = sid
+        self._drawn[n] = False
 
     def local_raster(self, key: int) -> LocalRaster:
         """The occupied / free / unknown raster of node ``key`` in its ``base`` frame."""
@@ -538,6 +605,10 @@ class Rasterizer:
         self._times_arr = grown(self._times_arr, 0.0)  # type: ignore[assignment]
         self._rect = grown(self._rect, 0.0)  # type: ignore[assignment]
         self._feet_pose = grown(self._feet_pose, np.nan)  # type: ignore[assignment]
+        self._sub_of = grown(self._sub_of, 0)  # type: ignore[assignment]
+        self._local = grown(self._local, 0)  # type: ignore[assignment]
+        self._drawn = grown(self._drawn, False)  # type: ignore[assignment]
+        self._drawn_pose = grown(self._drawn_pose, np.nan)  # type: ignore[assignment]
 
     def _poses(
         self, poses_in_map: PosesInMap
@@ -617,32 +688,35 @@ class Rasterizer:
 
     def _draw(
         self,
-        buf: NDArray[np.int32],
+        buf: NDArray[np.int32] | NDArray[np.uint8],
         row0: int,
         col0: int,
         n: int,
+        code: int,
+        code_prio: NDArray[np.int64],
         poses: NDArray[np.float64],
         bbox: NDArray[np.int64],
-        prio: NDArray[np.int64],
         patches: dict[int, NDArray[np.int8]],
         *,
         latest_wins: bool,
     ) -> None:
-        """Draw node ``n`` into ``buf`` (codes ``2 (n + 1) + occupied``): from its patch when
-        this call sampled it already, else by sampling. ``latest_wins``: keep cells of later
-        nodes; otherwise overwrite (the caller draws in ``(time, key)`` order)."""
-        node_prio = int(prio[n]) if latest_wins else -1
+        """Draw node ``n`` into ``buf`` as codes ``2 (code + 1) + occupied``: from its patch
+        when this call sampled it already, else by sampling. ``latest_wins``: keep cells
+        whose code's ``code_prio`` is larger; otherwise overwrite (the caller draws in
+        ``(time, key)`` order)."""
+        node_prio = int(code_prio[code]) if latest_wins else -1
+        base = 2 * code + 1
         patch = patches.get(n)
         if patch is not None:
-            _draw_patch(buf, row0, col0, patch, bbox[n, 0], bbox[n, 2], 2 * n + 1, prio, node_prio)
+            _draw_patch(buf, row0, col0, patch, bbox[n, 0], bbox[n, 2], base, code_prio, node_prio)
             return
         r = self._rasters[n]
         if r.cells.size == 0:
             return
         x, y, yaw = poses[n]
         ox, oy = r.origin_in_base
-        _sample(buf, row0, col0, 2 * n + 1, r.cells, ox, oy, r.resolution_m, x, y, yaw,
-                self.config.resolution_m, bbox[n], prio, node_prio, _NO_MASKS)  # fmt: skip
+        _sample(buf, row0, col0, base, r.cells, ox, oy, r.resolution_m, x, y, yaw,
+                self.config.resolution_m, bbox[n], code_prio, node_prio, _NO_MASKS)  # fmt: skip
 
     def _draw_all(
         self,
@@ -655,7 +729,7 @@ class Rasterizer:
     ) -> NDArray[np.int32]:
         codes = np.zeros((bounds[1] - bounds[0], bounds[3] - bounds[2]), dtype=np.int32)
         for n in nodes[np.argsort(prio[nodes], kind="stable")].tolist():
-            self._draw(codes, bounds[0], bounds[2], n, poses, bbox, prio, patches,
+            self._draw(codes, bounds[0], bounds[2], n, n, prio, poses, bbox, patches,
                        latest_wins=False)  # fmt: skip
         return codes
 
@@ -697,13 +771,14 @@ class Rasterizer:
                 budget -= patch.nbytes
         return len(changed)
 
-    def _moved(self, now: NDArray[np.float64], then: NDArray[np.float64]) -> bool:
+    def _moved(self, now: NDArray[np.float64], then: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Per row: did the pose move beyond the tolerance (any change when it is 0)?"""
         cfg = self.config
         if cfg.pose_tolerance_m == 0 and cfg.pose_tolerance_rad == 0:
-            return not bool(np.array_equal(now, then))
+            return np.any(now != then, axis=1)  # type: ignore[no-any-return]
         dxy = np.hypot(now[:, 0] - then[:, 0], now[:, 1] - then[:, 1])
         dth = np.abs((now[:, 2] - then[:, 2] + np.pi) % (2 * np.pi) - np.pi)
-        return bool(np.any(dxy > cfg.pose_tolerance_m) or np.any(dth > cfg.pose_tolerance_rad))
+        return (dxy > cfg.pose_tolerance_m) | (dth > cfg.pose_tolerance_rad)  # type: ignore[no-any-return]
 
     def _cached(
         self,
@@ -716,62 +791,104 @@ class Rasterizer:
         patches: dict[int, NDArray[np.int8]],
         stats: RasterStats,
     ) -> NDArray[np.int8]:
-        """Bring every submap up to date (reuse, extend by newly kept nodes, or redraw), then
-        combine again only the tiles whose submaps changed, and assemble the map."""
-        t = self.config.tile_cells
+        """Bring the submaps up to date (reuse; extend by newly kept nodes; redraw when a
+        drawn node moved or lost its pose), combine again only the tiles whose submaps
+        changed, and assemble the map."""
+        n = self._n
+        sub_of = self._sub_of[:n]
+        drawn = self._drawn[:n]
+        stale = drawn & (~posed | self._moved(poses, self._drawn_pose[:n]))
+        redraw = np.unique(sub_of[stale])
+        add = kept & ~drawn & ~np.isin(sub_of, redraw)
+        extend = np.unique(sub_of[add])
         dirty: set[tuple[int, int]] = set()
-        for sid, sub in enumerate(self._submaps):
+        for sid in redraw.tolist():
+            sub = self._submaps[sid]
             idx = np.asarray(sub.nodes, dtype=np.int64)
-            k = len(sub.drawn)
-            drawn = np.zeros(len(idx), dtype=bool)
-            drawn[:k] = sub.drawn
-            old = sub.poses
-            redraw = bool(drawn.any()) and (
-                not bool(posed[idx[drawn]].all()) or self._moved(poses[idx[drawn]], old[drawn[:k]])
-            )
-            # the poses drawn nodes were drawn at (a tolerance must not let them creep)
-            new_poses = np.zeros((len(idx), 3))
-            new_poses[:k] = old
-            if redraw:
-                now = kept[idx]
-                self._redraw(sid, sub, idx[now], poses, bbox, prio, patches, dirty)
-                stats.rebuilt += 1
-            else:
-                now = kept[idx] & ~drawn
-                if now.any():
-                    self._extend(sid, sub, idx[now], poses, bbox, prio, patches, dirty)
-                    stats.rebuilt += 1
-                else:
-                    stats.reused += 1
-                drawn |= now
-            stats.drawn += int(now.sum())
-            new_poses[now] = poses[idx[now]]
-            sub.drawn = now.copy() if redraw else drawn
-            sub.poses = new_poses
+            now = idx[kept[idx]]
+            self._redraw(sid, sub, now, poses, bbox, prio, patches, dirty)
+            self._drawn[idx] = False
+            self._drawn[now] = True
+            self._drawn_pose[now] = poses[now]
+            stats.drawn += len(now)
+        for sid in extend.tolist():
+            sub = self._submaps[sid]
+            idx = np.asarray(sub.nodes, dtype=np.int64)
+            now = idx[add[idx]]
+            self._extend(sid, sub, now, poses, bbox, prio, patches, dirty)
+            self._drawn[now] = True
+            self._drawn_pose[now] = poses[now]
+            stats.drawn += len(now)
+        stats.rebuilt = len(redraw) + len(extend)
+        stats.reused = len(self._submaps) - stats.rebuilt
+        self._combine_dirty(dirty, prio)
+        stats.dirty_tiles = len(dirty)
+        row0, row1, col0, col1 = bounds
+        values = np.full((row1 - row0, col1 - col0), UNKNOWN, dtype=np.int8)
+        _assemble(values, row0, col0, self._tile_store, self._tile_used, self._tile_rc)
+        return values
+
+    def _combine_dirty(self, dirty: set[tuple[int, int]], prio: NDArray[np.int64]) -> None:
+        """Recompute the values of the ``dirty`` tiles from the submaps that have them."""
+        t = self.config.tile_cells
+        slots: list[int] = []
+        ptr = [0]
+        sub_ids: list[int] = []
+        sub_i0: list[int] = []
+        sub_j0: list[int] = []
         for key in dirty:
             subs = self._tile_subs.get(key)
             if not subs:
                 self._tile_subs.pop(key, None)
-                self._tile_values.pop(key, None)
+                slot = self._tile_slot.pop(key, None)
+                if slot is not None:
+                    self._tile_used[slot] = False
+                    self._free_slots.append(slot)
                 continue
-            codes = np.zeros((t, t), dtype=np.int32)
+            slot = self._tile_slot.get(key)
+            if slot is None:
+                slot = self._new_slot()
+                self._tile_slot[key] = slot
+                self._tile_used[slot] = True
+                self._tile_rc[slot] = key
+            slots.append(slot)
             for sid in subs:
                 sub = self._submaps[sid]
-                i0, j0 = key[0] * t - sub.row0, key[1] * t - sub.col0
-                _combine(codes, sub.codes[i0 : i0 + t, j0 : j0 + t], prio)
-            self._tile_values[key] = _values(codes)
-        stats.dirty_tiles = len(dirty)
-        row0, row1, col0, col1 = bounds
-        values = np.full((row1 - row0, col1 - col0), UNKNOWN, dtype=np.int8)
-        for (ti, tj), tile in self._tile_values.items():
-            i0, j0 = ti * t, tj * t
-            a0, a1 = max(i0, row0), min(i0 + t, row1)
-            b0, b1 = max(j0, col0), min(j0 + t, col1)
-            if a0 < a1 and b0 < b1:
-                values[a0 - row0 : a1 - row0, b0 - col0 : b1 - col0] = tile[
-                    a0 - i0 : a1 - i0, b0 - j0 : b1 - j0
-                ]
-        return values
+                sub_ids.append(sid)
+                sub_i0.append(key[0] * t - sub.row0)
+                sub_j0.append(key[1] * t - sub.col0)
+            ptr.append(len(sub_ids))
+        if slots:
+            table = self._sub_table[: len(self._submaps)]
+            node_rank = np.where(table >= 0, 2 * (prio[table] + 1), 0).astype(np.int32)
+            rank = np.zeros((len(table), 256), dtype=np.int32)
+            rank[:, 2 : 2 + 2 * MAX_SUBMAP_NODES : 2] = node_rank
+            rank[:, 3 : 3 + 2 * MAX_SUBMAP_NODES : 2] = node_rank + (node_rank > 0)
+            _combine_tiles(
+                np.asarray(slots, dtype=np.int64),
+                np.asarray(ptr, dtype=np.int64),
+                np.asarray(sub_ids, dtype=np.int64),
+                np.asarray(sub_i0, dtype=np.int64),
+                np.asarray(sub_j0, dtype=np.int64),
+                self._sub_codes,
+                rank,
+                self._tile_store,
+            )
+
+    def _new_slot(self) -> int:
+        if not self._free_slots:
+            cap = len(self._tile_used)
+            new = max(64, 2 * cap)
+            t = self.config.tile_cells
+            store = np.zeros((new, t, t), dtype=np.int8)
+            store[:cap] = self._tile_store
+            used = np.zeros(new, dtype=bool)
+            used[:cap] = self._tile_used
+            rc = np.zeros((new, 2), dtype=np.int64)
+            rc[:cap] = self._tile_rc
+            self._tile_store, self._tile_used, self._tile_rc = store, used, rc
+            self._free_slots.extend(range(new - 1, cap - 1, -1))
+        return self._free_slots.pop()
 
     def _tiles_of(self, sub: _Submap, box: tuple[int, int, int, int]) -> set[tuple[int, int]]:
         """Tiles of ``sub`` within map-cell ``box`` (tile-aligned) that hold a cell."""
@@ -812,15 +929,18 @@ class Rasterizer:
         """Draw ``sub`` afresh from the nodes ``draw``, earliest first."""
         dirty |= sub.tiles
         if len(draw) == 0:
-            sub.codes = np.zeros((0, 0), dtype=np.int32)
+            sub.codes = np.zeros((0, 0), dtype=np.uint8)
+            self._sub_codes[sid] = sub.codes
             self._set_tiles(sid, sub, set())
             return
         box = self._tile_box(bbox[draw])
         sub.row0, sub.col0 = box[0], box[2]
-        sub.codes = np.zeros((box[1] - box[0], box[3] - box[2]), dtype=np.int32)
+        sub.codes = np.zeros((box[1] - box[0], box[3] - box[2]), dtype=np.uint8)
+        self._sub_codes[sid] = sub.codes
+        local_prio = prio[np.asarray(sub.nodes, dtype=np.int64)]
         for n in draw[np.argsort(prio[draw], kind="stable")].tolist():
-            self._draw(sub.codes, sub.row0, sub.col0, n, poses, bbox, prio, patches,
-                       latest_wins=False)  # fmt: skip
+            self._draw(sub.codes, sub.row0, sub.col0, n, int(self._local[n]), local_prio,
+                       poses, bbox, patches, latest_wins=False)  # fmt: skip
         self._set_tiles(sid, sub, self._tiles_of(sub, box))
         dirty |= sub.tiles
 
@@ -849,14 +969,16 @@ class Rasterizer:
         else:
             grown = box
         if sub.codes.size == 0 or grown != (sub.row0, sub.row0 + h, sub.col0, sub.col0 + w):
-            codes = np.zeros((grown[1] - grown[0], grown[3] - grown[2]), dtype=np.int32)
+            codes = np.zeros((grown[1] - grown[0], grown[3] - grown[2]), dtype=np.uint8)
             if sub.codes.size:
                 i0, j0 = sub.row0 - grown[0], sub.col0 - grown[2]
                 codes[i0 : i0 + h, j0 : j0 + w] = sub.codes
             sub.codes, sub.row0, sub.col0 = codes, grown[0], grown[2]
+            self._sub_codes[sid] = codes
+        local_prio = prio[np.asarray(sub.nodes, dtype=np.int64)]
         for n in add.tolist():
-            self._draw(sub.codes, sub.row0, sub.col0, n, poses, bbox, prio, patches,
-                       latest_wins=True)  # fmt: skip
+            self._draw(sub.codes, sub.row0, sub.col0, n, int(self._local[n]), local_prio,
+                       poses, bbox, patches, latest_wins=True)  # fmt: skip
         touched = self._tiles_of(sub, box)
         self._set_tiles(sid, sub, sub.tiles | touched)
         dirty |= touched
