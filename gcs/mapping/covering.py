@@ -22,10 +22,9 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from numba.typed import List as TypedList
 from numpy.typing import NDArray
 
-__all__ = ["BLOCK_CELLS", "compact_footprint", "cover_sweep", "footprint"]
+__all__ = ["BLOCK_CELLS", "FootprintPool", "compact_footprint", "cover_sweep", "footprint"]
 
 #: Side of a covering block in map cells (a block's mask is 16 x 16 = 256 bits).
 BLOCK_CELLS = 16
@@ -103,13 +102,75 @@ def compact_footprint(masks: NDArray[np.int64], bi0: int, bj0: int) -> NDArray[n
     return _compact(masks, int(bi0), int(bj0))  # type: ignore[no-any-return]
 
 
+class FootprintPool:
+    """The current footprint of every node in one growing array: node ``n``'s rows are
+    ``rows[offset[n] : offset[n] + count[n]]``. Replacing a footprint appends it; the pool is
+    compacted when more than half of it is stale."""
+
+    def __init__(self) -> None:
+        self.rows = np.zeros((1024, 6), dtype=np.int64)
+        self._offset = np.zeros(64, dtype=np.int64)
+        self._count = np.zeros(64, dtype=np.int64)
+        self._n = 0
+        self._end = 0
+        self._live = 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def offset(self) -> NDArray[np.int64]:
+        return self._offset[: self._n]
+
+    @property
+    def count(self) -> NDArray[np.int64]:
+        return self._count[: self._n]
+
+    def add_node(self) -> None:
+        """Room for one more node, with an empty footprint."""
+        n = self._n
+        if n == len(self._offset):
+            self._offset = np.concatenate([self._offset, np.zeros(n, dtype=np.int64)])
+            self._count = np.concatenate([self._count, np.zeros(n, dtype=np.int64)])
+        self._offset[n] = 0
+        self._count[n] = 0
+        self._n = n + 1
+
+    def set(self, n: int, rows: NDArray[np.int64]) -> None:
+        """Replace node ``n``'s footprint by ``rows`` ``(k, 6)``."""
+        k = len(rows)
+        self._live += k - int(self._count[n])
+        if self._end + k > len(self.rows):
+            if 2 * self._live < self._end:
+                self._compact()
+            if self._end + k > len(self.rows):
+                grown = np.zeros((max(2 * len(self.rows), self._end + k), 6), dtype=np.int64)
+                grown[: self._end] = self.rows[: self._end]
+                self.rows = grown
+        self.rows[self._end : self._end + k] = rows
+        self._offset[n] = self._end
+        self._count[n] = k
+        self._end += k
+
+    def _compact(self) -> None:
+        order = np.argsort(self.offset, kind="stable")
+        lens = self.count[order]
+        starts = self.offset[order]
+        total = int(lens.sum())
+        new_off = np.concatenate([[0], np.cumsum(lens)[:-1]]) if len(lens) else lens
+        src = np.repeat(starts - new_off, lens) + np.arange(total)
+        self.rows[:total] = self.rows[src]
+        self._offset[order] = new_off
+        self._end = total
+
+
 @numba.njit(cache=True, nogil=True)
-def _cover_sweep(order, feet, n_nodes, bi_lo, bj_lo, nbi, nbj):  # type: ignore[no-untyped-def]
+def _cover_sweep(order, rows, offset, count, n_nodes, bi_lo, bj_lo, nbi, nbj):  # type: ignore[no-untyped-def]
     kept = np.zeros(n_nodes, dtype=np.bool_)
     covered = np.zeros((max(nbi, 0), max(nbj, 0), 4), dtype=np.int64)
     for q in range(order.shape[0]):
         m = order[q]
-        f = feet[m]
+        f = rows[offset[m] : offset[m] + count[m]]
         redundant = True
         for k in range(f.shape[0]):
             bi = f[k, 0] - bi_lo
@@ -131,19 +192,25 @@ def _cover_sweep(order, feet, n_nodes, bi_lo, bj_lo, nbi, nbj):  # type: ignore[
 
 def cover_sweep(
     order: NDArray[np.int64],
-    feet: TypedList,  # type: ignore[type-arg]
-    n_nodes: int,
+    feet: FootprintPool,
     blocks: tuple[int, int, int, int],
 ) -> NDArray[np.bool_]:
-    """The covering: ``kept`` ``(n_nodes,)`` bool, False for every node that is the latest
+    """The covering: ``kept`` ``(nodes,)`` bool, False for every node that is the latest
     observer of no cell.
 
-    ``order``: indices of the nodes with a pose, latest first; ``feet``: typed list of every
-    node's :func:`footprint` (indexed by node); ``blocks`` ``(row_lo, row_hi, col_lo,
-    col_hi)`` block range holding every footprint of ``order``. Nodes not in ``order`` come
-    out False.
+    ``order``: indices of the nodes with a pose, latest first; ``feet``: every node's
+    :func:`footprint`; ``blocks`` ``(row_lo, row_hi, col_lo, col_hi)`` block range holding
+    every footprint of ``order``. Nodes not in ``order`` come out False.
     """
     bi_lo, bi_hi, bj_lo, bj_hi = blocks
     return _cover_sweep(  # type: ignore[no-any-return]
-        order, feet, n_nodes, bi_lo, bj_lo, bi_hi - bi_lo, bj_hi - bj_lo
+        order,
+        feet.rows,
+        feet.offset,
+        feet.count,
+        len(feet),
+        bi_lo,
+        bj_lo,
+        bi_hi - bi_lo,
+        bj_hi - bj_lo,
     )

@@ -49,7 +49,7 @@ import numpy as np
 from numba.typed import List as TypedList
 from numpy.typing import ArrayLike, NDArray
 
-from gcs.mapping.covering import BLOCK_CELLS, compact_footprint, cover_sweep
+from gcs.mapping.covering import BLOCK_CELLS, FootprintPool, compact_footprint, cover_sweep
 from gcs.mapping.visibility import LocalRaster, local_raster
 
 __all__ = [
@@ -414,7 +414,7 @@ class Rasterizer:
         self._times_arr = np.zeros(0)
         self._rect = np.zeros((0, 4))  # local raster rectangle in base: ox, oy, width, height
         self._feet_pose = np.zeros((0, 3))  # pose each footprint was sampled at (NaN: none)
-        self._feet = TypedList.empty_list(numba.types.int64[:, ::1])
+        self._feet = FootprintPool()
         self._sorted_n = -1
         self._sorted_keys = np.zeros(0, dtype=np.int64)
         self._sorted_idx = np.zeros(0, dtype=np.int64)
@@ -487,7 +487,7 @@ class Rasterizer:
         res = raster.resolution_m
         self._rect[n] = (*raster.origin_in_base, cols * res, rows * res)
         self._feet_pose[n] = np.nan
-        self._feet.append(np.zeros((0, 6), dtype=np.int64))
+        self._feet.add_node()
         self._n = n + 1
         sid = self._open.get(robot)
         if sid is None or len(self._submaps[sid].nodes) >= self.config.submap_nodes:
@@ -536,7 +536,7 @@ class Rasterizer:
                 bounds[2] // BLOCK_CELLS,
                 -(-bounds[3] // BLOCK_CELLS),
             )
-            kept = cover_sweep(order, self._feet, self._n, blocks)
+            kept = cover_sweep(order, self._feet, blocks)
         else:
             kept = posed.copy()
         stats = RasterStats(
@@ -764,7 +764,7 @@ class Rasterizer:
                 ox, oy = r.origin_in_base
                 _sample(patch, b[0], b[2], 0, r.cells, ox, oy, r.resolution_m, x, y, yaw, res, b,
                         _NO_PRIO, -1, masks)  # fmt: skip
-            self._feet[n] = compact_footprint(masks, bi0, bj0)
+            self._feet.set(n, compact_footprint(masks, bi0, bj0))
             self._feet_pose[n] = poses[n]
             if patch.nbytes <= budget:
                 patches[n] = patch
