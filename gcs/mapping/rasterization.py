@@ -229,7 +229,10 @@ def _sample(
     bi0 = bbox[0] // 16
     bj0 = bbox[2] // 16
     lin = np.empty(max(bbox[3] - bbox[2], 0), dtype=np.int64)
-    vals = np.empty(max(bbox[3] - bbox[2], 0), dtype=np.int8)
+    # the row's raster values, placed so that index 0 is a block's first column (pad cells
+    # before and after are 0): 16 values of a block are two uint64 words of the view
+    vals = np.zeros((max(bbox[3] - bbox[2], 0) // 16 + 3) * 16, dtype=np.uint8)
+    words = vals.view(np.uint64)
     for gi in range(max(bbox[0], row0), min(bbox[1], row0 + h)):
         dy = (gi + 0.5) * res - y
         a = s * dy - ox
@@ -248,27 +251,33 @@ def _sample(
             lc = min(max(int((c * dx + a) * inv), 0), cols - 1)
             lr = min(max(int((b - s * dx) * inv), 0), rows - 1)
             lin[q] = lr * cols + lc
+        pad = j0 & 15
+        for q in range(pad):
+            vals[q] = 0
         for q in range(n):
-            vals[q] = flat[lin[q]]
+            vals[pad + q] = flat[lin[q]]
+        for q in range(pad + n, pad + n + 16):
+            vals[q] = 0
         if footprint:
-            # this row's 16 bits of each block it crosses, OR-ed in once per block
+            # this row's 16 bits of each block it crosses: byte -> bit packing of the words
             bi = gi // 16 - bi0
             sub_row = gi - (gi // 16) * 16
             word = sub_row >> 2
-            shift = np.int64((sub_row & 3) * 16)
-            for bj in range(j0 // 16, (j1 - 1) // 16 + 1):
-                q_lo = max(j0, bj * 16) - j0
-                q_hi = min(j1, bj * 16 + 16) - j0
-                first = j0 - bj * 16
-                bits = np.int64(0)
-                for q in range(q_lo, q_hi):
-                    if vals[q] != 0:
-                        bits |= np.int64(1) << np.int64(first + q)
+            shift = np.uint64((sub_row & 3) * 16)
+            first_bj = j0 // 16
+            for k in range((pad + n + 15) // 16):
+                w0 = words[2 * k]
+                w1 = words[2 * k + 1]
+                w0 = (w0 | (w0 >> np.uint64(1))) & np.uint64(0x0101010101010101)
+                w1 = (w1 | (w1 >> np.uint64(1))) & np.uint64(0x0101010101010101)
+                bits = ((w0 * np.uint64(0x0102040810204080)) >> np.uint64(56)) | (
+                    ((w1 * np.uint64(0x0102040810204080)) >> np.uint64(56)) << np.uint64(8)
+                )
                 if bits:
-                    masks[bi, bj - bj0, word] |= bits << shift
+                    masks[bi, first_bj + k - bj0, word] |= np.int64(bits << shift)
         r = gi - row0
         for q in range(n):
-            v = vals[q]
+            v = vals[pad + q]
             if v == 0:
                 continue
             gj = j0 + q
