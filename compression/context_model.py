@@ -1,217 +1,545 @@
-"""Context-model coding of binary grids (paper 4.3.4, Fig. 9).
+"""Context-model coding of binary grids (paper 4.3.4, Fig. 9), with two extensions.
 
 Each pixel, in row-major order, is predicted from a *causal template*: pixels above it or to
-its left, already known to the decoder. The template's bits form a context index; a table
-gives ``P(pixel = 1 | context)`` and the binary range coder (:mod:`compression.binary_coder`)
-codes the pixel with it. Pixels outside the grid read as 0.
+its left, already known to the decoder (pixels outside the grid read as 0). The template's
+bits form a context; a table gives ``P(pixel = 1 | context)`` and the binary range coder
+(:mod:`compression.binary_coder`) codes the pixel with it.
 
-Probabilities are count-based with a prior (a Beta prior per context):
+Templates are three row spans ``(dx_min, dx_max)`` for rows ``-2, -1, 0`` (row 0 ends at
+``-1``). ``4`` is W, NW, N, NE (the paper's four neighbours); ``6``, ``9``, ``10`` (JBIG2's)
+and ``16`` widen it; a table has ``2**K`` entries per feature value. The spans are kept as
+shift registers, so a context costs two loads per pixel whatever its size.
+
+Two optional features multiply the context:
+
+* *extrapolation* (3 values): every pair of coded ones ``q`` before ``p`` within
+  :data:`EXTRAPOLATION_REACH` cells marks ``2p - q``, the next point of a straight line
+  through them, dotted or solid (walls seen by a LIDAR); the feature is ``min(marks, 2)``;
+* *reference* (3 values, inter-frame coding, issue 5): the previous grid warped into this one
+  (:mod:`compression.reference_warp`): 0 nothing within one cell, 1 a reference cell within
+  one cell, 2 a reference cell on this very cell.
+
+Probabilities are counts with a prior (a Beta prior per context):
 
     P(1 | c) = (n1[c] + s * prior1[c]) / (n0[c] + n1[c] + s)
 
-* *static*: ``prior1`` trained on a corpus, counts never updated (the paper's model);
-* *adaptive*: uniform ``prior1 = 1/2`` with a small strength (Krichevsky-Trofimov-like),
-  counts updated as pixels are coded;
-* *trained-adaptive*: trained ``prior1`` with strength ``s``, counts updated.
+* *static* (``adaptive=False``): ``prior1`` trained on a corpus, never updated (the paper's);
+* *adaptive*: uniform ``prior1 = 1/2`` with a small strength (Krichevsky-Trofimov-like);
+* *trained-adaptive*: trained ``prior1`` with strength ``s``, counts updated as pixels are coded.
 
-Templates (offsets ``(dy, dx)``; W = (0, -1), N = (-1, 0)): ``4`` is W, NW, N, NE (the paper's
-four neighbours); ``6``, ``9``, ``10`` and ``16`` widen it (``10`` is JBIG2's 10-pixel
-template). The table has ``2**len(template)`` entries.
+The update is the recursive form ``p += (bit - p) / (n + s + 1)`` with ``n`` capped at
+:data:`COUNT_CAP` (beyond it the estimate forgets slowly), in fixed point (probabilities Q24,
+integer arithmetic only: every platform codes the same bytes). Tables are never copied per grid:
+a generation stamp per context says whether its state belongs to the grid being coded.
 
-Complexity: O(pixels * template size), one compiled pass for encoding or decoding.
+Complexity: O(pixels + ones * ones within reach), one compiled pass for encoding, decoding or
+counting (training).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 
-from compression.binary_coder import (
-    PROB_ONE,
-    dec_bit,
-    dec_init,
-    enc_bit,
-    enc_finish,
-    enc_init,
-    max_encoded_bytes,
-)
+from compression.binary_coder import PROB_ONE, max_encoded_bytes
 
-__all__ = ["TEMPLATES", "ContextModel", "context_counts", "decode_context", "encode_context"]
+__all__ = [
+    "COUNT_CAP",
+    "EXTRAPOLATION_REACH",
+    "TEMPLATES",
+    "ContextModel",
+    "context_counts",
+    "decode_context",
+    "encode_context",
+]
 
-TEMPLATES: dict[str, tuple[tuple[int, int], ...]] = {
-    "4": ((0, -1), (-1, -1), (-1, 0), (-1, 1)),
-    "6": ((0, -1), (-1, -1), (-1, 0), (-1, 1), (0, -2), (-2, 0)),
-    "9": ((0, -1), (-1, -1), (-1, 0), (-1, 1), (0, -2), (-2, 0), (-1, -2), (-1, 2), (-2, -1)),
-    "10": (
-        (0, -1),
-        (0, -2),
-        (-1, -2),
-        (-1, -1),
-        (-1, 0),
-        (-1, 1),
-        (-1, 2),
-        (-2, -1),
-        (-2, 0),
-        (-2, 1),
-    ),  # fmt: skip
-    "16": (
-        (0, -1),
-        (0, -2),
-        (0, -3),
-        (0, -4),
-        (-1, -3),
-        (-1, -2),
-        (-1, -1),
-        (-1, 0),
-        (-1, 1),
-        (-1, 2),
-        (-1, 3),
-        (-2, -2),
-        (-2, -1),
-        (-2, 0),
-        (-2, 1),
-        (-2, 2),
-    ),  # fmt: skip
+#: Row spans ``(dx_min, dx_max)`` of rows -2, -1 and 0; ``(0, -1)`` is an empty span.
+TEMPLATES: dict[str, tuple[tuple[int, int], tuple[int, int], tuple[int, int]]] = {
+    "4": ((0, -1), (-1, 1), (-1, -1)),
+    "6": ((0, 0), (-1, 1), (-2, -1)),
+    "9": ((-1, 0), (-2, 2), (-2, -1)),
+    "10": ((-1, 1), (-2, 2), (-2, -1)),
+    "16": ((-2, 2), (-3, 3), (-4, -1)),
 }
+EXTRAPOLATION_REACH = 8  # cells: pairs of ones at most this far apart (each axis) extrapolate
+COUNT_CAP = 1023
+_PAD_TOP, _PAD_LEFT, _PAD_RIGHT = 2, 4, 4
+_N_EXTRA = 3  # values of each optional feature
 
 
-@dataclass(frozen=True)
+def template_size(template: str) -> int:
+    return sum(hi - lo + 1 for lo, hi in TEMPLATES[template])
+
+
+@dataclass(frozen=True, eq=False)
 class ContextModel:
-    """A template with its prior table, prior strength, and whether counts adapt."""
+    """A template, its optional features, the prior table, its strength, and whether counts
+    adapt. ``prior1`` has ``2**K * 3**(extrapolate + reference)`` entries."""
 
     template: str
-    prior1: np.ndarray  # float64 (2**K,): P(1 | context) before any counts
+    prior1: np.ndarray  # float64: P(1 | context) before any counts
     strength: float
     adaptive: bool
+    extrapolate: bool = False
+    reference: bool = False
+    _state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] = field(
+        init=False, repr=False
+    )
+    _lock: threading.Lock = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.template not in TEMPLATES:
             raise ValueError(f"unknown template {self.template!r}; known: {sorted(TEMPLATES)}")
-        k = len(TEMPLATES[self.template])
-        if self.prior1.shape != (1 << k,):
-            raise ValueError(f"prior1 must have shape ({1 << k},), got {self.prior1.shape}")
-        if not (np.all(self.prior1 > 0) and np.all(self.prior1 < 1)):
+        n = self.table_size(self.template, extrapolate=self.extrapolate, reference=self.reference)
+        prior = np.ascontiguousarray(self.prior1, dtype=np.float64)
+        if prior.shape != (n,):
+            raise ValueError(f"prior1 must have shape ({n},), got {prior.shape}")
+        if not (np.all(prior > 0) and np.all(prior < 1)):
             raise ValueError("prior1 entries must lie strictly between 0 and 1")
-        if not self.strength > 0:
+        if not (np.isfinite(self.strength) and self.strength > 0):
             raise ValueError(f"strength must be > 0, got {self.strength}")
+        object.__setattr__(self, "prior1", prior)
+        spans = np.array(TEMPLATES[self.template], dtype=np.int64)
+        one = float(1 << 24)
+        # fixed point Q24: the prior, and 1 / (n + s + 1) for the recursive count update
+        prior_q24 = np.clip(np.rint(prior * one), 1, one - 1).astype(np.int64)
+        recip = np.rint(one / (np.arange(COUNT_CAP + 1) + self.strength + 1.0)).astype(np.int64)
+        # per-context adaptive state: probability, count, generation (+ the current one)
+        state = (
+            spans,
+            prior_q24,
+            recip,
+            np.zeros(n, dtype=np.int64),
+            np.zeros(n, dtype=np.int32),
+            np.zeros(n + 1, dtype=np.int64),
+        )
+        object.__setattr__(self, "_state", state)
+        object.__setattr__(self, "_lock", threading.Lock())
+
+    @staticmethod
+    def table_size(template: str, *, extrapolate: bool = False, reference: bool = False) -> int:
+        return (1 << template_size(template)) * _N_EXTRA ** (int(extrapolate) + int(reference))
 
     @classmethod
-    def uniform(cls, template: str, *, strength: float = 0.4) -> ContextModel:
+    def uniform(cls, template: str, *, strength: float = 0.4, **features: bool) -> ContextModel:
         """An adaptive model that starts knowing nothing."""
         if template not in TEMPLATES:
             raise ValueError(f"unknown template {template!r}; known: {sorted(TEMPLATES)}")
-        k = len(TEMPLATES[template])
-        return cls(template, np.full(1 << k, 0.5), strength, True)
+        n = cls.table_size(template, **features)
+        return cls(template, np.full(n, 0.5), strength, True, **features)
 
-    @property
-    def offsets(self) -> np.ndarray:
-        return np.array(TEMPLATES[self.template], dtype=np.int64)
+    @classmethod
+    def trained(
+        cls,
+        template: str,
+        n0: np.ndarray,
+        n1: np.ndarray,
+        *,
+        strength: float,
+        adaptive: bool,
+        pseudo: float = 0.4,
+        **features: bool,
+    ) -> ContextModel:
+        """A model whose prior is the corpus frequency ``(n1 + a) / (n0 + n1 + 2a)``."""
+        prior = (np.asarray(n1, float) + pseudo) / (np.asarray(n0, float) + n1 + 2 * pseudo)
+        return cls(template, prior, strength, adaptive, **features)
 
 
-def _pad(grid: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, int, int]:
-    top = int(max(0, -offsets[:, 0].min()))
-    left = int(max(0, -offsets[:, 1].min()))
-    right = int(max(0, offsets[:, 1].max()))
-    h, w = grid.shape
-    padded = np.zeros((h + top, w + left + right), dtype=np.uint8)
-    padded[top:, left : left + w] = grid
-    return padded, top, left
+_NO_REF = np.zeros((1, 1), dtype=np.uint8)
+_NO_DATA = np.zeros(0, dtype=np.uint8)
+_NO_COUNTS = np.zeros(0, dtype=np.float64)
+_TOP = 1 << 24
+_ONE = 1 << 24  # probabilities of a one are fixed point Q24 in [1, 2**24 - 1]
+_MASK32 = 0xFFFFFFFF
 
 
 @numba.njit(cache=True, inline="always")
-def _context(p: np.ndarray, r: int, c: int, offsets: np.ndarray) -> int:
-    ctx = 0
-    for k in range(offsets.shape[0]):
-        ctx = (ctx << 1) | p[r + offsets[k, 0], c + offsets[k, 1]]
-    return ctx
+def _load_span(p, r, c, lo, hi):  # type: ignore[no-untyped-def]
+    v = 0
+    for dx in range(lo, hi + 1):
+        v = (v << 1) | p[r, c + dx]
+    return v
 
 
 @numba.njit(cache=True, inline="always")
-def _p0(n0: np.ndarray, n1: np.ndarray, prior1: np.ndarray, s: float, ctx: int) -> int:
-    p1 = (n1[ctx] + s * prior1[ctx]) / (n0[ctx] + n1[ctx] + s)
-    q = int((1.0 - p1) * PROB_ONE + 0.5)
-    return min(max(q, 1), PROB_ONE - 1)
+def _shift_low(low, cache, csize, pos, out):  # type: ignore[no-untyped-def]
+    """The range encoder's byte output with carry (as :mod:`compression.binary_coder`)."""
+    if low < 0xFF000000 or low >= (1 << 32):
+        carry = low >> 32
+        temp = cache
+        while True:
+            if pos >= 0:
+                out[pos] = (temp + carry) & 0xFF
+            pos += 1
+            temp = 0xFF
+            csize -= 1
+            if csize == 0:
+                break
+        cache = (low >> 24) & 0xFF
+    csize += 1
+    low = (low & 0x00FFFFFF) << 8
+    return low, cache, csize, pos
 
 
-@numba.njit(cache=True)
-def _encode(padded, top, left, h, w, offsets, prior1, s, adaptive, out):  # type: ignore[no-untyped-def]
-    n0 = np.zeros(prior1.shape[0], dtype=np.float64)
-    n1 = np.zeros(prior1.shape[0], dtype=np.float64)
-    state = np.empty(5, dtype=np.int64)
-    enc_init(state)
-    for r in range(top, top + h):
-        for c in range(left, left + w):
-            ctx = _context(padded, r, c, offsets)
-            bit = padded[r, c]
-            enc_bit(state, out, bit, _p0(n0, n1, prior1, s, ctx))
-            if adaptive:
+@numba.njit(cache=True, inline="always")
+def _q(p1):  # type: ignore[no-untyped-def]
+    """P(bit = 0) as the coder's 16-bit integer from P(1) in Q24, clamped to [1, 65535]."""
+    q = PROB_ONE - (p1 >> 8)
+    if q < 1:
+        return 1
+    if q > PROB_ONE - 1:
+        return PROB_ONE - 1
+    return q
+
+
+@numba.njit(cache=True, inline="always")
+def _extrapolate(ex, ones_r, ones_c, n_ones, r, c, h, w):  # type: ignore[no-untyped-def]
+    """A one at (r, c): mark 2p - q for every earlier one q within reach; returns n_ones."""
+    j = n_ones - 1
+    while j >= 0 and r - ones_r[j] <= 8:
+        dc = c - ones_c[j]
+        if -8 <= dc <= 8:
+            tr = 2 * r - ones_r[j]
+            tc = c + dc
+            if tr < h and 0 <= tc < w and ex[tr, tc] < 2:
+                ex[tr, tc] += 1
+        j -= 1
+    ones_r[n_ones] = r
+    ones_c[n_ones] = c
+    return n_ones + 1
+
+
+@numba.njit(cache=True, inline="always")
+def _kernel(  # type: ignore[no-untyped-def]
+    mode,  # 0 encode, 1 decode, 2 count
+    p,  # padded grid uint8 (PAD_TOP + h, PAD_LEFT + w + PAD_RIGHT); decode fills it
+    h,
+    w,
+    spans,
+    extrapolate,
+    refcode,  # uint8 (h, w) reference feature 0/1/2, or (1, 1) unused
+    use_ref,
+    prior,
+    adaptive,
+    recip,
+    prob,
+    cnt,
+    gen,
+    data,  # decode: the body
+    out,  # encode: output buffer
+    n0,  # count: per-context zeros
+    n1,  # count: per-context ones
+):
+    """One pass over the grid in row-major order. Pixels whose whole context is 0 (nothing
+    near, no extrapolation mark, no reference) run through a tight loop that keeps context
+    0's state in registers: the same model and the same bytes, several times faster on
+    sparse grids."""
+    lo2, hi2 = spans[0, 0], spans[0, 1]
+    lo1, hi1 = spans[1, 0], spans[1, 1]
+    lo0, hi0 = spans[2, 0], spans[2, 1]
+    k2 = hi2 - lo2 + 1
+    k1 = hi1 - lo1 + 1
+    k0 = hi0 - lo0 + 1
+    m2 = (1 << k2) - 1
+    m1 = (1 << k1) - 1
+    m0 = (1 << k0) - 1
+    sh2 = k1 + k0
+    ngen = gen.shape[0] - 1
+    g = gen[ngen] + 1
+    gen[ngen] = g
+    cap = recip.shape[0] - 1
+    ex = np.zeros((h, w), dtype=np.uint8) if extrapolate else np.zeros((1, 1), dtype=np.uint8)
+    ones_r = np.empty(h * w if extrapolate else 1, dtype=np.int32)
+    ones_c = np.empty(h * w if extrapolate else 1, dtype=np.int32)
+    n_ones = 0
+    # encoder state
+    low = 0
+    rng = _MASK32
+    cache = 0
+    csize = 1
+    pos = -1  # the first byte (always 0) is not written
+    # decoder state
+    code = 0
+    dpos = 4
+    if mode == 1:
+        for i in range(4):
+            code = (code << 8) | (data[i] if i < data.shape[0] else 0)
+    nd = data.shape[0]
+    T = 2
+    L = 4
+    for r in range(h):
+        pr = r + T
+        reg2 = _load_span(p, pr - 2, L - 1, lo2, hi2) if k2 > 0 else 0
+        reg1 = _load_span(p, pr - 1, L - 1, lo1, hi1) if k1 > 0 else 0
+        reg0 = 0
+        c = 0
+        while c < w:
+            pc = c + L
+            if k2 > 0:
+                reg2 = ((reg2 << 1) | p[pr - 2, pc + hi2]) & m2
+            if k1 > 0:
+                reg1 = ((reg1 << 1) | p[pr - 1, pc + hi1]) & m1
+            ctx = (reg2 << sh2) | (reg1 << k0) | reg0
+            if extrapolate:
+                ctx = ctx * 3 + ex[r, c]
+            if use_ref:
+                ctx = ctx * 3 + refcode[r, c]
+            bit = 0
+            p1 = 0
+            n = 0
+            if ctx == 0:
+                # quiet run: context 0 until a one is coded or something enters the context
+                if mode != 2:
+                    if adaptive:
+                        if gen[0] != g:
+                            gen[0] = g
+                            prob[0] = prior[0]
+                            cnt[0] = 0
+                        p1 = prob[0]
+                        n = cnt[0]
+                    else:
+                        p1 = prior[0]
+                        n = 0
+                while True:
+                    if mode == 2:
+                        bit = p[pr, pc]
+                        if bit:
+                            n1[0] += 1.0
+                        else:
+                            n0[0] += 1.0
+                    else:
+                        q = _q(p1)
+                        if mode == 0:
+                            bit = p[pr, pc]
+                            bound = (rng >> 16) * q
+                            if bit == 0:
+                                rng = bound
+                            else:
+                                low += bound
+                                rng -= bound
+                            while rng < _TOP:
+                                rng = (rng << 8) & _MASK32
+                                low, cache, csize, pos = _shift_low(low, cache, csize, pos, out)
+                        else:
+                            bound = (rng >> 16) * q
+                            if code < bound:
+                                rng = bound
+                                bit = 0
+                            else:
+                                code -= bound
+                                rng -= bound
+                                bit = 1
+                            while rng < _TOP:
+                                byte = data[dpos] if dpos < nd else 0
+                                dpos += 1
+                                rng = (rng << 8) & _MASK32
+                                code = ((code << 8) | byte) & _MASK32
+                            p[pr, pc] = bit
+                        # (bit - p1) * recip as two branches: a predicted branch instead of a
+                        # data dependency keeps the decoder's loop short; same arithmetic
+                        if adaptive:
+                            if bit:
+                                p1 = p1 + (((_ONE - p1) * recip[n]) >> 24)
+                            else:
+                                p1 = p1 - ((p1 * recip[n]) >> 24)
+                            if n < cap:
+                                n += 1
+                    if bit:
+                        break
+                    if c + 1 >= w:
+                        break
+                    if k2 > 0 and p[pr - 2, pc + 1 + hi2]:
+                        break
+                    if k1 > 0 and p[pr - 1, pc + 1 + hi1]:
+                        break
+                    if extrapolate and ex[r, c + 1]:
+                        break
+                    if use_ref and refcode[r, c + 1]:
+                        break
+                    c += 1
+                    pc += 1
+                if mode != 2 and adaptive:
+                    prob[0] = p1
+                    cnt[0] = n
+                # the registers hold the all-zero window of column c
+                reg2 = 0
+                reg1 = 0
+            elif mode == 2:
+                bit = p[pr, pc]
                 if bit:
                     n1[ctx] += 1.0
                 else:
                     n0[ctx] += 1.0
-    return enc_finish(state, out)
-
-
-@numba.njit(cache=True)
-def _decode(data, padded, top, left, h, w, offsets, prior1, s, adaptive):  # type: ignore[no-untyped-def]
-    n0 = np.zeros(prior1.shape[0], dtype=np.float64)
-    n1 = np.zeros(prior1.shape[0], dtype=np.float64)
-    state = np.empty(3, dtype=np.int64)
-    dec_init(state, data)
-    for r in range(top, top + h):
-        for c in range(left, left + w):
-            ctx = _context(padded, r, c, offsets)
-            bit = dec_bit(state, data, _p0(n0, n1, prior1, s, ctx))
-            padded[r, c] = bit
-            if adaptive:
-                if bit:
-                    n1[ctx] += 1.0
-                else:
-                    n0[ctx] += 1.0
-
-
-@numba.njit(cache=True)
-def _count(padded, top, left, h, w, offsets, n0, n1):  # type: ignore[no-untyped-def]
-    for r in range(top, top + h):
-        for c in range(left, left + w):
-            ctx = _context(padded, r, c, offsets)
-            if padded[r, c]:
-                n1[ctx] += 1.0
             else:
-                n0[ctx] += 1.0
+                if adaptive:
+                    if gen[ctx] != g:
+                        gen[ctx] = g
+                        prob[ctx] = prior[ctx]
+                        cnt[ctx] = 0
+                    p1 = prob[ctx]
+                else:
+                    p1 = prior[ctx]
+                q = _q(p1)
+                if mode == 0:
+                    bit = p[pr, pc]
+                    bound = (rng >> 16) * q
+                    if bit == 0:
+                        rng = bound
+                    else:
+                        low += bound
+                        rng -= bound
+                    while rng < _TOP:
+                        rng = (rng << 8) & _MASK32
+                        low, cache, csize, pos = _shift_low(low, cache, csize, pos, out)
+                else:
+                    bound = (rng >> 16) * q
+                    if code < bound:
+                        rng = bound
+                        bit = 0
+                    else:
+                        code -= bound
+                        rng -= bound
+                        bit = 1
+                    while rng < _TOP:
+                        byte = data[dpos] if dpos < nd else 0
+                        dpos += 1
+                        rng = (rng << 8) & _MASK32
+                        code = ((code << 8) | byte) & _MASK32
+                    p[pr, pc] = bit
+                if adaptive:
+                    n = cnt[ctx]
+                    if bit:
+                        prob[ctx] = p1 + (((_ONE - p1) * recip[n]) >> 24)
+                    else:
+                        prob[ctx] = p1 - ((p1 * recip[n]) >> 24)
+                    if n < cap:
+                        cnt[ctx] = n + 1
+            reg0 = ((reg0 << 1) | bit) & m0
+            if extrapolate and bit:
+                n_ones = _extrapolate(ex, ones_r, ones_c, n_ones, r, c, h, w)
+            c += 1
+    if mode != 0:
+        return 0
+    # termination: the value in [low, low + range) with the most trailing zero bytes
+    for k in range(4, -1, -1):
+        unit = 1 << (8 * k)
+        v = ((low + unit - 1) // unit) * unit
+        if v < low + rng:
+            low = v
+            break
+    for _ in range(5):
+        low, cache, csize, pos = _shift_low(low, cache, csize, pos, out)
+    while pos > 0 and out[pos - 1] == 0:
+        pos -= 1
+    return pos
 
 
-def encode_context(grid: np.ndarray, model: ContextModel) -> bytes:
-    """Code a binary ``(height, width)`` grid with ``model`` (no header: see the registry)."""
-    g = np.ascontiguousarray(grid, dtype=np.uint8)
-    offsets = model.offsets
-    padded, top, left = _pad(g, offsets)
-    h, w = g.shape
-    out = np.zeros(max_encoded_bytes(h * w), dtype=np.uint8)
-    n = _encode(padded, top, left, h, w, offsets, model.prior1, model.strength, model.adaptive, out)
+@numba.njit(cache=True)
+def _encode_kernel(p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, out):  # type: ignore[no-untyped-def]
+    return _kernel(
+        0, p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, _NO_DATA, out,
+        _NO_COUNTS, _NO_COUNTS
+    )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _decode_kernel(p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, data):  # type: ignore[no-untyped-def]
+    return _kernel(
+        1, p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, data, _NO_DATA,
+        _NO_COUNTS, _NO_COUNTS
+    )  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _count_kernel(p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, n0, n1):  # type: ignore[no-untyped-def]
+    return _kernel(
+        2, p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, _NO_DATA,
+        _NO_DATA, n0, n1
+    )  # fmt: skip
+
+
+def _padded(h: int, w: int) -> np.ndarray:
+    return np.zeros((h + _PAD_TOP, w + _PAD_LEFT + _PAD_RIGHT), dtype=np.uint8)
+
+
+def _call(
+    model: ContextModel,
+    mode: int,
+    p: np.ndarray,
+    h: int,
+    w: int,
+    refcode: np.ndarray | None,
+    data: np.ndarray,
+    out: np.ndarray,
+    n0: np.ndarray,
+    n1: np.ndarray,
+) -> int:
+    if model.reference and refcode is None:
+        raise ValueError("this model codes against a reference: refcode is required")
+    spans, prior_q24, recip, prob, cnt, gen = model._state
+    rc = _NO_REF if refcode is None else np.ascontiguousarray(refcode, dtype=np.uint8)
+    if model.reference and rc.shape != (h, w):
+        raise ValueError(f"refcode must have shape {(h, w)}, got {rc.shape}")
+    args = (p, h, w, spans, model.extrapolate, rc, model.reference, prior_q24)
+    state = (model.adaptive, recip, prob, cnt, gen)
+    with model._lock:  # the adaptive state is shared by calls on this model
+        if mode == 0:
+            return int(_encode_kernel(*args, *state, out))
+        if mode == 1:
+            return int(_decode_kernel(*args, *state, data))
+        return int(_count_kernel(*args, *state, n0, n1))
+
+
+_EMPTY_U8 = np.zeros(0, dtype=np.uint8)
+_EMPTY_F8 = np.zeros(0, dtype=np.float64)
+
+
+def encode_context(
+    grid: np.ndarray, model: ContextModel, refcode: np.ndarray | None = None
+) -> bytes:
+    """Code a binary ``(height, width)`` grid with ``model`` (no header: see the registry).
+    ``refcode``: the reference feature per cell (models with ``reference=True``)."""
+    h, w = grid.shape
+    p = _padded(h, w)
+    p[_PAD_TOP:, _PAD_LEFT : _PAD_LEFT + w] = grid
+    out = np.empty(max_encoded_bytes(h * w), dtype=np.uint8)
+    n = _call(model, 0, p, h, w, refcode, _EMPTY_U8, out, _EMPTY_F8, _EMPTY_F8)
     return out[:n].tobytes()
 
 
-def decode_context(data: bytes, height: int, width: int, model: ContextModel) -> np.ndarray:
-    """Decode a grid coded by :func:`encode_context` with the same model."""
-    offsets = model.offsets
-    padded, top, left = _pad(np.zeros((height, width), dtype=np.uint8), offsets)
+def decode_context(
+    data: bytes, height: int, width: int, model: ContextModel, refcode: np.ndarray | None = None
+) -> np.ndarray:
+    """Decode a grid coded by :func:`encode_context` with the same model (and reference).
+    Any bytes decode to some grid of the given size: corruption is not detected here."""
+    p = _padded(height, width)
     buf = np.frombuffer(data, dtype=np.uint8)
-    _decode(
-        buf, padded, top, left, height, width, offsets, model.prior1, model.strength, model.adaptive
-    )
-    return padded[top:, left : left + width].astype(bool)
+    _call(model, 1, p, height, width, refcode, buf, _EMPTY_U8, _EMPTY_F8, _EMPTY_F8)
+    return p[_PAD_TOP:, _PAD_LEFT : _PAD_LEFT + width].astype(bool)
 
 
-def context_counts(grids: list[np.ndarray], template: str) -> tuple[np.ndarray, np.ndarray]:
-    """Counts ``(n0, n1)`` of each context over a corpus of grids (for training priors)."""
-    offsets = np.array(TEMPLATES[template], dtype=np.int64)
-    n0 = np.zeros(1 << len(offsets), dtype=np.float64)
-    n1 = np.zeros_like(n0)
-    for grid in grids:
-        g = np.ascontiguousarray(grid, dtype=np.uint8)
-        padded, top, left = _pad(g, offsets)
-        _count(padded, top, left, g.shape[0], g.shape[1], offsets, n0, n1)
+def context_counts(
+    grids: list[np.ndarray],
+    template: str,
+    *,
+    extrapolate: bool = False,
+    refcodes: list[np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Counts ``(n0, n1)`` of each context over a corpus of grids (training the priors);
+    ``refcodes`` (one per grid) trains a ``reference`` model."""
+    reference = refcodes is not None
+    model = ContextModel.uniform(template, extrapolate=extrapolate, reference=reference)
+    n = model.prior1.shape[0]
+    n0 = np.zeros(n, dtype=np.float64)
+    n1 = np.zeros(n, dtype=np.float64)
+    for k, grid in enumerate(grids):
+        g = np.asarray(grid, dtype=np.uint8)
+        h, w = g.shape
+        p = _padded(h, w)
+        p[_PAD_TOP:, _PAD_LEFT : _PAD_LEFT + w] = g
+        rc = refcodes[k] if refcodes is not None else None
+        _call(model, 2, p, h, w, rc, _EMPTY_U8, _EMPTY_U8, n0, n1)
     return n0, n1
