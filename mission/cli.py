@@ -38,6 +38,16 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=int, help="seed of the scripted goals")
     run.add_argument("--quiet", action="store_true", help="no live table, only the summary")
 
+    codec = sub.add_parser("codec", help="terrain-grid codecs: record a corpus, train the models")
+    codec_sub = codec.add_subparsers(dest="codec_command", metavar="ACTION", required=True)
+    record = codec_sub.add_parser("record", help="record grids from simulator runs (a corpus)")
+    record.add_argument("--split", choices=("train", "test"), default="train")
+    record.add_argument("--out", metavar="NPZ", help="corpus file (default: the shipped one)")
+    train = codec_sub.add_parser("train", help="train the models and write the model file")
+    train.add_argument("--corpus", metavar="NPZ", help="training corpus (default: shipped)")
+    train.add_argument("--out", metavar="NPZ", help="model file (default: the shipped one)")
+    train.add_argument("--version", type=int, help="model version (default: shipped + 1)")
+
     for name, what in (
         ("sim", "the simulator server: world, robots, sensors, rules, radio over zenoh"),
         ("robot", "one robot node, fed by a simulator (or hardware) over zenoh"),
@@ -135,6 +145,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser()
     # Unbuilt subcommands take whatever options they will have (``magic robot --id 3``).
     args, unknown = parser.parse_known_args(argv)
+    if args.command == "codec":
+        if unknown:
+            parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+        from mission.codec_training import codec_command
+
+        return codec_command(args)
     if args.command in ("bench", "run"):
         if unknown:
             parser.error(f"unrecognized arguments: {' '.join(unknown)}")
