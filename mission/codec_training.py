@@ -16,6 +16,7 @@ the versioned model file the package ships. Train and test corpora come from dif
 
 from __future__ import annotations
 
+import argparse
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -415,3 +416,39 @@ def train_models(
         "strengths": chosen,
     }
     return ModelFile(version, tuple(models), meta)
+
+
+# ---------------------------------------------------------------------------- command
+
+
+def codec_command(args: argparse.Namespace) -> int:
+    """``magic codec record [--split train|test] [--out NPZ]`` and ``magic codec train
+    [--corpus NPZ] [--out NPZ] [--version N]`` (defaults: the shipped files)."""
+    import sys
+
+    from compression.model_file import MODEL_FILE, load_model_file, save_model_file
+
+    def say(msg: str) -> None:
+        print(msg, file=sys.stderr, flush=True)
+
+    if args.codec_command == "record":
+        runs = TRAIN_RUNS if args.split == "train" else TEST_RUNS
+        out = Path(args.out) if args.out else CORPUS_DIR / f"terrain_{args.split}.npz"
+        corpus = record_corpus(runs, progress=say)
+        save_corpus(corpus, out)
+        say(f"wrote {len(corpus)} grids of {len(corpus.runs)} robot runs to {out}")
+        return 0
+    corpus_path = Path(args.corpus) if args.corpus else CORPUS_DIR / "terrain_train.npz"
+    out = Path(args.out) if args.out else MODEL_FILE
+    try:
+        corpus = load_corpus(corpus_path)
+        version = args.version
+        if version is None:
+            version = load_model_file(MODEL_FILE).version + 1 if MODEL_FILE.is_file() else 1
+        model_file = train_models(corpus, version=version, progress=say)
+    except ValueError as err:
+        say(f"magic codec train: {err}")
+        return 2
+    save_model_file(out, model_file)
+    say(f"wrote model version {version} ({len(model_file.models)} models) to {out}")
+    return 0
