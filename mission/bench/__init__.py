@@ -31,6 +31,7 @@ SUITES: dict[str, str] = {
     "sim": "mission.bench.sim",
     "robot": "mission.bench.robot",
     "loops": "mission.bench.loops",
+    "compression": "mission.bench.compression",
 }
 
 
