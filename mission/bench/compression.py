@@ -1,0 +1,189 @@
+"""``magic bench compression``: terrain-grid codecs on the held-out corpus (issue 5; paper
+4.3.4, Fig. 9-10).
+
+The corpus ``compression/corpus/terrain_test.npz`` holds the vertical-surface grids of every
+pose node of whole robot teams in worlds the models were *not* trained on (see
+:mod:`mission.codec_training`). Each grid is coded as the robot node sends it: cropped to its
+occupied bounding box, with its origin; inter-frame codecs code it against the previous node's
+grid (a key frame for a sequence's first node). Bytes are whole streams (header + body).
+
+Metrics:
+
+- ``bytes_<codec>`` for every registered codec; ``bytes_zlib``, ``bytes_rle``,
+  ``bytes_rle_zlib``, ``bytes_magic4`` (the paper's coder: 4 neighbours, static trained
+  probabilities), ``bytes_best_intra`` / ``bytes_best_inter`` (the intra / inter-frame codec
+  with the fewest bytes; the progress log names them);
+- ``ratio_intra_vs_magic4`` (target <= 0.75), ``ratio_inter_vs_magic4`` (target <= 0.5),
+  ``ratio_magic4_vs_zlib`` (the paper: 0.35);
+- ``roundtrip_exact``: 1 if every codec decoded every grid exactly, else 0;
+- ``grids_per_s``: grids encoded plus decoded per second on one core with the default codec
+  (median of repeats over the corpus, wall clock; ``grids_per_s_cpu`` the same in process CPU
+  time, less sensitive to a busy machine); ``grids_per_s_<codec>`` for the best intra and
+  ``magic4``;
+- ``mean_grid_pixels``: mean cells of the cropped grids; ``inter_frame_frac``: grids that had
+  a reference;
+- ``uncropped_bytes_<codec>``: the same grids sent whole (150 x 150 around the robot) instead
+  of cropped, for the default codec and ``magic4``: does the crop pay for its header?
+
+Writes the Fig. 10 plot (bytes per grid by method) to ``OUT_DIR/fig10_bytes_per_grid.png``.
+"""
+
+from __future__ import annotations
+
+__all__ = ["OUT_DIR", "run"]
+
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from compression import (
+    DEFAULT_CODEC,
+    CodecError,
+    GridReference,
+    codec_names,
+    decode_grid,
+    encode_grid,
+    origin_cells_of,
+)
+from mission.bench import BenchError
+from mission.codec_training import CORPUS_DIR, CodingCase, coding_cases, load_corpus
+
+OUT_DIR = Path(tempfile.gettempdir()) / "magic-bench" / "compression"
+PAPER_BYTES = {"zlib": 378.0, "rle_zlib": 300.0, "magic4": 132.0}  # Fig. 10 (rle_zlib: 132/0.44)
+
+
+def _code_all(codec: str, cases: list[CodingCase]) -> tuple[float, bool]:
+    """Mean stream bytes and whether every grid came back exactly."""
+    total = 0
+    exact = True
+    for c in cases:
+        data = encode_grid(c.grid, codec, origin_cells=c.origin_cells, reference=c.reference)
+        total += len(data)
+        try:
+            out = decode_grid(data, reference=c.reference)
+        except CodecError:
+            exact = False
+            continue
+        exact &= out.shape == c.grid.shape and bool(np.array_equal(out, c.grid))
+    return total / max(len(cases), 1), exact
+
+
+def _speed(codec: str, cases: list[CodingCase], repeats: int) -> tuple[float, float]:
+    """Grids per second (encode + decode), median wall and median process CPU time."""
+
+    def once() -> None:
+        for c in cases:
+            data = encode_grid(c.grid, codec, origin_cells=c.origin_cells, reference=c.reference)
+            decode_grid(data, reference=c.reference)
+
+    once()  # warm-up: compiled kernels and caches
+    wall, cpu = [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        once()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    n = len(cases)
+    return n / statistics.median(wall), n / statistics.median(cpu)
+
+
+def _uncropped(
+    cases: list[CodingCase], corpus_grids: np.ndarray, base: tuple[int, int]
+) -> list[CodingCase]:
+    """The same grids sent whole, the reference being the previous whole grid."""
+    out: list[CodingCase] = []
+    for c, full in zip(cases, corpus_grids, strict=True):
+        ref = None
+        if c.reference is not None:
+            prev = out[-1]
+            ref = GridReference(
+                c.reference.node_index,
+                prev.grid,
+                base,
+                c.reference.reference_from_current,
+                c.reference.resolution_m,
+            )
+        out.append(CodingCase(full, base, ref, c.run))
+    return out
+
+
+def _plot(path: Path, bars: list[tuple[str, float, float | None]]) -> None:
+    """A bar chart like the paper's Fig. 10: bytes per grid by method (paper's in grey)."""
+    width, height, left, bottom, top = 960, 520, 70, 90, 50
+    img = np.full((height, width, 3), 255, np.uint8)
+    vmax = max(max(b, p or 0.0) for _, b, p in bars) * 1.1
+    n = len(bars)
+    slot = (width - left - 20) / n
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    cv2.putText(img, "Terrain-grid compression: bytes per grid (held-out worlds)", (left, 30),
+                font, 0.7, (0, 0, 0), 2, cv2.LINE_AA)  # fmt: skip
+    for k in range(0, int(vmax) + 1, 20 if vmax < 200 else 50):
+        y = int(height - bottom - k / vmax * (height - bottom - top))
+        cv2.line(img, (left, y), (width - 20, y), (225, 225, 225), 1)
+        cv2.putText(img, str(k), (10, y + 5), font, 0.45, (80, 80, 80), 1, cv2.LINE_AA)
+    for i, (name, value, paper) in enumerate(bars):
+        x0 = int(left + i * slot + slot * 0.2)
+        x1 = int(left + (i + 1) * slot - slot * 0.2)
+        y = int(height - bottom - value / vmax * (height - bottom - top))
+        colour = (200, 120, 40) if name.startswith(("inter", "intra", "ctx")) else (90, 90, 200)
+        cv2.rectangle(img, (x0, y), (x1, height - bottom), colour, -1)
+        cv2.putText(img, f"{value:.1f}", (x0, y - 6), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(img, name, (x0 - 5, height - bottom + 20), font, 0.45, (0, 0, 0), 1,
+                    cv2.LINE_AA)  # fmt: skip
+        if paper is not None:
+            cv2.putText(img, f"paper {paper:.0f}", (x0 - 5, height - bottom + 40), font, 0.4,
+                        (120, 120, 120), 1, cv2.LINE_AA)  # fmt: skip
+    cv2.putText(img, "blue: baselines and the paper's coder (magic4); orange: this build's codecs",
+                (left, height - 15), font, 0.45, (60, 60, 60), 1, cv2.LINE_AA)  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), img)
+
+
+def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    path = CORPUS_DIR / "terrain_test.npz"
+    if not path.is_file():
+        raise BenchError(f"held-out corpus {path} not found (magic codec record --split test)")
+    corpus = load_corpus(path)
+    cases = coding_cases(corpus)
+    progress(f"{len(cases)} held-out grids from {len(corpus.runs)} robot runs")
+    out: dict[str, float] = {}
+    exact = True
+    for codec in codec_names():
+        out[f"bytes_{codec}"], ok = _code_all(codec, cases)
+        exact &= ok
+    intra = min(codec_names(inter=False), key=lambda c: out[f"bytes_{c}"])
+    inter = min(codec_names(inter=True), key=lambda c: out[f"bytes_{c}"])
+    progress(f"best intra: {intra}, best inter-frame: {inter}, default: {DEFAULT_CODEC}")
+    out["bytes_best_intra"] = out[f"bytes_{intra}"]
+    out["bytes_best_inter"] = out[f"bytes_{inter}"]
+    out["ratio_intra_vs_magic4"] = out["bytes_best_intra"] / out["bytes_magic4"]
+    out["ratio_inter_vs_magic4"] = out["bytes_best_inter"] / out["bytes_magic4"]
+    out["ratio_magic4_vs_zlib"] = out["bytes_magic4"] / out["bytes_zlib"]
+    out["roundtrip_exact"] = 1.0 if exact else 0.0
+    out["mean_grid_pixels"] = float(np.mean([c.grid.size for c in cases]))
+    out["inter_frame_frac"] = float(np.mean([c.reference is not None for c in cases]))
+
+    repeats = 3 if quick else 7
+    progress(f"speed: {DEFAULT_CODEC}, {intra}, magic4 ({repeats} repeats)")
+    out["grids_per_s"], out["grids_per_s_cpu"] = _speed(DEFAULT_CODEC, cases, repeats)
+    for codec in dict.fromkeys((intra, "magic4")):
+        out[f"grids_per_s_{codec}"] = _speed(codec, cases, repeats)[0]
+
+    base = origin_cells_of(corpus.origin_in_base, corpus.resolution_m)
+    whole = _uncropped(cases, corpus.grids, base)
+    for codec in dict.fromkeys((DEFAULT_CODEC, "magic4")):
+        out[f"uncropped_bytes_{codec}"] = _code_all(codec, whole)[0]
+
+    bars = [(c, out[f"bytes_{c}"], PAPER_BYTES.get(c)) for c in ("rle", "zlib", "rle_zlib")]
+    bars += [(c, out[f"bytes_{c}"], PAPER_BYTES.get(c)) for c in ("magic4", "magic10")]
+    bars += [(intra, out["bytes_best_intra"], None), (inter, out["bytes_best_inter"], None)]
+    figure = OUT_DIR / "fig10_bytes_per_grid.png"
+    _plot(figure, bars)
+    progress(f"wrote {figure}")
+    first = {k: out.pop(k) for k in list(out) if not k.startswith(("bytes_", "grids_", "unc"))}
+    return {**first, **out}
