@@ -85,9 +85,7 @@ class ContextModel:
     adaptive: bool
     extrapolate: bool = False
     reference: bool = False
-    _state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] = field(
-        init=False, repr=False
-    )
+    _state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = field(init=False, repr=False)
     _lock: threading.Lock = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -105,17 +103,11 @@ class ContextModel:
         spans = np.array(TEMPLATES[self.template], dtype=np.int64)
         one = float(1 << 24)
         # fixed point Q24: the prior, and 1 / (n + s + 1) for the recursive count update
-        prior_q24 = np.clip(np.rint(prior * one), 1, one - 1).astype(np.int64)
         recip = np.rint(one / (np.arange(COUNT_CAP + 1) + self.strength + 1.0)).astype(np.int64)
-        # per-context adaptive state: probability, count, generation (+ the current one)
-        state = (
-            spans,
-            prior_q24,
-            recip,
-            np.zeros(n, dtype=np.int64),
-            np.zeros(n, dtype=np.int32),
-            np.zeros(n + 1, dtype=np.int64),
-        )
+        # one 16-byte row per context (one cache line): probability, count, generation, prior
+        table = np.zeros((n, 4), dtype=np.int32)
+        table[:, 3] = np.clip(np.rint(prior * one), 1, one - 1)
+        state = (spans, recip, table, np.zeros(1, dtype=np.int64))
         object.__setattr__(self, "_state", state)
         object.__setattr__(self, "_lock", threading.Lock())
 
@@ -222,12 +214,10 @@ def _kernel(  # type: ignore[no-untyped-def]
     extrapolate,
     refcode,  # uint8 (h, w) reference feature 0/1/2, or (1, 1) unused
     use_ref,
-    prior,
     adaptive,
     recip,
-    prob,
-    cnt,
-    gen,
+    tab,  # int32 (contexts, 4): probability of a one (Q24), count, generation, prior (Q24)
+    gbox,  # int64 (1,): the last generation used
     data,  # decode: the body
     out,  # encode: output buffer
     n0,  # count: per-context zeros
@@ -247,9 +237,12 @@ def _kernel(  # type: ignore[no-untyped-def]
     m1 = (1 << k1) - 1
     m0 = (1 << k0) - 1
     sh2 = k1 + k0
-    ngen = gen.shape[0] - 1
-    g = gen[ngen] + 1
-    gen[ngen] = g
+    g = gbox[0] + 1
+    if g > 0x7FFFFFF0:  # the stamps are int32: start over (every 2**31 grids)
+        for i in range(tab.shape[0]):
+            tab[i, 2] = 0
+        g = 1
+    gbox[0] = g
     cap = recip.shape[0] - 1
     ex = np.zeros((h, w), dtype=np.uint8) if extrapolate else np.zeros((1, 1), dtype=np.uint8)
     ones_r = np.empty(h * w if extrapolate else 1, dtype=np.int32)
@@ -291,55 +284,54 @@ def _kernel(  # type: ignore[no-untyped-def]
             p1 = 0
             n = 0
             if ctx == 0:
+                start_c = c
                 # quiet run: context 0 until a one is coded or something enters the context
                 if mode != 2:
                     if adaptive:
-                        if gen[0] != g:
-                            gen[0] = g
-                            prob[0] = prior[0]
-                            cnt[0] = 0
-                        p1 = prob[0]
-                        n = cnt[0]
+                        if tab[0, 2] != g:
+                            tab[0, 2] = g
+                            tab[0, 0] = tab[0, 3]
+                            tab[0, 1] = 0
+                        p1 = np.int64(tab[0, 0])
+                        n = np.int64(tab[0, 1])
                     else:
-                        p1 = prior[0]
+                        p1 = np.int64(tab[0, 3])
                         n = 0
-                while True:
-                    if mode == 2:
-                        bit = p[pr, pc]
-                        if bit:
-                            n1[0] += 1.0
-                        else:
-                            n0[0] += 1.0
+                # the quiet extent: columns c .. end - 1 stay in context 0 while they are 0
+                end = c + 1
+                while end < w:
+                    if k2 > 0 and p[pr - 2, end + L + hi2]:
+                        break
+                    if k1 > 0 and p[pr - 1, end + L + hi1]:
+                        break
+                    if extrapolate and ex[r, end]:
+                        break
+                    if use_ref and refcode[r, end]:
+                        break
+                    end += 1
+                if mode == 2:
+                    while c < end - 1 and not p[pr, c + L]:
+                        c += 1
+                    bit = p[pr, c + L]
+                    if bit:
+                        n1[0] += 1.0
+                        n0[0] += c - start_c
                     else:
-                        q = _q(p1)
-                        if mode == 0:
-                            bit = p[pr, pc]
-                            bound = (rng >> 16) * q
-                            if bit == 0:
-                                rng = bound
-                            else:
-                                low += bound
-                                rng -= bound
-                            while rng < _TOP:
-                                rng = (rng << 8) & _MASK32
-                                low, cache, csize, pos = _shift_low(low, cache, csize, pos, out)
+                        n0[0] += c - start_c + 1
+                elif mode == 0:
+                    # zeros up to the first one (or the extent's end), then that one
+                    while True:
+                        bit = p[pr, c + L]
+                        bound = (rng >> 16) * _q(p1)
+                        if bit:
+                            low += bound
+                            rng -= bound
                         else:
-                            bound = (rng >> 16) * q
-                            if code < bound:
-                                rng = bound
-                                bit = 0
-                            else:
-                                code -= bound
-                                rng -= bound
-                                bit = 1
-                            while rng < _TOP:
-                                byte = data[dpos] if dpos < nd else 0
-                                dpos += 1
-                                rng = (rng << 8) & _MASK32
-                                code = ((code << 8) | byte) & _MASK32
-                            p[pr, pc] = bit
-                        # (bit - p1) * recip as two branches: a predicted branch instead of a
-                        # data dependency keeps the decoder's loop short; same arithmetic
+                            rng = bound
+                        while rng < _TOP:
+                            rng = (rng << 8) & _MASK32
+                            low, cache, csize, pos = _shift_low(low, cache, csize, pos, out)
+                        # (bit - p1) * recip as two branches: same arithmetic, shorter chains
                         if adaptive:
                             if bit:
                                 p1 = p1 + (((_ONE - p1) * recip[n]) >> 24)
@@ -347,23 +339,40 @@ def _kernel(  # type: ignore[no-untyped-def]
                                 p1 = p1 - ((p1 * recip[n]) >> 24)
                             if n < cap:
                                 n += 1
-                    if bit:
-                        break
-                    if c + 1 >= w:
-                        break
-                    if k2 > 0 and p[pr - 2, pc + 1 + hi2]:
-                        break
-                    if k1 > 0 and p[pr - 1, pc + 1 + hi1]:
-                        break
-                    if extrapolate and ex[r, c + 1]:
-                        break
-                    if use_ref and refcode[r, c + 1]:
-                        break
-                    c += 1
-                    pc += 1
+                        if bit or c + 1 >= end:
+                            break
+                        c += 1
+                else:
+                    while True:
+                        bound = (rng >> 16) * _q(p1)
+                        if code < bound:
+                            rng = bound
+                            bit = 0
+                        else:
+                            code -= bound
+                            rng -= bound
+                            bit = 1
+                        while rng < _TOP:
+                            byte = data[dpos] if dpos < nd else 0
+                            dpos += 1
+                            rng = (rng << 8) & _MASK32
+                            code = ((code << 8) | byte) & _MASK32
+                        if adaptive:
+                            if bit:
+                                p1 = p1 + (((_ONE - p1) * recip[n]) >> 24)
+                            else:
+                                p1 = p1 - ((p1 * recip[n]) >> 24)
+                            if n < cap:
+                                n += 1
+                        if bit:
+                            p[pr, c + L] = 1
+                            break
+                        if c + 1 >= end:
+                            break
+                        c += 1
                 if mode != 2 and adaptive:
-                    prob[0] = p1
-                    cnt[0] = n
+                    tab[0, 0] = p1
+                    tab[0, 1] = n
                 # the registers hold the all-zero window of column c
                 reg2 = 0
                 reg1 = 0
@@ -375,13 +384,13 @@ def _kernel(  # type: ignore[no-untyped-def]
                     n0[ctx] += 1.0
             else:
                 if adaptive:
-                    if gen[ctx] != g:
-                        gen[ctx] = g
-                        prob[ctx] = prior[ctx]
-                        cnt[ctx] = 0
-                    p1 = prob[ctx]
+                    if tab[ctx, 2] != g:
+                        tab[ctx, 2] = g
+                        tab[ctx, 0] = tab[ctx, 3]
+                        tab[ctx, 1] = 0
+                    p1 = np.int64(tab[ctx, 0])
                 else:
-                    p1 = prior[ctx]
+                    p1 = np.int64(tab[ctx, 3])
                 q = _q(p1)
                 if mode == 0:
                     bit = p[pr, pc]
@@ -410,13 +419,13 @@ def _kernel(  # type: ignore[no-untyped-def]
                         code = ((code << 8) | byte) & _MASK32
                     p[pr, pc] = bit
                 if adaptive:
-                    n = cnt[ctx]
+                    n = np.int64(tab[ctx, 1])
                     if bit:
-                        prob[ctx] = p1 + (((_ONE - p1) * recip[n]) >> 24)
+                        tab[ctx, 0] = p1 + (((_ONE - p1) * recip[n]) >> 24)
                     else:
-                        prob[ctx] = p1 - ((p1 * recip[n]) >> 24)
+                        tab[ctx, 0] = p1 - ((p1 * recip[n]) >> 24)
                     if n < cap:
-                        cnt[ctx] = n + 1
+                        tab[ctx, 1] = n + 1
             reg0 = ((reg0 << 1) | bit) & m0
             if extrapolate and bit:
                 n_ones = _extrapolate(ex, ones_r, ones_c, n_ones, r, c, h, w)
@@ -438,25 +447,25 @@ def _kernel(  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True)
-def _encode_kernel(p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, out):  # type: ignore[no-untyped-def]
+def _encode_kernel(p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, out):  # type: ignore[no-untyped-def]
     return _kernel(
-        0, p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, _NO_DATA, out,
+        0, p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, _NO_DATA, out,
         _NO_COUNTS, _NO_COUNTS
     )  # fmt: skip
 
 
 @numba.njit(cache=True)
-def _decode_kernel(p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, data):  # type: ignore[no-untyped-def]
+def _decode_kernel(p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, data):  # type: ignore[no-untyped-def]
     return _kernel(
-        1, p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, data, _NO_DATA,
+        1, p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, data, _NO_DATA,
         _NO_COUNTS, _NO_COUNTS
     )  # fmt: skip
 
 
 @numba.njit(cache=True)
-def _count_kernel(p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, n0, n1):  # type: ignore[no-untyped-def]
+def _count_kernel(p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, n0, n1):  # type: ignore[no-untyped-def]
     return _kernel(
-        2, p, h, w, spans, ex, ref, use_ref, prior, ad, recip, prob, cnt, gen, _NO_DATA,
+        2, p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, _NO_DATA,
         _NO_DATA, n0, n1
     )  # fmt: skip
 
@@ -479,12 +488,12 @@ def _call(
 ) -> int:
     if model.reference and refcode is None:
         raise ValueError("this model codes against a reference: refcode is required")
-    spans, prior_q24, recip, prob, cnt, gen = model._state
+    spans, recip, tab, gbox = model._state
     rc = _NO_REF if refcode is None else np.ascontiguousarray(refcode, dtype=np.uint8)
     if model.reference and rc.shape != (h, w):
         raise ValueError(f"refcode must have shape {(h, w)}, got {rc.shape}")
-    args = (p, h, w, spans, model.extrapolate, rc, model.reference, prior_q24)
-    state = (model.adaptive, recip, prob, cnt, gen)
+    args = (p, h, w, spans, model.extrapolate, rc, model.reference)
+    state = (model.adaptive, recip, tab, gbox)
     with model._lock:  # the adaptive state is shared by calls on this model
         if mode == 0:
             return int(_encode_kernel(*args, *state, out))
