@@ -1,0 +1,137 @@
+"""Free space from a node's binary grid by the polar visibility sweep (paper 4.8)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gcs.mapping.visibility import FREE, OCCUPIED, UNKNOWN, LocalRaster, local_raster
+
+RES = 0.1
+
+
+def value_at(r: LocalRaster, x: float, y: float) -> int:
+    """Cell value at base point ``(x, y)`` (UNKNOWN outside the raster)."""
+    c = math.floor((x - r.origin_in_base[0]) / r.resolution_m)
+    row = math.floor((y - r.origin_in_base[1]) / r.resolution_m)
+    if 0 <= row < r.cells.shape[0] and 0 <= c < r.cells.shape[1]:
+        return int(r.cells[row, c])
+    return UNKNOWN
+
+
+def centres(r: LocalRaster) -> tuple[np.ndarray, np.ndarray]:
+    rows, cols = r.cells.shape
+    x = r.origin_in_base[0] + (np.arange(cols) + 0.5) * r.resolution_m
+    y = r.origin_in_base[1] + (np.arange(rows) + 0.5) * r.resolution_m
+    return np.meshgrid(x, y)
+
+
+def test_empty_grid_sees_a_free_disc() -> None:
+    r = local_raster(np.zeros((0, 0), dtype=bool), (0.0, 0.0), RES, free_range_m=3.0)
+    x, y = centres(r)
+    d = np.hypot(x, y)
+    assert np.all(r.cells[d < 3.0 - RES] == FREE)
+    assert np.all(r.cells[d > 3.0 + 2 * RES] == UNKNOWN)
+    assert not np.any(r.cells == OCCUPIED)
+    # cropped to what is observed: about the disc's bounding box
+    assert max(r.cells.shape) <= 2 * 3.0 / RES + 4
+
+
+def test_wall_casts_a_shadow_and_stays_occupied() -> None:
+    # grid in base: a 1-cell wall at x in [2.0, 2.1), y in [-3, 3)
+    origin = (2.0, -3.0)
+    grid = np.ones((60, 1), dtype=bool)
+    r = local_raster(grid, origin, RES, free_range_m=6.0)
+    assert value_at(r, 1.95 - 0.1, 0.05) == FREE
+    assert value_at(r, 2.05, 0.05) == OCCUPIED
+    assert value_at(r, 2.05, 2.95) == OCCUPIED
+    for x in (2.25, 3.0, 5.0):
+        for y in (-1.0, 0.0, 1.0):
+            assert value_at(r, x, y) == UNKNOWN, (x, y)
+    # beside the wall's end the rays pass
+    assert value_at(r, 2.5, 4.5) == FREE  # crosses x = 2 at y = 3.6, past the wall
+
+
+def test_diagonal_wall_blocks_rays() -> None:
+    # an 8-connected diagonal line of cells from (1, -2) to (5, 2): no 4-connected gap
+    grid = np.eye(40, dtype=bool)
+    r = local_raster(grid, (1.0, -2.0), RES, free_range_m=7.0)
+    # points beyond the diagonal as seen from the origin (below-right of the line y = x - 3)
+    for x, y in ((4.5, 0.2), (4.0, -0.5), (3.5, -1.2)):
+        assert y < x - 3.0
+        assert value_at(r, x, y) == UNKNOWN, (x, y)
+    assert value_at(r, 1.0, 1.0) == FREE
+
+
+def _segment_clear(occ: np.ndarray, origin: tuple[float, float], px: float, py: float) -> bool:
+    """Dense sampling of the segment from the sensor to ``(px, py)`` (base) against ``occ``."""
+    n = int(math.hypot(px, py) / (RES / 20)) + 2
+    t = np.linspace(0.0, 1.0, n)
+    c = np.floor((t * px - origin[0]) / RES).astype(int)
+    r = np.floor((t * py - origin[1]) / RES).astype(int)
+    inside = (r >= 0) & (c >= 0) & (r < occ.shape[0]) & (c < occ.shape[1])
+    return not np.any(occ[r[inside], c[inside]])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_clearly_visible_cells_are_free_against_a_brute_force_oracle(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    origin = (-2.0, -2.0)
+    occ = rng.random((40, 40)) < 0.04
+    occ[19:21, 19:21] = False  # the sensor's own cell is clear
+    r = local_raster(occ, origin, RES, free_range_m=1.9)
+    checked = 0
+    for row in range(40):
+        for col in range(40):
+            x0, y0 = origin[0] + col * RES, origin[1] + row * RES
+            corners = [
+                (x0 + a * RES, y0 + b * RES) for a in (0.02, 0.5, 0.98) for b in (0.02, 0.5, 0.98)
+            ]
+            if max(math.hypot(px, py) for px, py in corners) > 1.85:
+                continue
+            if occ[row, col]:
+                assert value_at(r, x0 + 0.05, y0 + 0.05) == OCCUPIED
+            elif all(_segment_clear(occ, origin, px, py) for px, py in corners):
+                assert value_at(r, x0 + 0.05, y0 + 0.05) == FREE, (row, col)
+                checked += 1
+    assert checked > 200
+
+
+def test_occupied_cells_keep_the_lattice_convention() -> None:
+    # cell (row, col) covers origin + (col, row) * res: put one at base (1.25, -0.75)
+    grid = np.zeros((5, 8), dtype=bool)
+    grid[2, 5] = True
+    origin = (0.75, -0.95)
+    r = local_raster(grid, origin, RES, free_range_m=0.5)
+    occ = np.argwhere(r.cells == OCCUPIED)
+    assert len(occ) == 1
+    cx = r.origin_in_base[0] + (occ[0, 1] + 0.5) * RES
+    cy = r.origin_in_base[1] + (occ[0, 0] + 0.5) * RES
+    assert cx == pytest.approx(0.75 + 5.5 * RES)
+    assert cy == pytest.approx(-0.95 + 2.5 * RES)
+
+
+@pytest.mark.parametrize(
+    ("grid", "origin", "res", "match"),
+    [
+        (np.zeros((2, 2, 2), dtype=bool), (0.0, 0.0), RES, "2-D"),
+        (np.zeros((2, 2)), (0.0, 0.0), RES, "dtype"),
+        (np.full((2, 2), 2, dtype=np.uint8), (0.0, 0.0), RES, "0 and 1"),
+        (np.zeros((2, 2), dtype=bool), (math.nan, 0.0), RES, "finite"),
+        (np.zeros((2, 2), dtype=bool), (0.0,), RES, "origin"),
+        (np.zeros((2, 2), dtype=bool), (0.0, 0.0), 0.0, "resolution"),
+        (np.zeros((9000, 1), dtype=bool), (0.0, 0.0), RES, "exceeds"),
+    ],
+)
+def test_bad_grids_are_rejected_naming_the_node(grid, origin, res, match) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(ValueError, match=match) as err:
+        local_raster(grid, origin, res, free_range_m=1.0, where="node 7")
+    assert "node 7" in str(err.value)
+
+
+def test_integer_grids_are_accepted() -> None:
+    a = local_raster(np.eye(5, dtype=np.uint8), (0.5, 0.5), RES, free_range_m=1.0)
+    b = local_raster(np.eye(5, dtype=bool), (0.5, 0.5), RES, free_range_m=1.0)
+    assert np.array_equal(a.cells, b.cells) and a.origin_in_base == b.origin_in_base
