@@ -139,44 +139,47 @@ def _log(x: float, y: float, w: float, out: np.ndarray) -> None:
 
 
 @numba.njit(cache=True)
-def _jr_inv(e: np.ndarray, out: np.ndarray) -> None:
-    """Inverse right Jacobian of SE(2) at ``e = (rho1, rho2, w)``."""
-    r1, r2, w = e[0], e[1], e[2]
-    a, b = _ab(w)
+def _log_jr_inv(
+    x: float, y: float, w: float, c: float, s: float, e: np.ndarray, jinv: np.ndarray
+) -> None:
+    """``e = Log`` of the pose ``(x, y, w)`` (``w`` wrapped, ``c, s`` its cosine and sine)
+    and the inverse right Jacobian ``Jr^-1(e)`` of SE(2) into ``jinv``."""
+    if abs(w) < _SMALL_ANGLE:
+        w2 = w * w
+        a, b = 1.0 - w2 / 6.0, w / 2.0 - w * w2 / 24.0
+    else:
+        a, b = s / w, (1.0 - c) / w
+    den = a * a + b * b
+    m00, m01, m10, m11 = a / den, -b / den, b / den, a / den
+    r1, r2 = m00 * x - m01 * y, -m10 * x + m11 * y
+    e[0], e[1], e[2] = r1, r2, w
     if abs(w) < _SMALL_ANGLE:
         w2 = w * w
         u1 = -r2 / 2.0 + r1 * w / 6.0 + r2 * w2 / 24.0
         u2 = r1 / 2.0 + r2 * w / 6.0 - r1 * w2 / 24.0
     else:
-        c, s = np.cos(w), np.sin(w)
         u1 = (w * r1 - r2 + r2 * c - r1 * s) / (w * w)
         u2 = (r1 + w * r2 - r1 * c - r2 * s) / (w * w)
-    den = a * a + b * b
-    m00, m01, m10, m11 = a / den, -b / den, b / den, a / den
-    out[0, 0] = m00
-    out[0, 1] = m01
-    out[1, 0] = m10
-    out[1, 1] = m11
-    out[0, 2] = -(m00 * u1 + m01 * u2)
-    out[1, 2] = -(m10 * u1 + m11 * u2)
-    out[2, 0] = 0.0
-    out[2, 1] = 0.0
-    out[2, 2] = 1.0
+    jinv[0, 0], jinv[0, 1], jinv[0, 2] = m00, m01, -(m00 * u1 + m01 * u2)
+    jinv[1, 0], jinv[1, 1], jinv[1, 2] = m10, m11, -(m10 * u1 + m11 * u2)
+    jinv[2, 0], jinv[2, 1], jinv[2, 2] = 0.0, 0.0, 1.0
 
 
 @numba.njit(cache=True)
-def _add_quadratic(
-    x: np.ndarray, slot: int, a1: np.ndarray, om: np.ndarray, a2: np.ndarray, transpose: bool
-) -> None:
-    """``x[slot] += a1' om a2`` (or its transpose)."""
+def _mul(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """``out = a b`` for 3 x 3 matrices."""
+    for r in range(3):
+        a0, a1, a2 = a[r, 0], a[r, 1], a[r, 2]
+        for c in range(3):
+            out[r, c] = a0 * b[0, c] + a1 * b[1, c] + a2 * b[2, c]
+
+
+@numba.njit(cache=True)
+def _add_at_b(x: np.ndarray, slot: int, a: np.ndarray, b: np.ndarray, transpose: bool) -> None:
+    """``x[slot] += a' b`` (or its transpose) for 3 x 3 matrices."""
     for r in range(3):
         for c in range(3):
-            v = 0.0
-            for s in range(3):
-                oa = 0.0
-                for t in range(3):
-                    oa += om[s, t] * a2[t, c]
-                v += a1[s, r] * oa
+            v = a[0, r] * b[0, c] + a[1, r] * b[1, c] + a[2, r] * b[2, c]
             if transpose:
                 x[slot, c, r] += v
             else:
@@ -184,15 +187,10 @@ def _add_quadratic(
 
 
 @numba.njit(cache=True)
-def _add_gradient(g: np.ndarray, k: int, a: np.ndarray, om: np.ndarray, e: np.ndarray) -> None:
+def _add_at_v(g: np.ndarray, k: int, a: np.ndarray, v: np.ndarray) -> None:
+    """``g[k] += a' v``."""
     for r in range(3):
-        v = 0.0
-        for s in range(3):
-            oe = 0.0
-            for t in range(3):
-                oe += om[s, t] * e[t]
-            v += a[s, r] * oe
-        g[k, r] += v
+        g[k, r] += a[0, r] * v[0] + a[1, r] * v[1] + a[2, r] * v[2]
 
 
 @numba.njit(cache=True)
@@ -262,44 +260,70 @@ def _linearize(
     x: np.ndarray,
     g: np.ndarray,
 ) -> float:
-    """Assemble ``H`` (lower blocks in the factor's pattern) into ``x`` and ``g``; return chi2."""
+    """Assemble ``H`` (lower blocks in the factor's pattern) into ``x`` and ``g``; return chi2.
+
+    Cosines and sines of the poses' angles are computed once a pose; those of relative angles
+    follow from the angle addition formulas.
+    """
     x[:] = 0.0
     g[:] = 0.0
+    cp, sp = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     e = np.empty(3)
+    oe = np.empty(3)
     jinv = np.empty((3, 3))
     ai = np.empty((3, 3))
+    oai = np.empty((3, 3))
+    oaj = np.empty((3, 3))
+    two_pi = 2.0 * np.pi
     total = 0.0
     for m in range(ij.shape[0]):
         i, j = ij[m, 0], ij[m, 1]
-        hx, hy, hth = _between_error(poses, i, j, z[m], e)
+        ci, si, cj, sj = cp[i], sp[i], cp[j], sp[j]
+        dx, dy = poses[j, 0] - poses[i, 0], poses[j, 1] - poses[i, 1]
+        # h = x_i^-1 x_j, then E = z^-1 h; e = Log(E).
+        hx, hy = ci * dx + si * dy, -si * dx + ci * dy
+        ch, sh = cj * ci + sj * si, sj * ci - cj * si
+        cz, sz = np.cos(z[m, 2]), np.sin(z[m, 2])
+        ex, ey = hx - z[m, 0], hy - z[m, 1]
+        d = poses[j, 2] - poses[i, 2] - z[m, 2]
+        w = d - two_pi * np.round(d / two_pi)
+        _log_jr_inv(
+            cz * ex + sz * ey, -sz * ex + cz * ey, w, ch * cz + sh * sz, sh * cz - ch * sz, e, jinv
+        )
         om = info[m]
-        total += _quad(e, om)
-        _jr_inv(e, jinv)
+        for r in range(3):
+            oe[r] = om[r, 0] * e[0] + om[r, 1] * e[1] + om[r, 2] * e[2]
+        total += e[0] * oe[0] + e[1] * oe[1] + e[2] * oe[2]
         # Ad(h^-1) = [[R_h', [ty; -tx]], [0, 0, 1]] with h^-1 = (t, -hth), t = -R_h' (hx, hy).
-        ch, sh = np.cos(hth), np.sin(hth)
         tx, ty = -(ch * hx + sh * hy), -(-sh * hx + ch * hy)
         for r in range(3):
             j0, j1, j2 = jinv[r, 0], jinv[r, 1], jinv[r, 2]
             ai[r, 0] = -(j0 * ch - j1 * sh)
             ai[r, 1] = -(j0 * sh + j1 * ch)
             ai[r, 2] = -(j0 * ty - j1 * tx + j2)
-        _add_quadratic(x, diag_slot[i], ai, om, ai, False)
-        _add_quadratic(x, diag_slot[j], jinv, om, jinv, False)
+        _mul(om, ai, oai)
+        _mul(om, jinv, oaj)
+        _add_at_b(x, diag_slot[i], ai, oai, False)
+        _add_at_b(x, diag_slot[j], jinv, oaj, False)
         # Block (max position, min position) of L's pattern holds H[row var, col var].
-        if position[i] > position[j]:
-            _add_quadratic(x, edge_slot[m], ai, om, jinv, False)
-        else:
-            _add_quadratic(x, edge_slot[m], ai, om, jinv, True)
-        _add_gradient(g, i, ai, om, e)
-        _add_gradient(g, j, jinv, om, e)
+        _add_at_b(x, edge_slot[m], ai, oaj, position[i] < position[j])
+        _add_at_v(g, i, ai, oe)
+        _add_at_v(g, j, jinv, oe)
     for k in range(prior_index.shape[0]):
         i = prior_index[k]
-        _prior_error(poses, i, prior_pose[k], e)
+        c0, s0 = np.cos(prior_pose[k, 2]), np.sin(prior_pose[k, 2])
+        dx, dy = poses[i, 0] - prior_pose[k, 0], poses[i, 1] - prior_pose[k, 1]
+        d = poses[i, 2] - prior_pose[k, 2]
+        w = d - two_pi * np.round(d / two_pi)
+        cw, sw = cp[i] * c0 + sp[i] * s0, sp[i] * c0 - cp[i] * s0
+        _log_jr_inv(c0 * dx + s0 * dy, -s0 * dx + c0 * dy, w, cw, sw, e, jinv)
         om = prior_info[k]
-        total += _quad(e, om)
-        _jr_inv(e, jinv)
-        _add_quadratic(x, diag_slot[i], jinv, om, jinv, False)
-        _add_gradient(g, i, jinv, om, e)
+        for r in range(3):
+            oe[r] = om[r, 0] * e[0] + om[r, 1] * e[1] + om[r, 2] * e[2]
+        total += e[0] * oe[0] + e[1] * oe[1] + e[2] * oe[2]
+        _mul(om, jinv, oaj)
+        _add_at_b(x, diag_slot[i], jinv, oaj, False)
+        _add_at_v(g, i, jinv, oe)
     return total
 
 
