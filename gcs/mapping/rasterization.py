@@ -69,7 +69,7 @@ FREE = 0
 OCCUPIED = 100
 
 #: Samples of moved nodes kept within one rasterization to draw them without sampling again.
-_PATCH_BUDGET_BYTES = 192 * 1024 * 1024
+_PATCH_BUDGET_BYTES = 64 * 1024 * 1024
 #: Submap codes are uint8 ``2 (local index + 1) + occupied``.
 MAX_SUBMAP_NODES = 126
 #: Placeholders for the optional arguments of :func:`_sample`.
