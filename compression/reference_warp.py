@@ -34,9 +34,15 @@ def sine_table() -> np.ndarray:
 
 
 _SIN = sine_table()
-#: CRC-32 of the sine table's int64 bytes: a platform whose ``math.sin`` rounds differently
-#: would code different inter-frame streams; tests check this value.
-SINE_TABLE_CHECKSUM = zlib.crc32(_SIN.tobytes())
+#: CRC-32 of the sine table's int64 bytes. A platform whose ``math.sin`` rounded differently
+#: would warp differently and garble inter-frame streams, so importing refuses it.
+SINE_TABLE_CHECKSUM = 2860823005
+if zlib.crc32(_SIN.tobytes()) != SINE_TABLE_CHECKSUM:
+    raise RuntimeError(
+        "compression.reference_warp: this platform's math.sin gives a different sine table "
+        f"(CRC-32 {zlib.crc32(_SIN.tobytes())}, expected {SINE_TABLE_CHECKSUM}): inter-frame "
+        "streams would not decode elsewhere"
+    )
 
 
 def quantize_pose(

@@ -59,7 +59,10 @@ def test_header_is_small_for_robot_grids() -> None:
 
 def test_origin_cells_of_metres() -> None:
     assert origin_cells_of((-7.5, -7.2), 0.1) == (-75, -72)
-    assert origin_cells_of((np.float32(-7.5 + 3 * 0.1), 0.0), np.float32(0.1)) == (-72, 0)
+    assert origin_cells_of((float(np.float32(-7.5 + 3 * 0.1)), 0.0), float(np.float32(0.1))) == (
+        -72,
+        0,
+    )
     with pytest.raises(CodecError, match="whole number"):
         origin_cells_of((0.05, 0.0), 0.1)
     with pytest.raises(CodecError, match="resolution"):

@@ -1,0 +1,93 @@
+"""Plain-Python twin of :mod:`compression.context_model` (tests only): the same contexts,
+features, fixed-point probabilities and range coder, one pixel at a time, without the
+compiled kernel's shift registers, quiet-run fast path or generation stamps. Tests check that
+the compiled coder produces identical bytes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from compression.binary_coder import PROB_ONE, ReferenceDecoder, ReferenceEncoder
+from compression.context_model import TEMPLATES, ContextModel
+
+_ONE = 1 << 24
+
+
+def _fixed_point(model: ContextModel) -> tuple[np.ndarray, np.ndarray]:
+    one = float(_ONE)
+    prior = np.clip(np.rint(model.prior1 * one), 1, one - 1).astype(np.int64)
+    recip = np.rint(one / (np.arange(1024) + model.strength + 1.0)).astype(np.int64)
+    return prior, recip
+
+
+def _context(g: np.ndarray, r: int, c: int, template: str) -> int:
+    h, w = g.shape
+    ctx = 0
+    for dy, (lo, hi) in zip((-2, -1, 0), TEMPLATES[template], strict=True):
+        for dx in range(lo, hi + 1):
+            rr, cc = r + dy, c + dx
+            ctx = (ctx << 1) | int(0 <= rr < h and 0 <= cc < w and g[rr, cc])
+    return ctx
+
+
+def _code(
+    grid: np.ndarray | None,
+    data: bytes | None,
+    shape: tuple[int, int],
+    model: ContextModel,
+    refcode: np.ndarray | None,
+) -> tuple[np.ndarray, bytes]:
+    h, w = shape
+    prior, recip = _fixed_point(model)
+    prob: dict[int, int] = {}
+    count: dict[int, int] = {}
+    marks = np.zeros((h, w), dtype=np.int64)
+    ones: list[tuple[int, int]] = []
+    out = np.zeros((h, w), dtype=np.uint8)
+    enc = ReferenceEncoder() if data is None else None
+    dec = ReferenceDecoder(data) if data is not None else None
+    for r in range(h):
+        for c in range(w):
+            ctx = _context(out, r, c, model.template)
+            if model.extrapolate:
+                ctx = ctx * 3 + min(int(marks[r, c]), 2)
+            if model.reference:
+                assert refcode is not None
+                ctx = ctx * 3 + int(refcode[r, c])
+            p1 = prob.get(ctx, int(prior[ctx])) if model.adaptive else int(prior[ctx])
+            q = min(max(PROB_ONE - (p1 >> 8), 1), PROB_ONE - 1)
+            if enc is not None:
+                assert grid is not None
+                bit = int(grid[r, c])
+                enc.encode(bit, q)
+            else:
+                assert dec is not None
+                bit = dec.decode(q)
+            out[r, c] = bit
+            if model.adaptive:
+                n = count.get(ctx, 0)
+                if bit:
+                    prob[ctx] = p1 + (((_ONE - p1) * int(recip[n])) >> 24)
+                else:
+                    prob[ctx] = p1 - ((p1 * int(recip[n])) >> 24)
+                count[ctx] = min(n + 1, 1023)
+            if model.extrapolate and bit:
+                for qr, qc in ones:
+                    if r - qr <= 8 and abs(c - qc) <= 8:
+                        tr, tc = 2 * r - qr, 2 * c - qc
+                        if tr < h and 0 <= tc < w:
+                            marks[tr, tc] += 1
+                ones.append((r, c))
+    return out.astype(bool), (enc.finish() if enc is not None else b"")
+
+
+def reference_encode(
+    grid: np.ndarray, model: ContextModel, refcode: np.ndarray | None = None
+) -> bytes:
+    return _code(np.asarray(grid, dtype=bool), None, grid.shape, model, refcode)[1]
+
+
+def reference_decode(
+    data: bytes, shape: tuple[int, int], model: ContextModel, refcode: np.ndarray | None = None
+) -> np.ndarray:
+    return _code(None, data, shape, model, refcode)[0]
