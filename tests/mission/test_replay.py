@@ -20,7 +20,7 @@ from mission.replay import (
     scan_grid,
 )
 from protocol.messages import covariance_from_upper
-from protocol.se2 import compose, relative
+from protocol.se2 import compose, relative, transform_points
 
 LASER = Path(__file__).resolve().parents[2] / ".." / "shared" / "datasets" / "laser"
 
@@ -115,10 +115,24 @@ def test_messages_follow_the_node_rule_and_carry_the_scan() -> None:
     n = nodes[5]
     grid = decode_grid(n.terrain_grid.data)
     assert grid.shape == (n.terrain_grid.height, n.terrain_grid.width)
-    expect, origin = scan_grid(log.points_in_base(n.scan, max_range_m=10.0), resolution_m=0.1)
+    # The grid holds the scans of the last 2 m: this one and the six before (0.3 m apart).
+    assert n.scan >= 6 and cfg.grid.aggregate_m == 2.0
+    recent = [
+        transform_points(
+            relative(log.odometry_in_log[n.scan], log.odometry_in_log[j]),
+            log.points_in_base(j, max_range_m=10.0),
+        )
+        for j in range(n.scan - 6, n.scan + 1)
+    ]
+    expect, origin = scan_grid(np.concatenate(recent), resolution_m=0.1)
     np.testing.assert_array_equal(grid, expect)
     np.testing.assert_allclose(n.terrain_grid.origin_in_base, origin, atol=1e-6)
     assert n.terrain_grid.codec == "ctx4a" and n.terrain_grid.resolution_m == pytest.approx(0.1)
+    # Without aggregation, the node's own scan only.
+    single = replay_messages(log, ReplayConfig(grid=ScanGridConfig(aggregate_m=0.0)))[5]
+    own, _ = scan_grid(log.points_in_base(single.scan, max_range_m=10.0), resolution_m=0.1)
+    np.testing.assert_array_equal(decode_grid(single.terrain_grid.data), own)
+    assert own.sum() < 0.5 * grid.sum()
     # The map is in the grid: walls are where the log's pose puts them (x = -10 or y = -7...).
     rows, cols = np.nonzero(grid)
     pts = np.column_stack([cols, rows]) * 0.1 + np.array(origin) + 0.05
@@ -135,6 +149,9 @@ def test_odometry_noise_is_seeded_and_drawn_from_the_node_model() -> None:
     clean, inc, model = replay_odometry(log, ReplayConfig())
     np.testing.assert_array_equal(clean, log.odometry_in_log)
     assert model == ReplayConfig().nodes
+    _, _, wider = replay_odometry(log, ReplayConfig(odometry_sigma_scale=3.0))
+    assert wider.turn_std_rad_per_sqrt_rad == pytest.approx(3 * model.turn_std_rad_per_sqrt_rad)
+    assert wider.min_distance_m == model.min_distance_m
     noisy_cfg = ReplayConfig(noise=OdometryNoiseConfig(scale=2.0, seed=7))
     a, _, scaled = replay_odometry(log, noisy_cfg)
     b, _, _ = replay_odometry(log, noisy_cfg)
@@ -209,6 +226,10 @@ def test_configs_refuse_bad_values() -> None:
         OdometryNoiseConfig(scale=-1.0)
     with pytest.raises(ValueError, match="exceeds 1000 cells"):
         ScanGridConfig(max_range_m=80.0)
+    with pytest.raises(ValueError, match="grid.aggregate_m"):
+        ScanGridConfig(aggregate_m=-1.0)
+    with pytest.raises(ValueError, match="odometry_sigma_scale"):
+        ReplayConfig(odometry_sigma_scale=0.0)
     with pytest.raises(ValueError, match="step_every_nodes"):
         ReplayConfig(step_every_nodes=0)
 
