@@ -39,6 +39,7 @@ import numpy as np
 
 from compression import CodecError, decode_grid
 from gcs.graph.pose_graph import PoseGraph, PoseGraphConfig, PoseGraphError, Provenance
+from gcs.mapping.rasterization import OccupancyMap, RasterConfig, Rasterizer
 from protocol.messages import (
     Detection,
     DetectionImage,
@@ -83,6 +84,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
 
     robots: tuple[int, ...] = ()
     graph: PoseGraphConfig = msgspec.field(default_factory=PoseGraphConfig)
+    raster: RasterConfig = msgspec.field(default_factory=RasterConfig)
     frames_period_s: float = 2.0
     max_pending_nodes: int = 32
     max_pending_grids: int = 64
@@ -171,6 +173,7 @@ class GroundStation:
         self.graph = PoseGraph(self.config.graph)
         self.stats = GroundStationStats(errors=collections.deque(maxlen=self.config.error_log_size))
         self.grids: dict[int, GridRecord] = {}
+        self.rasterizer = Rasterizer(self.config.raster)
         self.hazards: list[Hazard] = []
         self._tracks: dict[int, _Track] = {}
         self._dirty = False
@@ -364,6 +367,7 @@ class GroundStation:
             (float(msg.origin_in_base[0]), float(msg.origin_in_base[1])),
             float(msg.resolution_m),
         )
+        self.rasterizer.add_node(key, time_s, grid, record.origin_in_base, record.resolution_m)
         self.grids[key] = record
         self.stats.terrain_grids += 1
         for listener in self._grid_listeners:
@@ -441,6 +445,17 @@ class GroundStation:
                 out.append((r, update))
                 self._last_frames_s[r] = now_s
         return out
+
+    def poses_in_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(keys (N,), map_from_base (N, 3))`` of every pose, robot by robot."""
+        parts = [self.graph.poses(r) for r in self.graph.robots]
+        if not parts:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        return np.concatenate([k for k, _ in parts]), np.concatenate([p for _, p in parts])
+
+    def rasterize(self) -> OccupancyMap:
+        """The global occupancy map at the current posterior (paper 4.8; cover and cache)."""
+        return self.rasterizer.rasterize(self.poses_in_map())
 
     def frames(self) -> list[RobotFrame]:
         """``map_from_odom`` of every robot whose trajectory is linked to ``map``."""

@@ -145,3 +145,21 @@ def test_dangerous_detections_become_hazards_in_map() -> None:
     np.testing.assert_allclose(h.position_in_map, (0.0, 1.0 + 4.0), atol=1e-5)
     assert h.radius_m == 2.5
     assert gs.stats.detections == 3
+
+
+def test_the_global_map_is_rasterized_from_the_grids_at_their_posteriors() -> None:
+    gs = GroundStation()
+    wall = np.zeros((60, 60), dtype=bool)
+    wall[:, 50] = True  # a wall 2 m ahead of each node: x in base = -3 + 50.5 * 0.1
+    path = straight(5)
+    for i, msg in enumerate(nodes_along(path)):
+        gs.handle(0, msg, now_s=0.0)
+        gs.handle(0, grid_msg(i, wall), now_s=0.0)
+    gs.step(now_s=1.0)
+    occupancy = gs.rasterize()
+    occupied = np.argwhere(occupancy.values == 100)
+    assert len(occupied) > 0
+    xs = occupancy.origin_in_map[0] + (occupied[:, 1] + 0.5) * occupancy.resolution_m
+    wall_x = path[:, 0] + 2.05
+    assert np.all(np.min(np.abs(xs[:, None] - wall_x[None, :]), axis=1) < 0.11)
+    assert np.any(occupancy.values == 0) and np.any(occupancy.values == -1)
