@@ -152,6 +152,26 @@ class FootprintPool:
         self._count[n] = k
         self._end += k
 
+    def set_many(
+        self, nodes: NDArray[np.int64], rows: NDArray[np.int64], counts: NDArray[np.int64]
+    ) -> None:
+        """Replace the footprints of ``nodes`` (distinct): node ``nodes[i]`` gets the next
+        ``counts[i]`` rows of ``rows``."""
+        k = len(rows)
+        self._live += k - int(self._count[nodes].sum())
+        if self._end + k > len(self.rows):
+            if 2 * self._live < self._end:
+                self._compact()
+            if self._end + k > len(self.rows):
+                grown = np.zeros((max(2 * len(self.rows), self._end + k), 6), dtype=np.int64)
+                grown[: self._end] = self.rows[: self._end]
+                self.rows = grown
+        self.rows[self._end : self._end + k] = rows
+        starts = np.cumsum(counts) - counts
+        self._offset[nodes] = self._end + starts
+        self._count[nodes] = counts
+        self._end += k
+
     def _compact(self) -> None:
         order = np.argsort(self.offset, kind="stable")
         lens = self.count[order]

@@ -49,7 +49,7 @@ import numpy as np
 from numba.typed import List as TypedList
 from numpy.typing import ArrayLike, NDArray
 
-from gcs.mapping.covering import BLOCK_CELLS, FootprintPool, compact_footprint, cover_sweep
+from gcs.mapping.covering import BLOCK_CELLS, FootprintPool, cover_sweep
 from gcs.mapping.visibility import LocalRaster, local_raster
 
 __all__ = [
@@ -317,6 +317,50 @@ def _draw_patch(buf, row0, col0, patch, p_row0, p_col0, base, prio, node_prio): 
 
 
 @numba.njit(cache=True, nogil=True)
+def _sample_feet(nodes, poses, bbox, rect, lres, cells, res, patches, patch_off, blocks, masks):  # type: ignore[no-untyped-def]  # noqa: E501
+    """Sample every node of ``nodes`` into its patch (``patches[patch_off[k]:]``, the node's
+    ``bbox``) and its dense footprint masks (``masks`` from ``blocks[k, 4]`` on, ``(blocks[k,
+    2], blocks[k, 3], 4)`` from block ``(blocks[k, 0], blocks[k, 1])``); returns the compact
+    footprint rows of all nodes and how many belong to each."""
+    no_prio = np.zeros(0, dtype=np.int64)
+    counts = np.zeros(nodes.shape[0], dtype=np.int64)
+    for k in range(nodes.shape[0]):
+        n = nodes[k]
+        b = bbox[n]
+        h = b[1] - b[0]
+        w = b[3] - b[2]
+        patch = patches[patch_off[k] : patch_off[k] + h * w].reshape((h, w))
+        m_lo = blocks[k, 4]
+        m = masks[m_lo : m_lo + blocks[k, 2] * blocks[k, 3] * 4].reshape(
+            (blocks[k, 2], blocks[k, 3], 4)
+        )
+        c = cells[n]
+        if c.size:
+            _sample(patch, b[0], b[2], 0, c, rect[n, 0], rect[n, 1], lres[n], poses[n, 0],
+                    poses[n, 1], poses[n, 2], res, b, no_prio, -1, m)  # fmt: skip
+        for q in range(blocks[k, 2] * blocks[k, 3]):
+            i = m_lo + 4 * q
+            if masks[i] | masks[i + 1] | masks[i + 2] | masks[i + 3]:
+                counts[k] += 1
+    rows = np.empty((counts.sum(), 6), dtype=np.int64)
+    r = 0
+    for k in range(nodes.shape[0]):
+        m_lo = blocks[k, 4]
+        nbj = blocks[k, 3]
+        for q in range(blocks[k, 2] * nbj):
+            i = m_lo + 4 * q
+            if masks[i] | masks[i + 1] | masks[i + 2] | masks[i + 3]:
+                rows[r, 0] = blocks[k, 0] + q // nbj
+                rows[r, 1] = blocks[k, 1] + q % nbj
+                rows[r, 2] = masks[i]
+                rows[r, 3] = masks[i + 1]
+                rows[r, 4] = masks[i + 2]
+                rows[r, 5] = masks[i + 3]
+                r += 1
+    return rows, counts
+
+
+@numba.njit(cache=True, nogil=True)
 def _combine_tiles(slots, ptr, sub_ids, sub_i0, sub_j0, sub_codes, rank, store):  # type: ignore[no-untyped-def]
     """Combine tile ``k`` (into ``store[slots[k]]`` as values) from the submaps
     ``sub_ids[ptr[k]:ptr[k+1]]``, whose codes hold the tile at ``(sub_i0, sub_j0)``: per cell
@@ -376,23 +420,49 @@ def _values(codes):  # type: ignore[no-untyped-def]
     return out
 
 
-def _node_bboxes(
-    poses: NDArray[np.float64], rect: NDArray[np.float64], res: float
-) -> NDArray[np.int64]:
+@numba.njit(cache=True, nogil=True)
+def _node_bboxes(poses, rect, res):  # type: ignore[no-untyped-def]
     """Map-cell box ``(row_lo, row_hi, col_lo, col_hi)`` (half-open, with a margin) holding
     every map cell whose centre can fall into each node's local raster rectangle ``rect``
     ``(N, 4)`` = ``(ox, oy, width_m, height_m)`` in ``base``. Sampling never leaves it."""
-    c = np.cos(poses[:, 2])[:, None]
-    s = np.sin(poses[:, 2])[:, None]
-    bx = rect[:, 0:1] + np.array([0.0, 1.0, 1.0, 0.0])[None, :] * rect[:, 2:3]
-    by = rect[:, 1:2] + np.array([0.0, 0.0, 1.0, 1.0])[None, :] * rect[:, 3:4]
-    mx = poses[:, 0:1] + c * bx - s * by
-    my = poses[:, 1:2] + s * bx + c * by
-    out = np.empty((len(poses), 4), dtype=np.int64)
-    out[:, 0] = np.floor(my.min(axis=1) / res - 0.5) - 1
-    out[:, 1] = np.ceil(my.max(axis=1) / res - 0.5) + 2
-    out[:, 2] = np.floor(mx.min(axis=1) / res - 0.5) - 1
-    out[:, 3] = np.ceil(mx.max(axis=1) / res - 0.5) + 2
+    n = poses.shape[0]
+    out = np.empty((n, 4), dtype=np.int64)
+    for k in range(n):
+        c = math.cos(poses[k, 2])
+        s = math.sin(poses[k, 2])
+        x_lo = y_lo = math.inf
+        x_hi = y_hi = -math.inf
+        for corner in range(4):
+            bx = rect[k, 0] + (rect[k, 2] if corner == 1 or corner == 2 else 0.0)
+            by = rect[k, 1] + (rect[k, 3] if corner >= 2 else 0.0)
+            mx = poses[k, 0] + c * bx - s * by
+            my = poses[k, 1] + s * bx + c * by
+            x_lo = min(x_lo, mx)
+            x_hi = max(x_hi, mx)
+            y_lo = min(y_lo, my)
+            y_hi = max(y_hi, my)
+        out[k, 0] = int(math.floor(y_lo / res - 0.5)) - 1
+        out[k, 1] = int(math.ceil(y_hi / res - 0.5)) + 2
+        out[k, 2] = int(math.floor(x_lo / res - 0.5)) - 1
+        out[k, 3] = int(math.ceil(x_hi / res - 0.5)) + 2
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _rows_differ(a, b, tol_m, tol_rad):  # type: ignore[no-untyped-def]
+    """Per row of two ``(N, 3)`` pose arrays: moved beyond the tolerances (any change at all
+    when both are 0; a NaN row always differs)."""
+    n = a.shape[0]
+    out = np.empty(n, dtype=np.bool_)
+    exact = tol_m == 0.0 and tol_rad == 0.0
+    for k in range(n):
+        if exact:
+            out[k] = a[k, 0] != b[k, 0] or a[k, 1] != b[k, 1] or a[k, 2] != b[k, 2]
+        else:
+            d = (a[k, 2] - b[k, 2] + math.pi) % (2.0 * math.pi) - math.pi
+            out[k] = not (
+                math.hypot(a[k, 0] - b[k, 0], a[k, 1] - b[k, 1]) <= tol_m and abs(d) <= tol_rad
+            )
     return out
 
 
@@ -422,6 +492,8 @@ class Rasterizer:
         self._keys_arr = np.zeros(0, dtype=np.int64)
         self._times_arr = np.zeros(0)
         self._rect = np.zeros((0, 4))  # local raster rectangle in base: ox, oy, width, height
+        self._lres = np.zeros(0)  # local raster resolution
+        self._cells = TypedList.empty_list(numba.types.int8[:, ::1])  # local raster cells
         self._feet_pose = np.zeros((0, 3))  # pose each footprint was sampled at (NaN: none)
         self._feet = FootprintPool()
         self._sorted_n = -1
@@ -444,6 +516,9 @@ class Rasterizer:
         self._tile_store = np.zeros((0, t, t), dtype=np.int8)
         self._tile_used = np.zeros(0, dtype=bool)
         self._tile_rc = np.zeros((0, 2), dtype=np.int64)
+        # the last assembled map and its extent (reused when the extent is unchanged)
+        self._map: NDArray[np.int8] | None = None
+        self._map_bounds = (0, 0, 0, 0)
 
     # -- input ------------------------------------------------------------------------------
 
@@ -495,6 +570,8 @@ class Rasterizer:
         rows, cols = raster.cells.shape
         res = raster.resolution_m
         self._rect[n] = (*raster.origin_in_base, cols * res, rows * res)
+        self._lres[n] = res
+        self._cells.append(raster.cells)
         self._feet_pose[n] = np.nan
         self._feet.add_node()
         self._n = n + 1
@@ -613,6 +690,7 @@ class Rasterizer:
         self._keys_arr = grown(self._keys_arr, 0)  # type: ignore[assignment]
         self._times_arr = grown(self._times_arr, 0.0)  # type: ignore[assignment]
         self._rect = grown(self._rect, 0.0)  # type: ignore[assignment]
+        self._lres = grown(self._lres, 0.0)  # type: ignore[assignment]
         self._feet_pose = grown(self._feet_pose, np.nan)  # type: ignore[assignment]
         self._sub_of = grown(self._sub_of, 0)  # type: ignore[assignment]
         self._local = grown(self._local, 0)  # type: ignore[assignment]
@@ -749,45 +827,51 @@ class Rasterizer:
         bbox: NDArray[np.int64],
         patches: dict[int, NDArray[np.int8]],
     ) -> int:
-        """Sample the nodes whose pose changed: their footprints, and patches to draw from."""
+        """Sample the nodes whose pose changed: their footprints, and (within the budget)
+        patches to draw them from."""
         n_all = self._n
-        same = np.all(self._feet_pose[:n_all] == poses, axis=1)
-        changed = np.flatnonzero(posed & ~same)
-        budget = _PATCH_BUDGET_BYTES
-        res = self.config.resolution_m
-        for n in changed.tolist():
-            b = bbox[n]
-            r = self._rasters[n]
-            patch = np.zeros((int(b[1] - b[0]), int(b[3] - b[2])), dtype=np.int8)
-            bi0, bj0 = int(b[0]) // BLOCK_CELLS, int(b[2]) // BLOCK_CELLS
-            masks = np.zeros(
-                (
-                    (int(b[1]) - 1) // BLOCK_CELLS - bi0 + 1,
-                    (int(b[3]) - 1) // BLOCK_CELLS - bj0 + 1,
-                    4,
-                ),
-                dtype=np.int64,
+        changed = np.flatnonzero(posed & _rows_differ(self._feet_pose[:n_all], poses, 0.0, 0.0))
+        if len(changed) == 0:
+            return 0
+        b = bbox[changed]
+        size = (b[:, 1] - b[:, 0]) * (b[:, 3] - b[:, 2])
+        blocks = np.empty((len(changed), 5), dtype=np.int64)
+        blocks[:, 0] = b[:, 0] // BLOCK_CELLS
+        blocks[:, 1] = b[:, 2] // BLOCK_CELLS
+        blocks[:, 2] = (b[:, 1] - 1) // BLOCK_CELLS - blocks[:, 0] + 1
+        blocks[:, 3] = (b[:, 3] - 1) // BLOCK_CELLS - blocks[:, 1] + 1
+        words = 4 * blocks[:, 2] * blocks[:, 3]
+        # chunks of at most the patch budget; only the first chunk's patches are kept
+        ends = np.cumsum(size)
+        lo = 0
+        while lo < len(changed):
+            hi = max(
+                lo + 1,
+                int(np.searchsorted(ends, ends[lo] - size[lo] + _PATCH_BUDGET_BYTES, "right")),
             )
-            if r.cells.size:
-                x, y, yaw = poses[n]
-                ox, oy = r.origin_in_base
-                _sample(patch, b[0], b[2], 0, r.cells, ox, oy, r.resolution_m, x, y, yaw, res, b,
-                        _NO_PRIO, -1, masks)  # fmt: skip
-            self._feet.set(n, compact_footprint(masks, bi0, bj0))
-            self._feet_pose[n] = poses[n]
-            if patch.nbytes <= budget:
-                patches[n] = patch
-                budget -= patch.nbytes
+            nodes = changed[lo:hi]
+            patch_off = np.concatenate([[0], np.cumsum(size[lo:hi])])
+            chunk_blocks = blocks[lo:hi].copy()
+            chunk_blocks[:, 4] = np.cumsum(words[lo:hi]) - words[lo:hi]
+            flat = np.zeros(int(patch_off[-1]), dtype=np.int8)
+            masks = np.zeros(int(words[lo:hi].sum()), dtype=np.int64)
+            rows, counts = _sample_feet(
+                nodes, poses, bbox, self._rect, self._lres, self._cells,
+                self.config.resolution_m, flat, patch_off, chunk_blocks, masks,
+            )  # fmt: skip
+            self._feet.set_many(nodes, rows, counts)
+            if lo == 0:
+                for k, n in enumerate(nodes.tolist()):
+                    shape = (int(bbox[n, 1] - bbox[n, 0]), int(bbox[n, 3] - bbox[n, 2]))
+                    patches[n] = flat[patch_off[k] : patch_off[k + 1]].reshape(shape)
+            lo = hi
+        self._feet_pose[changed] = poses[changed]
         return len(changed)
 
     def _moved(self, now: NDArray[np.float64], then: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Per row: did the pose move beyond the tolerance (any change when it is 0)?"""
         cfg = self.config
-        if cfg.pose_tolerance_m == 0 and cfg.pose_tolerance_rad == 0:
-            return np.any(now != then, axis=1)  # type: ignore[no-any-return]
-        dxy = np.hypot(now[:, 0] - then[:, 0], now[:, 1] - then[:, 1])
-        dth = np.abs((now[:, 2] - then[:, 2] + np.pi) % (2 * np.pi) - np.pi)
-        return (dxy > cfg.pose_tolerance_m) | (dth > cfg.pose_tolerance_rad)  # type: ignore[no-any-return]
+        return _rows_differ(now, then, cfg.pose_tolerance_m, cfg.pose_tolerance_rad)  # type: ignore[no-any-return]
 
     def _cached(
         self,
@@ -833,9 +917,26 @@ class Rasterizer:
         self._combine_dirty(dirty, prio)
         stats.dirty_tiles = len(dirty)
         row0, row1, col0, col1 = bounds
-        values = np.full((row1 - row0, col1 - col0), UNKNOWN, dtype=np.int8)
-        _assemble(values, row0, col0, self._tile_store, self._tile_used, self._tile_rc)
-        return values
+        values = self._map
+        if values is None or self._map_bounds != bounds:
+            values = np.full((row1 - row0, col1 - col0), UNKNOWN, dtype=np.int8)
+            _assemble(values, row0, col0, self._tile_store, self._tile_used, self._tile_rc)
+            self._map, self._map_bounds = values, bounds
+        else:  # the same extent as last time: only the dirty tiles change
+            t = self.config.tile_cells
+            for key in dirty:
+                i0, j0 = key[0] * t, key[1] * t
+                a0, a1 = max(i0, row0), min(i0 + t, row1)
+                b0, b1 = max(j0, col0), min(j0 + t, col1)
+                if a0 >= a1 or b0 >= b1:
+                    continue
+                slot = self._tile_slot.get(key)
+                region = values[a0 - row0 : a1 - row0, b0 - col0 : b1 - col0]
+                if slot is None:
+                    region[:] = UNKNOWN
+                else:
+                    region[:] = self._tile_store[slot, a0 - i0 : a1 - i0, b0 - j0 : b1 - j0]
+        return values.copy()
 
     def _combine_dirty(self, dirty: set[tuple[int, int]], prio: NDArray[np.int64]) -> None:
         """Recompute the values of the ``dirty`` tiles from the submaps that have them."""
