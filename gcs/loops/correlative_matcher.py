@@ -74,7 +74,10 @@ class MatcherConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     ``yaw_step_rad`` 0 picks the angle that moves the farthest query point by
     ``yaw_step_cells`` cells (see the module docstring). ``response_radius`` is the
     half-width, in discretization steps, of the neighbourhood of the optimum used for
-    refinement and covariance.
+    refinement and covariance; ``response_outer_radius`` > 0 (cells) also samples the
+    translations every ``response_outer_stride`` cells that far at the best rotation, and
+    when their spread is the larger it becomes the translation covariance (an ambiguous,
+    corridor-like match then says so instead of reporting the inner neighbourhood's size).
     """
 
     search_xy_m: float = 3.0
@@ -87,6 +90,8 @@ class MatcherConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     levels: int = 0  # pyramid levels; 0: automatic (see the module docstring)
     point_correlation: float = 16.0  # neighbouring wall points are not independent evidence
     response_radius: int = 2
+    response_outer_radius: int = 0
+    response_outer_stride: int = 2
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.search_xy_m) and 0 <= self.search_xy_m <= 100):
@@ -105,6 +110,11 @@ class MatcherConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError(f"point_correlation must be > 0, got {self.point_correlation}")
         if not 1 <= self.response_radius <= 5:
             raise ValueError(f"response_radius must be in [1, 5], got {self.response_radius}")
+        if not (0 <= self.response_outer_radius <= 50 and 1 <= self.response_outer_stride <= 10):
+            raise ValueError(
+                "need 0 <= response_outer_radius <= 50 and 1 <= response_outer_stride <= 10, "
+                f"got {self.response_outer_radius}, {self.response_outer_stride}"
+            )
 
 
 @dataclass(frozen=True)
@@ -563,6 +573,41 @@ def _response_surface(level0, width, idx, count, n_xy, j0, ty0, tx0, radius, yaw
     return mu, cov
 
 
+@numba.njit(cache=True, boundscheck=False)
+def _outer_translation_cov(
+    level0, width, idx, count, n_xy, j0, ty0, tx0, radius, stride, scale, best
+):  # type: ignore[no-untyped-def]
+    """Translation covariance (cells^2) over a strided grid of translations within ``radius``
+    cells of the optimum, at the optimum's rotation, weighted like the response surface:
+    it sees ambiguity (a ridge along a corridor) wider than the inner neighbourhood."""
+    wsum = 0.0
+    mx = 0.0
+    my = 0.0
+    sxx = sxy = syy = 0.0
+    for dy in range(-radius, radius + 1, stride):
+        ty = ty0 + dy
+        if ty < -n_xy or ty > n_xy:
+            continue
+        for dx in range(-radius, radius + 1, stride):
+            tx = tx0 + dx
+            if tx < -n_xy or tx > n_xy:
+                continue
+            w = math.exp((_score(level0, idx, j0, count[j0], ty * width + tx) - best) * scale)
+            wsum += w
+            mx += w * dx
+            my += w * dy
+            sxx += w * dx * dx
+            sxy += w * dx * dy
+            syy += w * dy * dy
+    mx /= wsum
+    my /= wsum
+    cov = np.empty((2, 2))
+    cov[0, 0] = sxx / wsum - mx * mx
+    cov[0, 1] = cov[1, 0] = sxy / wsum - mx * my
+    cov[1, 1] = syy / wsum - my * my
+    return cov
+
+
 @dataclass(frozen=True)
 class _Prepared:
     yaws: np.ndarray
@@ -748,6 +793,19 @@ class CorrelativeMatcher:
             self.config.response_radius, p.yaws, res,
             ref.loglik_per_unit / self.config.point_correlation,
         )  # fmt: skip
+        cfg = self.config
+        if cfg.response_outer_radius > 0:
+            best = _score(ref.pyramid[0], p.idx, j, p.count[j], ty * ref.shape[1] + tx)
+            outer = _outer_translation_cov(
+                ref.pyramid[0], ref.shape[1], p.idx, p.count, p.n_xy, j, ty, tx,
+                cfg.response_outer_radius, cfg.response_outer_stride,
+                ref.loglik_per_unit / cfg.point_correlation, best,
+            ) * res**2  # fmt: skip
+            if np.trace(outer) > cov[0, 0] + cov[1, 1]:
+                # ambiguity wider than the inner neighbourhood: its translation block rules
+                cov[:2, :2] = outer
+                cov[:2, 2] = 0.0
+                cov[2, :2] = 0.0
         step = float(p.yaws[1] - p.yaws[0]) if len(p.yaws) > 1 else 0.01
         cov[0, 0] += res**2 / 12.0  # floor: the discretization itself
         cov[1, 1] += res**2 / 12.0

@@ -1,0 +1,207 @@
+"""Loop-closure candidate generation (paper 4.3.3, 4.6: Dijkstra projection sizes the search).
+
+For a new pose node ``n``, every other node ``m`` that has a scan, of any robot, is a
+candidate when the graph already relates the two (same connected component) and:
+
+* their expected relative pose ``n_from_m`` (the Dijkstra projection: composition of the
+  measurements along the minimum-uncertainty path) puts ``m`` within ``max_distance_m`` of
+  ``n`` (so the two grids overlap), or its ``k_sigma`` uncertainty region comes that close;
+* the uncertainty of that relative pose (the projection's covariance, an upper bound) still
+  leaves something to correct: its translation standard deviation is at least
+  ``min_sigma_xy_m`` (nodes already tightly related, e.g. consecutive nodes of one robot,
+  are skipped; so are the same robot's nodes fewer than ``min_index_gap`` apart);
+* the ``k_sigma`` region of the uncertainty fits a search window: the standard matcher's
+  window (``window_xy_m``, ``window_yaw_rad``) or, for poorly related nodes (a robot linked
+  only by a loose operator hint, a long loop), a bounded *wide* window: ``wide_xy_m`` in
+  translation when the standard one is too small, and a yaw window as wide as needed, in
+  steps of ``yaw_class_rad``, up to ``wide_yaw_rad``. Beyond even that the candidate is
+  dropped: the search would be too expensive and too prone to aliasing.
+
+Each candidate carries the window it needs and its priority: the expected correction, the
+translation standard deviation (largest first, paper: "large expected correction first"),
+discounted by a Gaussian factor when the expected position lies beyond ``max_distance_m``
+(the grids may not overlap), so that a budget of matches per second goes where matching
+helps most. Ties (to the centimetre) go to the nearer node. At most ``max_per_node``
+candidates are kept per new node (highest priority first).
+
+Robots in different components (not yet linked by a fiducial, an operator hint or an accepted
+closure) are never candidates: there is no bounded window to search (a robot with no seed
+stays unlinked). The module is pure: it works on a projection result and node arrays.
+
+Covariances: the projection's covariance of ``m`` is in ``m``'s body frame (right
+perturbation, GTSAM's convention); the matcher's window is over ``(x, y)`` in ``n``'s frame
+and the yaw, so it is rotated into those components first.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "Candidate",
+    "CandidateSearchConfig",
+    "body_to_vector_covariance",
+    "search_candidates",
+]
+
+FloatArray = NDArray[Any]
+IntArray = NDArray[np.int64]
+
+
+class CandidateSearchConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Gates of candidate generation (metres, radians); see the module docstring."""
+
+    max_distance_m: float = 5.0
+    min_sigma_xy_m: float = 0.05
+    min_index_gap: int = 5
+    k_sigma: float = 3.0
+    window_xy_m: float = 3.0
+    window_yaw_rad: float = math.radians(30.0)
+    wide_xy_m: float = 8.0
+    wide_yaw_rad: float = math.pi
+    yaw_class_rad: float = math.radians(15.0)
+    max_per_node: int = 8
+
+    def __post_init__(self) -> None:
+        for name in (
+            "max_distance_m",
+            "k_sigma",
+            "window_xy_m",
+            "window_yaw_rad",
+            "wide_xy_m",
+            "yaw_class_rad",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive finite number, got {v}")
+        if not (math.isfinite(self.min_sigma_xy_m) and self.min_sigma_xy_m >= 0):
+            raise ValueError(f"min_sigma_xy_m: expected >= 0, got {self.min_sigma_xy_m}")
+        if not 0 < self.wide_yaw_rad <= math.pi:
+            raise ValueError(f"wide_yaw_rad: expected in (0, pi], got {self.wide_yaw_rad}")
+        if self.wide_xy_m < self.window_xy_m or self.wide_yaw_rad < self.window_yaw_rad:
+            raise ValueError("the wide window must contain the standard window")
+        if self.min_index_gap < 0 or self.max_per_node < 1:
+            raise ValueError("need min_index_gap >= 0 and max_per_node >= 1")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A pair to match: ``reference_key`` (the new node, whose table is built) and
+    ``query_key``; the projection's ``reference_from_query`` and its covariance in vector
+    components ``(x, y, yaw)`` of the reference frame; the window the match needs and its
+    priority (translation standard deviation, metres)."""
+
+    reference_key: int
+    query_key: int
+    reference_from_query: FloatArray
+    covariance_xyt: FloatArray
+    window_xy_m: float
+    window_yaw_rad: float
+    wide: bool
+    priority: float
+
+
+def body_to_vector_covariance(pose: FloatArray, cov_body: FloatArray) -> FloatArray:
+    """Covariance of ``(x, y, theta)`` of ``pose`` from its body-frame (right-perturbation)
+    covariance: ``d(x, y) = R(theta) v``, ``d theta = omega``. Works on ``(N, 3)`` /
+    ``(N, 3, 3)`` batches."""
+    p = np.asarray(pose, dtype=np.float64)
+    c = np.asarray(cov_body, dtype=np.float64)
+    th = p[..., 2]
+    k = np.zeros(c.shape)
+    k[..., 0, 0] = np.cos(th)
+    k[..., 0, 1] = -np.sin(th)
+    k[..., 1, 0] = np.sin(th)
+    k[..., 1, 1] = np.cos(th)
+    k[..., 2, 2] = 1.0
+    return k @ c @ np.swapaxes(k, -1, -2)  # type: ignore[no-any-return]
+
+
+def search_candidates(
+    reference_key: int,
+    *,
+    keys: IntArray,
+    robot_ids: IntArray,
+    indices: IntArray,
+    has_scan: NDArray[np.bool_],
+    poses: FloatArray,
+    covariances: FloatArray,
+    config: CandidateSearchConfig,
+) -> list[Candidate]:
+    """Candidates of ``reference_key`` among the nodes ``keys`` (see the module docstring).
+
+    ``poses`` ``(N, 3)`` and ``covariances`` ``(N, 3, 3)`` are the Dijkstra projection from
+    the reference node (``reference_from_node`` and its body-frame covariance; NaN / inf where
+    unreached), ``robot_ids`` / ``indices`` each node's robot and pose index, ``has_scan``
+    whether a scan is stored for it. Returns at most ``max_per_node``, highest priority first.
+    """
+    keys = np.asarray(keys, dtype=np.int64)
+    n = len(keys)
+    for name, arr, shape in (
+        ("robot_ids", robot_ids, (n,)),
+        ("indices", indices, (n,)),
+        ("has_scan", has_scan, (n,)),
+        ("poses", poses, (n, 3)),
+        ("covariances", covariances, (n, 3, 3)),
+    ):
+        if np.shape(arr) != shape:
+            raise ValueError(f"search_candidates: {name} has shape {np.shape(arr)}, need {shape}")
+    where = np.nonzero(keys == reference_key)[0]
+    if len(where) != 1:
+        raise ValueError(f"search_candidates: reference key {reference_key} not among the keys")
+    r = int(where[0])
+    cfg = config
+    poses = np.asarray(poses, dtype=np.float64)
+    reached = np.isfinite(poses[:, 0]) & np.all(np.isfinite(covariances), axis=(1, 2))
+    ok = reached & np.asarray(has_scan, dtype=bool)
+    ok[r] = False
+    same_robot = robot_ids == robot_ids[r]
+    ok &= ~(same_robot & (np.abs(indices - indices[r]) < cfg.min_index_gap))
+    dist = np.hypot(poses[:, 0], poses[:, 1])
+    ok &= dist <= cfg.max_distance_m + cfg.wide_xy_m  # a coarse gate before the exact one
+    idx = np.nonzero(ok)[0]
+    if len(idx) == 0:
+        return []
+    cov = body_to_vector_covariance(poses[idx], np.asarray(covariances)[idx])
+    sigma_xy = np.sqrt(np.maximum(np.linalg.eigvalsh(cov[:, :2, :2])[:, 1], 0.0))
+    sigma_yaw = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
+    need_xy = cfg.k_sigma * sigma_xy
+    need_yaw = cfg.k_sigma * sigma_yaw
+    d = dist[idx]
+    keep = (sigma_xy >= cfg.min_sigma_xy_m) & (need_xy <= cfg.wide_xy_m)
+    keep &= need_yaw <= cfg.wide_yaw_rad
+    keep &= d - need_xy <= cfg.max_distance_m  # the uncertainty region comes close enough
+    # expected correction, discounted by the chance that the grids overlap at all
+    priority = sigma_xy * np.exp(
+        -0.5 * (np.maximum(d - cfg.max_distance_m, 0.0) / np.maximum(sigma_xy, 1e-9)) ** 2
+    )
+    out: list[Candidate] = []
+    for k in np.nonzero(keep)[0]:
+        wide_xy = bool(need_xy[k] > cfg.window_xy_m)
+        # the yaw window only as wide as needed (in steps of yaw_class_rad): cost is linear in it
+        yaw = cfg.window_yaw_rad
+        if need_yaw[k] > yaw:
+            yaw = min(
+                cfg.wide_yaw_rad, math.ceil(need_yaw[k] / cfg.yaw_class_rad) * cfg.yaw_class_rad
+            )
+        i = int(idx[k])
+        out.append(
+            Candidate(
+                reference_key=int(reference_key),
+                query_key=int(keys[i]),
+                reference_from_query=poses[i].copy(),
+                covariance_xyt=cov[k],
+                window_xy_m=cfg.wide_xy_m if wide_xy else cfg.window_xy_m,
+                window_yaw_rad=yaw,
+                wide=wide_xy or yaw > cfg.window_yaw_rad,
+                priority=float(priority[k]),
+            )
+        )
+    out.sort(key=lambda c: (-round(c.priority, 2), float(np.hypot(*c.reference_from_query[:2]))))
+    return out[: cfg.max_per_node]

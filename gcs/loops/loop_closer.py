@@ -1,0 +1,678 @@
+"""Automatic loop closing at the GCS: candidates, matching on a budget, cycle validation
+(paper 4.3.3, 4.5, 6.1).
+
+:class:`LoopCloser` composes the pure pieces around the shared
+:class:`~gcs.graph.pose_graph.PoseGraph`:
+
+1. :meth:`LoopCloser.add_scan` stores a node's vertical-surface points (in its ``base``).
+2. :meth:`LoopCloser.step`:
+
+   * **candidates** (:mod:`gcs.loops.candidate_search`) for every new scanned node, from the
+     Dijkstra projection over the graph's relative edges (bounded by the wide window's
+     uncertainty, so its cost stays local). When components merge (a fiducial, an operator
+     hint or an accepted closure links robots), the scanned nodes of the merged component
+     become sources again, every ``resweep_stride``-th, so that cross-robot pairs are
+     generated once robots are linked. Candidates wait in a priority queue (largest expected
+     correction first) and a pair is matched at most once until :meth:`LoopCloser.restart`;
+   * **matching** (:mod:`gcs.loops.correlative_matcher`) within the call's time budget and a
+     token bucket of ``matches_per_s``: the new node's grid is the reference (its table is
+     cached, LRU), the candidate's points the query, the guess the current estimate of
+     ``reference_from_query``. Poorly related pairs get the bounded wide window: each costs
+     ``wide_match_cost`` tokens, at most ``max_wide_per_step`` per call, and must reach a
+     higher ``wide_min_score``. A match reaching ``min_score`` becomes a hypothesis;
+   * **validation** (:mod:`gcs.loops.cycle_validation`): hypotheses are promoted only by a
+     consistent cycle and never against one; promoted ones become ``LOOP_AUTO`` edges.
+
+   It does not optimize: the caller optimizes after the step.
+3. Operator primitives (paper 6.1): :meth:`LoopCloser.suggest` (run the matcher between two
+   poses, return pose and score), :meth:`LoopCloser.rewind` (remove automatic closures since
+   a time), :meth:`LoopCloser.restart` (forget hypotheses and candidates).
+
+Frames: points in each node's ``base``; ``a_from_b`` between nodes; covariances of edges and
+hypotheses in the body frame of ``b`` (GTSAM ``BetweenFactorPose2``); the matcher works in
+vector components ``(x, y, yaw)`` of ``a`` and its covariance is rotated accordingly.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any
+
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+
+from gcs.graph import se2
+from gcs.graph.dijkstra_projection import Adjacency, ProjectionResult, dijkstra_projection
+from gcs.graph.keys import split_key
+from gcs.graph.pose_graph import PoseGraph, Provenance
+from gcs.loops.candidate_search import (
+    Candidate,
+    CandidateSearchConfig,
+    body_to_vector_covariance,
+    search_candidates,
+)
+from gcs.loops.correlative_matcher import (
+    CorrelativeMatcher,
+    MatcherConfig,
+    MatchResult,
+    ReferenceTable,
+    points_grid,
+)
+from gcs.loops.cycle_validation import (
+    CycleValidationConfig,
+    CycleValidator,
+    Hypothesis,
+    ValidationResult,
+)
+
+__all__ = [
+    "LoopCloser",
+    "LoopCloserConfig",
+    "LoopCloserStats",
+    "LoopClosingReport",
+    "vector_to_body_covariance",
+]
+
+FloatArray = NDArray[Any]
+
+
+class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Everything loop closing runs with (metres, radians, seconds).
+
+    ``matcher`` is the standard window (it must equal ``candidates.window_*``); the wide
+    matcher is the same with ``candidates.wide_*``. ``link_sigma_*`` bound the graph paths
+    that join hypotheses into cycles; ``path_sigma_xy_m`` bounds the search for the graph's
+    own path between a hypothesis's nodes. ``edge_floor_sigma_*`` are added to a promoted
+    edge's covariance (a response surface can be overconfident). A match whose translation
+    standard deviation exceeds ``max_match_sigma_xy_m`` (an ambiguous, corridor-like view;
+    the matcher's outer response surface measures it) constrains too little to be a closure
+    and is dropped.
+    """
+
+    resolution_m: float = 0.1
+    matcher: MatcherConfig = msgspec.field(
+        default_factory=lambda: MatcherConfig(response_outer_radius=10)
+    )
+    candidates: CandidateSearchConfig = msgspec.field(default_factory=CandidateSearchConfig)
+    validation: CycleValidationConfig = msgspec.field(default_factory=CycleValidationConfig)
+    min_score: float = 0.5
+    max_match_sigma_xy_m: float = 0.25
+    wide_min_score: float = 0.6
+    matches_per_s: float = 500.0
+    max_burst_matches: int = 200
+    max_wide_per_step: int = 20
+    wide_match_cost: float = 4.0
+    max_queue: int = 5000
+    candidate_max_age_s: float = 30.0
+    resweep_stride: int = 3
+    table_cache: int = 48
+    wide_table_cache: int = 8
+    link_sigma_xy_m: float = 0.5
+    link_sigma_yaw_rad: float = 0.1
+    path_sigma_xy_m: float = 10.0
+    edge_floor_sigma_xy_m: float = 0.02
+    edge_floor_sigma_yaw_rad: float = math.radians(0.5)
+    min_scan_points: int = 20
+
+    def __post_init__(self) -> None:
+        m, c = self.matcher, self.candidates
+        if not math.isclose(m.search_xy_m, c.window_xy_m) or not math.isclose(
+            m.search_yaw_rad, c.window_yaw_rad
+        ):
+            raise ValueError(
+                "matcher.search_xy_m / search_yaw_rad must equal candidates.window_xy_m / "
+                f"window_yaw_rad, got ({m.search_xy_m}, {m.search_yaw_rad}) and "
+                f"({c.window_xy_m}, {c.window_yaw_rad})"
+            )
+        if not (0 < self.resolution_m <= 1 and math.isfinite(self.resolution_m)):
+            raise ValueError(f"resolution_m: expected in (0, 1], got {self.resolution_m}")
+        for name in ("min_score", "wide_min_score"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name}: expected in [0, 1], got {getattr(self, name)}")
+        for name in (
+            "matches_per_s",
+            "candidate_max_age_s",
+            "link_sigma_xy_m",
+            "link_sigma_yaw_rad",
+            "path_sigma_xy_m",
+            "max_match_sigma_xy_m",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive finite number, got {v}")
+        if not (math.isfinite(self.wide_match_cost) and self.wide_match_cost >= 1):
+            raise ValueError(f"wide_match_cost: expected >= 1, got {self.wide_match_cost}")
+        for name in (
+            "max_burst_matches",
+            "max_queue",
+            "resweep_stride",
+            "table_cache",
+            "wide_table_cache",
+        ):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+        if self.max_wide_per_step < 0 or self.min_scan_points < 1:
+            raise ValueError("need max_wide_per_step >= 0 and min_scan_points >= 1")
+        if not (self.edge_floor_sigma_xy_m >= 0 and self.edge_floor_sigma_yaw_rad >= 0):
+            raise ValueError("edge covariance floors must be >= 0")
+
+
+@dataclass
+class LoopCloserStats:
+    """Counters since construction (never reset, not even by :meth:`LoopCloser.restart`)."""
+
+    scans: int = 0
+    scans_too_small: int = 0
+    candidates: int = 0
+    matches: int = 0
+    wide_matches: int = 0
+    below_min_score: int = 0
+    ambiguous: int = 0
+    hypotheses: int = 0
+    accepted: int = 0
+    rejected_by_cycle: int = 0
+    expired: int = 0
+    stale_candidates: int = 0
+    dropped_candidates: int = 0
+
+
+@dataclass
+class LoopClosingReport:
+    """What one :meth:`LoopCloser.step` did: matches run, hypotheses made, edge ids added,
+    hypotheses rejected by a cycle or expired, candidates still queued, time spent and whether
+    the budget (time or matches) ran out before the queue did."""
+
+    matches: int = 0
+    hypotheses: int = 0
+    accepted_edge_ids: list[int] = field(default_factory=list)
+    rejected: int = 0
+    expired: int = 0
+    queued: int = 0
+    elapsed_s: float = 0.0
+    budget_exhausted: bool = False
+    validation: ValidationResult | None = None
+
+
+def vector_to_body_covariance(pose: FloatArray, cov_xyt: FloatArray) -> FloatArray:
+    """Inverse of :func:`~gcs.loops.candidate_search.body_to_vector_covariance`."""
+    p = np.asarray(pose, dtype=np.float64).copy()
+    p[..., 2] = -p[..., 2]
+    return body_to_vector_covariance(p, cov_xyt)
+
+
+@dataclass(frozen=True)
+class _Mirror:
+    """The graph's relative edges as arrays, for Dijkstra projections (rebuilt on change)."""
+
+    keys: NDArray[np.int64]
+    index: dict[int, int]
+    adjacency: Adjacency
+    robot_ids: NDArray[np.int64]
+    indices: NDArray[np.int64]
+    signature: tuple[int, int, int]
+    revision: int
+
+
+class LoopCloser:
+    """Automatic loop closing over a shared pose graph (module docstring)."""
+
+    def __init__(self, graph: PoseGraph, config: LoopCloserConfig | None = None) -> None:
+        self.graph = graph
+        self.config = config or LoopCloserConfig()
+        cfg = self.config
+        self._matcher = CorrelativeMatcher(cfg.matcher)
+        self._matchers: dict[tuple[bool, float], CorrelativeMatcher] = {}
+        self._wide = self._matcher_for(True, cfg.candidates.wide_yaw_rad)
+        self._validator = CycleValidator(cfg.validation)
+        self.stats = LoopCloserStats()
+        self._scans: dict[int, FloatArray] = {}
+        self._tables: OrderedDict[tuple[int, bool], ReferenceTable] = OrderedDict()
+        self._sources: list[int] = []  # nodes whose candidates are to be generated
+        self._queue: list[tuple[float, int, float, Candidate]] = []
+        self._seq = 0
+        self._tried: set[tuple[int, int]] = set()
+        self._next_hyp = 0
+        self._tokens = float(cfg.max_burst_matches)
+        self._last_now_s: float | None = None
+        self._mirror: _Mirror | None = None
+        self._groups: frozenset[frozenset[int]] | None = None
+        self._links: dict[int, dict[int, tuple[FloatArray, FloatArray]]] = {}
+        self._has_scan_cache: tuple[tuple[int, int], NDArray[np.bool_]] | None = None
+
+    # ---- input -----------------------------------------------------------------------------
+
+    def add_scan(self, key: int, points_in_base: FloatArray) -> None:
+        """Store node ``key``'s vertical-surface points ``(N, 2)`` (metres, its ``base``).
+
+        The node must already be in the graph. A scan with fewer than ``min_scan_points`` is
+        counted and ignored (nothing to match); a second scan of a node replaces the first.
+        Raises ``ValueError`` naming the node for an unknown key or malformed points.
+        """
+        try:
+            robot, index = split_key(key)
+        except ValueError as exc:
+            raise ValueError(f"add_scan: {exc}") from None
+        try:
+            self.graph.pose(key)
+        except ValueError:
+            raise ValueError(f"add_scan: robot {robot} pose {index} is not in the graph") from None
+        pts = np.asarray(points_in_base, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 2:
+            raise ValueError(
+                f"add_scan: robot {robot} pose {index}: points must be (N, 2), got {pts.shape}"
+            )
+        if not np.all(np.isfinite(pts)):
+            raise ValueError(f"add_scan: robot {robot} pose {index}: non-finite points")
+        if len(pts) < self.config.min_scan_points:
+            self.stats.scans_too_small += 1
+            return
+        self.stats.scans += 1
+        self._scans[int(key)] = np.ascontiguousarray(pts)
+        for wide in (False, True):
+            self._tables.pop((int(key), wide), None)
+        self._sources.append(int(key))
+
+    @property
+    def scanned_keys(self) -> list[int]:
+        """Keys of the nodes with a stored scan."""
+        return sorted(self._scans)
+
+    @property
+    def pending_hypotheses(self) -> list[Hypothesis]:
+        """Hypotheses waiting for a cycle."""
+        return self._validator.pending
+
+    @property
+    def queued_candidates(self) -> int:
+        return len(self._queue)
+
+    # ---- the step --------------------------------------------------------------------------
+
+    def step(self, *, now_s: float, budget_s: float) -> LoopClosingReport:
+        """Candidates, matching within ``budget_s`` (wall seconds) and the match rate,
+        cycle validation; promoted hypotheses are added to the graph (``LOOP_AUTO``, stamped
+        ``now_s``). Does not optimize."""
+        if not math.isfinite(now_s):
+            raise ValueError(f"step: now_s must be finite, got {now_s}")
+        if not budget_s >= 0:
+            raise ValueError(f"step: budget_s must be >= 0, got {budget_s}")
+        cfg = self.config
+        t0 = time.perf_counter()
+        deadline = t0 + budget_s
+        report = LoopClosingReport()
+        if self._last_now_s is not None:
+            elapsed = max(0.0, now_s - self._last_now_s)
+            self._tokens = min(
+                float(cfg.max_burst_matches), self._tokens + cfg.matches_per_s * elapsed
+            )
+        self._last_now_s = now_s
+        mirror = self._sync()
+        self._resweep_on_merge()
+        # candidate generation (cheap: bounded projections) for the waiting sources
+        while self._sources and time.perf_counter() < deadline:
+            self._generate(self._sources.pop(0), mirror, now_s)
+        report.budget_exhausted = bool(self._sources)
+        # matching, highest priority first
+        wide_left = cfg.max_wide_per_step
+        deferred: list[tuple[float, int, float, Candidate]] = []
+        while self._queue:
+            if time.perf_counter() >= deadline or self._tokens < 1.0:
+                report.budget_exhausted = True
+                break
+            item = heapq.heappop(self._queue)
+            _, _, created_s, cand = item
+            if now_s - created_s > cfg.candidate_max_age_s:
+                self.stats.stale_candidates += 1
+                continue
+            cost = cfg.wide_match_cost if cand.wide else 1.0
+            if cand.wide and (wide_left <= 0 or self._tokens < cost):
+                deferred.append(item)
+                continue
+            wide_left -= cand.wide
+            self._tokens -= cost
+            hyp = self._match(cand, now_s)
+            report.matches += 1
+            if hyp is not None:
+                self._validator.add(hyp)
+                report.hypotheses += 1
+        for item in deferred:
+            heapq.heappush(self._queue, item)
+        # validation and promotion
+        result = self._validator.validate(
+            now_s=now_s, links=self._links_of, path=self._path, revision=mirror.revision
+        )
+        report.validation = result
+        for h in result.accepted:
+            eid = self.graph.add_edge(
+                h.key_a,
+                h.key_b,
+                a_from_b=h.a_from_b,
+                covariance=h.covariance,
+                provenance=Provenance.LOOP_AUTO,
+                time_s=now_s,
+            )
+            report.accepted_edge_ids.append(eid)
+        report.rejected = len(result.rejected)
+        report.expired = len(result.expired)
+        self.stats.accepted += len(result.accepted)
+        self.stats.rejected_by_cycle += len(result.rejected)
+        self.stats.expired += len(result.expired)
+        report.queued = len(self._queue)
+        report.elapsed_s = time.perf_counter() - t0
+        return report
+
+    # ---- operator primitives (paper 6.1) ---------------------------------------------------
+
+    def suggest(
+        self,
+        key_a: int,
+        key_b: int,
+        b_in_a_guess: FloatArray | None = None,
+        *,
+        wide: bool | None = None,
+    ) -> MatchResult:
+        """Run the matcher between two poses and return ``a_from_b``, covariance and score
+        (does not add an edge). The guess defaults to the current estimates when both poses
+        are in one component (else a guess is required); ``wide`` (default: when the poses
+        are in different components or a guess is given) searches the wide window."""
+        for k in (key_a, key_b):
+            if k not in self._scans:
+                r, i = split_key(k)
+                raise ValueError(f"suggest: robot {r} pose {i} has no scan to match")
+        comps = self.graph.components()
+        if b_in_a_guess is None:
+            if comps[key_a] != comps[key_b]:
+                raise ValueError(
+                    "suggest: the two poses are in different components; give b_in_a_guess"
+                )
+            guess = se2.between(self.graph.pose(key_a), self.graph.pose(key_b))
+        else:
+            guess = np.asarray(b_in_a_guess, dtype=np.float64)
+            if guess.shape != (3,) or not np.all(np.isfinite(guess)):
+                raise ValueError(f"suggest: b_in_a_guess must be a finite pose (3,), got {guess}")
+        use_wide = (
+            (b_in_a_guess is not None or comps[key_a] != comps[key_b]) if wide is None else wide
+        )
+        matcher = self._wide if use_wide else self._matcher
+        table = self._table(key_a, use_wide)
+        result = matcher.match(table, self._scans[key_b], guess)
+        assert result is not None  # min_score 0: the best transform always exists
+        return result
+
+    def operator_edge(self, key_a: int, key_b: int, result: MatchResult, *, time_s: float) -> int:
+        """Add a suggested match the operator accepted as a ``LOOP_OPERATOR`` edge."""
+        cov = self._edge_covariance(result)
+        return self.graph.add_edge(
+            key_a,
+            key_b,
+            a_from_b=result.a_from_b,
+            covariance=cov,
+            provenance=Provenance.LOOP_OPERATOR,
+            time_s=time_s,
+        )
+
+    def propose(self, key_a: int, key_b: int, result: MatchResult, *, time_s: float) -> int:
+        """Add a match (e.g. an operator's :meth:`suggest`) as a hypothesis: it becomes an
+        edge only through cycle validation, like the automatic ones. Returns its id."""
+        for k in (key_a, key_b):
+            self.graph.pose(k)  # raises naming an unknown pose
+        self._next_hyp += 1
+        self._validator.add(
+            Hypothesis(
+                hyp_id=self._next_hyp,
+                key_a=int(key_a),
+                key_b=int(key_b),
+                a_from_b=np.asarray(result.a_from_b, dtype=np.float64),
+                covariance=self._edge_covariance(result),
+                score=result.normalized_score,
+                time_s=time_s,
+            )
+        )
+        self.stats.hypotheses += 1
+        return self._next_hyp
+
+    def rewind(self, since_s: float) -> int:
+        """Remove the automatic closures added after ``since_s`` and drop every hypothesis;
+        returns how many edges were removed. Optimize next."""
+        removed = self.graph.rewind(since_s)
+        self._validator.clear()
+        self._mirror = None
+        self._links.clear()
+        return len(removed)
+
+    def restart(self) -> None:
+        """Forget hypotheses, queued candidates and the pairs already tried (so every pair may
+        be matched again, against the new prior); accepted edges stay."""
+        self._validator.clear()
+        self._queue.clear()
+        self._tried.clear()
+        self._sources = sorted(self._scans)
+        self._mirror = None
+        self._links.clear()
+        self._groups = None
+
+    # ---- internals -------------------------------------------------------------------------
+
+    def _sync(self) -> _Mirror:
+        """Arrays of the graph's relative edges; rebuilt when they changed."""
+        edges = [e for e in self.graph.edges() if e.key_b is not None]
+        nodes = self.graph.nodes()
+        signature = (len(nodes), len(edges), max((e.edge_id for e in edges), default=-1))
+        if self._mirror is not None and self._mirror.signature == signature:
+            return self._mirror
+        keys = np.array([n.key for n in nodes], dtype=np.int64)
+        index = {int(k): i for i, k in enumerate(keys)}
+        ij = np.array([[index[e.key_a], index[e.key_b]] for e in edges], dtype=np.int64)  # type: ignore[index]
+        z = np.array([e.z for e in edges], dtype=np.float64).reshape(-1, 3)
+        cov = np.array([e.covariance for e in edges], dtype=np.float64).reshape(-1, 3, 3)
+        adjacency = Adjacency.from_arrays(len(keys), ij.reshape(-1, 2), z, cov)
+        loops = sorted(e.edge_id for e in edges if e.provenance is not Provenance.ODOMETRY)
+        revision = hash((len(loops), sum(loops), len(edges)))
+        self._mirror = _Mirror(
+            keys=keys,
+            index=index,
+            adjacency=adjacency,
+            robot_ids=np.array([n.robot_id for n in nodes], dtype=np.int64),
+            indices=np.array([n.index for n in nodes], dtype=np.int64),
+            signature=signature,
+            revision=revision,
+        )
+        self._links.clear()
+        return self._mirror
+
+    def _resweep_on_merge(self) -> None:
+        """When robots' components merged, regenerate candidates from the merged robots'
+        scanned nodes (every ``resweep_stride``-th) so pairs across them appear."""
+        comps = self.graph.components()
+        by_label: dict[int, set[int]] = {}
+        for robot in self.graph.robots:
+            by_label.setdefault(comps[self.graph.last_key(robot)], set()).add(robot)
+        groups = frozenset(frozenset(g) for g in by_label.values())
+        previous = self._groups
+        self._groups = groups
+        if previous is None:
+            return
+        merged: set[int] = set()
+        for g in groups:
+            if not any(g <= old for old in previous) and len(g) > 1:
+                merged |= g
+        if not merged:
+            return
+        per_robot: dict[int, int] = {}
+        queued = set(self._sources)
+        for key in sorted(self._scans):
+            robot = split_key(key)[0]
+            if robot not in merged:
+                continue
+            k = per_robot.get(robot, 0)
+            per_robot[robot] = k + 1
+            if k % self.config.resweep_stride == 0 and key not in queued:
+                self._sources.append(key)
+
+    def _projection(
+        self, key: int, *, max_trace: float, target: int | None = None
+    ) -> ProjectionResult:
+        m = self._mirror
+        assert m is not None
+        return dijkstra_projection(
+            m.adjacency,
+            m.index[key],
+            target=None if target is None else m.index[target],
+            max_trace=max_trace,
+        )
+
+    def _generate(self, key: int, mirror: _Mirror, now_s: float) -> None:
+        if key not in self._scans or key not in mirror.index:
+            return
+        c = self.config.candidates
+        sxy = c.wide_xy_m / c.k_sigma
+        syaw = c.wide_yaw_rad / c.k_sigma
+        proj = self._projection(key, max_trace=2 * sxy**2 + syaw**2)
+        has_scan = self._has_scan(mirror)
+        found = search_candidates(
+            key,
+            keys=mirror.keys,
+            robot_ids=mirror.robot_ids,
+            indices=mirror.indices,
+            has_scan=has_scan,
+            poses=proj.poses,
+            covariances=proj.covariances,
+            config=c,
+        )
+        for cand in found:
+            pair = (
+                min(cand.reference_key, cand.query_key),
+                max(cand.reference_key, cand.query_key),
+            )
+            if pair in self._tried:
+                continue
+            self._tried.add(pair)
+            self.stats.candidates += 1
+            self._seq += 1
+            heapq.heappush(self._queue, (-cand.priority, self._seq, now_s, cand))
+        while len(self._queue) > self.config.max_queue:
+            # drop the lowest priority (largest key): rebuild without it
+            worst = max(self._queue)
+            self._queue.remove(worst)
+            heapq.heapify(self._queue)
+            self.stats.dropped_candidates += 1
+
+    def _matcher_for(self, wide_xy: bool, yaw_rad: float) -> CorrelativeMatcher:
+        """The matcher of a window: standard or wide translation (each with its own tables),
+        and any yaw window (tables do not depend on it)."""
+        k = (wide_xy, round(yaw_rad, 9))
+        if k not in self._matchers:
+            cfg = self.config
+            xy = cfg.candidates.wide_xy_m if wide_xy else cfg.matcher.search_xy_m
+            self._matchers[k] = CorrelativeMatcher(
+                msgspec.structs.replace(cfg.matcher, search_xy_m=xy, search_yaw_rad=yaw_rad)
+            )
+        return self._matchers[k]
+
+    def _has_scan(self, mirror: _Mirror) -> NDArray[np.bool_]:
+        stamp = (id(mirror), len(self._scans))
+        if self._has_scan_cache is None or self._has_scan_cache[0] != stamp:
+            flags = np.array([int(k) in self._scans for k in mirror.keys], dtype=bool)
+            self._has_scan_cache = (stamp, flags)
+        return self._has_scan_cache[1]
+
+    def _table(self, key: int, wide: bool) -> ReferenceTable:
+        k = (key, wide)
+        table = self._tables.get(k)
+        if table is not None:
+            self._tables.move_to_end(k)
+            return table
+        grid, origin = points_grid(self._scans[key], resolution_m=self.config.resolution_m)
+        matcher = self._wide if wide else self._matcher
+        table = matcher.reference_table(
+            grid, origin_m=origin, resolution_m=self.config.resolution_m
+        )
+        self._tables[k] = table
+        cap = {False: self.config.table_cache, True: self.config.wide_table_cache}
+        kinds = [kk for kk in self._tables if kk[1] == wide]
+        for kk in kinds[: max(0, len(kinds) - cap[wide])]:  # least recently used first
+            del self._tables[kk]
+        return table
+
+    def _edge_covariance(self, result: MatchResult) -> FloatArray:
+        cfg = self.config
+        cov = vector_to_body_covariance(result.a_from_b, result.covariance)
+        cov = 0.5 * (cov + cov.T)
+        floor = np.diag(
+            [
+                cfg.edge_floor_sigma_xy_m**2,
+                cfg.edge_floor_sigma_xy_m**2,
+                cfg.edge_floor_sigma_yaw_rad**2,
+            ]
+        )
+        return cov + floor  # type: ignore[no-any-return]
+
+    def _match(self, cand: Candidate, now_s: float) -> Hypothesis | None:
+        cfg = self.config
+        a, b = cand.reference_key, cand.query_key
+        if a not in self._scans or b not in self._scans:
+            return None
+        guess = se2.between(self.graph.pose(a), self.graph.pose(b))
+        wide_xy = cand.window_xy_m > cfg.matcher.search_xy_m
+        matcher = self._matcher_for(wide_xy, cand.window_yaw_rad)
+        table = self._table(a, wide_xy)
+        min_score = cfg.wide_min_score if cand.wide else cfg.min_score
+        self.stats.matches += 1
+        self.stats.wide_matches += cand.wide
+        result = matcher.match(table, self._scans[b], guess, min_score=min_score)
+        if result is None:
+            self.stats.below_min_score += 1
+            return None
+        cov = self._edge_covariance(result)
+        if np.linalg.eigvalsh(cov[:2, :2])[-1] > cfg.max_match_sigma_xy_m**2:
+            self.stats.ambiguous += 1
+            return None
+        self.stats.hypotheses += 1
+        self._next_hyp += 1
+        return Hypothesis(
+            hyp_id=self._next_hyp,
+            key_a=a,
+            key_b=b,
+            a_from_b=result.a_from_b,
+            covariance=cov,
+            score=result.normalized_score,
+            time_s=now_s,
+        )
+
+    def _links_of(self, key: int) -> dict[int, tuple[FloatArray, FloatArray]]:
+        """Tight graph paths from ``key``: ``{other: (key_from_other, covariance)}``."""
+        if key in self._links:
+            return self._links[key]
+        m = self._mirror
+        out: dict[int, tuple[FloatArray, FloatArray]] = {}
+        if m is not None and key in m.index:
+            cfg = self.config
+            limit = 2 * cfg.link_sigma_xy_m**2 + cfg.link_sigma_yaw_rad**2
+            proj = self._projection(key, max_trace=limit)
+            for i in np.nonzero(proj.reached)[0]:
+                cov = proj.covariances[i]
+                if (
+                    max(cov[0, 0], cov[1, 1]) <= cfg.link_sigma_xy_m**2
+                    and cov[2, 2] <= cfg.link_sigma_yaw_rad**2
+                ):
+                    out[int(m.keys[i])] = (proj.poses[i], cov)
+        self._links[key] = out
+        return out
+
+    def _path(self, key_a: int, key_b: int) -> tuple[FloatArray, FloatArray] | None:
+        """The graph's minimum-uncertainty path ``a_from_b`` (None if not connected within
+        ``path_sigma_xy_m``)."""
+        m = self._mirror
+        if m is None or key_a not in m.index or key_b not in m.index:
+            return None
+        s = self.config.path_sigma_xy_m
+        proj = self._projection(key_a, max_trace=2 * s**2 + math.pi**2, target=key_b)
+        i = m.index[key_b]
+        if not proj.reached[i]:
+            return None
+        return proj.poses[i], proj.covariances[i]
