@@ -171,13 +171,13 @@ class _Submap:
 
     ``codes`` (``2 (i + 1) + occupied`` for ``nodes[i]``) is dense over a tile-aligned box
     whose cell ``(0, 0)`` is map cell ``(row0, col0)``; ``tiles`` the map tiles where it has
-    cells."""
+    cells, with the rows and columns ``(r0, r1, c0, c1)`` within the tile that hold them."""
 
     nodes: list[int]
     codes: NDArray[np.uint8] = field(default_factory=lambda: np.zeros((0, 0), dtype=np.uint8))
     row0: int = 0
     col0: int = 0
-    tiles: set[tuple[int, int]] = field(default_factory=set)
+    tiles: dict[tuple[int, int], tuple[int, int, int, int]] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -361,11 +361,12 @@ def _sample_feet(nodes, poses, bbox, rect, lres, cells, res, patches, patch_off,
 
 
 @numba.njit(cache=True, nogil=True)
-def _combine_tiles(slots, ptr, sub_ids, sub_i0, sub_j0, sub_codes, rank, store):  # type: ignore[no-untyped-def]
+def _combine_tiles(slots, ptr, sub_ids, sub_i0, sub_j0, spans, sub_codes, rank, store):  # type: ignore[no-untyped-def]
     """Combine tile ``k`` (into ``store[slots[k]]`` as values) from the submaps
     ``sub_ids[ptr[k]:ptr[k+1]]``, whose codes hold the tile at ``(sub_i0, sub_j0)``: per cell
     the latest node's value. ``rank[sid, code]`` is ``2 (prio + 1) + occupied`` of the node
-    submap ``sid``'s code names (0 for no node), so latest-wins is a plain maximum."""
+    submap ``sid``'s code names (0 for no node), so latest-wins is a plain maximum; only the
+    rows and columns ``spans[p]`` of the tile that hold the submap's cells are read."""
     t = store.shape[1]
     best = np.zeros((t, t), dtype=np.int32)
     for k in range(slots.shape[0]):
@@ -376,10 +377,12 @@ def _combine_tiles(slots, ptr, sub_ids, sub_i0, sub_j0, sub_codes, rank, store):
             table = rank[sid]
             i0 = sub_i0[p]
             j0 = sub_j0[p]
-            for i in range(t):
-                row = sub[i0 + i, j0 : j0 + t]
-                out = best[i]
-                for j in range(t):
+            c0 = spans[p, 2]
+            c1 = spans[p, 3]
+            for i in range(spans[p, 0], spans[p, 1]):
+                row = sub[i0 + i, j0 + c0 : j0 + c1]
+                out = best[i, c0:c1]
+                for j in range(c1 - c0):
                     out[j] = max(out[j], table[row[j]])
         values = store[slots[k]]
         for i in range(t):
@@ -946,6 +949,7 @@ class Rasterizer:
         sub_ids: list[int] = []
         sub_i0: list[int] = []
         sub_j0: list[int] = []
+        spans: list[tuple[int, int, int, int]] = []
         for key in dirty:
             subs = self._tile_subs.get(key)
             if not subs:
@@ -967,6 +971,7 @@ class Rasterizer:
                 sub_ids.append(sid)
                 sub_i0.append(key[0] * t - sub.row0)
                 sub_j0.append(key[1] * t - sub.col0)
+                spans.append(sub.tiles[key])
             ptr.append(len(sub_ids))
         if slots:
             table = self._sub_table[: len(self._submaps)]
@@ -980,6 +985,7 @@ class Rasterizer:
                 np.asarray(sub_ids, dtype=np.int64),
                 np.asarray(sub_i0, dtype=np.int64),
                 np.asarray(sub_j0, dtype=np.int64),
+                np.asarray(spans, dtype=np.int64).reshape(-1, 4),
                 self._sub_codes,
                 rank,
                 self._tile_store,
@@ -1000,13 +1006,29 @@ class Rasterizer:
             self._free_slots.extend(range(new - 1, cap - 1, -1))
         return self._free_slots.pop()
 
-    def _tiles_of(self, sub: _Submap, box: tuple[int, int, int, int]) -> set[tuple[int, int]]:
-        """Tiles of ``sub`` within map-cell ``box`` (tile-aligned) that hold a cell."""
+    def _tiles_of(
+        self, sub: _Submap, box: tuple[int, int, int, int]
+    ) -> dict[tuple[int, int], tuple[int, int, int, int]]:
+        """Tiles of ``sub`` within map-cell ``box`` (tile-aligned) that hold a cell, with the
+        row and column range ``(r0, r1, c0, c1)`` of its cells within each."""
         t = self.config.tile_cells
         i0, i1, j0, j1 = box
         view = sub.codes[i0 - sub.row0 : i1 - sub.row0, j0 - sub.col0 : j1 - sub.col0]
-        nz = view.reshape((i1 - i0) // t, t, (j1 - j0) // t, t).any(axis=(1, 3))
-        return {(i0 // t + int(a), j0 // t + int(b)) for a, b in zip(*np.nonzero(nz), strict=True)}
+        blocks = view.reshape((i1 - i0) // t, t, (j1 - j0) // t, t) != 0
+        rows_any = blocks.any(axis=3)  # (tile row, row in tile, tile col)
+        cols_any = blocks.any(axis=1)  # (tile row, tile col, col in tile)
+        nz = rows_any.any(axis=1)
+        out = {}
+        for a, b in zip(*np.nonzero(nz), strict=True):
+            r = rows_any[a, :, b]
+            c = cols_any[a, b]
+            out[(i0 // t + int(a), j0 // t + int(b))] = (
+                int(np.argmax(r)),
+                t - int(np.argmax(r[::-1])),
+                int(np.argmax(c)),
+                t - int(np.argmax(c[::-1])),
+            )
+        return out
 
     def _tile_box(self, bbox: NDArray[np.int64]) -> tuple[int, int, int, int]:
         """Tile-aligned map-cell box around the boxes ``bbox`` ``(K, 4)``."""
@@ -1018,10 +1040,12 @@ class Rasterizer:
             -(-int(bbox[:, 3].max()) // t) * t,
         )
 
-    def _set_tiles(self, sid: int, sub: _Submap, tiles: set[tuple[int, int]]) -> None:
-        for key in sub.tiles - tiles:
+    def _set_tiles(
+        self, sid: int, sub: _Submap, tiles: dict[tuple[int, int], tuple[int, int, int, int]]
+    ) -> None:
+        for key in sub.tiles.keys() - tiles.keys():
             self._tile_subs[key].discard(sid)
-        for key in tiles - sub.tiles:
+        for key in tiles.keys() - sub.tiles.keys():
             self._tile_subs.setdefault(key, set()).add(sid)
         sub.tiles = tiles
 
@@ -1037,11 +1061,11 @@ class Rasterizer:
         dirty: set[tuple[int, int]],
     ) -> None:
         """Draw ``sub`` afresh from the nodes ``draw``, earliest first."""
-        dirty |= sub.tiles
+        dirty.update(sub.tiles)
         if len(draw) == 0:
             sub.codes = np.zeros((0, 0), dtype=np.uint8)
             self._sub_codes[sid] = sub.codes
-            self._set_tiles(sid, sub, set())
+            self._set_tiles(sid, sub, {})
             return
         box = self._tile_box(bbox[draw])
         sub.row0, sub.col0 = box[0], box[2]
@@ -1052,7 +1076,7 @@ class Rasterizer:
             self._draw(sub.codes, sub.row0, sub.col0, n, int(self._local[n]), local_prio,
                        poses, bbox, patches, latest_wins=False)  # fmt: skip
         self._set_tiles(sid, sub, self._tiles_of(sub, box))
-        dirty |= sub.tiles
+        dirty.update(sub.tiles)
 
     def _extend(
         self,
@@ -1091,4 +1115,4 @@ class Rasterizer:
                        poses, bbox, patches, latest_wins=True)  # fmt: skip
         touched = self._tiles_of(sub, box)
         self._set_tiles(sid, sub, sub.tiles | touched)
-        dirty |= touched
+        dirty.update(touched)
