@@ -19,6 +19,14 @@ Two optional features multiply the context:
   (:mod:`compression.reference_warp`): 0 nothing within one cell, 1 a reference cell within
   one cell, 2 a reference cell on this very cell.
 
+*Quiet runs* (``runs=True``): where a pixel's whole context is 0 (nothing coded nearby, no
+mark, no reference), the pixels up to where something would enter the context form a *quiet
+extent* of ``E`` pixels, known to the decoder. Instead of coding each of them (each almost
+surely 0), the coder codes one decision "is there a one in it?" in a context of ``E``'s bit
+length and whether the extent starts or ends a row, and if so the first one's position,
+uniform in ``[0, E)``. That is the per-pixel model's geometric law in one step: on the robots'
+grids it is both smaller (4%) and faster (1.5x) than coding the quiet pixels one by one.
+
 Probabilities are counts with a prior (a Beta prior per context):
 
     P(1 | c) = (n1[c] + s * prior1[c]) / (n0[c] + n1[c] + s)
@@ -29,8 +37,10 @@ Probabilities are counts with a prior (a Beta prior per context):
 
 The update is the recursive form ``p += (bit - p) / (n + s + 1)`` with ``n`` capped at
 :data:`COUNT_CAP` (beyond it the estimate forgets slowly), in fixed point (probabilities Q24,
-integer arithmetic only: every platform codes the same bytes). Tables are never copied per grid:
-a generation stamp per context says whether its state belongs to the grid being coded.
+integer arithmetic only: every platform codes the same bytes). Tables are never copied per
+grid: a generation stamp per context says whether its state belongs to the grid being coded.
+Without quiet runs, pixels in context 0 still run through a tight loop (same model, same
+bytes, faster).
 
 Complexity: O(pixels + ones * ones within reach), one compiled pass for encoding, decoding or
 counting (training).
@@ -68,6 +78,7 @@ EXTRAPOLATION_REACH = 8  # cells: pairs of ones at most this far apart (each axi
 COUNT_CAP = 1023
 _PAD_TOP, _PAD_LEFT, _PAD_RIGHT = 2, 4, 4
 _N_EXTRA = 3  # values of each optional feature
+_RUN_CONTEXTS = 64  # quiet extents: bit length of the extent, whether it starts / ends a row
 
 
 def template_size(template: str) -> int:
@@ -77,7 +88,8 @@ def template_size(template: str) -> int:
 @dataclass(frozen=True, eq=False)
 class ContextModel:
     """A template, its optional features, the prior table, its strength, and whether counts
-    adapt. ``prior1`` has ``2**K * 3**(extrapolate + reference)`` entries."""
+    adapt. ``prior1`` has ``2**K * 3**(extrapolate + reference)`` entries, plus 64 for the
+    quiet-run decisions with ``runs``."""
 
     template: str
     prior1: np.ndarray  # float64: P(1 | context) before any counts
@@ -85,13 +97,16 @@ class ContextModel:
     adaptive: bool
     extrapolate: bool = False
     reference: bool = False
+    runs: bool = False
     _state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = field(init=False, repr=False)
     _lock: threading.Lock = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.template not in TEMPLATES:
             raise ValueError(f"unknown template {self.template!r}; known: {sorted(TEMPLATES)}")
-        n = self.table_size(self.template, extrapolate=self.extrapolate, reference=self.reference)
+        n = self.table_size(
+            self.template, extrapolate=self.extrapolate, reference=self.reference, runs=self.runs
+        )
         prior = np.ascontiguousarray(self.prior1, dtype=np.float64)
         if prior.shape != (n,):
             raise ValueError(f"prior1 must have shape ({n},), got {prior.shape}")
@@ -112,8 +127,11 @@ class ContextModel:
         object.__setattr__(self, "_lock", threading.Lock())
 
     @staticmethod
-    def table_size(template: str, *, extrapolate: bool = False, reference: bool = False) -> int:
-        return (1 << template_size(template)) * _N_EXTRA ** (int(extrapolate) + int(reference))
+    def table_size(
+        template: str, *, extrapolate: bool = False, reference: bool = False, runs: bool = False
+    ) -> int:
+        size = (1 << template_size(template)) * _N_EXTRA ** (int(extrapolate) + int(reference))
+        return size + (_RUN_CONTEXTS if runs else 0)
 
     @classmethod
     def uniform(cls, template: str, *, strength: float = 0.4, **features: bool) -> ContextModel:
@@ -145,6 +163,7 @@ _NO_DATA = np.zeros(0, dtype=np.uint8)
 _NO_COUNTS = np.zeros(0, dtype=np.float64)
 _TOP = 1 << 24
 _ONE = 1 << 24  # probabilities of a one are fixed point Q24 in [1, 2**24 - 1]
+_HALF = 1 << 15  # P(0) = 1/2 for the coder
 _MASK32 = 0xFFFFFFFF
 
 
@@ -188,6 +207,74 @@ def _q(p1):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True, inline="always")
+def _bit_length(v):  # type: ignore[no-untyped-def]
+    n = 0
+    while v:
+        v >>= 1
+        n += 1
+    return n
+
+
+@numba.njit(cache=True, inline="always")
+def _enc(low, rng, cache, csize, pos, out, bit, q):  # type: ignore[no-untyped-def]
+    """Encode ``bit`` with P(0) = q / 65536 (:mod:`compression.binary_coder`'s coder)."""
+    bound = (rng >> 16) * q
+    if bit:
+        low += bound
+        rng -= bound
+    else:
+        rng = bound
+    while rng < _TOP:
+        rng = (rng << 8) & _MASK32
+        low, cache, csize, pos = _shift_low(low, cache, csize, pos, out)
+    return low, rng, cache, csize, pos
+
+
+@numba.njit(cache=True, inline="always")
+def _dec(code, rng, dpos, data, q):  # type: ignore[no-untyped-def]
+    """Decode a bit coded by :func:`_enc`; bytes past the end read as 0."""
+    bound = (rng >> 16) * q
+    if code < bound:
+        rng = bound
+        bit = 0
+    else:
+        code -= bound
+        rng -= bound
+        bit = 1
+    while rng < _TOP:
+        byte = data[dpos] if dpos < data.shape[0] else 0
+        dpos += 1
+        rng = (rng << 8) & _MASK32
+        code = ((code << 8) | byte) & _MASK32
+    return bit, code, rng, dpos
+
+
+@numba.njit(cache=True, inline="always")
+def _p1_of(tab, i, g, adaptive):  # type: ignore[no-untyped-def]
+    """Context ``i``'s probability of a one (Q24): its state in this grid, or its prior."""
+    if not adaptive:
+        return np.int64(tab[i, 3])
+    if tab[i, 2] != g:
+        tab[i, 2] = g
+        tab[i, 0] = tab[i, 3]
+        tab[i, 1] = 0
+    return np.int64(tab[i, 0])
+
+
+@numba.njit(cache=True, inline="always")
+def _update(tab, i, bit, recip):  # type: ignore[no-untyped-def]
+    """The count update of context ``i`` after coding ``bit`` (adaptive models)."""
+    p1 = np.int64(tab[i, 0])
+    n = np.int64(tab[i, 1])
+    if bit:
+        tab[i, 0] = p1 + (((_ONE - p1) * recip[n]) >> 24)
+    else:
+        tab[i, 0] = p1 - ((p1 * recip[n]) >> 24)
+    if n < recip.shape[0] - 1:
+        tab[i, 1] = n + 1
+
+
+@numba.njit(cache=True, inline="always")
 def _extrapolate(ex, ones_r, ones_c, n_ones, r, c, h, w):  # type: ignore[no-untyped-def]
     """A one at (r, c): mark 2p - q for every earlier one q within reach; returns n_ones."""
     j = n_ones - 1
@@ -214,6 +301,7 @@ def _kernel(  # type: ignore[no-untyped-def]
     extrapolate,
     refcode,  # uint8 (h, w) reference feature 0/1/2, or (1, 1) unused
     use_ref,
+    runs,  # quiet extents coded as "a one in it?" + its position (see ContextModel)
     adaptive,
     recip,
     tab,  # int32 (contexts, 4): probability of a one (Q24), count, generation, prior (Q24)
@@ -237,6 +325,7 @@ def _kernel(  # type: ignore[no-untyped-def]
     m1 = (1 << k1) - 1
     m0 = (1 << k0) - 1
     sh2 = k1 + k0
+    nbase = tab.shape[0] - _RUN_CONTEXTS if runs else tab.shape[0]
     g = gbox[0] + 1
     if g > 0x7FFFFFF0:  # the stamps are int32: start over (every 2**31 grids)
         for i in range(tab.shape[0]):
@@ -283,7 +372,61 @@ def _kernel(  # type: ignore[no-untyped-def]
             bit = 0
             p1 = 0
             n = 0
-            if ctx == 0:
+            if ctx == 0 and runs:
+                end = c + 1
+                while end < w:
+                    if k2 > 0 and p[pr - 2, end + L + hi2]:
+                        break
+                    if k1 > 0 and p[pr - 1, end + L + hi1]:
+                        break
+                    if extrapolate and ex[r, end]:
+                        break
+                    if use_ref and refcode[r, end]:
+                        break
+                    end += 1
+                extent = end - c
+                rctx = nbase + 4 * min(_bit_length(extent), 15) + 2 * (c == 0) + (end == w)
+                z = 0
+                if mode == 0 or mode == 2:
+                    while z < extent and not p[pr, c + z + L]:
+                        z += 1
+                    bit = 1 if z < extent else 0
+                if mode == 2:
+                    if bit:
+                        n1[rctx] += 1.0
+                    else:
+                        n0[rctx] += 1.0
+                else:
+                    q = _q(_p1_of(tab, rctx, g, adaptive))
+                    if mode == 0:
+                        low, rng, cache, csize, pos = _enc(low, rng, cache, csize, pos, out, bit, q)
+                    else:
+                        bit, code, rng, dpos = _dec(code, rng, dpos, data, q)
+                    if adaptive:
+                        _update(tab, rctx, bit, recip)
+                    if bit:  # where: z in [0, extent), uniform, most significant bit first
+                        v = 0
+                        for k in range(_bit_length(extent - 1) - 1, -1, -1):
+                            if v + (1 << k) > extent - 1:
+                                continue  # this bit must be 0
+                            if mode == 0:
+                                b = (z >> k) & 1
+                                low, rng, cache, csize, pos = _enc(
+                                    low, rng, cache, csize, pos, out, b, _HALF
+                                )
+                            else:
+                                b, code, rng, dpos = _dec(code, rng, dpos, data, _HALF)
+                            v += b << k
+                        z = v
+                        if mode == 1:
+                            p[pr, c + z + L] = 1
+                if bit:
+                    c += z  # the one; the zeros before it are already in place
+                else:
+                    c = end - 1  # all zeros
+                reg2 = 0
+                reg1 = 0
+            elif ctx == 0:
                 start_c = c
                 # quiet run: context 0 until a one is coded or something enters the context
                 if mode != 2:
@@ -447,25 +590,25 @@ def _kernel(  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True)
-def _encode_kernel(p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, out):  # type: ignore[no-untyped-def]
+def _encode_kernel(p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, out):  # type: ignore[no-untyped-def]
     return _kernel(
-        0, p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, _NO_DATA, out,
+        0, p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, _NO_DATA, out,
         _NO_COUNTS, _NO_COUNTS
     )  # fmt: skip
 
 
 @numba.njit(cache=True)
-def _decode_kernel(p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, data):  # type: ignore[no-untyped-def]
+def _decode_kernel(p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, data):  # type: ignore[no-untyped-def]
     return _kernel(
-        1, p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, data, _NO_DATA,
+        1, p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, data, _NO_DATA,
         _NO_COUNTS, _NO_COUNTS
     )  # fmt: skip
 
 
 @numba.njit(cache=True)
-def _count_kernel(p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, n0, n1):  # type: ignore[no-untyped-def]
+def _count_kernel(p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, n0, n1):  # type: ignore[no-untyped-def]
     return _kernel(
-        2, p, h, w, spans, ex, ref, use_ref, ad, recip, tab, gbox, _NO_DATA,
+        2, p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, _NO_DATA,
         _NO_DATA, n0, n1
     )  # fmt: skip
 
@@ -492,7 +635,7 @@ def _call(
     rc = _NO_REF if refcode is None else np.ascontiguousarray(refcode, dtype=np.uint8)
     if model.reference and rc.shape != (h, w):
         raise ValueError(f"refcode must have shape {(h, w)}, got {rc.shape}")
-    args = (p, h, w, spans, model.extrapolate, rc, model.reference)
+    args = (p, h, w, spans, model.extrapolate, rc, model.reference, model.runs)
     state = (model.adaptive, recip, tab, gbox)
     with model._lock:  # the adaptive state is shared by calls on this model
         if mode == 0:
@@ -536,11 +679,12 @@ def context_counts(
     *,
     extrapolate: bool = False,
     refcodes: list[np.ndarray] | None = None,
+    runs: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Counts ``(n0, n1)`` of each context over a corpus of grids (training the priors);
     ``refcodes`` (one per grid) trains a ``reference`` model."""
     reference = refcodes is not None
-    model = ContextModel.uniform(template, extrapolate=extrapolate, reference=reference)
+    model = ContextModel.uniform(template, extrapolate=extrapolate, reference=reference, runs=runs)
     n = model.prior1.shape[0]
     n0 = np.zeros(n, dtype=np.float64)
     n1 = np.zeros(n, dtype=np.float64)

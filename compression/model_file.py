@@ -41,6 +41,7 @@ class TrainedModel:
     n0: np.ndarray
     n1: np.ndarray
     description: str = ""
+    runs: bool = False
 
     def context_model(self) -> ContextModel:
         return ContextModel.trained(
@@ -51,6 +52,7 @@ class TrainedModel:
             adaptive=self.adaptive,
             extrapolate=self.extrapolate,
             reference=self.reference,
+            runs=self.runs,
         )
 
 
@@ -61,7 +63,16 @@ class ModelFile:
     meta: dict[str, object]  # what it was trained on, measured sizes
 
 
-_SPEC_KEYS = ("name", "codec_id", "template", "extrapolate", "reference", "adaptive", "strength")
+_SPEC_KEYS = (
+    "name",
+    "codec_id",
+    "template",
+    "extrapolate",
+    "reference",
+    "runs",
+    "adaptive",
+    "strength",
+)
 
 
 def save_model_file(path: str | Path, model_file: ModelFile) -> None:
@@ -92,7 +103,10 @@ def load_model_file(path: str | Path) -> ModelFile:
             for spec in header["models"]:
                 name = str(spec["name"])
                 size = ContextModel.table_size(
-                    spec["template"], extrapolate=spec["extrapolate"], reference=spec["reference"]
+                    spec["template"],
+                    extrapolate=spec["extrapolate"],
+                    reference=spec["reference"],
+                    runs=spec.get("runs", False),
                 )
                 index = f[f"{name}.index"].astype(np.int64)
                 if index.size and (index.min() < 0 or index.max() >= size):
@@ -113,6 +127,7 @@ def load_model_file(path: str | Path) -> ModelFile:
                         n0=n0,
                         n1=n1,
                         description=str(spec.get("description", "")),
+                        runs=bool(spec.get("runs", False)),
                     )
                 )
     except (OSError, KeyError, ValueError, TypeError) as err:

@@ -16,6 +16,7 @@ point per occupied cell, the cell's centre), so the cost is O(occupied cells), n
 from __future__ import annotations
 
 import math
+import struct
 import zlib
 
 import numba
@@ -24,6 +25,7 @@ import numpy as np
 __all__ = ["SINE_TABLE_CHECKSUM", "quantize_pose", "reference_code", "sine_table"]
 
 _ANGLE_STEPS = 1 << 16
+_F32 = struct.Struct("<4f")  # rounds to float32 like the radio
 _SUB = 256  # translation quantum: 1/256 cell
 
 
@@ -50,8 +52,7 @@ def quantize_pose(
 ) -> tuple[int, int, int]:
     """``(tx, ty, angle)``: translation in 1/256 cell and angle in 2*pi/65536 steps, from the
     float32-rounded pose and resolution (sender and receiver see the same float32 values)."""
-    res = float(np.float32(resolution_m))
-    x, y, th = (float(np.float32(v)) for v in reference_from_current)
+    x, y, th, res = _F32.unpack(_F32.pack(*reference_from_current, resolution_m))
     tx = round(x / res * _SUB)
     ty = round(y / res * _SUB)
     angle = round(th / (2 * math.pi) * _ANGLE_STEPS) % _ANGLE_STEPS

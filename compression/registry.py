@@ -255,7 +255,7 @@ def origin_cells_of(origin_in_base: tuple[float, float], resolution_m: float) ->
 
 
 def _check_grid(grid: np.ndarray, what: str = "grid") -> np.ndarray:
-    g = np.asarray(grid)
+    g = grid if isinstance(grid, np.ndarray) else np.asarray(grid)
     if g.ndim != 2:
         raise CodecError(f"{what} must be 2-D, got shape {g.shape}")
     h, w = g.shape
@@ -281,17 +281,23 @@ def _check_origin(origin_cells: tuple[int, int]) -> tuple[int, int]:
 def _check_reference(ref: GridReference) -> GridReference:
     if not isinstance(ref, GridReference):
         raise CodecError(f"reference must be a GridReference, got {type(ref).__name__}")
-    pose = tuple(float(v) for v in ref.reference_from_current)
-    if len(pose) != 3 or not all(math.isfinite(v) for v in pose):
-        raise CodecError(f"reference_from_current must be 3 finite numbers, got {pose}")
-    if not (math.isfinite(ref.resolution_m) and ref.resolution_m > 0):
+    try:
+        x, y, th = (float(v) for v in ref.reference_from_current)
+    except (TypeError, ValueError):
+        raise CodecError(
+            f"reference_from_current must be 3 numbers, got {ref.reference_from_current!r}"
+        ) from None
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(th)):
+        raise CodecError(f"reference_from_current must be finite, got {(x, y, th)}")
+    res = float(ref.resolution_m)
+    if not (math.isfinite(res) and res > 0):
         raise CodecError(f"reference resolution_m must be > 0, got {ref.resolution_m}")
     return GridReference(
         int(ref.node_index),
         _check_grid(ref.grid, "reference grid"),
         _check_origin(ref.origin_cells),
-        (pose[0], pose[1], pose[2]),
-        float(ref.resolution_m),
+        (x, y, th),
+        res,
     )
 
 

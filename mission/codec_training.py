@@ -289,6 +289,7 @@ class ModelSpec(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     template: str
     extrapolate: bool = False
     reference: bool = False
+    runs: bool = False
     adaptive: bool = True
     description: str = ""
 
@@ -309,10 +310,10 @@ MODEL_SPECS: tuple[ModelSpec, ...] = (
               description="16 neighbours, static"),
     ModelSpec(name="ctx16t", codec_id=28, template="16",
               description="16 neighbours, trained prior that adapts"),
-    ModelSpec(name="intra16", codec_id=30, template="16", extrapolate=True,
-              description="16 neighbours + line extrapolation, trained prior that adapts"),
+    ModelSpec(name="intra16", codec_id=30, template="16", extrapolate=True, runs=True,
+              description="16 neighbours + line extrapolation + quiet runs, trained, adapts"),
     ModelSpec(name="inter16", codec_id=40, template="16", extrapolate=True, reference=True,
-              description="intra16 + the previous grid warped by odometry"),
+              runs=True, description="intra16 + the previous grid warped by odometry"),
 )  # fmt: skip
 
 #: Prior strengths tried for adaptive models (chosen by leave-one-run-out on the training set).
@@ -333,7 +334,11 @@ def _counts(
             for c in used
         ]
     n0, n1 = context_counts(
-        [c.grid for c in used], spec.template, extrapolate=spec.extrapolate, refcodes=refcodes
+        [c.grid for c in used],
+        spec.template,
+        extrapolate=spec.extrapolate,
+        refcodes=refcodes,
+        runs=spec.runs,
     )
     return n0, n1, used
 
@@ -386,6 +391,7 @@ def train_models(
                         adaptive=True,
                         extrapolate=spec.extrapolate,
                         reference=spec.reference,
+                        runs=spec.runs,
                     )
                     total[s] += _body_bytes(model, spec, held_out)
             strength = min(strengths, key=lambda s: total[s])
@@ -408,6 +414,7 @@ def train_models(
                 n0=n0,
                 n1=n1,
                 description=spec.description,
+                runs=spec.runs,
             )
         )
     meta: dict[str, object] = {

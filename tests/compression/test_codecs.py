@@ -159,16 +159,19 @@ MODELS = {
     "static4": ContextModel("4", np.random.default_rng(2).uniform(0.01, 0.99, 16), 1.0, False),
     "adaptive16": ContextModel.uniform("16", strength=2.0),
     "extrapolate10": ContextModel.uniform("10", strength=4.0, extrapolate=True),
+    "runs16": ContextModel.uniform("16", strength=3.0, extrapolate=True, runs=True),
     "inter6": ContextModel(
         "6",
         np.random.default_rng(3).uniform(
-            0.001, 0.5, ContextModel.table_size("6", extrapolate=True, reference=True)
+            0.001, 0.5, ContextModel.table_size("6", extrapolate=True, reference=True, runs=True)
         ),
         3.0,
         True,
         extrapolate=True,
         reference=True,
+        runs=True,
     ),
+    "inter4": ContextModel.uniform("4", strength=1.0, reference=True),
 }
 
 
