@@ -830,10 +830,10 @@ class Rasterizer:
         bbox: NDArray[np.int64],
         patches: dict[int, NDArray[np.int8]],
     ) -> int:
-        """Sample the nodes whose pose changed: their footprints, and (within the budget)
-        patches to draw them from."""
+        """Sample the nodes whose pose changed (beyond the tolerances): their footprints,
+        and (within the budget) patches to draw them from."""
         n_all = self._n
-        changed = np.flatnonzero(posed & _rows_differ(self._feet_pose[:n_all], poses, 0.0, 0.0))
+        changed = np.flatnonzero(posed & self._moved(poses, self._feet_pose[:n_all]))
         if len(changed) == 0:
             return 0
         b = bbox[changed]

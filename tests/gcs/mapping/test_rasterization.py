@@ -184,6 +184,7 @@ def test_pose_tolerance_reuses_submaps_for_small_moves() -> None:
     nudged = route + np.array([0.004, -0.004, 0.0005])
     again = raster.rasterize((np.arange(20), nudged))
     assert raster.stats.rebuilt == 0 and raster.stats.reused == raster.stats.submaps
+    assert raster.stats.sampled == 0
     assert_same(first, again)
     moved = route + np.array([0.05, 0.0, 0.0])
     raster.rasterize((np.arange(20), moved))
