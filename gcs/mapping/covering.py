@@ -7,15 +7,20 @@ can be left out without changing a single cell, and so can any set of such nodes
 cell's latest observer stays). Finding them needs each node's *footprint*: which map cells it
 observes at its current pose. Footprints are kept on a lattice of 16 x 16-cell blocks aligned
 with the map lattice: per block the node touches, a 256-bit mask of its observed cells (four
-``uint64`` words, bit ``16 r + c`` for the block's cell ``(r, c)``). They come from the very
-samples the rasterizer paints with (:func:`footprint` of a node's map-aligned patch), so they
-are exact, and they are cached while the node's pose holds still.
+``uint64`` words, bit ``16 r + c`` for the block's cell ``(r, c)``). The rasterizer packs them
+from the very samples it draws with (:func:`footprint` of a node's map-aligned patch is the
+reference), so they are exact, and keeps them in a :class:`FootprintPool` while the node's
+pose holds still.
+
+Why exact and not the paper's sensor-origin heuristic: under latest-wins a block holding a
+wall is never observed *completely* by anyone (behind the wall is unknown), so any block-level
+test rejects almost every node; and the naive and covered maps must agree cell for cell.
+Redundant nodes are typically those re-observing a place a later node saw from about the
+same spot (a robot standing still, a route driven again).
 
 :func:`cover_sweep` visits nodes from the latest to the earliest with the union of the masks
-seen so far: a node whose every mask is inside that union is redundant. This is exact (a
-node is dropped if and only if it is the latest observer of no cell), unlike the sensor-origin
-heuristic the paper used, because the naive and covered maps must agree cell for cell.
-``O(blocks touched)`` per node and sweep.
+seen so far: a node whose every mask is inside that union is redundant. A node is dropped if
+and only if it is the latest observer of no cell. ``O(blocks touched)`` per node and sweep.
 """
 
 from __future__ import annotations

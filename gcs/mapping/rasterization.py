@@ -23,17 +23,25 @@ sampling.
 
 **Cached submaps**: nodes are partitioned into submaps of ``submap_nodes`` consecutive nodes
 of one robot (in the order they were added). A submap holds per cell the code of its latest
-kept observer, stored as the non-empty ``tile_cells`` square tiles of the map lattice.
-Combining by the latest ``(time, key)`` per cell is associative and commutative, so the map is
-the combination of all submaps: exactly the naive map. A submap is reused while the same nodes
-of it have poses, none of them moved by more than ``pose_tolerance_m`` / ``pose_tolerance_rad``
-since it was built (0: not at all, which keeps the result exact), and every node the current
-covering keeps was drawn into it. Only the map tiles a rebuilt submap touched (before or now)
-are combined again; the others keep their cells from the previous map.
+drawn node (dense over a box of whole map tiles of ``tile_cells``). Latest-wins is associative
+and commutative, so the map is the per-cell latest over all submaps: exactly the naive map
+when every node the covering keeps is drawn in its submap at its current pose. So per
+rasterization a submap is
 
-Cell codes: ``0`` unknown, ``2 (n + 1) + occupied`` for node index ``n``. Complexity: naive
-``O(nodes x window cells)``; cached ``O(moved nodes x window cells + dirty tiles x depth +
-map cells)``.
+- reused when none of its drawn nodes moved (beyond ``pose_tolerance_m`` /
+  ``pose_tolerance_rad``; 0, the default, means not at all, which keeps the map exact) or lost
+  its pose, and every kept node of it is drawn;
+- extended when only new or newly kept nodes are missing: they are drawn on top, keeping the
+  cells of later nodes;
+- redrawn from its kept nodes otherwise.
+
+Only the map tiles a changed submap touches (before or now) are combined again, with a
+per-node rank table that turns latest-wins into a plain maximum; the other tiles keep their
+values from the previous map.
+
+Cell codes: ``0`` unknown, ``2 (i + 1) + occupied`` for node ``i`` (of the map in the naive
+path, of the submap in submaps). Complexity: naive ``O(nodes x window cells)``; cached
+``O(moved nodes x window cells + dirty tiles x submaps per tile + map cells)``.
 """
 
 from __future__ import annotations
