@@ -8,7 +8,8 @@ graph until a cycle through it composes to (approximately) the identity:
   earlier closures), with the path's composed measurement and covariance;
 * a cycle alternates hypotheses and links: ``h1, link, h2, link, ...`` back to its start,
   with at least ``min_cycle_hypotheses`` (2: "require that multiple edges agree") and at most
-  ``max_cycle_hypotheses`` hypotheses (the depth of the search);
+  ``max_cycle_hypotheses`` hypotheses (the depth of the search; 2 while more than
+  ``deep_search_max_pending`` wait, which bounds its cost);
 * its composed transform ``T`` is compared with the identity by a chi-square test on the
   propagated covariance ``S`` of the composition: ``r' S^-1 r <= chi2_threshold`` with
   ``r = (x, y, wrap(theta))`` of ``T`` (3 degrees of freedom; 11.34 is the 99% quantile).
@@ -66,6 +67,11 @@ PathFn = Callable[[int, int], Link | None]
 class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Cycle search and acceptance (see the module docstring); sigmas in metres / radians.
 
+    The search costs about ``pending * d^(k-1)`` for ``k`` hypotheses per cycle and ``d``
+    hypotheses within a link of a node, so cycles of more than two hypotheses are searched
+    only while at most ``deep_search_max_pending`` hypotheses wait, and at most
+    ``max_hypotheses`` wait at all (the oldest expire first).
+
     ``floor_sigma_xy_m`` / ``floor_sigma_yaw_rad`` floor every hypothesis's covariance in the
     test (a matcher's response surface can be overconfident).
     """
@@ -74,7 +80,8 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     min_cycle_hypotheses: int = 2
     max_cycle_hypotheses: int = 3
     expiry_s: float = 60.0
-    max_hypotheses: int = 400
+    max_hypotheses: int = 120
+    deep_search_max_pending: int = 60
     floor_sigma_xy_m: float = 0.05
     floor_sigma_yaw_rad: float = math.radians(1.0)
 
@@ -88,6 +95,10 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
             )
         if not (self.expiry_s > 0 and self.max_hypotheses >= 1):
             raise ValueError("need expiry_s > 0 and max_hypotheses >= 1")
+        if self.deep_search_max_pending < 0:
+            raise ValueError(
+                f"deep_search_max_pending: expected >= 0, got {self.deep_search_max_pending}"
+            )
         if not (self.floor_sigma_xy_m >= 0 and self.floor_sigma_yaw_rad >= 0):
             raise ValueError("covariance floors must be >= 0")
 
@@ -301,6 +312,8 @@ class CycleValidator:
 
         found: dict[tuple[int, ...], tuple[FloatArray, FloatArray]] = {}
         max_h = cfg.max_cycle_hypotheses
+        if len(hyps) > cfg.deep_search_max_pending:
+            max_h = min(max_h, 2)
 
         def extend(start_key: int, at_key: int, used: tuple[int, ...], acc: Link) -> None:
             reach = links_of(at_key)
