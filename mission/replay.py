@@ -47,6 +47,8 @@ from numpy.typing import NDArray
 from compression import encode_grid
 from gcs.graph.pose_graph import Provenance
 from gcs.ground_station import GroundStation, GroundStationConfig
+from gcs.mapping.map_export import write_pgm_yaml, write_png
+from gcs.mapping.rasterization import RasterConfig
 from gcs.replay.carmen_log import CarmenLog
 from gcs.replay.relations import (
     MatchedRelations,
@@ -117,6 +119,13 @@ class ScanGridConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
             )
 
 
+def _replay_station_config() -> GroundStationConfig:
+    # The rasterizer's visibility sweep casts free space all around a node, as the robot's
+    # 360-degree sweeps allow; a 180-degree laser saw nothing behind it, so the replay maps
+    # only what was seen: occupied cells.
+    return GroundStationConfig(raster=RasterConfig(free_range_m=0.0))
+
+
 def _replay_node_config() -> PoseNodeConfig:
     # Half the robot's node spacing: the logs' scans are sparse already (Intel: ~1 m apart).
     return PoseNodeConfig(min_distance_m=0.5)
@@ -130,7 +139,9 @@ class ReplayConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     how many pose nodes between two calls of ``GroundStation.step`` and ``step_budget_s`` the
     budget each call gets (None: unbounded); ``reference`` whether to evaluate against the log's
     poses (None: when they can be a reference, see :func:`run_replay`);
-    ``relations_tolerance_s`` how close a relation timestamp must fall to a node's;
+    ``relations_tolerance_s`` how close a relation timestamp must fall to a node's; ``station``
+    the GCS (its rasterizer maps occupied cells only by default: a 180-degree laser saw
+    nothing behind it, while the visibility sweep assumes the robot's all-round view);
     ``odometry_sigma_scale`` multiplies the sigmas of ``nodes`` (module docstring).
     """
 
@@ -138,7 +149,7 @@ class ReplayConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     nodes: PoseNodeConfig = msgspec.field(default_factory=_replay_node_config)
     grid: ScanGridConfig = msgspec.field(default_factory=ScanGridConfig)
     noise: OdometryNoiseConfig = msgspec.field(default_factory=OdometryNoiseConfig)
-    station: GroundStationConfig = msgspec.field(default_factory=GroundStationConfig)
+    station: GroundStationConfig = msgspec.field(default_factory=_replay_station_config)
     period_s: float = 0.5
     step_every_nodes: int = 1
     step_budget_s: float | None = None
@@ -363,9 +374,9 @@ def run_replay(
     """Replay ``log`` through a :class:`GroundStation` and evaluate (module docstring).
 
     ``progress(scans_done, scans_total, text)`` is called after every ``GroundStation.step``.
-    With ``out_dir``, writes ``summary.json`` and ``poses.txt`` there (and the map image, once
-    the station can rasterize). Raises ValueError when ``relations`` are given for a log
-    without timestamps or on another clock.
+    With ``out_dir``, writes there ``map.png`` and ``map.pgm`` + ``map.yaml`` (the station's
+    global map at the final posterior), ``summary.json`` and ``poses.txt``. Raises ValueError
+    when ``relations`` are given for a log without timestamps or on another clock.
     """
     cfg = config or ReplayConfig()
     t_start = time.perf_counter()
@@ -422,12 +433,18 @@ def run_replay(
             result.relations_odometry = relations_error(odometry, matched)
     result.wall_s = time.perf_counter() - t_start
     if out_dir is not None:
-        _write_outputs(result, Path(out_dir))
+        _write_outputs(result, station, Path(out_dir))
     return result
 
 
-def _write_outputs(result: ReplayResult, out: Path) -> None:
+def _write_outputs(result: ReplayResult, station: GroundStation, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
+    occupancy = station.rasterize()
+    if occupancy.values.size:
+        result.files["map"] = str(write_png(occupancy, out / "map.png"))
+        pgm, yml = write_pgm_yaml(occupancy, out / "map")
+        result.files["map_pgm"] = str(pgm)
+        result.files["map_yaml"] = str(yml)
     poses = out / "poses.txt"
     ref = (
         result.reference if result.reference is not None else np.full_like(result.estimate, np.nan)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from compression import decode_grid
+from gcs.mapping.map_export import read_pgm_yaml
 from gcs.replay.carmen_log import CarmenLog, parse_carmen_log, read_carmen_log
 from gcs.replay.relations import parse_relations, read_relations
 from mission.replay import (
@@ -37,6 +38,15 @@ def _segments() -> np.ndarray:
     for x0, y0, x1, y1 in _BOXES:
         segs += [(x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)]
     return np.array(segs, dtype=float)
+
+
+def _wall_distance(points: np.ndarray) -> np.ndarray:
+    """Distance of each point ``(N, 2)`` to the nearest wall segment of the hall."""
+    segs = _segments()
+    a, e = segs[None, :, :2], segs[None, :, 2:] - segs[None, :, :2]
+    t = np.clip(np.sum((points[:, None, :] - a) * e, axis=2) / np.sum(e * e, axis=2), 0, 1)
+    nearest = a + t[..., None] * e
+    return np.linalg.norm(points[:, None, :] - nearest, axis=2).min(axis=1)  # type: ignore[no-any-return]
 
 
 def _ranges(pose: np.ndarray, angles: np.ndarray, max_m: float = 8.0) -> np.ndarray:
@@ -196,6 +206,16 @@ def test_replay_through_the_ground_station_evaluates_against_the_reference(
     assert res.ate_odometry.rmse_m > 0.1
     # The log's robot is the map robot: map and its odom coincide at its first node.
     np.testing.assert_allclose(res.estimate[0], res.odometry[0], atol=1e-3)
+    # The map: the station's rasterization at the final posterior, occupied cells only.
+    assert res.files["map"] == str(tmp_path / "map.png")
+    occ = read_pgm_yaml(tmp_path / "map.yaml")
+    assert set(np.unique(occ.values).tolist()) == {-1, 100}
+    # Its walls are the hall's, within three cells, once the map is aligned with the log.
+    rows, cols = np.nonzero(occ.values == 100)
+    xy = np.asarray(occ.origin_in_map) + (np.column_stack([cols, rows]) + 0.5) * occ.resolution_m
+    in_log = compose(res.ate.reference_from_map, np.column_stack([xy, np.zeros(len(xy))]))
+    assert len(xy) > 500
+    assert np.mean(_wall_distance(in_log[:, :2]) < 0.3) > 0.8
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["nodes"] == len(nodes) and summary["ate_odometry_rmse_m"] > 0.1
     table = np.loadtxt(tmp_path / "poses.txt")
