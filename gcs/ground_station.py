@@ -39,6 +39,8 @@ import numpy as np
 
 from compression import CodecError, decode_grid
 from gcs.graph.pose_graph import PoseGraph, PoseGraphConfig, PoseGraphError, Provenance
+from gcs.loops.correlative_matcher import MatchResult, grid_points
+from gcs.loops.loop_closer import LoopCloser, LoopCloserConfig, LoopClosingReport
 from gcs.mapping.rasterization import OccupancyMap, RasterConfig, Rasterizer
 from protocol.messages import (
     Detection,
@@ -84,7 +86,9 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
 
     robots: tuple[int, ...] = ()
     graph: PoseGraphConfig = msgspec.field(default_factory=PoseGraphConfig)
+    loops: LoopCloserConfig = msgspec.field(default_factory=LoopCloserConfig)
     raster: RasterConfig = msgspec.field(default_factory=RasterConfig)
+    loop_budget_s: float = 0.2
     frames_period_s: float = 2.0
     max_pending_nodes: int = 32
     max_pending_grids: int = 64
@@ -95,7 +99,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     error_log_size: int = 100
 
     def __post_init__(self) -> None:
-        for name in ("frames_period_s", "gap_covariance_scale", "hazard_merge_m"):
+        for name in ("frames_period_s", "gap_covariance_scale", "hazard_merge_m", "loop_budget_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v}")
@@ -174,6 +178,8 @@ class GroundStation:
         self.stats = GroundStationStats(errors=collections.deque(maxlen=self.config.error_log_size))
         self.grids: dict[int, GridRecord] = {}
         self.rasterizer = Rasterizer(self.config.raster)
+        self.loop_closer = LoopCloser(self.graph, self.config.loops)
+        self.last_loop_report: LoopClosingReport | None = None
         self.hazards: list[Hazard] = []
         self._tracks: dict[int, _Track] = {}
         self._dirty = False
@@ -368,6 +374,8 @@ class GroundStation:
             float(msg.resolution_m),
         )
         self.rasterizer.add_node(key, time_s, grid, record.origin_in_base, record.resolution_m)
+        points = grid_points(grid, origin_m=record.origin_in_base, resolution_m=record.resolution_m)
+        self.loop_closer.add_scan(key, points)
         self.grids[key] = record
         self.stats.terrain_grids += 1
         for listener in self._grid_listeners:
@@ -425,8 +433,13 @@ class GroundStation:
         return None if track is None else track.keys.get(node_index)
 
     def step(self, *, now_s: float, budget_s: float | None = None) -> list[tuple[int, Any]]:
-        """Optimize what changed and return ``(robot_id, message)`` downlink messages."""
-        del budget_s  # the loop closer's budget (issue 7) joins here
+        """Close loops within ``budget_s`` wall seconds (default ``loop_budget_s``), optimize
+        what changed (iSAM2) and return the ``(robot_id, message)`` downlink messages."""
+        budget = self.config.loop_budget_s if budget_s is None else budget_s
+        report = self.loop_closer.step(now_s=now_s, budget_s=budget)
+        self.last_loop_report = report
+        if report.accepted_edge_ids:
+            self._dirty = True
         if self._dirty:
             self.graph.optimize_incremental()
             self.stats.optimizations += 1
@@ -445,6 +458,33 @@ class GroundStation:
                 out.append((r, update))
                 self._last_frames_s[r] = now_s
         return out
+
+    # ---- operator primitives (paper 6.1) ---------------------------------------------------
+
+    def suggest_closure(
+        self, key_a: int, key_b: int, b_in_a_guess: np.ndarray | None = None
+    ) -> MatchResult:
+        """Match pose ``key_b``'s grid against ``key_a``'s around a guess (default: the current
+        posterior); returns ``a_from_b`` with its covariance and score. Adds nothing."""
+        return self.loop_closer.suggest(key_a, key_b, b_in_a_guess)
+
+    def accept_closure(self, key_a: int, key_b: int, result: MatchResult, *, now_s: float) -> int:
+        """Add a suggested closure the operator accepted (``LOOP_OPERATOR``); returns its id."""
+        edge_id = self.loop_closer.operator_edge(key_a, key_b, result, time_s=now_s)
+        self._dirty = True
+        return edge_id
+
+    def rewind_closures(self, since_s: float) -> int:
+        """Remove the automatic loop closures added after ``since_s`` (mission time) and drop
+        pending hypotheses; returns how many edges went. The next :meth:`step` re-optimizes."""
+        removed = self.loop_closer.rewind(since_s)
+        self._dirty = True
+        return removed
+
+    def restart_loop_closer(self) -> None:
+        """Forget hypotheses and tried pairs so every pair may be matched again (after the
+        operator fixed the prior); accepted edges stay."""
+        self.loop_closer.restart()
 
     def poses_in_map(self) -> tuple[np.ndarray, np.ndarray]:
         """``(keys (N,), map_from_base (N, 3))`` of every pose, robot by robot."""

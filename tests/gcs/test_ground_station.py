@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from compression import encode_grid
+from gcs.graph.pose_graph import Provenance
 from gcs.ground_station import GroundStation, GroundStationConfig
 from protocol.messages import (
     Detection,
@@ -21,11 +22,13 @@ from protocol.se2 import compose, relative
 COV = covariance_to_upper(np.diag([0.01**2, 0.01**2, 0.002**2]))
 
 
-def nodes_along(path_in_odom: np.ndarray, t0: float = 0.0) -> list[PoseNode]:
+def nodes_along(
+    path_in_odom: np.ndarray, t0: float = 0.0, cov_upper: tuple[float, ...] = COV
+) -> list[PoseNode]:
     out = []
     for i, pose in enumerate(path_in_odom):
         delta = (0.0, 0.0, 0.0) if i == 0 else tuple(relative(path_in_odom[i - 1], pose))
-        cov = (0.0,) * 6 if i == 0 else COV
+        cov = (0.0,) * 6 if i == 0 else cov_upper
         out.append(PoseNode(i, t0 + i, tuple(pose), delta, cov))  # type: ignore[arg-type]
     return out
 
@@ -163,3 +166,62 @@ def test_the_global_map_is_rasterized_from_the_grids_at_their_posteriors() -> No
     wall_x = path[:, 0] + 2.05
     assert np.all(np.min(np.abs(xs[:, None] - wall_x[None, :]), axis=1) < 0.11)
     assert np.any(occupancy.values == 0) and np.any(occupancy.values == -1)
+
+
+DRIFT = np.diag([0.02**2, 0.02**2, 0.01**2])
+
+
+def _out_and_back(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, list[TerrainGrid]]:
+    """A robot drives 12 m out and back through a random world: true poses, drifting odometry
+    (noise drawn from :data:`DRIFT`) and the grids of what it saw."""
+    from gcs.loops.synthetic_scenes import random_world, scan_grid, scan_points
+
+    world = random_world(rng, size_m=40.0)
+    out = [(x, 0.5, 0.0) for x in np.arange(-6.0, 6.01, 1.0)]
+    back = [(x, -0.5, np.pi) for x in np.arange(6.0, -6.01, -1.0)]
+    truth = np.array(out + back)
+    odom = [truth[0]]
+    for i in range(1, len(truth)):
+        step = relative(truth[i - 1], truth[i])
+        odom.append(compose(odom[-1], step + rng.multivariate_normal(np.zeros(3), DRIFT)))
+    grids = []
+    for i, pose in enumerate(truth):
+        grid, origin = scan_grid(scan_points(world, pose, rng=rng))
+        h, w = grid.shape
+        grids.append(TerrainGrid(i, "zlib", 0.1, w, h, origin, encode_grid(grid)))
+    return truth, np.array(odom), grids
+
+
+def test_loops_close_and_the_operator_can_suggest_accept_and_rewind() -> None:
+    rng = np.random.default_rng(11)
+    truth, odom, grids = _out_and_back(rng)
+    gs = GroundStation()
+    for i, (node, grid) in enumerate(
+        zip(nodes_along(odom, cov_upper=covariance_to_upper(DRIFT)), grids, strict=True)
+    ):
+        assert gs.handle(0, node, now_s=float(i)) and gs.handle(0, grid, now_s=float(i))
+        gs.step(now_s=float(i), budget_s=1.0)
+    for t in range(len(truth), len(truth) + 5):
+        gs.step(now_s=float(t), budget_s=1.0)
+    auto = gs.graph.edges(Provenance.LOOP_AUTO)
+    assert len(auto) >= 3
+    for e in auto:
+        true_rel = relative(truth[e.key_a & 0xFFFFFFFF], truth[e.key_b & 0xFFFFFFFF])
+        assert np.hypot(*(e.z[:2] - true_rel[:2])) < 0.15
+    _, poses = gs.graph.poses(0)
+    drift = np.hypot(*(odom[-1, :2] - truth[-1, :2]))
+    assert np.hypot(*(poses[-1, :2] - truth[-1, :2])) < 0.3 * drift
+
+    # the operator asks for a match between the first node and the last, and accepts it
+    first, last = gs.key_of(0, 0), gs.key_of(0, len(truth) - 1)
+    assert first is not None and last is not None
+    result = gs.suggest_closure(first, last)
+    np.testing.assert_allclose(result.a_from_b[:2], relative(truth[0], truth[-1])[:2], atol=0.15)
+    gs.accept_closure(first, last, result, now_s=100.0)
+    assert len(gs.graph.edges(Provenance.LOOP_OPERATOR)) == 1
+    # rewinding the automatic closures keeps the operator's
+    assert gs.rewind_closures(since_s=-1.0) == len(auto)
+    assert gs.graph.edges(Provenance.LOOP_AUTO) == []
+    assert len(gs.graph.edges(Provenance.LOOP_OPERATOR)) == 1
+    gs.restart_loop_closer()
+    gs.step(now_s=200.0, budget_s=1.0)  # optimizes without the rewound edges
