@@ -159,8 +159,6 @@ class ContextModel:
 
 
 _NO_REF = np.zeros((1, 1), dtype=np.uint8)
-_NO_DATA = np.zeros(0, dtype=np.uint8)
-_NO_COUNTS = np.zeros(0, dtype=np.float64)
 _TOP = 1 << 24
 _ONE = 1 << 24  # probabilities of a one are fixed point Q24 in [1, 2**24 - 1]
 _HALF = 1 << 15  # P(0) = 1/2 for the coder
@@ -175,7 +173,7 @@ def _load_span(p, r, c, lo, hi):  # type: ignore[no-untyped-def]
     return v
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _shift_low(low, cache, csize, pos, out):  # type: ignore[no-untyped-def]
     """The range encoder's byte output with carry (as :mod:`compression.binary_coder`)."""
     if low < 0xFF000000 or low >= (1 << 32):
@@ -291,7 +289,7 @@ def _extrapolate(ex, ones_r, ones_c, n_ones, r, c, h, w):  # type: ignore[no-unt
     return n_ones + 1
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _kernel(  # type: ignore[no-untyped-def]
     mode,  # 0 encode, 1 decode, 2 count
     p,  # padded grid uint8 (PAD_TOP + h, PAD_LEFT + w + PAD_RIGHT); decode fills it
@@ -589,30 +587,6 @@ def _kernel(  # type: ignore[no-untyped-def]
     return pos
 
 
-@numba.njit(cache=True)
-def _encode_kernel(p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, out):  # type: ignore[no-untyped-def]
-    return _kernel(
-        0, p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, _NO_DATA, out,
-        _NO_COUNTS, _NO_COUNTS
-    )  # fmt: skip
-
-
-@numba.njit(cache=True)
-def _decode_kernel(p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, data):  # type: ignore[no-untyped-def]
-    return _kernel(
-        1, p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, data, _NO_DATA,
-        _NO_COUNTS, _NO_COUNTS
-    )  # fmt: skip
-
-
-@numba.njit(cache=True)
-def _count_kernel(p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, n0, n1):  # type: ignore[no-untyped-def]
-    return _kernel(
-        2, p, h, w, spans, ex, ref, use_ref, runs, ad, recip, tab, gbox, _NO_DATA,
-        _NO_DATA, n0, n1
-    )  # fmt: skip
-
-
 def _padded(h: int, w: int) -> np.ndarray:
     return np.zeros((h + _PAD_TOP, w + _PAD_LEFT + _PAD_RIGHT), dtype=np.uint8)
 
@@ -638,11 +612,7 @@ def _call(
     args = (p, h, w, spans, model.extrapolate, rc, model.reference, model.runs)
     state = (model.adaptive, recip, tab, gbox)
     with model._lock:  # the adaptive state is shared by calls on this model
-        if mode == 0:
-            return int(_encode_kernel(*args, *state, out))
-        if mode == 1:
-            return int(_decode_kernel(*args, *state, data))
-        return int(_count_kernel(*args, *state, n0, n1))
+        return int(_kernel(mode, *args, *state, data, out, n0, n1))
 
 
 _EMPTY_U8 = np.zeros(0, dtype=np.uint8)
