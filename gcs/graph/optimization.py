@@ -6,7 +6,7 @@ on the compiled block Cholesky of :mod:`gcs.graph.pose2_gauss_newton` for graphs
 ``BetweenFactorPose2`` and ``PriorFactorPose2`` with Gaussian noise: the same model, error,
 retraction and stopping rule as GTSAM's Gauss-Newton, about 4x faster on manhattan_olson3500
 (GTSAM's multifrontal elimination spends ~20 ms on the 7 Mflop of that factor, mostly per-clique
-overhead; the compiled kernel ~1.5 ms). Its result comes back as ``gtsam.Values`` and its chi2 is
+overhead; the compiled kernel ~1.3 ms). Its result comes back as ``gtsam.Values`` and its chi2 is
 GTSAM's. :func:`optimize_pose2` takes the factors as arrays (no per-factor Python work), e.g.
 from :func:`pose2_factors_from_g2o`; :func:`optimize_batch` extracts them from the graph.
 

@@ -15,7 +15,7 @@ iteration costs one sweep over the edges plus one numeric factorization
 
 Stopping rule as GTSAM's ``GaussNewtonOptimizer``: after each step, stop when the relative
 decrease of the chi2 falls below ``relative_error_tol`` (or the chi2 below
-``absolute_error_tol``), or after ``max_iterations`` steps. The chi2 of the new estimate is the
+``error_tol``), or after ``max_iterations`` steps. The chi2 of the new estimate is the
 by-product of the next linearization, so the check costs nothing extra.
 """
 
@@ -415,7 +415,7 @@ def gauss_newton_pose2(
     order: IntArray | None = None,
     max_iterations: int = 100,
     relative_error_tol: float = 1e-5,
-    absolute_error_tol: float = 0.0,
+    error_tol: float = 0.0,
 ) -> GaussNewtonResult:
     """Maximum-likelihood poses (n, 3) of ``factors`` by Gauss-Newton from ``initial`` (n, 3).
 
@@ -441,9 +441,7 @@ def gauss_newton_pose2(
         history.append(chi2)
         if steps > 0:
             before = history[-2]
-            if chi2 <= absolute_error_tol or (
-                before > 0 and (before - chi2) / before < relative_error_tol
-            ):
+            if chi2 <= error_tol or (before > 0 and (before - chi2) / before < relative_error_tol):
                 break
         if steps >= max_iterations:
             break

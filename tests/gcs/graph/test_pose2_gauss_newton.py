@@ -127,6 +127,7 @@ def test_stopping_rule() -> None:
     factors, _, truth = _problem(5, noise=0.1)
     start = truth + 0.1
     assert gauss_newton_pose2(factors, start, max_iterations=2).iterations == 2
+    assert gauss_newton_pose2(factors, start, error_tol=1e12).iterations == 1
     loose = gauss_newton_pose2(factors, start, relative_error_tol=0.5)
     tight = gauss_newton_pose2(factors, start, relative_error_tol=1e-12)
     assert loose.iterations < tight.iterations
