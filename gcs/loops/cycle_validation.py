@@ -69,8 +69,9 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
 
     The search costs about ``pending * d^(k-1)`` for ``k`` hypotheses per cycle and ``d``
     hypotheses within a link of a node, so cycles of more than two hypotheses are searched
-    only while at most ``deep_search_max_pending`` hypotheses wait, and at most
-    ``max_hypotheses`` wait at all (the oldest expire first).
+    only while at most ``deep_search_max_pending`` hypotheses wait, at most
+    ``max_hypotheses`` wait at all (the oldest expire first), and a search is capped at
+    ``max_search_steps`` extensions (see :meth:`CycleValidator._search`).
 
     ``floor_sigma_xy_m`` / ``floor_sigma_yaw_rad`` floor every hypothesis's covariance in the
     test (a matcher's response surface can be overconfident).
@@ -82,6 +83,7 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     expiry_s: float = 60.0
     max_hypotheses: int = 120
     deep_search_max_pending: int = 60
+    max_search_steps: int = 20_000
     floor_sigma_xy_m: float = 0.05
     floor_sigma_yaw_rad: float = math.radians(1.0)
 
@@ -95,6 +97,8 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
             )
         if not (self.expiry_s > 0 and self.max_hypotheses >= 1):
             raise ValueError("need expiry_s > 0 and max_hypotheses >= 1")
+        if self.max_search_steps < 1:
+            raise ValueError(f"max_search_steps: expected >= 1, got {self.max_search_steps}")
         if self.deep_search_max_pending < 0:
             raise ValueError(
                 f"deep_search_max_pending: expected >= 0, got {self.deep_search_max_pending}"
@@ -146,9 +150,7 @@ def compose_with_covariance(steps: Iterable[Link]) -> Link:
 
 
 def _inverse(link: Link) -> Link:
-    z, c = link
-    ad = se2.adjoint(z)
-    return se2.inverse(z), ad @ c @ ad.T
+    return _from_t(_inverse_t(_to_t(*link)))
 
 
 def _chi2(pose: FloatArray, cov: FloatArray) -> float:
@@ -291,31 +293,48 @@ class CycleValidator:
         A cycle is searched from its lowest-id hypothesis, traversed from ``key_a`` to
         ``key_b``, and reported once per distinct cyclic sequence of hypotheses (the first
         link found closes it). The composition is carried along the search (one step per
-        edge). Returns ``(hyp_ids, composed pose, covariance)``.
+        edge, scalar arithmetic). When a search would take more than ``max_search_steps``
+        extensions it is redone with two hypotheses per cycle; if even that is too long no
+        cycle is reported (nothing is promoted this time: never an incomplete verdict).
+        Returns ``(hyp_ids, composed pose, covariance)``.
         """
         cfg = self.config
-        hyps = self.pending
-        by_node: dict[int, list[tuple[Hypothesis, Link, int]]] = {}
-        for h in hyps:
-            fwd = self._floored(h)
-            by_node.setdefault(h.key_a, []).append((h, fwd, h.key_b))
-            by_node.setdefault(h.key_b, []).append((h, _inverse(fwd), h.key_a))
-        link_cache: dict[int, dict[int, Link]] = {}
-        zero = (np.zeros(3), np.zeros((3, 3)))
+        depth = cfg.max_cycle_hypotheses
+        if len(self._pending) > cfg.deep_search_max_pending:
+            depth = min(depth, 2)
+        link_cache: dict[int, dict[int, _T]] = {}
+        while True:
+            found = self._search_depth(links, depth, link_cache)
+            if found is not None:
+                return [(ids, *_from_t(t)) for ids, t in found.items()]
+            if depth <= 2:
+                return []
+            depth = 2
 
-        def links_of(key: int) -> dict[int, Link]:
+    def _search_depth(
+        self, links: LinksFn, max_h: int, link_cache: dict[int, dict[int, _T]]
+    ) -> dict[tuple[int, ...], _T] | None:
+        hyps = self.pending
+        by_node: dict[int, list[tuple[int, _T, int]]] = {}
+        for h in hyps:
+            fwd = _to_t(*self._floored(h))
+            by_node.setdefault(h.key_a, []).append((h.hyp_id, fwd, h.key_b))
+            by_node.setdefault(h.key_b, []).append((h.hyp_id, _inverse_t(fwd), h.key_a))
+
+        def links_of(key: int) -> dict[int, _T]:
             if key not in link_cache:
-                found = dict(links(key))
-                found.setdefault(key, zero)  # a node links itself
+                found = {k: _to_t(*v) for k, v in links(key).items()}
+                found.setdefault(key, _ZERO)  # a node links itself
                 link_cache[key] = found
             return link_cache[key]
 
-        found: dict[tuple[int, ...], tuple[FloatArray, FloatArray]] = {}
-        max_h = cfg.max_cycle_hypotheses
-        if len(hyps) > cfg.deep_search_max_pending:
-            max_h = min(max_h, 2)
+        found: dict[tuple[int, ...], _T] = {}
+        budget = [self.config.max_search_steps]
 
-        def extend(start_key: int, at_key: int, used: tuple[int, ...], acc: Link) -> None:
+        def extend(start_key: int, at_key: int, used: tuple[int, ...], acc: _T) -> bool:
+            budget[0] -= 1
+            if budget[0] < 0:
+                return False
             reach = links_of(at_key)
             if len(used) >= 2 and start_key in reach:  # close the cycle back to the start
                 rev = used[::-1]
@@ -324,39 +343,87 @@ class CycleValidator:
                     min(rev[i:] + rev[:i] for i in range(len(rev))),
                 )
                 if canon not in found:
-                    found[canon] = _compose2(acc, reach[start_key])
+                    found[canon] = _compose_t(acc, reach[start_key])
             if len(used) >= max_h:
-                return
+                return True
             if len(reach) <= len(by_node):
                 near = [(node, reach[node]) for node in reach if node in by_node]
             else:
                 near = [(node, reach[node]) for node in by_node if node in reach]
             for node, link in near:
                 via = None
-                for h, step, nxt in by_node[node]:
-                    if h.hyp_id in used or h.hyp_id < used[0]:
+                for hid, step, nxt in by_node[node]:
+                    if hid in used or hid < used[0]:
                         continue
                     if via is None:
-                        via = _compose2(acc, link)
-                    extend(start_key, nxt, (*used, h.hyp_id), _compose2(via, step))
+                        via = _compose_t(acc, link)
+                    if not extend(start_key, nxt, (*used, hid), _compose_t(via, step)):
+                        return False
+            return True
 
         for h in hyps:
             # start at key_a, traverse h first; only cycles whose lowest id is h are searched
-            fwd = self._floored(h)
-            extend(h.key_a, h.key_b, (h.hyp_id,), fwd)
-        return [(ids, pose, cov) for ids, (pose, cov) in found.items()]
+            if not extend(h.key_a, h.key_b, (h.hyp_id,), _to_t(*self._floored(h))):
+                return None
+        return found
+
+
+# A pose with its covariance as plain floats (x, y, theta, c00, c01, c02, c11, c12, c22):
+# the cycle search composes many of them, far faster than with small numpy arrays.
+_T = tuple[float, float, float, float, float, float, float, float, float]
+_ZERO: _T = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def _to_t(pose: FloatArray, cov: FloatArray) -> _T:
+    return (
+        float(pose[0]), float(pose[1]), float(pose[2]),
+        float(cov[0, 0]), float(cov[0, 1]), float(cov[0, 2]),
+        float(cov[1, 1]), float(cov[1, 2]), float(cov[2, 2]),
+    )  # fmt: skip
+
+
+def _from_t(t: _T) -> tuple[FloatArray, FloatArray]:
+    _, _, _, a, b, c, d, e, f = t
+    return np.array(t[:3]), np.array([[a, b, c], [b, d, e], [c, e, f]])
+
+
+def _inverse_t(t: _T) -> _T:
+    """``z^-1`` with covariance ``Ad_z cov Ad_z'``."""
+    x, y, th, a, b, c3, d, e, f = t
+    c, s = math.cos(th), math.sin(th)
+    # Ad_z = [[c, -s, y], [s, c, -x], [0, 0, 1]]
+    m00, m01, m02 = c * a - s * b + y * c3, c * b - s * d + y * e, c * c3 - s * e + y * f
+    m10, m11, m12 = s * a + c * b - x * c3, s * b + c * d - x * e, s * c3 + c * e - x * f
+    return (
+        -c * x - s * y, s * x - c * y, (math.pi - th) % (2.0 * math.pi) - math.pi,
+        m00 * c - m01 * s + m02 * y, m00 * s + m01 * c - m02 * x, m02,
+        m10 * s + m11 * c - m12 * x, m12, f,
+    )  # fmt: skip
+
+
+def _compose_t(p: _T, z: _T) -> _T:
+    """``p * z`` with ``cov = Ad(z^-1) cov_p Ad(z^-1)' + cov_z``."""
+    px, py, pt, a, b, c3, d, e, f = p
+    zx, zy, zt = z[0], z[1], z[2]
+    c, s = math.cos(zt), math.sin(zt)
+    ix = -c * zx - s * zy
+    iy = s * zx - c * zy
+    # A = Ad(z^-1) = [[c, s, iy], [-s, c, -ix], [0, 0, 1]]; M = A P
+    m00, m01, m02 = c * a + s * b + iy * c3, c * b + s * d + iy * e, c * c3 + s * e + iy * f
+    m10, m11, m12 = -s * a + c * b - ix * c3, -s * b + c * d - ix * e, -s * c3 + c * e - ix * f
+    cp, sp = math.cos(pt), math.sin(pt)
+    th = (pt + zt + math.pi) % (2.0 * math.pi) - math.pi
+    return (
+        px + cp * zx - sp * zy, py + sp * zx + cp * zy, th,
+        m00 * c + m01 * s + m02 * iy + z[3],
+        -m00 * s + m01 * c - m02 * ix + z[4],
+        m02 + z[5],
+        -m10 * s + m11 * c - m12 * ix + z[6],
+        m12 + z[7],
+        f + z[8],
+    )  # fmt: skip
 
 
 def _compose2(first: Link, step: Link) -> Link:
-    """``first * step`` with ``cov = Ad(step^-1) cov_first Ad(step^-1)' + cov_step``
-    (scalar SE(2) arithmetic: the search calls it many times)."""
-    (p, pc), (z, zc) = first, step
-    c, s = math.cos(z[2]), math.sin(z[2])
-    ix = -c * z[0] - s * z[1]
-    iy = s * z[0] - c * z[1]
-    ad = np.array([[c, s, iy], [-s, c, -ix], [0.0, 0.0, 1.0]])
-    cov = ad @ pc @ ad.T + zc
-    cp, sp = math.cos(p[2]), math.sin(p[2])
-    th = (p[2] + z[2] + math.pi) % (2.0 * math.pi) - math.pi
-    pose = np.array([p[0] + cp * z[0] - sp * z[1], p[1] + sp * z[0] + cp * z[1], th])
-    return pose, cov
+    """``first * step`` with ``cov = Ad(step^-1) cov_first Ad(step^-1)' + cov_step``."""
+    return _from_t(_compose_t(_to_t(*first), _to_t(*step)))
