@@ -296,7 +296,11 @@ class LoopCloser:
     def step(self, *, now_s: float, budget_s: float) -> LoopClosingReport:
         """Candidates, matching within ``budget_s`` (wall seconds) and the match rate,
         cycle validation; promoted hypotheses are added to the graph (``LOOP_AUTO``, stamped
-        ``now_s``). Does not optimize."""
+        ``now_s``). Does not optimize.
+
+        The budget bounds candidate generation and matching (checked between items, so one
+        match may overrun it); validation runs every call, its cost bounded by its own caps
+        (:class:`~gcs.loops.cycle_validation.CycleValidationConfig`)."""
         if not math.isfinite(now_s):
             raise ValueError(f"step: now_s must be finite, got {now_s}")
         if not budget_s >= 0:
