@@ -89,16 +89,19 @@ class RasterConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     """Rasterization of the global map (paper 4.8).
 
     ``resolution_m`` of the map; ``free_range_m`` how far from a node its rays mark free space
-    (half the 15 m local window); ``cover`` skip nodes that are the latest observer of no
-    cell; ``cache`` reuse submaps of ``submap_nodes`` nodes while their poses hold still within
-    ``pose_tolerance_m`` / ``pose_tolerance_rad`` (0: exact; an incremental smoother that
-    nudges every pose a little needs a small tolerance for the cache to pay);
+    (half the 15 m local window) and ``free_fov_rad`` within which angle around the base's +x
+    axis (``2 pi``: an all-round sensor; ``pi`` for a forward 180-degree laser); ``cover``
+    skip nodes that are the latest observer of no cell; ``cache`` reuse submaps of
+    ``submap_nodes`` nodes while their poses hold still within ``pose_tolerance_m`` /
+    ``pose_tolerance_rad`` (0: exact; an incremental smoother that nudges every pose a little
+    needs a small tolerance for the cache to pay);
     ``tile_cells`` side of the map tiles submaps are stored and combined in;
     ``max_map_cells`` refuses maps larger than this (a wild pose would allocate gigabytes).
     """
 
     resolution_m: float = 0.1
     free_range_m: float = 7.5
+    free_fov_rad: float = 2.0 * math.pi
     cover: bool = True
     cache: bool = True
     submap_nodes: int = 32
@@ -112,6 +115,8 @@ class RasterConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
             raise ValueError(f"resolution_m must be in [0.001, 10], got {self.resolution_m}")
         if not (math.isfinite(self.free_range_m) and 0 <= self.free_range_m <= 1000):
             raise ValueError(f"free_range_m must be in [0, 1000], got {self.free_range_m}")
+        if not (math.isfinite(self.free_fov_rad) and 0 <= self.free_fov_rad <= 2 * math.pi):
+            raise ValueError(f"free_fov_rad must be in [0, 2 pi], got {self.free_fov_rad}")
         if not 1 <= self.submap_nodes <= MAX_SUBMAP_NODES:
             raise ValueError(
                 f"submap_nodes must be in [1, {MAX_SUBMAP_NODES}], got {self.submap_nodes}"
@@ -567,7 +572,12 @@ class Rasterizer:
         if not math.isfinite(t):
             raise ValueError(f"{where}: time_s must be finite, got {time_s!r}")
         raster = local_raster(
-            grid, origin_in_base, resolution_m, free_range_m=self.config.free_range_m, where=where
+            grid,
+            origin_in_base,
+            resolution_m,
+            free_range_m=self.config.free_range_m,
+            free_fov_rad=self.config.free_fov_rad,
+            where=where,
         )
         robot = int(robot_id) if robot_id is not None else (key >> 32 if key >= 0 else -1)
         n = self._n

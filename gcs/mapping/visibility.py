@@ -3,9 +3,11 @@
 Robots send, per pose node, only the cells that hold a vertical surface (paper 4.3.3), cropped
 to their bounding box. The global map (paper 4.8) also needs free space: here a cell is
 *free* when a ray from the sensor origin (the node's base origin) reaches it, within
-``free_range_m``, before any occupied cell; *occupied* cells are the grid's; everything else
-is *unknown*. This is a polar visibility sweep done ONCE per node, in the node's own ``base``
-frame, on the grid's own lattice; the global rasterizer then only warps the result.
+``free_range_m`` and within the sensor's field of view ``free_fov_rad`` (centred on the base's
++x axis; ``2 pi`` for an all-round sensor), before any occupied cell; *occupied* cells are the
+grid's; everything else is *unknown*. This is a polar visibility sweep done ONCE per node, in
+the node's own ``base`` frame, on the grid's own lattice; the global rasterizer then only
+warps the result.
 
 The sweep casts ``ceil(4 pi R / res)`` rays (spacing at range ``R`` is half a cell, below
 the angle any cell within ``R`` subtends, so every cell in range is crossed by some ray) and
@@ -57,8 +59,9 @@ class LocalRaster:
 
 
 @numba.njit(cache=True, nogil=True)
-def _sweep(occ, u0, v0, length_cells, n_rays):  # type: ignore[no-untyped-def]
-    """Mark cells reached by rays from ``(u0, v0)`` (cell units) before an occupied cell."""
+def _sweep(occ, u0, v0, length_cells, n_rays, half_fov):  # type: ignore[no-untyped-def]
+    """Mark cells reached by rays from ``(u0, v0)`` (cell units) before an occupied cell,
+    for rays within ``half_fov`` of +x."""
     rows, cols = occ.shape
     out = np.zeros((rows, cols), dtype=np.int8)
     for r in range(rows):
@@ -67,6 +70,8 @@ def _sweep(occ, u0, v0, length_cells, n_rays):  # type: ignore[no-untyped-def]
                 out[r, c] = 2
     for k in range(n_rays):
         a = 2.0 * math.pi * k / n_rays
+        if abs(a if a <= math.pi else a - 2.0 * math.pi) > half_fov:
+            continue
         dx = math.cos(a)
         dy = math.sin(a)
         ix = int(math.floor(u0))
@@ -119,6 +124,7 @@ def local_raster(
     resolution_m: float,
     *,
     free_range_m: float,
+    free_fov_rad: float = 2.0 * math.pi,
     where: str = "grid",
 ) -> LocalRaster:
     """Occupied / free / unknown cells of one node from its binary grid (see module docstring).
@@ -148,6 +154,8 @@ def local_raster(
         raise ValueError(f"{where}: resolution_m must be in [0.001, 10], got {resolution_m!r}")
     if not (math.isfinite(free_range_m) and 0 <= free_range_m <= 1000):
         raise ValueError(f"{where}: free_range_m must be in [0, 1000], got {free_range_m!r}")
+    if not (math.isfinite(free_fov_rad) and 0 <= free_fov_rad <= 2 * math.pi):
+        raise ValueError(f"{where}: free_fov_rad must be in [0, 2 pi], got {free_fov_rad!r}")
     rows, cols = g.shape
     reach = free_range_m / res
     # Extended lattice: the grid plus every cell a ray can reach (the disc around the origin).
@@ -164,7 +172,7 @@ def local_raster(
     occ = np.zeros((r_hi - r_lo, c_hi - c_lo), dtype=np.bool_)
     occ[-r_lo : -r_lo + rows, -c_lo : -c_lo + cols] = g
     n_rays = math.ceil(4.0 * math.pi * reach) if reach > 0 else 0
-    cells = _sweep(occ, u - c_lo, v - r_lo, reach, n_rays)
+    cells = _sweep(occ, u - c_lo, v - r_lo, reach, n_rays, free_fov_rad / 2 + 1e-12)
     seen_rows = np.flatnonzero(cells.any(axis=1))
     if len(seen_rows) == 0:
         return LocalRaster(np.zeros((0, 0), dtype=np.int8), (ox, oy), res)

@@ -223,6 +223,7 @@ def test_bad_input_is_rejected_with_the_node_named() -> None:
     [
         {"resolution_m": 0.0},
         {"free_range_m": -1.0},
+        {"free_fov_rad": 7.0},
         {"submap_nodes": 0},
         {"submap_nodes": 200},
         {"tile_cells": 4},

@@ -135,3 +135,15 @@ def test_integer_grids_are_accepted() -> None:
     a = local_raster(np.eye(5, dtype=np.uint8), (0.5, 0.5), RES, free_range_m=1.0)
     b = local_raster(np.eye(5, dtype=bool), (0.5, 0.5), RES, free_range_m=1.0)
     assert np.array_equal(a.cells, b.cells) and a.origin_in_base == b.origin_in_base
+
+
+def test_a_forward_laser_sees_nothing_behind() -> None:
+    """A 180-degree field of view around +x: free ahead and to the sides, unknown behind."""
+    empty = np.zeros((0, 0), dtype=bool)
+    r = local_raster(empty, (0.0, 0.0), RES, free_range_m=3.0, free_fov_rad=math.pi)
+    assert value_at(r, 2.0, 0.05) == FREE
+    assert value_at(r, 0.05, 2.0) == FREE and value_at(r, 0.05, -2.0) == FREE
+    for x, y in ((-1.0, 0.0), (-2.0, 1.5), (-0.5, -2.5)):
+        assert value_at(r, x, y) == UNKNOWN, (x, y)
+    with pytest.raises(ValueError, match="free_fov_rad"):
+        local_raster(empty, (0.0, 0.0), RES, free_range_m=3.0, free_fov_rad=7.0)
