@@ -25,6 +25,7 @@ posterior trajectory with the true one (ATE RMSE after a rigid alignment).
 
 from __future__ import annotations
 
+import collections
 import math
 import time
 from collections.abc import Callable
@@ -147,6 +148,8 @@ class _Team:
         )
         self.station = GroundStation(gcs_cfg)
         self.truth_in_world: dict[int, np.ndarray] = {}  # graph key -> world_from_base
+        self._recent: collections.deque[tuple[float, np.ndarray]] = collections.deque(maxlen=100)
+        self._recent.append((sim.time_s, sim.robot_poses().copy()))
         self.nodes = {
             rid: RobotNode(rid, send=self._sender(rid), config=config.robot) for rid in ids
         }
@@ -188,7 +191,7 @@ class _Team:
                 key = self.station.key_of(rid, msg.node_index)
                 if key is not None:
                     k = self.sim.robot_ids.index(rid)
-                    self.truth_in_world[key] = self.sim.robot_poses()[k].copy()
+                    self.truth_in_world[key] = self._truth_at(k, msg.time_s)
             elif isinstance(msg, TaskStatus) and msg.task_id == self.active.get(rid):
                 if msg.state in (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.REJECTED):
                     del self.active[rid]
@@ -197,9 +200,22 @@ class _Team:
 
         return send
 
+    def _truth_at(self, k: int, time_s: float) -> np.ndarray:
+        """Robot ``k``'s true pose at ``time_s`` (a node's time is its sweep's end, which may
+        precede the step that delivered the sweep): interpolated between recorded steps."""
+        if len(self._recent) < 2:
+            return np.asarray(self._recent[-1][1][k], dtype=float).copy()
+        times = np.array([t for t, _ in self._recent])
+        j = int(np.clip(np.searchsorted(times, time_s), 1, len(times) - 1))
+        (t0, p0), (t1, p1) = self._recent[j - 1], self._recent[j]
+        w = float(np.clip((time_s - t0) / max(t1 - t0, 1e-9), 0.0, 1.0))
+        a, b = p0[k], p1[k]
+        return np.array([*(a[:2] + w * (b[:2] - a[:2])), a[2] + w * wrap_angle(b[2] - a[2])])
+
     def step(self) -> None:
         self.sim.step()
         now = self.sim.time_s
+        self._recent.append((now, self.sim.robot_poses().copy()))
         for rid, node in self.nodes.items():
             for command in node.process(self.drivers[rid].poll(0.0)):
                 self.drivers[rid].send(command)
