@@ -65,6 +65,8 @@ from robot.odometry.inertial_odometry import OdometryIncrement
 from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
 
 __all__ = [
+    "FALSE_CLOSURE_M",
+    "FALSE_CLOSURE_RAD",
     "OdometryNoiseConfig",
     "ReplayConfig",
     "ReplayNode",
@@ -300,7 +302,10 @@ class ReplayResult:
     without timestamps), ``odometry`` and ``estimate`` ``(M, 3)`` (``odom`` and ``map``),
     ``reference`` ``(M, 3)`` in the log's frame or None. ``ate``/``ate_odometry`` against the
     reference; ``relations``/``relations_odometry`` with ``relations_matched`` (None without a
-    relations file); ``loop_closures`` automatic loop-closure edges in the final graph.
+    relations file); ``loop_closures`` automatic loop-closure edges in the final graph, with
+    ``closure_nodes`` ``(K, 2)`` (indices into the per-node arrays) and ``closure_a_from_b``
+    ``(K, 3)``; against the reference, ``closure_err_m`` / ``closure_err_rad`` ``(K,)`` and
+    ``false_closures``, those off by more than ``FALSE_CLOSURE_M`` or ``FALSE_CLOSURE_RAD``.
     """
 
     log_path: str
@@ -311,14 +316,25 @@ class ReplayResult:
     estimate: FloatArray
     reference: FloatArray | None
     loop_closures: int
+    closure_nodes: NDArray[np.int64]
+    closure_a_from_b: FloatArray
     station_stats: dict[str, Any]
     wall_s: float
+    closure_err_m: FloatArray | None = None
+    closure_err_rad: FloatArray | None = None
     ate: TrajectoryError | None = None
     ate_odometry: TrajectoryError | None = None
     relations_matched: MatchedRelations | None = None
     relations: RelationsError | None = None
     relations_odometry: RelationsError | None = None
     files: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def false_closures(self) -> int | None:
+        if self.closure_err_m is None or self.closure_err_rad is None:
+            return None
+        bad = (self.closure_err_m > FALSE_CLOSURE_M) | (self.closure_err_rad > FALSE_CLOSURE_RAD)
+        return int(np.count_nonzero(bad))
 
     def summary(self) -> dict[str, Any]:
         """The numbers, JSON-ready."""
@@ -335,6 +351,13 @@ class ReplayResult:
                 out[f"{name}_rmse_m"] = ate.rmse_m
                 out[f"{name}_max_m"] = ate.max_m
                 out[f"{name}_yaw_rmse_deg"] = ate.yaw_rmse_deg
+        if self.closure_err_m is not None and self.closure_err_rad is not None:
+            out["false_closures"] = self.false_closures
+            if len(self.closure_err_m):
+                out["closure_err_p95_m"] = float(np.percentile(self.closure_err_m, 95))
+                out["closure_err_p95_deg"] = math.degrees(
+                    float(np.percentile(self.closure_err_rad, 95))
+                )
         if self.relations_matched is not None:
             out["relations_matched"] = len(self.relations_matched)
             out["relations_total"] = self.relations_matched.total
@@ -352,6 +375,10 @@ class ReplayResult:
 
 
 ProgressFn = Callable[[int, int, str], None]
+
+#: A closure off the reference by more than this is false (the sim4 metric's thresholds).
+FALSE_CLOSURE_M = 0.5
+FALSE_CLOSURE_RAD = math.radians(5.0)
 
 
 def _has_reference(log: CarmenLog, config: ReplayConfig) -> bool:
@@ -392,8 +419,8 @@ def run_replay(
         if n % cfg.step_every_nodes == 0 or n == len(nodes):
             station.step(now_s=now, budget_s=cfg.step_budget_s)
             if progress is not None:
-                closures = len(station.graph.edges(Provenance.LOOP_AUTO))
-                progress(rn.scan + 1, len(log), f"{n} nodes, {closures} loop closures")
+                accepted = len(station.graph.edges(Provenance.LOOP_AUTO))
+                progress(rn.scan + 1, len(log), f"{n} nodes, {accepted} loop closures")
     scans = np.array([rn.scan for rn in nodes], dtype=np.int64)
     odometry = np.array([rn.pose_node.pose_in_odom for rn in nodes], dtype=np.float64)
     keys = [station.key_of(rid, rn.pose_node.node_index) for rn in nodes]
@@ -402,6 +429,11 @@ def run_replay(
         raise RuntimeError(f"the ground station dropped pose nodes {missing[:10]}: {station.stats}")
     estimate = np.array([station.graph.pose(k) for k in keys if k is not None]).reshape(-1, 3)
     stats = station.stats
+    node_of = {k: i for i, k in enumerate(keys)}
+    closures = station.graph.edges(Provenance.LOOP_AUTO)
+    closure_nodes = np.array(
+        [(node_of[e.key_a], node_of[e.key_b]) for e in closures], dtype=np.int64
+    ).reshape(-1, 2)
     result = ReplayResult(
         log_path=log.path,
         scans_total=len(log),
@@ -410,7 +442,9 @@ def run_replay(
         odometry=odometry,
         estimate=estimate,
         reference=log.base_in_log[scans] if _has_reference(log, cfg) else None,
-        loop_closures=len(station.graph.edges(Provenance.LOOP_AUTO)),
+        loop_closures=len(closures),
+        closure_nodes=closure_nodes,
+        closure_a_from_b=np.array([e.z for e in closures], dtype=np.float64).reshape(-1, 3),
         station_stats={
             "pose_nodes": stats.pose_nodes,
             "terrain_grids": stats.terrain_grids,
@@ -422,6 +456,12 @@ def run_replay(
     if result.reference is not None:
         result.ate = trajectory_error(estimate, result.reference)
         result.ate_odometry = trajectory_error(odometry, result.reference)
+        truth = relative(
+            result.reference[closure_nodes[:, 0]], result.reference[closure_nodes[:, 1]]
+        ).reshape(-1, 3)
+        err = relative(truth, result.closure_a_from_b).reshape(-1, 3)
+        result.closure_err_m = np.hypot(err[:, 0], err[:, 1])
+        result.closure_err_rad = np.abs(err[:, 2])
     if relations is not None:
         offset = estimate_time_offset_s(relations, log.time_s)
         matched = match_relations(
@@ -509,6 +549,11 @@ def _format_summary(summary: dict[str, Any]) -> list[str]:
             f"(max {summary['ate_max_m']:.3f} m, yaw {summary['ate_yaw_rmse_deg']:.2f} deg); "
             f"odometry alone {summary['ate_odometry_rmse_m']:.3f} m"
         )
+        if "false_closures" in summary:
+            lines.append(
+                f"loop closures off the log's poses by > {FALSE_CLOSURE_M} m or "
+                f"> {math.degrees(FALSE_CLOSURE_RAD):.0f} deg: {summary['false_closures']}"
+            )
     else:
         lines.append("ATE: no reference poses in this log (raw odometry only)")
     if "relations_matched" in summary:
