@@ -481,16 +481,16 @@ class Simulator:
             if not alive[k]:
                 out[rid] = []
                 continue
-            out[rid].append(
+            # the step's motion before the sweep it ends: a node deskewing the sweep needs
+            # the odometry up to the sweep's last instant
+            out[rid][:0] = [
                 ImuSample(
                     time_s=t_new,
                     angular_velocity_rad_s=tuple(gyro_l[k]),  # type: ignore[arg-type]
                     linear_acceleration_m_s2=tuple(accel_l[k]),  # type: ignore[arg-type]
-                )
-            )
-            out[rid].append(
-                WheelTicks(time_s=t_new, left_ticks=ticks_l[k][0], right_ticks=ticks_l[k][1])
-            )
+                ),
+                WheelTicks(time_s=t_new, left_ticks=ticks_l[k][0], right_ticks=ticks_l[k][1]),
+            ]
             if battery_due:
                 charge = min(1.0, max(0.0, float(st.battery_wh[k]) / cfg.body.battery_wh))
                 out[rid].append(BatteryState(time_s=t_new, charge_frac=charge))

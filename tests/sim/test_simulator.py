@@ -336,3 +336,20 @@ def test_a_lockstep_run_with_nodes_in_threads_repeats_exactly() -> None:
     n = min(len(a_sweeps), len(b_sweeps))
     for sa, sb in zip(a_sweeps[:n], b_sweeps[:n], strict=True):
         assert np.array_equal(sa.points_in_base, sb.points_in_base)
+
+
+def test_a_steps_motion_comes_before_the_sweep_it_ends() -> None:
+    """A node deskews a sweep with its odometry: the step's IMU sample and encoder ticks
+    must be in its hands before the sweep that ends at the same instant."""
+    with Simulator(make_world()) as sim:
+        d = sim.driver(0)
+        seen = 0
+        for _ in range(60):
+            d.send(VelocityCommand(sim.time_s, 0.0, 0.5))
+            sim.step()
+            kinds = [type(f) for f in d.poll(0.0)]
+            if LidarSweep in kinds:
+                seen += 1
+                i = kinds.index(LidarSweep)
+                assert ImuSample in kinds[:i] and WheelTicks in kinds[:i]
+        assert seen >= 2
