@@ -9,12 +9,13 @@
 | ``magic4`` | 20 | **the paper's coder**: 4 neighbours, static probabilities trained on a corpus |
 | ``magic6`` ... ``magic16`` | 21-24 | the paper's Fig. 9 study: larger templates, static |
 | ``ctx16t`` | 28 | 16 neighbours, trained prior that adapts (counts with a prior strength) |
-| ``intra16`` | 30 | the best intra codec: ``ctx16t`` plus line extrapolation |
+| ``intra16`` | 30 | the best intra codec: ``ctx16t`` plus line extrapolation and quiet runs |
 | ``inter16`` | 40 | ``intra16`` plus the previous grid warped by odometry; key frames ``intra16`` |
 
-The trained codecs (20 and up) come from the model file :data:`~compression.model_file.
-MODEL_FILE` and carry its version in every stream. :data:`DEFAULT_CODEC` is the one that
-measures best (``magic bench compression``).
+(:mod:`compression.context_model` describes templates, features and quiet runs.) The trained
+codecs (20 and up) come from the model file :data:`~compression.model_file.MODEL_FILE` and
+carry its version in every stream. :data:`DEFAULT_CODEC` is the one that measures best
+(``magic bench compression``: held-out worlds, 29.3 bytes per grid against ``magic4``'s 44.6).
 """
 
 from __future__ import annotations
