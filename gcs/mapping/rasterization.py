@@ -374,6 +374,39 @@ def _sample_feet(nodes, poses, bbox, rect, lres, cells, res, patches, patch_off,
 
 
 @numba.njit(cache=True, nogil=True)
+def _tile_spans(view, t):  # type: ignore[no-untyped-def]
+    """Per ``t x t`` tile of ``view`` (whole tiles) that holds a non-zero cell: ``(tile row,
+    tile col, r0, r1, c0, c1)``, the rows and columns within the tile that hold them."""
+    nti = view.shape[0] // t
+    ntj = view.shape[1] // t
+    out = np.empty((nti * ntj, 6), dtype=np.int64)
+    k = 0
+    for a in range(nti):
+        for b in range(ntj):
+            r0 = t
+            r1 = 0
+            c0 = t
+            c1 = 0
+            for i in range(t):
+                row = view[a * t + i, b * t : b * t + t]
+                for j in range(t):
+                    if row[j] != 0:
+                        r0 = min(r0, i)
+                        r1 = i + 1
+                        c0 = min(c0, j)
+                        c1 = max(c1, j + 1)
+            if r1 > 0:
+                out[k, 0] = a
+                out[k, 1] = b
+                out[k, 2] = r0
+                out[k, 3] = r1
+                out[k, 4] = c0
+                out[k, 5] = c1
+                k += 1
+    return out[:k]
+
+
+@numba.njit(cache=True, nogil=True)
 def _combine_tiles(slots, ptr, sub_ids, sub_i0, sub_j0, spans, sub_codes, rank, store):  # type: ignore[no-untyped-def]
     """Combine tile ``k`` (into ``store[slots[k]]`` as values) from the submaps
     ``sub_ids[ptr[k]:ptr[k+1]]``, whose codes hold the tile at ``(sub_i0, sub_j0)``: per cell
@@ -1032,21 +1065,8 @@ class Rasterizer:
         t = self.config.tile_cells
         i0, i1, j0, j1 = box
         view = sub.codes[i0 - sub.row0 : i1 - sub.row0, j0 - sub.col0 : j1 - sub.col0]
-        blocks = view.reshape((i1 - i0) // t, t, (j1 - j0) // t, t) != 0
-        rows_any = blocks.any(axis=3)  # (tile row, row in tile, tile col)
-        cols_any = blocks.any(axis=1)  # (tile row, tile col, col in tile)
-        nz = rows_any.any(axis=1)
-        out = {}
-        for a, b in zip(*np.nonzero(nz), strict=True):
-            r = rows_any[a, :, b]
-            c = cols_any[a, b]
-            out[(i0 // t + int(a), j0 // t + int(b))] = (
-                int(np.argmax(r)),
-                t - int(np.argmax(r[::-1])),
-                int(np.argmax(c)),
-                t - int(np.argmax(c[::-1])),
-            )
-        return out
+        spans = _tile_spans(view, t).tolist()
+        return {(i0 // t + a, j0 // t + b): (r0, r1, c0, c1) for a, b, r0, r1, c0, c1 in spans}
 
     def _tile_box(self, bbox: NDArray[np.int64]) -> tuple[int, int, int, int]:
         """Tile-aligned map-cell box around the boxes ``bbox`` ``(K, 4)``."""
