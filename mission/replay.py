@@ -402,8 +402,9 @@ def run_replay(
 
     ``progress(scans_done, scans_total, text)`` is called after every ``GroundStation.step``.
     With ``out_dir``, writes there ``map.png`` and ``map.pgm`` + ``map.yaml`` (the station's
-    global map at the final posterior), ``summary.json`` and ``poses.txt``. Raises ValueError
-    when ``relations`` are given for a log without timestamps or on another clock.
+    global map at the final posterior), ``summary.json``, ``poses.txt`` and ``closures.txt``.
+    Raises ValueError when ``relations`` are given for a log without timestamps or on another
+    clock.
     """
     cfg = config or ReplayConfig()
     t_start = time.perf_counter()
@@ -497,6 +498,24 @@ def _write_outputs(result: ReplayResult, station: GroundStation, out: Path) -> N
         header="scan time_s map_x map_y map_yaw odom_x odom_y odom_yaw ref_x ref_y ref_yaw",
     )
     result.files["poses"] = str(poses)
+    closures = out / "closures.txt"
+    k = len(result.closure_nodes)
+    err_m = result.closure_err_m if result.closure_err_m is not None else np.full(k, np.nan)
+    err_rad = result.closure_err_rad if result.closure_err_rad is not None else np.full(k, np.nan)
+    np.savetxt(
+        closures,
+        np.column_stack(
+            [
+                result.scans[result.closure_nodes].reshape(-1, 2),
+                result.closure_a_from_b,
+                err_m,
+                np.degrees(err_rad),
+            ]
+        ),
+        fmt=["%d", "%d"] + ["%.6f"] * 5,
+        header="scan_a scan_b a_from_b_x a_from_b_y a_from_b_yaw err_m err_deg (vs log poses)",
+    )
+    result.files["closures"] = str(closures)
     summary = out / "summary.json"
     result.files["summary"] = str(summary)
     summary.write_text(json.dumps(result.summary(), indent=2) + "\n", encoding="utf-8")

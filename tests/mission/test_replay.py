@@ -229,6 +229,10 @@ def test_replay_through_the_ground_station_evaluates_against_the_reference(
     table = np.loadtxt(tmp_path / "poses.txt")
     assert table.shape == (len(nodes), 11)
     np.testing.assert_allclose(table[:, 8:], res.reference, atol=1e-5)
+    closures = np.loadtxt(tmp_path / "closures.txt").reshape(-1, 7)
+    assert len(closures) == res.loop_closures
+    np.testing.assert_array_equal(closures[:, :2], res.scans[res.closure_nodes])
+    np.testing.assert_allclose(closures[:, 5], res.closure_err_m, atol=1e-5)
 
 
 def test_relations_need_timestamps_and_are_evaluated_on_nodes() -> None:
