@@ -268,6 +268,7 @@ def replay_messages(log: CarmenLog, config: ReplayConfig | None = None) -> list[
     gcfg = cfg.grid
     res = gcfg.resolution_m
     travelled = np.concatenate([[0.0], np.cumsum(np.abs([i.distance_m for i in increments]))])
+    points_of: dict[int, FloatArray] = {}  # a scan joins several nodes' grids: convert once
     out: list[ReplayNode] = []
     for k in range(len(log)):
         if k > 0:
@@ -279,10 +280,15 @@ def replay_messages(log: CarmenLog, config: ReplayConfig | None = None) -> list[
         recent = np.flatnonzero(travelled[first : k + 1] >= travelled[k] - gcfg.aggregate_m) + first
         # Older scans join the node's frame by the odometry the robot reported, as on board.
         node_from_scan = relative(odom[k], odom[recent]).reshape(-1, 3)
+        for j in recent.tolist():
+            if j not in points_of:
+                points_of[j] = log.points_in_base(j, max_range_m=gcfg.max_range_m)
+        for j in [j for j in points_of if j < recent[0]]:
+            del points_of[j]
         points = np.concatenate(
             [
-                transform_points(pose, log.points_in_base(int(j), max_range_m=gcfg.max_range_m))
-                for pose, j in zip(node_from_scan, recent, strict=True)
+                transform_points(pose, points_of[j])
+                for pose, j in zip(node_from_scan, recent.tolist(), strict=True)
             ]
         )
         grid, origin = scan_grid(points, resolution_m=res)

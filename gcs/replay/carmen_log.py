@@ -120,11 +120,7 @@ class CarmenLog:
     ) -> NDArray[np.bool_]:
         """``(N, B)``: beams with a return (positive, finite, below ``max_range_m`` and outside
         the no-return bands)."""
-        r = self.ranges_m
-        ok = np.isfinite(r) & (r > 0.0) & (r < max_range_m)
-        for lo, hi in NO_RETURN_BANDS_M:
-            ok &= (r < lo - no_return_tolerance_m) | (r > hi + no_return_tolerance_m)
-        return ok  # type: ignore[no-any-return]
+        return _returns(self.ranges_m, max_range_m, no_return_tolerance_m)
 
     def points_in_base(
         self, scan: int, *, max_range_m: float = 80.0, no_return_tolerance_m: float = 0.002
@@ -133,11 +129,16 @@ class CarmenLog:
         if not 0 <= scan < len(self):
             raise IndexError(f"{self.path}: scan {scan} out of range 0..{len(self) - 1}")
         r = self.ranges_m[scan]
-        ok = self.valid_mask(max_range_m=max_range_m, no_return_tolerance_m=no_return_tolerance_m)[
-            scan
-        ]
+        ok = _returns(r, max_range_m, no_return_tolerance_m)
         a = self.angles_rad[ok]
         return np.stack([self.laser_offset_m + r[ok] * np.cos(a), r[ok] * np.sin(a)], axis=1)
+
+
+def _returns(r: FloatArray, max_range_m: float, tolerance_m: float) -> NDArray[np.bool_]:
+    ok = np.isfinite(r) & (r > 0.0) & (r < max_range_m)
+    for lo, hi in NO_RETURN_BANDS_M:
+        ok &= (r < lo - tolerance_m) | (r > hi + tolerance_m)
+    return ok  # type: ignore[no-any-return]
 
 
 def _floats(tokens: list[str], where: str, what: str) -> list[float]:
