@@ -87,7 +87,11 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     robots: tuple[int, ...] = ()
     graph: PoseGraphConfig = msgspec.field(default_factory=PoseGraphConfig)
     loops: LoopCloserConfig = msgspec.field(default_factory=LoopCloserConfig)
-    raster: RasterConfig = msgspec.field(default_factory=RasterConfig)
+    # iSAM2 nudges every pose a little on each update: a small tolerance lets the rasterizer
+    # reuse submaps (the map is then exact to within it)
+    raster: RasterConfig = msgspec.field(
+        default_factory=lambda: RasterConfig(pose_tolerance_m=0.005, pose_tolerance_rad=0.001)
+    )
     loop_budget_s: float = 0.2
     frames_period_s: float = 2.0
     max_pending_nodes: int = 32
