@@ -61,6 +61,7 @@ class TeamMappingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
     firm_ground: bool = True  # drop the world's sand pits (see the module docstring)
     duration_s: float = 240.0
     waypoints: int = 4
+    dwell_s: float = 4.0  # still at each waypoint: the gyro recalibrates (paper 4.3.1)
     waypoint_clearance_m: float = 1.5
     ooi_clearance_m: float = 7.0
     seed: int = 0
@@ -168,6 +169,7 @@ class _Team:
             route = np.vstack([order, starts[k][None, :2]])
             self.goals[rid] = list(transform_points(inverse(starts[k]), route))
         self.active: dict[int, int] = {}
+        self.resume_at = dict.fromkeys(ids, 0.0)
         self.next_task = 1
         self.goals_sent = 0
         self.goals_reached = 0
@@ -196,6 +198,7 @@ class _Team:
                 if msg.state in (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.REJECTED):
                     del self.active[rid]
                     self.goals_reached += msg.state is TaskState.SUCCEEDED
+                    self.resume_at[rid] = self.sim.time_s + self.config.dwell_s
             return None
 
         return send
@@ -219,7 +222,7 @@ class _Team:
         for rid, node in self.nodes.items():
             for command in node.process(self.drivers[rid].poll(0.0)):
                 self.drivers[rid].send(command)
-            if rid not in self.active and self.goals[rid]:
+            if rid not in self.active and self.goals[rid] and now >= self.resume_at[rid]:
                 goal = self.goals[rid].pop(0)
                 node.handle_downlink(
                     GoToTask(self.next_task, now, [(float(goal[0]), float(goal[1]))])
