@@ -37,7 +37,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from compression import CodecError, decode_grid
+from compression import CodecError, GridReference, decode_grid, read_header
 from gcs.graph.pose_graph import PoseGraph, PoseGraphConfig, PoseGraphError, Provenance
 from gcs.loops.correlative_matcher import MatchResult, grid_points
 from gcs.loops.loop_closer import LoopCloser, LoopCloserConfig, LoopClosingReport
@@ -66,6 +66,9 @@ __all__ = [
 ]
 
 log = logging.getLogger("magic.gcs")
+
+#: Decoded grids kept per robot as possible references of inter-frame grids.
+_REFERENCE_MEMORY = 8
 
 #: Dangerous objects and the keep-out radius robots must respect (paper section 2: trigger
 #: radius 2.5 m for static OOIs and hostiles, plus a margin the robot adds itself).
@@ -154,6 +157,11 @@ class _Track:
     graph_keys: list[int] = field(default_factory=list)
     pending_nodes: dict[int, PoseNode] = field(default_factory=dict)
     pending_grids: dict[int, TerrainGrid] = field(default_factory=dict)
+    deltas: dict[int, Any] = field(default_factory=dict)  # node_index -> odom_delta
+    # recent decoded grids (references of inter-frame grids): index -> grid, origin cells, res
+    decoded: dict[int, tuple[np.ndarray, tuple[int, int], float]] = field(default_factory=dict)
+    decoded_floor: int = 0  # grids below this index are no longer kept as references
+    undecodable: set[int] = field(default_factory=set)
     telemetry: Telemetry | None = None
     last_status: TaskStatus | None = None
 
@@ -188,7 +196,6 @@ class GroundStation:
         self._tracks: dict[int, _Track] = {}
         self._dirty = False
         self._last_frames_s: dict[int, float] = {}
-        self._grid_listeners: list[Any] = []
         self._key_time: dict[int, float] = {}
         self._hints: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -276,11 +283,10 @@ class GroundStation:
             track.next_index = msg.node_index + 1
             self.stats.pose_nodes += 1
             self._dirty = True
+            track.deltas[msg.node_index] = msg.odom_delta
             if len(track.graph_keys) == 1:
                 self._apply_hints()
-            grid = track.pending_grids.pop(msg.node_index, None)
-            if grid is not None:
-                self._attach_grid(key, msg.time_s, grid)
+        self._drain_grids(robot_id, track)
 
     def add_start_hint(
         self,
@@ -335,41 +341,102 @@ class GroundStation:
             self._dirty = True
 
     def _on_grid(self, robot_id: int, track: _Track, msg: TerrainGrid) -> None:
+        try:
+            self._take_grid(robot_id, track, msg)
+        except _Rejected:
+            # a lost grid also loses the inter-frame grid coded against it
+            if msg.node_index not in track.decoded:
+                track.undecodable.add(msg.node_index)
+                self._drain_grids(robot_id, track)
+            raise
+
+    def _take_grid(self, robot_id: int, track: _Track, msg: TerrainGrid) -> None:
         what = f"grid of node {msg.node_index}"
         res = msg.resolution_m
         if not (self.config.min_grid_resolution_m <= res <= self.config.max_grid_resolution_m):
             raise _Rejected("bad_grid", f"{what}: resolution_m {res} outside accepted range")
         _finite(msg.origin_in_base, f"{what} origin_in_base")
-        key = track.keys.get(msg.node_index)
-        if key is None:
-            if msg.node_index < track.next_index:
-                raise _Rejected("orphan_grid", f"{what}: its pose node was never received")
-            if len(track.pending_grids) >= self.config.max_pending_grids:
-                raise _Rejected("orphan_grid", f"{what}: too many grids wait for pose nodes")
-            self._decode(msg)  # refuse bad bytes now, not when the node arrives
-            track.pending_grids[msg.node_index] = msg
-            return
-        if key in self.grids:
-            self.stats.duplicates += 1
-            return
-        self._attach_grid(key, self._key_time[key], msg)
-
-    def _decode(self, msg: TerrainGrid) -> np.ndarray:
-        what = f"grid of node {msg.node_index}"
         try:
-            grid = decode_grid(msg.data)
+            header = read_header(msg.data)
         except CodecError as err:
             raise _Rejected("bad_grid", f"{what}: {err}") from None
-        if grid.shape != (msg.height, msg.width):
+        if (header.height, header.width) != (msg.height, msg.width):
             raise _Rejected(
                 "bad_grid",
                 f"{what}: message says {msg.height}x{msg.width} cells, "
-                f"stream holds {grid.shape[0]}x{grid.shape[1]}",
+                f"stream holds {header.height}x{header.width}",
             )
-        return grid
+        key = track.keys.get(msg.node_index)
+        if (
+            msg.node_index in track.decoded
+            or msg.node_index in track.pending_grids
+            or (key is not None and key in self.grids)
+        ):
+            self.stats.duplicates += 1
+            return
+        if msg.node_index < track.next_index and msg.node_index not in track.keys:
+            raise _Rejected("orphan_grid", f"{what}: its pose node was never received")
+        if len(track.pending_grids) >= self.config.max_pending_grids:
+            raise _Rejected("orphan_grid", f"{what}: too many grids wait for pose nodes")
+        track.pending_grids[msg.node_index] = msg
+        self._drain_grids(robot_id, track, current=msg.node_index)
 
-    def _attach_grid(self, key: int, time_s: float, msg: TerrainGrid) -> None:
-        grid = self._decode(msg)
+    def _drain_grids(self, robot_id: int, track: _Track, *, current: int | None = None) -> None:
+        """Decode the waiting grids whose pose node (and, for an inter-frame grid, whose
+        reference grid) is here; a grid that can never be decoded is rejected (raised if it
+        is the ``current`` message's, counted here otherwise)."""
+        progress = True
+        while progress and track.pending_grids:
+            progress = False
+            for index in sorted(track.pending_grids):
+                msg = track.pending_grids[index]
+                key = track.keys.get(index)
+                if key is None:
+                    continue
+                try:
+                    grid = self._decode(track, msg)
+                except _Rejected as err:
+                    del track.pending_grids[index]
+                    track.undecodable.add(index)
+                    if index == current:
+                        raise
+                    self._reject(robot_id, msg, err.reason, str(err))
+                    continue
+                if grid is None:
+                    continue  # its reference grid has not arrived yet
+                del track.pending_grids[index]
+                self._attach_grid(track, key, msg, grid)
+                progress = True
+
+    def _decode(self, track: _Track, msg: TerrainGrid) -> np.ndarray | None:
+        """The grid, or None while its reference is missing (compression's inter-frame codec
+        references the previous node's grid, warped by this node's ``odom_delta``)."""
+        what = f"grid of node {msg.node_index}"
+        header = read_header(msg.data)
+        reference = None
+        if header.reference_node is not None:
+            previous = msg.node_index - 1
+            if (previous & 0xFF) != header.reference_node:
+                raise _Rejected(
+                    "bad_grid",
+                    f"{what}: coded against node {header.reference_node} (mod 256), "
+                    f"not the previous node {previous}",
+                )
+            if previous in track.undecodable or previous < track.decoded_floor:
+                raise _Rejected("missing_reference", f"{what}: grid of node {previous} is lost")
+            ref = track.decoded.get(previous)
+            if ref is None:
+                return None
+            grid_prev, origin_prev, res_prev = ref
+            delta = tuple(float(v) for v in track.deltas[msg.node_index])
+            reference = GridReference(previous, grid_prev, origin_prev, delta, res_prev)  # type: ignore[arg-type]
+        try:
+            return decode_grid(msg.data, reference=reference)
+        except CodecError as err:
+            raise _Rejected("bad_grid", f"{what}: {err}") from None
+
+    def _attach_grid(self, track: _Track, key: int, msg: TerrainGrid, grid: np.ndarray) -> None:
+        time_s = self._key_time[key]
         record = GridRecord(
             key,
             time_s,
@@ -382,8 +449,12 @@ class GroundStation:
         self.loop_closer.add_scan(key, points)
         self.grids[key] = record
         self.stats.terrain_grids += 1
-        for listener in self._grid_listeners:
-            listener(record)
+        header = read_header(msg.data)
+        track.decoded[msg.node_index] = (grid, header.origin_cells, record.resolution_m)
+        track.undecodable.discard(msg.node_index)
+        for old in [i for i in track.decoded if i < msg.node_index - _REFERENCE_MEMORY]:
+            del track.decoded[old]
+            track.decoded_floor = max(track.decoded_floor, old + 1)
 
     def _on_fiducial(self, robot_id: int, track: _Track, msg: FiducialObservation) -> None:
         what = f"fiducial of node {msg.node_index}"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -225,3 +226,43 @@ def test_loops_close_and_the_operator_can_suggest_accept_and_rewind() -> None:
     assert len(gs.graph.edges(Provenance.LOOP_OPERATOR)) == 1
     gs.restart_loop_closer()
     gs.step(now_s=200.0, budget_s=1.0)  # optimizes without the rewound edges
+
+
+def test_inter_frame_grids_are_decoded_against_the_previous_nodes_grid() -> None:
+    from compression import DEFAULT_CODEC, GridReference, is_inter, origin_cells_of
+    from gcs.loops.synthetic_scenes import random_world, scan_grid, scan_points
+
+    rng = np.random.default_rng(5)
+    truth, odom, _ = _out_and_back(rng)
+
+    world = random_world(np.random.default_rng(6), size_m=40.0)
+    nodes = nodes_along(odom[:6])
+    grids, msgs = [], []
+    for i, pose in enumerate(truth[:6]):
+        grid, origin = scan_grid(scan_points(world, pose, rng=rng))
+        cells = origin_cells_of(origin, 0.1)
+        ref = None
+        if i > 0:
+            prev_grid, prev_cells = grids[-1]
+            ref = GridReference(i - 1, prev_grid, prev_cells, nodes[i].odom_delta, 0.1)
+        data = encode_grid(grid, DEFAULT_CODEC, origin_cells=cells, reference=ref)
+        grids.append((grid, cells))
+        msgs.append(TerrainGrid(i, DEFAULT_CODEC, 0.1, grid.shape[1], grid.shape[0], origin, data))
+    assert is_inter(DEFAULT_CODEC)
+
+    gs = GroundStation()
+    for node in nodes:
+        gs.handle(0, node, now_s=0.0)
+    for i in (0, 2, 1, 3):  # grid 2 waits for grid 1, its reference
+        assert gs.handle(0, msgs[i], now_s=0.0)
+    assert gs.stats.terrain_grids == 4
+    for i in range(4):
+        key = gs.key_of(0, i)
+        assert key is not None
+        np.testing.assert_array_equal(gs.grids[key].grid, grids[i][0])
+    # grid 4 claims a model this build does not have: grid 5, coded against it, is lost too
+    data = msgs[4].data
+    bad = msgspec.structs.replace(msgs[4], data=data[:1] + bytes([99]) + data[2:])
+    assert not gs.handle(0, bad, now_s=0.0)
+    assert not gs.handle(0, msgs[5], now_s=0.0)
+    assert gs.stats.rejected["missing_reference"] == 1
