@@ -6,8 +6,9 @@ acceleration limits to the wheels; the body moves at the wheel velocities reduce
 (more when turning and on sand, with seeded noise), which is why encoder yaw is poor and a
 gyro is needed (paper 4.3.1). A move is refused if the body's footprint would cover a
 vertical structure or a step higher than ``climb_max_m`` (10 cm curbs are climbed, walls,
-dock edges, cars and low canopies are not) or come closer to another robot or a person than
-their radii allow; a refused translation stalls the wheels (no encoder counts). Height, pitch
+dock edges, cars and low canopies are not), make the footprint overlap another robot's
+(oriented rectangles, ``robot_gap_m`` apart at least) or come closer to a person than their
+radii allow; a refused translation stalls the wheels (no encoder counts). Height, pitch
 and roll come from the ground height under the four wheels. A battery drains with time and
 speed; a robot whose battery is empty, or that was disabled by a blast, does not move.
 
@@ -37,7 +38,8 @@ class RobotBodyConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     width_m: float = 0.5
     wheelbase_m: float = 0.45
     track_m: float = 0.45
-    radius_m: float = 0.38
+    radius_m: float = 0.38  # encloses the footprint: against people (discs)
+    robot_gap_m: float = 0.02  # robots' footprints stay this far apart
     max_linear_m_s: float = 1.0
     max_angular_rad_s: float = 1.5
     max_linear_accel_m_s2: float = 1.0
@@ -64,6 +66,7 @@ class RobotBodyConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
             "max_angular_accel_rad_s2",
             "climb_max_m",
             "battery_wh",
+            "robot_gap_m",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -91,6 +94,29 @@ class BodyState:
     battery_wh: np.ndarray
     disabled: np.ndarray  # bool: blast or empty battery
     blocked_steps: np.ndarray  # int: steps a translation was refused
+
+
+def footprints_overlap(
+    a: np.ndarray, b: np.ndarray, *, half_length_m: float, half_width_m: float
+) -> np.ndarray:
+    """``(N, M)``: whether the rectangles ``2 half_length x 2 half_width`` at poses ``a``
+    ``(N, 3)`` and ``b`` ``(M, 3)`` overlap (separating-axis test over the four edge normals)."""
+    d = b[None, :, :2] - a[:, None, :2]  # (N, M, 2)
+    ua = np.stack([np.cos(a[:, 2]), np.sin(a[:, 2])], axis=1)[:, None, :]  # (N, 1, 2)
+    va = np.stack([-ua[..., 1], ua[..., 0]], axis=2)
+    ub = np.stack([np.cos(b[:, 2]), np.sin(b[:, 2])], axis=1)[None, :, :]  # (1, M, 2)
+    vb = np.stack([-ub[..., 1], ub[..., 0]], axis=2)
+
+    def extent(u: np.ndarray, v: np.ndarray, axis: np.ndarray) -> np.ndarray:
+        return half_length_m * np.abs(np.sum(u * axis, axis=2)) + half_width_m * np.abs(
+            np.sum(v * axis, axis=2)
+        )
+
+    separated = np.zeros(d.shape[:2], dtype=bool)
+    for axis in (ua, va, ub, vb):
+        gap = np.abs(np.sum(d * axis, axis=2))
+        separated |= gap > extent(ua, va, axis) + extent(ub, vb, axis)
+    return ~separated
 
 
 def _footprint_offsets(length: float, width: float, spacing: float) -> np.ndarray:
@@ -274,9 +300,11 @@ class SkidSteerBodies:
     def _clear_of_others(
         self, cand: np.ndarray, others_xy: np.ndarray | None, others_r: np.ndarray | None
     ) -> np.ndarray:
-        """True where ``cand`` does not come closer to another robot (current or candidate
-        position) or a person than before, below the sum of radii."""
-        r = self.config.radius_m
+        """True where ``cand`` does not make the footprint overlap another robot's (current or
+        candidate pose; an overlap that already exists may only be left), nor come closer to a
+        person than before below the sum of radii."""
+        cfg = self.config
+        r = cfg.radius_m
         old = self.state.pose[:, :2]
         new = cand[:, :2]
         n = len(old)
@@ -289,8 +317,17 @@ class SkidSteerBodies:
             d_old = np.linalg.norm(old[:, None, :] - old[None, :, :], axis=2)
             np.fill_diagonal(d_new, np.inf)
             np.fill_diagonal(d_old, np.inf)
+            half = {
+                "half_length_m": cfg.length_m / 2 + cfg.robot_gap_m / 2,
+                "half_width_m": cfg.width_m / 2 + cfg.robot_gap_m / 2,
+            }
+            pose = self.state.pose
+            hit_new = footprints_overlap(cand, pose, **half)
+            hit_new |= footprints_overlap(cand, cand, **half)
+            hit_old = footprints_overlap(pose, pose, **half)
+            np.fill_diagonal(hit_new, False)
             # disabled robots (wrecks) are obstacles too
-            bad = (d_new < 2 * r) & (d_new < d_old)
+            bad = hit_new & (~hit_old | (d_new < d_old))
             ok &= ~bad.any(axis=1)
         if others_xy is not None and len(others_xy):
             rr = np.asarray(others_r, np.float64)[None, :] + r

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sim.ground_truth import rasterize
-from sim.robot_body import RobotBodyConfig, SkidSteerBodies
+from sim.robot_body import RobotBodyConfig, SkidSteerBodies, footprints_overlap
 from sim.world_generator import Solid
 from tests.sim.simworlds import box, make_world
 
@@ -134,4 +134,18 @@ def test_robots_do_not_drive_through_each_other_or_people() -> None:
             others_radius_m=np.array([0.3]),
         )
         d = np.linalg.norm(b.state.pose[0, :2] - b.state.pose[1, :2])
-        assert d >= 2 * RobotBodyConfig().radius_m - 1e-9
+        assert d >= RobotBodyConfig().length_m  # head on: the footprints never overlap
+    assert d < 0.7  # and they did meet
+    for _ in range(40):  # turning in place must not sweep a corner through the other
+        b.step(0.05, np.array([0.0, 0.0]), np.array([1.5, 0.0]))
+        half = {"half_length_m": 0.3, "half_width_m": 0.25}
+        assert not footprints_overlap(b.state.pose[:1], b.state.pose[1:], **half)[0, 0]
+
+
+def test_robots_pass_each_other_side_by_side() -> None:
+    # footprints 0.5 m wide, centres 0.6 m apart sideways: they pass (a disc model of the
+    # 0.38 m enclosing radius would block them)
+    b = _bodies([], [(8.0, 10.0, 0.0), (12.0, 10.6, math.pi)])
+    _drive(b, 1.0, 0.0, 5.0)
+    assert b.state.pose[0, 0] > 11.5 and b.state.pose[1, 0] < 8.5
+    assert (b.state.blocked_steps == 0).all()
