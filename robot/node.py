@@ -53,6 +53,7 @@ from protocol.sensors import (
     VelocityCommand,
     WheelTicks,
 )
+from robot.control.deadlock import DeadlockBreaker, DeadlockConfig, Phase, path_block_distance
 from robot.control.keepout import KeepoutConfig, keepout_disks_in_odom, rasterize_disks
 from robot.control.path_follower import FollowerConfig, FollowStatus, PathFollower
 from robot.control.stuck_detector import StuckConfig, StuckDetector
@@ -60,7 +61,7 @@ from robot.odometry.inertial_odometry import InertialOdometry, OdometryConfig
 from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
 from robot.planning.planner import PathPlanner, PlannerConfig
 from robot.tasks.task_executor import TaskExecutor, TaskExecutorConfig
-from robot.terrain.classifier import TerrainConfig, classify_sweep
+from robot.terrain.classifier import TerrainConfig, classify_sweep_layers
 from robot.terrain.grid import OBSTACLE, UNKNOWN, GridGeometry
 from robot.terrain.map_fusion import TerrainMapFusion
 from robot.terrain.vertical_surface_grid import VerticalSurfaceConfig, vertical_surface_grid
@@ -94,6 +95,7 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     tasks: TaskExecutorConfig = TaskExecutorConfig()
     keepout: KeepoutConfig = KeepoutConfig()
     stuck: StuckConfig = StuckConfig()
+    deadlock: DeadlockConfig = DeadlockConfig()
 
 
 @dataclass
@@ -108,6 +110,9 @@ class NodeStats:
     bad_frames: int = 0
     stuck_recoveries: int = 0
     keepout_stops: int = 0
+    deadlocks: int = 0  # teammate deadlocks detected and backed off from
+    yields: int = 0  # plans not taken: the path got blocked and the detour was long
+    memory_refreshes: int = 0  # older sweeps forgotten: the newest saw the blocked way clear
 
 
 class RobotNode:
@@ -135,6 +140,7 @@ class RobotNode:
         self.follower = PathFollower(cfg.follower)
         self.tasks = TaskExecutor(cfg.tasks)
         self.stuck = StuckDetector(cfg.stuck)
+        self.deadlock = DeadlockBreaker(cfg.deadlock, seed=robot_id)
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._hazards: HazardUpdate | None = None
         self._keepout = np.zeros((0, 3))
@@ -143,6 +149,12 @@ class RobotNode:
         self._last_cmd = (0.0, 0.0)
         self._last_telemetry_s = -math.inf
         self._planned_goal: np.ndarray | None = None
+        # the path being followed to the current goal and the map it was planned on (yield)
+        self._reference: tuple[np.ndarray, np.ndarray] | None = None  # goal, path
+        self._yield_goal: np.ndarray | None = None
+        self._yield_since_s: float | None = None
+        self._yield_used_s = 0.0
+        self._latest: tuple[np.ndarray, GridGeometry] | None = None  # newest sweep's obstacles
         self._path_found = True
         self._backup_until_s = -math.inf
         self._last_map: tuple[np.ndarray, GridGeometry] | None = None
@@ -241,10 +253,16 @@ class RobotNode:
             return
         poses = self._sweep_poses(sweep)
         roll, pitch = self.odometry.roll_pitch_rad
-        classes, geometry = classify_sweep(
+        layers = classify_sweep_layers(
             sweep.points_in_base, poses, config=cfg.terrain, roll_rad=roll, pitch_rad=pitch
         )
-        self.fusion.add(classes, geometry)
+        self._latest = (layers.classes == OBSTACLE, layers.geometry)
+        self.fusion.add(
+            layers.classes,
+            layers.geometry,
+            obstacle_height_m=layers.obstacle_height_m,
+            free_height_m=layers.free_height_m,
+        )
         end_time = sweep.time_s + sweep.duration_s
         pose = self.odometry.pose_in_odom
         if self.nodes.due(pose, end_time):
@@ -314,6 +332,15 @@ class RobotNode:
             self._path_found = True
             return
         goal = intent.waypoints_in_odom[0]
+        if self.deadlock.phase is Phase.HOLD:
+            self.follower.set_path(np.zeros((0, 2)))
+            self._planned_goal = None
+            return
+        backoff = self.deadlock.backoff_target_in_odom
+        if self.deadlock.phase is Phase.BACKOFF and backoff is not None:
+            classes, geometry = self._current_map()
+            refined = self.deadlock.refine_backoff(classes == OBSTACLE, geometry)
+            goal = backoff if refined is None else refined
         if (
             not force
             and self._planned_goal is not None
@@ -328,6 +355,7 @@ class RobotNode:
         result = self.planner.plan(classes, geometry, pose[:2], clipped)
         self.stats.plans += 1
         self._planned_goal = goal
+        reachable = True
         if not result.ok:
             # head for the reachable free cell nearest the goal: progress towards a goal
             # beyond the map's edge, or as close as the map allows to one that is blocked
@@ -335,18 +363,87 @@ class RobotNode:
             if nearest is not None:
                 result = self.planner.plan(classes, geometry, pose[:2], nearest)
                 self.stats.plans += 1
-                if result.ok and not beyond_map:
-                    self.stats.plan_failures += 1
-                    self._path_found = False  # the goal itself is unreachable: the timeout runs
-                    self.follower.set_path(result.path_in_odom)
-                    return
-        if result.ok:
+                reachable = beyond_map
+        driving = self.deadlock.phase is Phase.DRIVE
+        if driving and self._should_yield(goal, result, classes, geometry):
+            self.stats.yields += 1
+            self._path_found = True  # waiting for a teammate to pass is not a missing path
+            self.follower.set_path(np.zeros((0, 2)))
+            return
+        if self._yield_since_s is not None:
+            self._yield_used_s += self._now - self._yield_since_s
+            self._yield_since_s = None
+        if driving and result.ok:
+            self._reference = (goal.copy(), result.path_in_odom)
+        if result.ok and not reachable:
+            self.stats.plan_failures += 1
+            self._path_found = False  # the goal itself is unreachable: the timeout runs
+            self.follower.set_path(result.path_in_odom)
+        elif result.ok:
             self._path_found = True
             self.follower.set_path(result.path_in_odom)
         else:
             self.stats.plan_failures += 1
             self._path_found = False
             self.follower.set_path(np.zeros((0, 2)))  # stop and wait for the map to change
+
+    def _should_yield(
+        self, goal: np.ndarray, result: Any, classes: np.ndarray, geometry: GridGeometry
+    ) -> bool:
+        """Wait rather than detour: the path being followed is blocked close ahead and the new
+        plan is much longer, or there is none; within the goal's waiting budget
+        (:mod:`robot.control.deadlock`)."""
+        cfg = self.config.deadlock
+        ref = self._reference
+        if not cfg.enabled or self.deadlock.gave_up or ref is None:
+            return False
+        ref_goal, ref_path = ref
+        if not np.array_equal(ref_goal, goal) or len(ref_path) < 2:
+            return False
+        if self._yield_goal is None or not np.array_equal(self._yield_goal, goal):
+            self._yield_goal, self._yield_used_s, self._yield_since_s = goal.copy(), 0.0, None
+        now = self._now
+        since = self._yield_since_s
+        used = self._yield_used_s + (0.0 if since is None else now - since)
+        if used >= cfg.yield_budget_s:
+            return False
+        pos = self.odometry.pose_in_odom[:2]
+        start = int(np.argmin(np.hypot(*(ref_path - pos).T)))
+        rest = np.vstack([pos, ref_path[start:]])
+        remaining = float(np.sum(np.hypot(*np.diff(rest, axis=0).T)))
+        new_length = result.length_m if result.ok else math.inf
+        if new_length <= cfg.yield_detour_ratio * remaining + cfg.yield_detour_m:
+            return False
+        block_m = path_block_distance(
+            ref_path,
+            pos,
+            classes == OBSTACLE,
+            geometry,
+            robot_radius_m=self.config.planner.robot_radius_m,
+            lookahead_m=cfg.yield_lookahead_m,
+        )
+        if not math.isfinite(block_m):
+            return False
+        if self._yield_since_s is None:
+            self._yield_since_s = now
+        if self._latest is not None:  # is what blocks us receding? the newest sweep says
+            latest, latest_geometry = self._latest
+            latest_m = path_block_distance(
+                ref_path,
+                pos,
+                latest,
+                latest_geometry,
+                robot_radius_m=self.config.planner.robot_radius_m,
+                lookahead_m=cfg.yield_lookahead_m,
+            )
+            self.deadlock.note_block_distance(now, latest_m)
+            if not math.isfinite(latest_m) and len(self.fusion) > 1:
+                # the newest sweep sees the way clear where the memory still holds what
+                # blocked it: a mover's trail; forget the older sweeps and plan again
+                self.fusion.forget_older(keep=1)
+                self.stats.memory_refreshes += 1
+                self._planned_goal = None
+        return True
 
     def _nearest_reachable(
         self, classes: np.ndarray, geometry: GridGeometry, start: np.ndarray, goal: np.ndarray
@@ -389,11 +486,13 @@ class RobotNode:
         intent = self.tasks.intent
         laser_target = intent.laser_target_in_odom
         laser_ok = laser_target is not None and self._line_of_sight(pose, laser_target)
+        breaking = self.deadlock.phase in (Phase.BACKOFF, Phase.HOLD)
         for status in self.tasks.update(
-            now, pose, path_found=self._path_found, laser_on_target=laser_ok
+            now, pose, path_found=self._path_found or breaking, laser_on_target=laser_ok
         ):
             self._report(status)
         intent = self.tasks.intent
+        self._watch_deadlock(now, pose, intent)
         if self._planned_goal is None:
             self._replan()
         out: list[RobotCommand] = []
@@ -415,6 +514,8 @@ class RobotNode:
             v, w = 0.0, 0.0
             if self.follower.has_path:
                 self.follower.set_path(np.zeros((0, 2)))
+        elif self.deadlock.phase is Phase.HOLD:
+            v, w = 0.0, 0.0
         else:
             cmd = self.follower.step(pose, dt_s, keepout_disks_in_odom=self._keepout)
             v, w = cmd.linear_m_s, cmd.angular_rad_s
@@ -434,6 +535,41 @@ class RobotNode:
         if now - self._last_telemetry_s >= cfg.telemetry_period_s:
             self._telemetry(pose, intent.mode, intent.task_id)
         return out
+
+    def _watch_deadlock(self, now: float, pose: np.ndarray, intent: Any) -> None:
+        """Progress towards the current waypoint; a deadlock starts a back-off (see
+        :mod:`robot.control.deadlock`)."""
+        driving = (
+            intent.teleop is None
+            and intent.mode not in (AutonomyMode.PAUSED, AutonomyMode.IDLE)
+            and len(intent.waypoints_in_odom) > 0
+            and self._start_s is not None
+            and now - self._start_s >= self.config.calibrate_still_s
+        )
+        if not driving:
+            if self.deadlock.phase is not Phase.DRIVE:
+                self._planned_goal = None
+            self.deadlock.reset()
+            return
+        before = self.deadlock.phase
+        phase = self.deadlock.update(now, pose, intent.waypoints_in_odom[0])
+        if phase is Phase.DEADLOCKED:
+            self.stats.deadlocks += 1
+            classes, geometry = self._current_map()
+            target = self.deadlock.start_backoff(now, classes == OBSTACLE, geometry)
+            if target is not None:
+                # first reverse a little, straight back the way we came: face to face with
+                # a teammate there is no room to turn around
+                self._backup_until_s = now + self.config.backup_s
+            log.info(
+                "robot %d: deadlock on the way to %s; backing off to %s",
+                self.robot_id,
+                np.round(intent.waypoints_in_odom[0], 2).tolist(),
+                None if target is None else np.round(target, 2).tolist(),
+            )
+            phase = self.deadlock.phase
+        if phase is not before:
+            self._planned_goal = None  # replan: to the back-off point, nowhere, or the goal
 
     def _laser(self, pose: np.ndarray, target: tuple[float, float] | None) -> list[RobotCommand]:
         if target is None:

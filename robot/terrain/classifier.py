@@ -9,21 +9,33 @@ are not obstacles are drivable; cells without such points are unknown.
 
 The grid is axis-aligned with ``odom`` and snapped to the ``resolution_m`` lattice, so maps
 from successive sweeps fuse by integer shifts (:mod:`robot.terrain.map_fusion`).
+
+:func:`classify_sweep_layers` also returns what the fusion needs to forget moving things: the
+height of each obstacle mark above the ground model, and, given the sensor's mounting point,
+the free-space evidence of the beams (:mod:`robot.terrain.free_space`).
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import msgspec
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from robot.terrain.free_space import ray_floor
 from robot.terrain.grid import DRIVABLE, OBSTACLE, UNKNOWN, GridGeometry, check_points
 from robot.terrain.ground_model import ground_model
 from robot.terrain.up_detector import filter_height_range, up_detector
 
-__all__ = ["TerrainConfig", "classify_sweep", "points_in_odom"]
+__all__ = [
+    "SweepLayers",
+    "TerrainConfig",
+    "classify_sweep",
+    "classify_sweep_layers",
+    "points_in_odom",
+]
 
 
 class TerrainConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -40,8 +52,11 @@ class TerrainConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     estimate (see :func:`robot.terrain.up_detector.up_detector`; off by default: it lets the
     rims of raised drivable surfaces be compared with distant ground).
     ``memory_sweeps``: sweeps fused pessimistically (12, about 15 s); ``clear_after_sweeps``:
-    an obstacle mark that this many later sweeps saw drivable is dropped (moving teammates'
-    trails, :mod:`robot.terrain.map_fusion`; 0: pure pessimism). ``max_range_m``: points
+    an obstacle mark is dropped once this many later sweeps saw the cell drivable or a beam
+    cross it below the mark's top (moving teammates' trails, :mod:`robot.terrain.map_fusion`;
+    0: pure pessimism). ``lidar_in_base_m``: the sensor's origin in ``base`` (beams start
+    there); ``beam_end_margin_m``: the end of each beam, near its return, says nothing about
+    free space (:mod:`robot.terrain.free_space`). ``max_range_m``: points
     farther from the sensor (horizontally) are dropped.
     """
 
@@ -54,6 +69,8 @@ class TerrainConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     iterations: int = 4
     memory_sweeps: int = 12
     clear_after_sweeps: int = 2
+    lidar_in_base_m: tuple[float, float, float] = (0.2, 0.0, 0.52)  # the MAGIC robot's mount
+    beam_end_margin_m: float = 0.15
     max_range_m: float = 30.0
     fill_unobserved: bool = False
 
@@ -74,10 +91,12 @@ class TerrainConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError(f"iterations must be in [0, 100], got {self.iterations}")
         if not 1 <= self.memory_sweeps <= 1000:
             raise ValueError(f"memory_sweeps must be in [1, 1000], got {self.memory_sweeps}")
-        if not 0 <= self.clear_after_sweeps <= 1000:
-            raise ValueError(
-                f"clear_after_sweeps must be in [0, 1000], got {self.clear_after_sweeps}"
-            )
+        if not 0 <= self.clear_after_sweeps <= 3:
+            raise ValueError(f"clear_after_sweeps must be in [0, 3], got {self.clear_after_sweeps}")
+        if not all(math.isfinite(v) for v in self.lidar_in_base_m):
+            raise ValueError(f"lidar_in_base_m must be finite, got {self.lidar_in_base_m}")
+        if not (math.isfinite(self.beam_end_margin_m) and self.beam_end_margin_m >= 0):
+            raise ValueError(f"beam_end_margin_m must be >= 0, got {self.beam_end_margin_m}")
         if not (math.isfinite(self.max_range_m) and self.max_range_m > 0):
             raise ValueError(f"max_range_m must be > 0, got {self.max_range_m}")
 
@@ -131,6 +150,74 @@ def points_in_odom(
     return out
 
 
+@dataclass(frozen=True)
+class SweepLayers:
+    """One sweep's terrain map and its evidence for the fusion, all laid out by ``geometry``:
+    ``classes`` (``uint8`` UNKNOWN/DRIVABLE/OBSTACLE); ``obstacle_height_m``: how far the
+    highest point of each obstacle cell rises above the ground model (0 elsewhere);
+    ``free_height_m``: the lowest height above the ground model at which a beam crossed the
+    cell (``inf`` where none did, or when the sensor's position was not given)."""
+
+    classes: NDArray[np.uint8]
+    geometry: GridGeometry
+    obstacle_height_m: NDArray[np.float64]
+    free_height_m: NDArray[np.float64]
+
+
+def classify_sweep_layers(
+    points_in_base: ArrayLike,
+    odom_from_base: ArrayLike,
+    *,
+    config: TerrainConfig,
+    geometry: GridGeometry | None = None,
+    roll_rad: float = 0.0,
+    pitch_rad: float = 0.0,
+    beams: bool = True,
+) -> SweepLayers:
+    """:func:`classify_sweep` plus the fusion's evidence layers (see :class:`SweepLayers`);
+    ``beams``: trace the beams from ``config.lidar_in_base_m`` for free space."""
+    pts = points_in_odom(points_in_base, odom_from_base, roll_rad=roll_rad, pitch_rad=pitch_rad)
+    pose = np.asarray(odom_from_base, dtype=np.float64)
+    origin = pose[:2] if pose.ndim == 1 else pose[0, :2]
+    if geometry is None:
+        geometry = config.geometry_around(origin)
+    sensor_xy = pose[..., :2]
+    keep = np.sum((pts[:, :2] - sensor_xy) ** 2, axis=1) <= config.max_range_m**2
+    if not keep.all():
+        pts = pts[keep]
+        if pose.ndim == 2:
+            pose = pose[keep]
+    ground = ground_model(pts, geometry, ground_slope_deg=config.ground_slope_deg)
+    z_min, z_max = filter_height_range(
+        pts, geometry, ground, overhead_clearance_m=config.overhead_clearance_m
+    )
+    obstacle = up_detector(
+        z_min,
+        z_max,
+        slope_per_cell_m=math.tan(math.radians(config.climb_slope_deg)) * geometry.resolution_m,
+        step_m=config.step_m,
+        iterations=config.iterations,
+        ground_m=ground if config.fill_unobserved else None,
+    )
+    classes = np.full(geometry.shape, UNKNOWN, dtype=np.uint8)
+    classes[np.isfinite(z_max)] = DRIVABLE
+    classes[obstacle] = OBSTACLE
+    height = np.zeros(geometry.shape)
+    height[obstacle] = np.maximum(z_max[obstacle] - ground[obstacle], 0.0)
+    if beams and len(pts):
+        mount_in_base = np.asarray([config.lidar_in_base_m], dtype=np.float64)
+        mount = _level(mount_in_base, roll_rad, pitch_rad)[0]
+        c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+        sensors = np.empty((len(pts), 3))
+        sensors[:, 0] = pose[..., 0] + c * mount[0] - s * mount[1]
+        sensors[:, 1] = pose[..., 1] + s * mount[0] + c * mount[1]
+        sensors[:, 2] = mount[2]
+        free = ray_floor(pts, sensors, geometry, ground, end_margin_m=config.beam_end_margin_m)
+    else:
+        free = np.full(geometry.shape, np.inf)
+    return SweepLayers(classes, geometry, height, free)
+
+
 def classify_sweep(
     points_in_base: ArrayLike,
     odom_from_base: ArrayLike,
@@ -147,28 +234,13 @@ def classify_sweep(
     ``O(N + iterations * rows * cols)``; ``magic bench robot`` times 50k points into 400 x 400
     cells (``terrain_ms_400x400``).
     """
-    pts = points_in_odom(points_in_base, odom_from_base, roll_rad=roll_rad, pitch_rad=pitch_rad)
-    pose = np.asarray(odom_from_base, dtype=np.float64)
-    origin = pose[:2] if pose.ndim == 1 else pose[0, :2]
-    if geometry is None:
-        geometry = config.geometry_around(origin)
-    sensor_xy = pose[..., :2]
-    keep = np.sum((pts[:, :2] - sensor_xy) ** 2, axis=1) <= config.max_range_m**2
-    if not keep.all():
-        pts = pts[keep]
-    ground = ground_model(pts, geometry, ground_slope_deg=config.ground_slope_deg)
-    z_min, z_max = filter_height_range(
-        pts, geometry, ground, overhead_clearance_m=config.overhead_clearance_m
+    layers = classify_sweep_layers(
+        points_in_base,
+        odom_from_base,
+        config=config,
+        geometry=geometry,
+        roll_rad=roll_rad,
+        pitch_rad=pitch_rad,
+        beams=False,
     )
-    obstacle = up_detector(
-        z_min,
-        z_max,
-        slope_per_cell_m=math.tan(math.radians(config.climb_slope_deg)) * geometry.resolution_m,
-        step_m=config.step_m,
-        iterations=config.iterations,
-        ground_m=ground if config.fill_unobserved else None,
-    )
-    classes = np.full(geometry.shape, UNKNOWN, dtype=np.uint8)
-    classes[np.isfinite(z_max)] = DRIVABLE
-    classes[obstacle] = OBSTACLE
-    return classes, geometry
+    return layers.classes, layers.geometry

@@ -8,13 +8,17 @@ sweep saw it drivable and none marked it, unknown otherwise. Only the most recen
 obstacles appear in the wrong place, and forgetting them lets a robot stuck behind such an
 artifact move again once it is gone.
 
-Newer evidence of free ground (``clear_after_sweeps``, 0 = the paper's pure pessimism): an
-obstacle mark is dropped once at least that many *later* sweeps saw the same cell drivable
-(ground-level points in the cell and no step). A moving teammate or person leaves a trail of
-obstacle marks along its way that pure pessimism keeps for 15 s, closing corridors it has
-long left; two fresh looks at bare ground there are a better account of the present. A
-static obstacle is marked again by nearly every sweep that sees the cell, so it stays: a
-cell is only cleared by sweeps that saw points on the ground in it and nothing higher.
+Newer evidence of free space (``clear_after_sweeps``, 0 = the paper's pure pessimism): an
+obstacle mark is dropped once at least that many *later* sweeps saw the cell free of it:
+drivable (ground-level points and no step), or crossed by a beam no higher than the mark's
+top less ``clear_margin_m`` (:mod:`robot.terrain.free_space`). A moving teammate or person leaves
+a trail of obstacle marks along its way that pure pessimism keeps for 15 s, closing
+corridors it has long left; beams now passing through where it was are a better account of
+the present. A static obstacle stops the beams that reach it, and is marked again by nearly
+every sweep that sees it, so it stays. Without heights (:meth:`TerrainMapFusion.add` given
+classes only) a mark is only cleared by drivable observations.
+
+Heights are kept in whole centimetres (``uint8``, up to 2.54 m; higher is "tall").
 
 All maps share one cell lattice in ``odom`` (:meth:`GridGeometry.centered` snaps origins), so
 fusion is integer shifts and logical ors, ``O(memory_sweeps * rows * cols)``.
@@ -33,19 +37,40 @@ from robot.terrain.grid import DRIVABLE, OBSTACLE, UNKNOWN, GridGeometry
 __all__ = ["TerrainMapFusion"]
 
 
-class TerrainMapFusion:
-    """The last ``memory_sweeps`` single-sweep maps in ``odom`` and their pessimistic union."""
+_NONE = 255  # uint8 centimetres: no free-space evidence / an obstacle of unknown height
 
-    def __init__(self, *, memory_sweeps: int = 12, clear_after_sweeps: int = 0) -> None:
+
+def _to_cm(v: NDArray[np.float64], *, fill: int) -> NDArray[np.uint8]:
+    out = np.full(v.shape, fill, dtype=np.uint8)
+    ok = np.isfinite(v)
+    out[ok] = np.clip(np.floor(v[ok] * 100.0), 0, 254).astype(np.uint8)
+    return out
+
+
+class TerrainMapFusion:
+    """The last ``memory_sweeps`` single-sweep maps in ``odom`` and their pessimistic union,
+    less what later sweeps saw gone (see the module doc)."""
+
+    def __init__(
+        self,
+        *,
+        memory_sweeps: int = 12,
+        clear_after_sweeps: int = 0,
+        clear_margin_m: float = 0.05,
+    ) -> None:
         if memory_sweeps < 1:
             raise ValueError(f"memory_sweeps must be >= 1, got {memory_sweeps}")
-        if not 0 <= clear_after_sweeps <= 1000:
-            raise ValueError(f"clear_after_sweeps must be in [0, 1000], got {clear_after_sweeps}")
+        if not 0 <= clear_after_sweeps <= 3:
+            raise ValueError(f"clear_after_sweeps must be in [0, 3], got {clear_after_sweeps}")
+        if not (math.isfinite(clear_margin_m) and 0 <= clear_margin_m <= 2.5):
+            raise ValueError(f"clear_margin_m must be in [0, 2.5], got {clear_margin_m}")
         self.memory_sweeps = memory_sweeps
         self.clear_after_sweeps = clear_after_sweeps
-        self._maps: deque[tuple[tuple[int, int], NDArray[np.bool_], NDArray[np.bool_]]] = deque(
-            maxlen=memory_sweeps
-        )
+        self.clear_margin_cm = int(round(clear_margin_m * 100))
+        # per map: lattice index, obstacle height (cm, 0 = none), drivable, free height (cm)
+        self._maps: deque[
+            tuple[tuple[int, int], NDArray[np.uint8], NDArray[np.bool_], NDArray[np.uint8]]
+        ] = deque(maxlen=memory_sweeps)
         self._resolution_m: float | None = None
 
     def __len__(self) -> int:
@@ -54,8 +79,23 @@ class TerrainMapFusion:
     def clear(self) -> None:
         self._maps.clear()
 
-    def add(self, classes: NDArray[np.uint8], geometry: GridGeometry) -> None:
-        """Remember one sweep's map (``uint8`` classes laid out by ``geometry`` in ``odom``);
+    def forget_older(self, *, keep: int) -> None:
+        """Forget all but the newest ``keep`` maps (the memory is known to be stale)."""
+        if keep < 0:
+            raise ValueError(f"keep must be >= 0, got {keep}")
+        while len(self._maps) > keep:
+            self._maps.popleft()
+
+    def add(
+        self,
+        classes: NDArray[np.uint8],
+        geometry: GridGeometry,
+        *,
+        obstacle_height_m: NDArray[np.float64] | None = None,
+        free_height_m: NDArray[np.float64] | None = None,
+    ) -> None:
+        """Remember one sweep's map (``uint8`` classes laid out by ``geometry`` in ``odom``)
+        and optionally its evidence layers (:class:`robot.terrain.classifier.SweepLayers`);
         the oldest map is forgotten once ``memory_sweeps`` are held."""
         classes = np.asarray(classes)
         if classes.shape != geometry.shape:
@@ -66,8 +106,25 @@ class TerrainMapFusion:
             raise ValueError(
                 f"classes: values must be UNKNOWN/DRIVABLE/OBSTACLE, got {classes.max()}"
             )
+        layers = (("obstacle_height_m", obstacle_height_m), ("free_height_m", free_height_m))
+        for name, layer in layers:
+            if layer is not None and np.shape(layer) != geometry.shape:
+                raise ValueError(f"{name}: shape {np.shape(layer)} does not match {geometry.shape}")
         self._check_lattice(geometry)
-        self._maps.append((geometry.lattice_index(), classes == OBSTACLE, classes == DRIVABLE))
+        obstacle = classes == OBSTACLE
+        drivable = classes == DRIVABLE
+        height = np.zeros(geometry.shape, dtype=np.uint8)
+        if obstacle_height_m is None:
+            height[obstacle] = _NONE
+        else:
+            h = np.asarray(obstacle_height_m, dtype=np.float64)
+            height[obstacle] = np.maximum(_to_cm(h[obstacle], fill=_NONE), 1)
+        if free_height_m is None:
+            free = np.full(geometry.shape, _NONE, dtype=np.uint8)
+        else:
+            free = _to_cm(np.asarray(free_height_m, dtype=np.float64), fill=_NONE)
+        free[drivable] = 0
+        self._maps.append((geometry.lattice_index(), height, drivable, free))
 
     def _check_lattice(self, geometry: GridGeometry) -> None:
         if self._resolution_m is None:
@@ -87,27 +144,36 @@ class TerrainMapFusion:
 
     def fused(self, geometry: GridGeometry) -> NDArray[np.uint8]:
         """The pessimistic union of the remembered maps over ``geometry`` (same lattice),
-        less obstacle marks that ``clear_after_sweeps`` later sweeps saw drivable."""
+        less obstacle marks that ``clear_after_sweeps`` later sweeps saw gone."""
         self._check_lattice(geometry)
         r0, c0 = geometry.lattice_index()
         obstacle = np.zeros(geometry.shape, dtype=bool)
         drivable = np.zeros(geometry.shape, dtype=bool)
         k = self.clear_after_sweeps
-        later_drivable = np.zeros(geometry.shape, dtype=np.uint16) if k else None
-        for (mr, mc), obs, drv in reversed(self._maps):  # newest first
+        # the k lowest free heights seen by newer sweeps, per cell, ascending
+        lowest = np.full((k, *geometry.shape), _NONE, dtype=np.uint8)
+        margin = self.clear_margin_cm
+        for (mr, mc), height, drv, free in reversed(self._maps):  # newest first
             dr, dc = mr - r0, mc - c0  # map cell (i, j) is output cell (i + dr, j + dc)
-            out_r = slice(max(0, dr), min(geometry.rows, dr + obs.shape[0]))
-            out_c = slice(max(0, dc), min(geometry.cols, dc + obs.shape[1]))
+            out_r = slice(max(0, dr), min(geometry.rows, dr + height.shape[0]))
+            out_c = slice(max(0, dc), min(geometry.cols, dc + height.shape[1]))
             if out_r.start >= out_r.stop or out_c.start >= out_c.stop:
                 continue
             in_r = slice(out_r.start - dr, out_r.stop - dr)
             in_c = slice(out_c.start - dc, out_c.stop - dc)
-            if later_drivable is None:
-                obstacle[out_r, out_c] |= obs[in_r, in_c]
+            h = height[in_r, in_c]
+            if k == 0:
+                obstacle[out_r, out_c] |= h > 0
             else:
-                seen_free = later_drivable[out_r, out_c]
-                obstacle[out_r, out_c] |= obs[in_r, in_c] & (seen_free < k)
-                seen_free += drv[in_r, in_c]
+                seen = lowest[k - 1, out_r, out_c].astype(np.int16)
+                top = h.astype(np.int16)
+                top[h == _NONE] = margin + 1  # unknown height: only drivable ground clears it
+                obstacle[out_r, out_c] |= (h > 0) & (seen > top - margin)
+                f = free[in_r, in_c]
+                for j in range(k):
+                    cur = lowest[j, out_r, out_c]
+                    lo, f = np.minimum(cur, f), np.maximum(cur, f)
+                    lowest[j, out_r, out_c] = lo
             drivable[out_r, out_c] |= drv[in_r, in_c]
         out = np.full(geometry.shape, UNKNOWN, dtype=np.uint8)
         out[drivable] = DRIVABLE

@@ -91,6 +91,34 @@ def test_later_drivable_sweeps_clear_a_moving_obstacles_trail() -> None:
         TerrainMapFusion(clear_after_sweeps=-1)
 
 
+def test_beams_below_a_marks_top_clear_it_and_beams_above_do_not() -> None:
+    geo = _geo(0.0, 0.0)
+    unknown = np.full(geo.shape, UNKNOWN, dtype=np.uint8)
+    marked = unknown.copy()
+    marked[4, 4] = marked[6, 6] = OBSTACLE  # a teammate's body (0.4 m) and a curb (0.1 m)
+    height = np.zeros(geo.shape)
+    height[4, 4], height[6, 6] = 0.4, 0.1
+    no_beams = np.full(geo.shape, np.inf)
+    beams = no_beams.copy()
+    beams[4, 4] = 0.2  # later beams pass through where the teammate was, at 0.2 m
+    beams[6, 6] = 0.2  # and over the curb, above its top
+    fusion = TerrainMapFusion(clear_after_sweeps=2)
+    fusion.add(marked, geo, obstacle_height_m=height, free_height_m=no_beams)
+    fusion.add(unknown, geo, obstacle_height_m=np.zeros(geo.shape), free_height_m=beams)
+    assert fusion.fused(geo)[4, 4] == OBSTACLE  # one look is not enough
+    fusion.add(unknown, geo, obstacle_height_m=np.zeros(geo.shape), free_height_m=beams)
+    out = fusion.fused(geo)
+    assert out[4, 4] == UNKNOWN  # gone: twice a beam crossed below its top
+    assert out[6, 6] == OBSTACLE  # a curb is not cleared by beams that pass over it
+    # without heights, a mark is taken as tall: only drivable observations clear it
+    fusion = TerrainMapFusion(clear_after_sweeps=1)
+    fusion.add(marked, geo)
+    fusion.add(unknown, geo, free_height_m=beams)
+    assert fusion.fused(geo)[4, 4] == OBSTACLE
+    fusion.forget_older(keep=1)
+    assert len(fusion) == 1 and fusion.fused(geo)[4, 4] == UNKNOWN
+
+
 def test_bad_input_names_the_problem() -> None:
     fusion = TerrainMapFusion()
     geo = _geo(0.0, 0.0)
@@ -107,3 +135,5 @@ def test_bad_input_names_the_problem() -> None:
         fusion.fused(GridGeometry((0.0, 0.0), 0.2, 4, 4))
     with pytest.raises(ValueError, match="memory_sweeps"):
         TerrainMapFusion(memory_sweeps=0)
+    with pytest.raises(ValueError, match="free_height_m"):
+        fusion.add(np.zeros(geo.shape, np.uint8), geo, free_height_m=np.zeros((2, 2)))

@@ -1,0 +1,403 @@
+"""Deadlock detection and breaking between teammates (decoupled planning, paper 4.1 and 5.4).
+
+Each robot plans alone over its own short-memory map, in which a teammate is just an obstacle.
+Two robots meeting head-on in a corridor each find the way blocked by the other: both stop
+and wait for the map to change (5.4: "no path: stop and wait"), which it never does, or both
+take the same long detour and come back together. Nothing in the single-robot pipeline
+breaks that symmetry; this module does, the way shared media do (random back-off):
+
+* **detection**: a goal is being pursued but the robot's straight-line distance to it has not
+  improved by ``min_progress_m`` for ``stall_s`` plus a random ``[0, stall_jitter_s)`` while
+  the robot itself stayed within ``stall_motion_m`` (stalled: blocked, or waiting for a
+  path), or for ``livelock_s`` however much it drove (going back and forth). The jitter makes
+  one of two robots stuck face to face give way first; the other sees what blocks it recede
+  (:meth:`DeadlockBreaker.note_block_distance`: that counts as progress), waits, and goes
+  when the way is clear, without backing off itself;
+* **yielding** (:func:`path_block_distance`): when the path being followed becomes blocked
+  within ``yield_lookahead_m`` and the only way around is a much longer detour
+  (``yield_detour_ratio`` times the remaining path plus ``yield_detour_m``) or none, the
+  robot stops and waits instead of setting off on the detour: with a 15 s memory and unknown
+  cells taken as free, that detour is often a guess through unseen ground that two robots
+  meeting head-on would both take and both abandon. The robots' sparse scans cannot tell a
+  teammate from a newly seen wall, so waiting is bounded: at most ``yield_budget_s`` per
+  goal, after which detours are taken at once;
+* **breaking**: the robot backs off along its own recent trail (ground it has just driven, so
+  known to be passable) to the first point at least ``backoff_min_m`` back where the map has
+  ``passing_clearance_m`` of room (another robot can get past it there), at most
+  ``backoff_max_m`` back; then it holds still for a random time, ``hold_s`` plus a uniform
+  draw of up to ``hold_spread_s`` doubled at each further deadlock on the same goal (capped
+  by ``hold_spread_max_s``). The robot whose hold ends first goes; the other is out of its
+  way and waits, and goes when the way is clear (its planner sees the first robot pass).
+
+The draws come from ``numpy.random.default_rng(seed)``, the node seeds it with its robot id,
+so a seeded mission is repeatable and two robots never draw alike. After ``max_attempts``
+deadlocks on one goal the breaker stops interfering (:attr:`DeadlockBreaker.gave_up`): the
+task's own no-path timeout reports the failure.
+
+Pure logic over the robot's pose in ``odom``, metres and seconds; the node calls
+:meth:`DeadlockBreaker.update` every control period and, when it returns
+:attr:`Phase.DEADLOCKED`, :meth:`DeadlockBreaker.start_backoff` with its current obstacle map.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import deque
+
+import msgspec
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from robot.planning.path_relaxation import clearance_field
+from robot.terrain.grid import GridGeometry
+
+__all__ = ["DeadlockBreaker", "DeadlockConfig", "Phase", "path_block_distance"]
+
+
+class DeadlockConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Tunables of :class:`DeadlockBreaker` (see the module docstring)."""
+
+    enabled: bool = True
+    stall_s: float = 6.0
+    stall_jitter_s: float = 8.0
+    stall_motion_m: float = 1.0
+    livelock_s: float = 40.0
+    min_progress_m: float = 0.75
+    recede_m: float = 0.3
+    trail_spacing_m: float = 0.2
+    trail_length_m: float = 40.0
+    backoff_min_m: float = 1.5
+    backoff_max_m: float = 25.0
+    passing_clearance_m: float = 1.4
+    arrive_m: float = 0.4
+    backoff_timeout_s: float = 20.0
+    hold_s: float = 2.0
+    hold_spread_s: float = 8.0
+    hold_spread_max_s: float = 40.0
+    max_attempts: int = 6
+    yield_detour_ratio: float = 1.5
+    yield_detour_m: float = 4.0
+    yield_lookahead_m: float = 10.0
+    yield_budget_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "stall_s",
+            "stall_motion_m",
+            "livelock_s",
+            "min_progress_m",
+            "recede_m",
+            "trail_spacing_m",
+            "trail_length_m",
+            "backoff_max_m",
+            "passing_clearance_m",
+            "arrive_m",
+            "backoff_timeout_s",
+            "yield_detour_ratio",
+            "yield_lookahead_m",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"deadlock.{name} must be finite and > 0, got {v}")
+        for name in (
+            "stall_jitter_s",
+            "backoff_min_m",
+            "hold_s",
+            "hold_spread_s",
+            "hold_spread_max_s",
+            "yield_detour_m",
+            "yield_budget_s",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"deadlock.{name} must be finite and >= 0, got {v}")
+        if self.backoff_min_m > self.backoff_max_m:
+            raise ValueError(
+                f"deadlock.backoff_min_m ({self.backoff_min_m}) exceeds backoff_max_m "
+                f"({self.backoff_max_m})"
+            )
+        if self.max_attempts < 1:
+            raise ValueError(f"deadlock.max_attempts must be >= 1, got {self.max_attempts}")
+
+
+class Phase(enum.Enum):
+    DRIVE = "drive"  # pursuing the goal; progress is watched
+    DEADLOCKED = "deadlocked"  # detected; the node must call start_backoff
+    BACKOFF = "backoff"  # driving back along the trail to backoff_target_in_odom
+    HOLD = "hold"  # standing still until the random hold ends
+
+
+def _xy(name: str, v: ArrayLike) -> NDArray[np.float64]:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)[:2]
+    if a.shape != (2,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: expected finite (x, y) in odom, got {v!r}")
+    return a
+
+
+def path_block_distance(
+    path_in_odom: ArrayLike,
+    position_in_odom: ArrayLike,
+    obstacle: NDArray[np.bool_],
+    geometry: GridGeometry,
+    *,
+    robot_radius_m: float,
+    lookahead_m: float,
+) -> float:
+    """How far along ``path_in_odom`` ``(K, 2)``, from ``position_in_odom`` via the path's
+    nearest vertex, the path first passes within ``robot_radius_m`` of an ``obstacle`` cell
+    (the configuration space's test; the map laid out by ``geometry`` in ``odom``); ``inf``
+    when the first ``lookahead_m`` are clear. Cells off the map do not block."""
+    path = np.asarray(path_in_odom, dtype=np.float64).reshape(-1, 2)
+    pos = _xy("position_in_odom", position_in_odom)
+    obs = np.asarray(obstacle)
+    if obs.shape != geometry.shape or obs.dtype != np.bool_:
+        raise ValueError(
+            f"obstacle: expected a bool grid of shape {geometry.shape}, got {obs.dtype} {obs.shape}"
+        )
+    if len(path) == 0 or not obs.any():
+        return math.inf
+    res = geometry.resolution_m
+    start = int(np.argmin(np.hypot(*(path - pos).T)))
+    pts = np.vstack([pos, path[start:]])
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(pts, axis=0).T))])
+    s = np.arange(0.0, min(lookahead_m, float(along[-1])) + 1e-9, 0.5 * res)
+    pts = np.stack([np.interp(s, along, pts[:, 0]), np.interp(s, along, pts[:, 1])], axis=1)
+    rc = geometry.cell_of(pts)
+    inside = (
+        (rc[:, 0] >= 0) & (rc[:, 0] < geometry.rows) & (rc[:, 1] >= 0) & (rc[:, 1] < geometry.cols)
+    )
+    rc, s = rc[inside], s[inside]
+    if len(rc) == 0:
+        return math.inf
+    k = int(math.ceil(robot_radius_m / res))
+    r0, c0 = max(0, int(rc[:, 0].min()) - k), max(0, int(rc[:, 1].min()) - k)
+    r1, c1 = int(rc[:, 0].max()) + k + 1, int(rc[:, 1].max()) + k + 1
+    mr, mc = np.nonzero(obs[r0:r1, c0:c1])
+    if len(mr) == 0:
+        return math.inf
+    mr, mc = mr + r0, mc + c0
+    reach2 = (robot_radius_m / res) ** 2 + 1e-9  # the configuration-space disc
+    for i in range(0, len(rc), 128):
+        chunk = rc[i : i + 128]
+        d2 = (chunk[:, None, 0] - mr[None, :]) ** 2 + (chunk[:, None, 1] - mc[None, :]) ** 2
+        hit = np.flatnonzero((d2 <= reach2).any(axis=1))
+        if len(hit):
+            return float(s[i + int(hit[0])])
+    return math.inf
+
+
+class DeadlockBreaker:
+    """Watches progress towards the goal and runs the back-off (see the module docstring)."""
+
+    def __init__(self, config: DeadlockConfig | None = None, *, seed: int = 0) -> None:
+        self.config = config or DeadlockConfig()
+        self._rng = np.random.default_rng(seed)
+        self.phase = Phase.DRIVE
+        self.deadlocks = 0  # detections over the breaker's life
+        self.attempts = 0  # deadlocks on the current goal
+        self.backoff_target_in_odom: NDArray[np.float64] | None = None
+        self._target_back_m = 0.0
+        self._trail: deque[NDArray[np.float64]] = deque()
+        self._goal: NDArray[np.float64] | None = None
+        self._best_m = math.inf
+        self._best_t = -math.inf
+        self._motion: deque[tuple[float, NDArray[np.float64]]] = deque()
+        self._phase_since_s = -math.inf
+        self._hold_until_s = -math.inf
+        self._stall_s = self._draw_stall()
+        self._block_closest_m = math.inf
+
+    @property
+    def gave_up(self) -> bool:
+        """``max_attempts`` deadlocks on this goal: the breaker no longer interferes."""
+        return self.attempts >= self.config.max_attempts
+
+    @property
+    def trail_in_odom(self) -> NDArray[np.float64]:
+        """``(K, 2)`` recent positions, oldest first, about ``trail_spacing_m`` apart."""
+        return np.array(self._trail).reshape(-1, 2)
+
+    def reset(self) -> None:
+        """Forget the goal and any back-off (a new task, pause, tele-operation)."""
+        self.phase = Phase.DRIVE
+        self.attempts = 0
+        self.backoff_target_in_odom = None
+        self._goal = None
+        self._motion.clear()
+
+    def update(self, now_s: float, pose_in_odom: ArrayLike, goal_in_odom: ArrayLike) -> Phase:
+        """One control period at ``pose_in_odom`` pursuing ``goal_in_odom``; returns the phase
+        (:attr:`Phase.DEADLOCKED` once per detection)."""
+        cfg = self.config
+        xy = _xy("pose_in_odom", pose_in_odom)
+        goal = _xy("goal_in_odom", goal_in_odom)
+        self._record(xy)
+        if self._goal is None or float(np.hypot(*(goal - self._goal))) > 1e-6:
+            self._goal = goal
+            self.attempts = 0
+            self.phase = Phase.DRIVE
+            self.backoff_target_in_odom = None
+            self._restart(now_s, xy)
+        if not cfg.enabled:
+            return self.phase
+        if self.phase is Phase.BACKOFF:
+            target = self.backoff_target_in_odom
+            arrived = target is None or float(np.hypot(*(xy - target))) <= cfg.arrive_m
+            if arrived or now_s - self._phase_since_s >= cfg.backoff_timeout_s:
+                self._hold(now_s)
+            return self.phase
+        if self.phase is Phase.HOLD:
+            if now_s >= self._hold_until_s:
+                self.phase = Phase.DRIVE
+                self.backoff_target_in_odom = None
+                self._restart(now_s, xy)
+            return self.phase
+        if self.phase is Phase.DEADLOCKED:
+            return self.phase
+        d = float(np.hypot(*(goal - xy)))
+        if d < self._best_m - cfg.min_progress_m:
+            self._best_m, self._best_t = d, now_s
+        self._motion.append((now_s, xy))
+        while self._motion and self._motion[0][0] < now_s - self._stall_s:
+            self._motion.popleft()
+        if self.gave_up:
+            return self.phase
+        waited = now_s - self._best_t
+        pts = np.array([p for _, p in self._motion])
+        spread = float(np.max(np.hypot(*(pts - pts[0]).T))) if len(pts) else 0.0
+        stalled = waited >= self._stall_s and spread < cfg.stall_motion_m
+        if stalled or waited >= cfg.livelock_s:
+            self.phase = Phase.DEADLOCKED
+            self.deadlocks += 1
+            self.attempts += 1
+            self._phase_since_s = now_s
+        return self.phase
+
+    def note_block_distance(self, now_s: float, distance_m: float) -> None:
+        """While waiting: the path being followed is blocked ``distance_m`` ahead. Something
+        receding (the distance grew by ``recede_m`` since the closest) is progress: the stall
+        timer restarts, so a robot does not back off from one that is backing off."""
+        if self.phase is not Phase.DRIVE or not math.isfinite(distance_m):
+            return
+        if distance_m < self._block_closest_m:
+            self._block_closest_m = distance_m
+        elif distance_m >= self._block_closest_m + self.config.recede_m:
+            self._block_closest_m = distance_m
+            self._best_t = now_s
+            self._motion.clear()
+
+    def start_backoff(
+        self, now_s: float, obstacle: NDArray[np.bool_], geometry: GridGeometry
+    ) -> NDArray[np.float64] | None:
+        """Choose where to back off to on the trail, using the current ``obstacle`` map laid out
+        by ``geometry`` in ``odom``; returns it (the phase is then BACKOFF), or None when the
+        trail offers nowhere to go (the robot then holds where it is)."""
+        cfg = self.config
+        if self.phase is not Phase.DEADLOCKED:
+            raise ValueError(f"start_backoff: no deadlock to break (phase {self.phase.value})")
+        obs = np.asarray(obstacle)
+        if obs.shape != geometry.shape or obs.dtype != np.bool_:
+            raise ValueError(
+                f"obstacle: expected a bool grid of shape {geometry.shape}, got "
+                f"{obs.dtype} {obs.shape}"
+            )
+        chosen = self._choose(obs, geometry, min_back_m=cfg.backoff_min_m)
+        self._phase_since_s = now_s
+        if chosen is None:
+            self._hold(now_s)
+            return None
+        self.phase = Phase.BACKOFF
+        self.backoff_target_in_odom, self._target_back_m = chosen
+        return self.backoff_target_in_odom
+
+    def refine_backoff(
+        self, obstacle: NDArray[np.bool_], geometry: GridGeometry
+    ) -> NDArray[np.float64] | None:
+        """While backing off, look again with a newer map (the robot now faces the way back,
+        which its LIDAR could not see when it chose): if the target turns out to have too
+        little room, move it further back along the trail to the first point that has it.
+        Returns the (possibly unchanged) target."""
+        if self.phase is not Phase.BACKOFF or self.backoff_target_in_odom is None:
+            return self.backoff_target_in_odom
+        obs = np.asarray(obstacle)
+        if obs.shape != geometry.shape or obs.dtype != np.bool_:
+            raise ValueError(
+                f"obstacle: expected a bool grid of shape {geometry.shape}, got "
+                f"{obs.dtype} {obs.shape}"
+            )
+        chosen = self._choose(obs, geometry, min_back_m=self._target_back_m, roomy_only=True)
+        if chosen is not None:
+            self.backoff_target_in_odom, self._target_back_m = chosen
+        return self.backoff_target_in_odom
+
+    # ------------------------------------------------------------------ internals
+
+    def _record(self, xy: NDArray[np.float64]) -> None:
+        cfg = self.config
+        if self.phase in (Phase.BACKOFF, Phase.HOLD):
+            return  # the trail is the way we came; backing off must not extend it
+        if not self._trail or float(np.hypot(*(xy - self._trail[-1]))) >= cfg.trail_spacing_m:
+            self._trail.append(xy.copy())
+            while len(self._trail) > cfg.trail_length_m / cfg.trail_spacing_m:
+                self._trail.popleft()
+
+    def _restart(self, now_s: float, xy: NDArray[np.float64]) -> None:
+        assert self._goal is not None
+        self._best_m = float(np.hypot(*(self._goal - xy)))
+        self._best_t = now_s
+        self._motion.clear()
+        self._stall_s = self._draw_stall()
+        self._block_closest_m = math.inf
+
+    def _draw_stall(self) -> float:
+        cfg = self.config
+        return cfg.stall_s + float(self._rng.uniform(0.0, cfg.stall_jitter_s))
+
+    def _hold(self, now_s: float) -> None:
+        cfg = self.config
+        spread = min(cfg.hold_spread_s * 2.0 ** max(0, self.attempts - 1), cfg.hold_spread_max_s)
+        self.phase = Phase.HOLD
+        self._hold_until_s = now_s + cfg.hold_s + float(self._rng.uniform(0.0, spread))
+
+    def _choose(
+        self,
+        obstacle: NDArray[np.bool_],
+        geometry: GridGeometry,
+        *,
+        min_back_m: float,
+        roomy_only: bool = False,
+    ) -> tuple[NDArray[np.float64], float] | None:
+        """The first trail point ``min_back_m`` or more back (along the trail from where the
+        deadlock struck) with ``passing_clearance_m`` of room, else (unless ``roomy_only``)
+        the roomiest; with its distance back."""
+        cfg = self.config
+        trail = self.trail_in_odom[::-1]  # newest first
+        if len(trail) < 2:
+            return None
+        back = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(trail, axis=0).T))])
+        pick = (back >= min_back_m - 1e-9) & (back <= cfg.backoff_max_m)
+        if not pick.any():
+            if roomy_only:
+                return None
+            pick = back <= cfg.backoff_max_m
+            pick[0] = False
+            if not pick.any():
+                return None
+        candidates, distances = trail[pick], back[pick]
+        rc = geometry.cell_of(candidates)
+        inside = (
+            (rc[:, 0] >= 0)
+            & (rc[:, 0] < geometry.rows)
+            & (rc[:, 1] >= 0)
+            & (rc[:, 1] < geometry.cols)
+        )
+        if not inside.any():
+            return None
+        candidates, distances, rc = candidates[inside], distances[inside], rc[inside]
+        room = clearance_field(obstacle, resolution_m=geometry.resolution_m)[rc[:, 0], rc[:, 1]]
+        roomy = np.flatnonzero(room >= cfg.passing_clearance_m)
+        if roomy_only and len(roomy) == 0:
+            return None
+        best = int(roomy[0]) if len(roomy) else int(np.argmax(room))
+        return np.asarray(candidates[best], dtype=np.float64), float(distances[best])
