@@ -57,8 +57,10 @@ from robot.control.deadlock import DeadlockBreaker, DeadlockConfig, Phase, path_
 from robot.control.keepout import KeepoutConfig, keepout_disks_in_odom, rasterize_disks
 from robot.control.path_follower import FollowerConfig, FollowStatus, PathFollower
 from robot.control.stuck_detector import StuckConfig, StuckDetector
+from robot.control.traversability import TraversabilityConfig, TraversabilityMap
 from robot.odometry.inertial_odometry import InertialOdometry, OdometryConfig
 from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
+from robot.odometry.scan_displacement import match_translation
 from robot.planning.planner import PathPlanner, PlannerConfig
 from robot.tasks.task_executor import TaskExecutor, TaskExecutorConfig
 from robot.terrain.classifier import TerrainConfig, classify_sweep_layers
@@ -96,6 +98,12 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     keepout: KeepoutConfig = KeepoutConfig()
     stuck: StuckConfig = StuckConfig()
     deadlock: DeadlockConfig = DeadlockConfig()
+    traversability: TraversabilityConfig = TraversabilityConfig()
+    # slip measured by matching consecutive sweeps (robot.odometry.scan_displacement)
+    slip_match_radius_m: float = 8.0
+    slip_max_shift_m: float = 0.5
+    slip_min_travel_m: float = 0.3
+    slip_max_turn_rad: float = 0.3
 
 
 @dataclass
@@ -113,6 +121,7 @@ class NodeStats:
     deadlocks: int = 0  # teammate deadlocks detected and backed off from
     yields: int = 0  # plans not taken: the path got blocked and the detour was long
     memory_refreshes: int = 0  # older sweeps forgotten: the newest saw the blocked way clear
+    slip_measurements: int = 0  # sweep pairs whose match measured the speed over ground
 
 
 class RobotNode:
@@ -141,6 +150,8 @@ class RobotNode:
         self.tasks = TaskExecutor(cfg.tasks)
         self.stuck = StuckDetector(cfg.stuck)
         self.deadlock = DeadlockBreaker(cfg.deadlock, seed=robot_id)
+        self.traversability = TraversabilityMap(cfg.traversability)
+        self._prev_sweep: tuple[np.ndarray, GridGeometry, float] | None = None
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._hazards: HazardUpdate | None = None
         self._keepout = np.zeros((0, 3))
@@ -257,6 +268,9 @@ class RobotNode:
             sweep.points_in_base, poses, config=cfg.terrain, roll_rad=roll, pitch_rad=pitch
         )
         self._latest = (layers.classes == OBSTACLE, layers.geometry)
+        self._learn_traversability(
+            self._latest[0], layers.geometry, sweep.time_s + 0.5 * sweep.duration_s
+        )
         self.fusion.add(
             layers.classes,
             layers.geometry,
@@ -271,6 +285,46 @@ class RobotNode:
             self.stats.pose_nodes += 1
             self._send_grid(node.node_index, sweep, poses, pose, roll, pitch)
         self._replan(force=True)
+
+    def _learn_traversability(
+        self, obstacle: np.ndarray, geometry: GridGeometry, time_s: float
+    ) -> None:
+        """AOJRF Eq. 1 from this sweep and the previous one: the wheels' displacement between
+        the sweeps' mid-times is the requested motion, the one the sweeps' static obstacles
+        agree with (:func:`robot.odometry.scan_displacement.match_translation`) the measured
+        one; observed into the traversability map where the robot drove."""
+        cfg = self.config
+        prev, self._prev_sweep = self._prev_sweep, (obstacle, geometry, time_s)
+        if prev is None:
+            return
+        prev_obstacle, prev_geometry, prev_time_s = prev
+        dt = time_s - prev_time_s
+        if not 0.2 <= dt <= 3.0:
+            return
+        a = self.odometry.pose_at(prev_time_s)
+        b = self.odometry.pose_at(time_s)
+        delta = b[:2] - a[:2]
+        travel = float(np.hypot(*delta))
+        if travel < cfg.slip_min_travel_m or abs(wrap_angle(b[2] - a[2])) > cfg.slip_max_turn_rad:
+            return
+        match = match_translation(
+            prev_obstacle,
+            prev_geometry,
+            obstacle,
+            geometry,
+            center_in_odom=b[:2],
+            direction_in_odom=delta,
+            radius_m=cfg.slip_match_radius_m,
+            max_shift_m=cfg.slip_max_shift_m,
+        )
+        if match is None:
+            return
+        made_good = float(np.dot(delta + np.asarray(match.shift_in_odom), delta / travel))
+        mid = 0.5 * (a[:2] + b[:2])
+        self.traversability.observe(
+            float(mid[0]), float(mid[1]), measured_m_s=made_good / dt, requested_m_s=travel / dt
+        )
+        self.stats.slip_measurements += 1
 
     def _send_grid(
         self,
@@ -352,7 +406,8 @@ class RobotNode:
         pose = self.odometry.pose_in_odom
         clipped = self._clip_to_map(goal, geometry)
         beyond_map = not np.allclose(clipped, goal)
-        result = self.planner.plan(classes, geometry, pose[:2], clipped)
+        cost = self.traversability.cost_multiplier(geometry) if len(self.traversability) else None
+        result = self.planner.plan(classes, geometry, pose[:2], clipped, cost_multiplier=cost)
         self.stats.plans += 1
         self._planned_goal = goal
         reachable = True
@@ -361,7 +416,9 @@ class RobotNode:
             # beyond the map's edge, or as close as the map allows to one that is blocked
             nearest = self._nearest_reachable(classes, geometry, pose[:2], clipped)
             if nearest is not None:
-                result = self.planner.plan(classes, geometry, pose[:2], nearest)
+                result = self.planner.plan(
+                    classes, geometry, pose[:2], nearest, cost_multiplier=cost
+                )
                 self.stats.plans += 1
                 reachable = beyond_map
         driving = self.deadlock.phase is Phase.DRIVE

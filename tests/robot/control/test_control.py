@@ -17,7 +17,13 @@ from robot.control.path_follower import (
     motion_enters_keepout,
 )
 from robot.control.stuck_detector import StuckDetector
-from robot.control.traversability import TraversabilityMap, traversability
+from robot.control.traversability import (
+    TraversabilityConfig,
+    TraversabilityMap,
+    traversability,
+)
+from robot.planning.planner import PathPlanner
+from robot.terrain.grid import DRIVABLE, GridGeometry
 
 
 def simulate(follower: PathFollower, pose: np.ndarray, *, steps: int, dt: float = 0.05, disks=None):
@@ -132,12 +138,50 @@ def test_traversability_eq1_and_learning() -> None:
     assert traversability(0.25, 0.5) == pytest.approx(0.5)
     assert traversability(0.9, 0.5) == 1.0
     assert traversability(0.3, 0.0) == 0.0
-    tm = TraversabilityMap((10, 10), origin_in_odom=(0.0, 0.0), resolution_m=1.0)
+    cfg = TraversabilityConfig(resolution_m=1.0, spread_m=0.0, learning_rate=0.2)
+    tm = TraversabilityMap(cfg)
     for _ in range(30):  # sand: half the requested speed
         tm.observe(2.5, 3.5, measured_m_s=0.3, requested_m_s=0.6)
         tm.observe(5.5, 5.5, measured_m_s=0.6, requested_m_s=0.6)
-    cost = tm.cost_multiplier()
+    tm.observe(7.5, 7.5, measured_m_s=0.0, requested_m_s=0.1)  # too slow to say anything
+    assert len(tm) == 2
+    cost = tm.cost_multiplier(GridGeometry((0.0, 0.0), 1.0, 10, 10))
     assert cost[3, 2] == pytest.approx(1 + 4.0 * 0.5, rel=0.01)
     assert cost[5, 5] == pytest.approx(1.0) and cost[0, 0] == 1.0
+    # on a finer planning grid elsewhere in odom, the coarse cell covers its fine cells
+    fine = tm.cost_multiplier(GridGeometry((2.0, 3.0), 0.25, 8, 8))
+    assert (fine[:4, :4] > 2.9).all() and (fine[4:, :] == 1.0).all() and (fine[:, 4:] == 1.0).all()
+    # an observation spreads over spread_m
+    spread = TraversabilityMap(TraversabilityConfig(resolution_m=0.5, spread_m=1.0))
+    spread.observe(0.0, 0.0, measured_m_s=0.5, requested_m_s=1.0)
+    assert spread.t_at(0.8, 0.3) < 1.0 and spread.t_at(1.8, 0.0) == 1.0
     with pytest.raises(ValueError, match="non-finite"):
         tm.observe(1.0, 1.0, measured_m_s=math.nan, requested_m_s=1.0)
+    with pytest.raises(ValueError, match="learning_rate"):
+        TraversabilityConfig(learning_rate=0.0)
+
+
+def test_planner_goes_around_slippery_ground_when_the_detour_is_cheap() -> None:
+    geo = GridGeometry((-5.0, -5.0), 0.05, 200, 200)
+    classes = np.full(geo.shape, DRIVABLE, dtype=np.uint8)
+    tm = TraversabilityMap(TraversabilityConfig(resolution_m=0.5, spread_m=0.0, learning_rate=1.0))
+    for x in np.arange(-0.75, 1.0, 0.5):  # a 2 m x 3 m patch of sand across the straight line
+        for y in np.arange(-1.25, 1.5, 0.5):
+            tm.observe(x, y, measured_m_s=0.7, requested_m_s=1.0)
+    planner = PathPlanner()
+    start, goal = (-4.0, 0.0), (4.0, 0.0)
+    plain = planner.plan(classes, geo, start, goal)
+    costly = planner.plan(classes, geo, start, goal, cost_multiplier=tm.cost_multiplier(geo))
+    assert plain.ok and costly.ok
+    through = lambda r: float(np.interp(0.0, r.path_in_odom[:, 0], r.path_in_odom[:, 1]))  # noqa: E731
+    assert abs(through(plain)) < 0.1
+    assert abs(through(costly)) > 1.5  # around the patch: +1 m of detour beats 2 m at 2.2x
+    # a wide patch (no cheap way around) is crossed
+    wide = TraversabilityMap(
+        TraversabilityConfig(resolution_m=0.5, spread_m=0.0, learning_rate=1.0)
+    )
+    for x in np.arange(-0.75, 1.0, 0.5):
+        for y in np.arange(-4.75, 5.0, 0.5):
+            wide.observe(x, y, measured_m_s=0.7, requested_m_s=1.0)
+    across = planner.plan(classes, geo, start, goal, cost_multiplier=wide.cost_multiplier(geo))
+    assert across.ok and abs(through(across)) < 0.5
