@@ -9,7 +9,10 @@ reports that come back (task status, pose nodes, terrain grids, telemetry).
 
 Goals are drawn (seeded) from the ground truth's reachable area, away from walls and objects
 of interest: this composition root is allowed to read ground truth (DESIGN section 2); robots
-never see it.
+never see it. As the GCS would once they are found, the ground side also sends every robot the
+hazards (static OOIs, toxic vats, hostiles where they are now) with each robot's
+``map_from_odom``, every ``hazard_period_s``; the robots keep out of them on their own. The
+report counts, from the truth, how close each robot came to each kind of hazard.
 """
 
 from __future__ import annotations
@@ -31,7 +34,11 @@ from protocol.loopback import free_loopback_port, unique_mission
 from protocol.messages import (
     Direction,
     GoToTask,
+    Hazard,
+    HazardUpdate,
+    ObjectKind,
     PoseNode,
+    RobotFrame,
     TaskState,
     TaskStatus,
     Telemetry,
@@ -58,6 +65,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     goal_clearance_m: float = 1.2  # from walls and other structures
     goal_separation_m: float = 8.0  # teammates' goals at the same step stay this far apart
     ooi_clearance_m: float = 7.0  # goals stay well away from objects of interest
+    hazard_period_s: float = 1.0  # hazard updates to every robot (0: none)
     seed: int = 0
     simulator: SimulatorConfig = SimulatorConfig()
     robot: RobotNodeConfig = RobotNodeConfig()
@@ -79,6 +87,9 @@ class RobotProgress:
     stuck_recoveries: int = 0
     plan_failures: int = 0
     blocked_steps: int = 0  # steps the simulator refused the robot's motion (ground truth)
+    deadlocks: int = 0  # teammate deadlocks the robot detected and backed off from
+    closest_static_m: float = float("inf")  # to a static OOI or toxic vat (truth; trigger 2.5)
+    closest_hostile_m: float = float("inf")  # to a hostile (truth; keep-out 5 m)
 
 
 @dataclass
@@ -91,6 +102,20 @@ class RunReport:
     @property
     def rtf(self) -> float:
         return self.mission_s / max(self.wall_s, 1e-9)
+
+    def summary(self) -> dict[str, float]:
+        """Team numbers: goals, distances to hazards (truth), events."""
+        ps = list(self.robots.values())
+        return {
+            "goals_sent": float(sum(p.goals_sent for p in ps)),
+            "goals_succeeded": float(sum(p.goals_succeeded for p in ps)),
+            "goals_failed": float(sum(p.goals_failed for p in ps)),
+            "distance_m": float(sum(p.distance_m for p in ps)),
+            "closest_static_m": min((p.closest_static_m for p in ps), default=float("inf")),
+            "closest_hostile_m": min((p.closest_hostile_m for p in ps), default=float("inf")),
+            "deadlocks": float(sum(p.deadlocks for p in ps)),
+            "events": float(len(self.events)),
+        }
 
 
 def _resolve(path: str) -> Path:
@@ -158,6 +183,21 @@ class _GroundScript:
             self.goals_in_odom[rid] = transform_points(odom_from_world, world_goals)
         self.active: dict[int, int] = {}  # robot -> task id in flight
         self.next_task_id = 1
+        self.frames = [  # map = the world; each odom starts at the robot's start pose
+            RobotFrame(rid, tuple(float(v) for v in sim.robot_poses()[k]))  # type: ignore[arg-type]
+            for k, rid in enumerate(sim.robot_ids)
+        ]
+
+    def hazards(self, sim: Simulator) -> HazardUpdate:
+        """Every hazard where it is now, as the GCS would send it once found (paper 4.1)."""
+        hazards: list[Hazard] = []
+        for ooi in sim.truth.oois:
+            kind = ObjectKind.TOXIC_VAT if ooi.kind == "toxic_vat" else ObjectKind.STATIC_OOI
+            if ooi.kind in ("static_ooi", "toxic_vat"):
+                hazards.append(Hazard(len(hazards), kind, ooi.xy_m, 2.5))
+        for human, xy in _hostiles(sim):
+            hazards.append(Hazard(1000 + human, ObjectKind.HOSTILE, (xy[0], xy[1]), 5.0))
+        return HazardUpdate(sim.time_s, hazards, self.frames)
 
     def on_message(self, robot_id: int, msg: Any) -> None:
         p = self.progress.get(robot_id)
@@ -238,6 +278,10 @@ def run_mission(
                 rid: sim.robot_poses()[k][:2].copy() for k, rid in enumerate(sim.robot_ids)
             }
             last_report = time.perf_counter()
+            next_hazards_s = 0.0
+            statics = np.array(
+                [o.xy_m for o in sim.truth.oois if o.kind in ("static_ooi", "toxic_vat")]
+            ).reshape(-1, 2)
             n_steps = int(round(config.duration_s / sim.config.step_s))
             for _ in range(n_steps):
                 sim.step()
@@ -245,15 +289,29 @@ def run_mission(
                 for rid, grant in sim.radio_grants().items():
                     radios[rid].set_grant(grant)
                     ground.set_grant(rid, grant)
+                if config.hazard_period_s > 0 and sim.time_s >= next_hazards_s:
+                    update = script.hazards(sim)
+                    for rid in sim.robot_ids:
+                        ground.send(rid, update)
+                    next_hazards_s = sim.time_s + config.hazard_period_s
                 alive = sim.alive()
                 poses = sim.robot_poses()
                 blocked = sim.bodies.state.blocked_steps
+                hostiles = np.array([xy for _, xy in _hostiles(sim)]).reshape(-1, 2)
                 for k, rid in enumerate(sim.robot_ids):
                     p = report.robots[rid]
                     p.alive = bool(alive[k])
                     p.blocked_steps = int(blocked[k])
                     p.stuck_recoveries = nodes[rid].stats.stuck_recoveries
                     p.plan_failures = nodes[rid].stats.plan_failures
+                    p.deadlocks = nodes[rid].stats.deadlocks
+                    for points, attr in (
+                        (statics, "closest_static_m"),
+                        (hostiles, "closest_hostile_m"),
+                    ):
+                        if len(points):
+                            d = float(np.min(np.hypot(*(points - poses[k][:2]).T)))
+                            setattr(p, attr, min(getattr(p, attr), d))
                     p.distance_m += float(np.hypot(*(poses[k][:2] - last_pose[rid])))
                     last_pose[rid] = poses[k][:2].copy()
                     for command in nodes[rid].process(drivers[rid].poll(0.0)):
@@ -280,6 +338,18 @@ def run_mission(
         ground_link.close()
 
 
+def _hostiles(sim: Simulator) -> list[tuple[int, tuple[float, float]]]:
+    """Each hostile's id and where it is now (ground truth)."""
+    if not sim.world.humans:
+        return []
+    xy = sim.routes.positions(sim.time_s)
+    return [
+        (h.human_id, (float(xy[k][0]), float(xy[k][1])))
+        for k, h in enumerate(sim.world.humans)
+        if h.kind == "hostile"
+    ]
+
+
 def _uplink(radios: dict[int, Any], robot_id: int) -> Callable[[Any], object]:
     """The node's ``send``: its radio endpoint's, tolerating a full queue (the message was
     refused, not accepted; the node's next report supersedes it)."""
@@ -298,6 +368,17 @@ def _fill_bytes(report: RunReport, robot_link: Link) -> None:
         p.uplink_bytes = robot_link.meter.total_bytes(robot_id=rid, direction=Direction.UP)
 
 
+def _hazard_caption(report: RunReport) -> str:
+    summary = report.summary()
+    near = [
+        f"{name} {summary[key]:.1f} m"
+        for name, key in (("static OOI", "closest_static_m"), ("hostile", "closest_hostile_m"))
+        if np.isfinite(summary[key])
+    ]
+    closest = f"; closest to a {', '.join(near)}" if near else ""
+    return closest + f"; teammate deadlocks broken: {summary['deadlocks']:.0f}"
+
+
 def format_progress(report: RunReport) -> Any:
     """A rich table of the run so far."""
     from rich.table import Table
@@ -305,7 +386,8 @@ def format_progress(report: RunReport) -> Any:
     table = Table(
         title=f"magic run: {report.mission_s:6.1f} mission-s, x{report.rtf:.1f} real time",
         caption=f"events: {len(report.events)}"
-        + (f" (last: {report.events[-1]})" if report.events else ""),
+        + (f" (last: {report.events[-1]})" if report.events else "")
+        + _hazard_caption(report),
     )
     for col in ("robot", "mode", "goals ok/sent", "task", "driven m", "nodes", "uplink B/s"):
         table.add_column(col, justify="right" if col not in ("mode", "task") else "left")

@@ -11,19 +11,26 @@ pytestmark = pytest.mark.slow
 
 
 def test_team_drives_scripted_goals_over_the_radio_link() -> None:
-    report = run_mission(RunConfig(duration_s=45.0, seed=1))
-    assert report.mission_s == pytest.approx(45.0)
+    """The README's main job as configured by default (4 robots, 4 goals each, 180 s)."""
+    config = RunConfig()
+    report = run_mission(config)
+    assert report.mission_s == pytest.approx(config.duration_s)
     assert len(report.robots) == 4
+    summary = report.summary()
+    print("magic run:", summary)  # the numbers, for the record (pytest -s)
     for p in report.robots.values():
-        assert p.goals_sent >= 1
-        assert p.distance_m > 3.0  # every robot drove on its own
+        assert p.alive
+        assert p.goals_succeeded >= 2  # every robot makes real progress on its own
+        assert p.distance_m > 10.0
         assert p.pose_nodes >= 3 and p.terrain_grids == p.pose_nodes  # arrived over the link
         assert p.uplink_bytes > 0
-        assert p.goals_failed == 0
-    # Robots do not yet avoid moving teammates reactively (two robots that start side by
-    # side can jam each other); the team as a whole makes progress.
-    assert sum(p.distance_m for p in report.robots.values()) > 80.0
-    assert sum(p.goals_succeeded for p in report.robots.values()) >= 4
+    # most goals are reached (measured: all 16 of 16 for seeds 0-5)
+    assert summary["goals_sent"] == 4 * config.goals_per_robot
+    assert summary["goals_succeeded"] >= 0.75 * summary["goals_sent"]
+    # safety: nothing detonated, nobody entered a hazard's keep-out disk (truth)
+    assert not report.events
+    assert summary["closest_static_m"] >= 2.5 + 0.75
+    assert summary["closest_hostile_m"] >= 5.0 + 0.75
 
 
 def test_run_command_reports_a_bad_config_file(tmp_path, capsys) -> None:
