@@ -14,7 +14,7 @@ from collections.abc import Callable
 from mission.bench import BenchError
 
 #: Part modules, in the order they run.
-PARTS: tuple[str, ...] = ("loops_matcher", "loops_replay", "loops_raster")
+PARTS: tuple[str, ...] = ("loops_matcher", "loops_replay", "loops_raster", "loops_sim4")
 
 
 def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
