@@ -8,6 +8,9 @@ Terrain classification (:func:`terrain_speed`, :func:`terrain_quality`):
 - ``terrain_ms_400x400``: :func:`robot.terrain.classifier.classify_sweep` of one synthetic
   sweep of about 50k points (the MAGIC sensor's density) into a 400 x 400 grid at 5 cm
   (the paper's 400 m^2 map: about 300 ms in-system). Target <= 30 ms.
+- ``terrain_layers_ms_400x400``: the same with the fusion's evidence layers, i.e. also
+  tracing every beam through the grid for free space (:mod:`robot.terrain.free_space`), as
+  the node does.
 - ``terrain_fuse_ms_12``: fusing the last 12 sweeps into a 400 x 400 map.
 - ``vertical_grid_ms_400x400``: the 10 cm vertical-surface grid (40 x 40 m) of the same sweep.
 - ``terrain_obstacle_recall`` (>= 0.99) and ``terrain_false_obstacle_frac`` (<= 0.01): pooled
@@ -26,7 +29,11 @@ Odometry and the node, against the simulator (:func:`odometry`, :func:`node`; tr
 - ``odom_drift_frac`` (<= 0.02): final position error over distance after a scripted
   ~200 m zigzag drive with stops (UMBmark-like) in an open world, default simulator noise,
   median over seeds (``..._worst``: the worst seed); ``odom_heading_drift_deg_per_min``
-  (<= 1); ``odom_bias_error_rad_s`` after the first stop.
+  (<= 1); ``odom_bias_error_rad_s`` after the first stop. The zigzag goes back and forth, so
+  a distance scale error largely cancels: ``odom_drift_frac_one_way`` is the same drive as a
+  serpentine that keeps going away (half the distance ends up as displacement), and
+  ``odom_distance_scale_error`` the odometry's distance over the true one, minus 1 (the
+  calibrated wheel slip, paper 4.3.1).
 - ``node_cpu_ms_per_sweep``: the whole node pipeline (odometry, control, terrain
   classification and fusion, pose node, vertical grid and its compression, planning) between
   consecutive sweeps, thread CPU time, median, in the small world.
@@ -59,7 +66,7 @@ from mission.bench import median_time_s
 from robot.planning.config_space import configuration_space
 from robot.planning.dijkstra import dijkstra_grid
 from robot.planning.planner import PathPlanner, PlannerConfig
-from robot.terrain.classifier import TerrainConfig, classify_sweep
+from robot.terrain.classifier import TerrainConfig, classify_sweep, classify_sweep_layers
 from robot.terrain.grid import OBSTACLE
 from robot.terrain.map_fusion import TerrainMapFusion
 from robot.terrain.synthetic_scene import (
@@ -86,13 +93,24 @@ def terrain_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, 
     classify_ms = 1e3 * median_time_s(
         lambda: classify_sweep(pts, pose, config=cfg), repeats=10 if quick else 40, warmup=2
     )
+    layers_ms = 1e3 * median_time_s(
+        lambda: classify_sweep_layers(pts, pose, config=cfg),
+        repeats=10 if quick else 40,
+        warmup=2,
+    )
     fusion = TerrainMapFusion(
         memory_sweeps=cfg.memory_sweeps, clear_after_sweeps=cfg.clear_after_sweeps
     )
     geo = None
     for k in range(cfg.memory_sweeps):
-        classes, geo = classify_sweep(pts, pose + np.array([0.1 * k, 0.03 * k, 0.0]), config=cfg)
-        fusion.add(classes, geo)
+        layers = classify_sweep_layers(pts, pose + np.array([0.1 * k, 0.03 * k, 0.0]), config=cfg)
+        geo = layers.geometry
+        fusion.add(
+            layers.classes,
+            geo,
+            obstacle_height_m=layers.obstacle_height_m,
+            free_height_m=layers.free_height_m,
+        )
     assert geo is not None
     fuse_ms = 1e3 * median_time_s(lambda: fusion.fused(geo), repeats=10 if quick else 40)
     vcfg = VerticalSurfaceConfig()
@@ -101,6 +119,7 @@ def terrain_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, 
     )
     return {
         "terrain_ms_400x400": classify_ms,
+        "terrain_layers_ms_400x400": layers_ms,
         "terrain_fuse_ms_12": fuse_ms,
         "terrain_points_per_sweep": float(len(pts)),
         "vertical_grid_ms_400x400": vertical_ms,
@@ -219,7 +238,13 @@ def odometry(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float
     seeds = range(5, 8) if quick else range(5, 12)
     progress(f"odometry: scripted 200 m drives in the simulator, {len(seeds)} seeds")
     trials = [odometry_drive(seed=s) for s in seeds]
+    progress("odometry: the same drives going one way")
+    one_way = [odometry_drive(seed=s, out_and_back=False) for s in seeds]
     return {
+        "odom_drift_frac_one_way": statistics.median(t.drift_frac for t in one_way),
+        "odom_distance_scale_error": statistics.median(
+            abs(t.distance_scale_error) for t in trials + one_way
+        ),
         "odom_drift_frac": statistics.median(t.drift_frac for t in trials),
         "odom_drift_frac_worst": max(t.drift_frac for t in trials),
         "odom_heading_drift_deg_per_min": statistics.median(
@@ -247,6 +272,7 @@ def _warm_up() -> None:
     cfg = TerrainConfig(size_cells=40)
     pts = np.array([[1.0, 0.0, 0.0], [1.0, 0.2, 0.3]], dtype=np.float32)
     classes, geo = classify_sweep(pts, np.zeros(3), config=cfg)
+    classify_sweep_layers(pts, np.zeros(3), config=cfg)
     PathPlanner().plan(classes, geo, (0.0, 0.0), (0.5, 0.5))
     dijkstra_grid(np.ones((3, 3)), (0, 0), (2, 2), astar=True)
     dijkstra_grid(np.ones((3, 3)), (0, 0), (2, 2), astar=False)
