@@ -2,14 +2,20 @@
 
 Everything happens in the robot's private frame ``odom`` (paper 4.1). Per sensor frame:
 
-* **IMU / encoders** -> inertially-aided odometry (4.3.1); each encoder reading is a control
-  period: the task executor advances, the path follower produces a velocity command, hazards'
-  keep-out disks and the stuck detector guard it (5.4, AOJRF traversability from the speed).
-* **LIDAR sweep** (one per 1.25 s) -> de-skewed with odometry, classified (5.3) and fused
-  with the last 12 sweeps; a pose node when the robot moved enough (4.2), with its
-  vertical-surface grid compressed by the codec registry (4.3.3, 4.3.4); a new plan to the
-  current waypoint (5.4). No path: the robot stops, waits (the short memory forgets a bad
-  map) and the task reports it after a timeout.
+* **IMU / encoders** -> inertially-aided odometry with calibrated wheel slip (4.3.1); each
+  encoder reading is a control period: the task executor advances, the path follower produces
+  a velocity command, hazards' keep-out disks and the stuck detector guard it (5.4), and the
+  deadlock breaker watches progress (:mod:`robot.control.deadlock`: teammates meeting in a
+  corridor back off, at random, one of them first).
+* **LIDAR sweep** (one per 1.25 s) -> de-skewed with odometry, classified (5.3) with the
+  beams' free-space evidence, and fused with the last 12 sweeps (marks that later beams pass
+  under are dropped: moving teammates); matched against the previous sweep for the speed
+  made good over ground, which AOJRF's traversability map turns into planning cost (sand);
+  a pose node when the robot moved enough (4.2), with its vertical-surface grid compressed by
+  the codec registry (4.3.3, 4.3.4); a new plan to the current waypoint (5.4). No path: the
+  robot stops, waits (the short memory forgets a bad map) and the task reports it after a
+  timeout; a path newly blocked with only a long detour left: it waits for the way to clear
+  rather than set off on the detour, within a budget.
 * **Downlink** -> tasks (the executor validates them), hazard updates (keep-out disks via this
   robot's ``map_from_odom``), parameter updates.
 
