@@ -31,4 +31,13 @@ def test_four_robots_close_loops_across_robots_without_false_positives() -> None
     assert report.ate_rmse_m < report.ate_rmse_prior_m
     assert len(station.frames()) == 4  # every robot linked to map, frames published
     assert station.stats.rejected_total == 0
-    assert len(station.graph.edges(Provenance.LOOP_AUTO)) == report.closures
+    closures = station.graph.edges(Provenance.LOOP_AUTO)
+    assert len(closures) == report.closures
+    # every robot is tied to a teammate by scan matches, not only by its start hint
+    linked = {
+        r
+        for e in closures
+        if e.key_b is not None and (e.key_a >> 32) != (e.key_b >> 32)
+        for r in (e.key_a >> 32, e.key_b >> 32)
+    }
+    assert linked == {0, 1, 2, 3}, linked
