@@ -448,6 +448,11 @@ class RobotNode:
                 )
                 self.stats.plans += 1
                 reachable = beyond_map
+        if self.deadlock.phase is Phase.BACKOFF and not result.ok:
+            self.deadlock.abort_backoff(self._now)  # no way back: hold where we are
+            self.follower.set_path(np.zeros((0, 2)))
+            self._planned_goal = None
+            return
         driving = self.deadlock.phase is Phase.DRIVE
         if driving and self._should_yield(goal, result, classes, geometry):
             self.stats.yields += 1

@@ -311,6 +311,12 @@ class DeadlockBreaker:
         self.backoff_target_in_odom, self._target_back_m = chosen
         return self.backoff_target_in_odom
 
+    def abort_backoff(self, now_s: float) -> None:
+        """The way back turned out to be blocked (no path to the target): hold here."""
+        if self.phase is Phase.BACKOFF:
+            self.backoff_target_in_odom = None
+            self._hold(now_s)
+
     def refine_backoff(
         self, obstacle: NDArray[np.bool_], geometry: GridGeometry
     ) -> NDArray[np.float64] | None:

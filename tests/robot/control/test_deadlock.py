@@ -191,3 +191,13 @@ def test_bad_input_and_config_name_the_problem() -> None:
             robot_radius_m=0.4,
             lookahead_m=1.0,
         )
+
+
+def test_a_blocked_way_back_holds_at_once() -> None:
+    b = DeadlockBreaker(DeadlockConfig(stall_s=2.0, stall_jitter_s=0.0), seed=0)
+    goal = (30.0, 0.0)
+    t = _drive_straight(b, goal, 5.0)
+    t, phase = _stand(b, (4.9, 0.0), goal, t, 10.0)
+    assert b.start_backoff(t, np.zeros(GEO.shape, bool), GEO) is not None
+    b.abort_backoff(t)
+    assert b.phase is Phase.HOLD and b.backoff_target_in_odom is None
