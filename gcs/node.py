@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import argparse
 import queue
-import signal
 import sys
 import threading
 import time
@@ -22,8 +21,9 @@ from typing import Any
 from gcs.ground_station import GroundStation, GroundStationConfig
 from protocol import keys
 from protocol.clock import ManualClock, WallClock
-from protocol.config import CONFIGS_DIR, ConfigError, load_config
-from protocol.link import Link, LinkConfig
+from protocol.config import ConfigError, load_config
+from protocol.link import Link
+from protocol.process_cli import add_link_arguments, link_config, stop_on_interrupt
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
 from protocol.sensors import ClockTick, decode_sensor_frame
@@ -129,12 +129,9 @@ class GcsProcess:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="magic gcs", description="Run the ground-control station.")
-    p.add_argument("--mission", default="default", help="mission name in the zenoh keys")
+    add_link_arguments(p)
     p.add_argument("--config", type=Path, help="GCS config YAML (GroundStationConfig)")
-    p.add_argument("--radio", type=Path, default=CONFIGS_DIR / "radio" / "magic2010.yaml")
     p.add_argument("--clock", choices=("sim", "wall"), default="sim", help="mission time source")
-    p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to")
-    p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on")
     p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
     p.add_argument("--progress-s", type=float, default=5.0, help="wall seconds between reports")
     return p
@@ -153,27 +150,18 @@ def main(argv: list[str]) -> int:
     except (ConfigError, ValueError) as err:
         print(f"magic gcs: {err}", file=sys.stderr)
         return 2
-    fields: dict[str, Any] = {"radio": radio}
-    if args.connect:
-        fields["connect"] = tuple(args.connect)
-    if args.listen:
-        fields["listen"] = tuple(args.listen)
     clock: Any = ManualClock() if args.clock == "sim" else WallClock()
-    link = Link(LinkConfig(**fields), mission=args.mission, clock=clock)
+    link = Link(link_config(radio, args), mission=args.mission, clock=clock)
     proc = GcsProcess(link, clock, config)
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGINT, lambda *_: proc.stop())
     print(f"magic gcs: mission {args.mission!r}, waiting for robots", flush=True)
     try:
-        proc.run(
-            duration_s=args.duration,
-            progress=lambda s: print(s, flush=True),
-            progress_period_s=args.progress_s,
-        )
+        with stop_on_interrupt(proc.stop):
+            proc.run(
+                duration_s=args.duration,
+                progress=lambda s: print(s, flush=True),
+                progress_period_s=args.progress_s,
+            )
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
         proc.close()
         link.close()
     print(proc.status_line(), flush=True)

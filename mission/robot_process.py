@@ -9,18 +9,18 @@ rates and timeouts hold in mission time however fast the simulation runs.
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
-from mission.config import CONFIGS_DIR, ConfigError, load_config
+from mission.config import ConfigError, load_config
 from protocol import keys
 from protocol.clock import ManualClock
-from protocol.link import Link, LinkConfig
+from protocol.link import Link
 from protocol.messages import Direction
+from protocol.process_cli import add_link_arguments, link_config, stop_on_interrupt
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
 from protocol.sensors import ClockTick, decode_sensor_frame
@@ -105,11 +105,8 @@ class RobotProcess:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="magic robot", description="Run one robot node.")
     p.add_argument("--id", type=int, required=True, help="robot id (as the simulator numbers them)")
-    p.add_argument("--mission", default="default", help="mission name in the zenoh keys")
+    add_link_arguments(p)
     p.add_argument("--config", type=Path, help="robot node config YAML (RobotNodeConfig)")
-    p.add_argument("--radio", type=Path, default=CONFIGS_DIR / "radio" / "magic2010.yaml")
-    p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to")
-    p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on")
     p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
     p.add_argument("--progress-s", type=float, default=5.0, help="wall seconds between reports")
     return p
@@ -130,30 +127,21 @@ def main(argv: list[str]) -> int:
     except (ConfigError, ValueError) as err:
         print(f"magic robot: {err}", file=sys.stderr)
         return 2
-    fields: dict[str, Any] = {"radio": radio}
-    if args.connect:
-        fields["connect"] = tuple(args.connect)
-    if args.listen:
-        fields["listen"] = tuple(args.listen)
     clock = ManualClock()
-    link = Link(LinkConfig(**fields), mission=args.mission, clock=clock)
+    link = Link(link_config(radio, args), mission=args.mission, clock=clock)
     proc = RobotProcess(link, args.id, clock, config)
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGINT, lambda *_: proc.stop())
     print(
         f"magic robot: robot {args.id} of mission {args.mission!r} waiting for sensor frames",
         flush=True,
     )
     try:
-        proc.run(
-            duration_s=args.duration,
-            progress=lambda s: print(s, flush=True),
-            progress_period_s=args.progress_s,
-        )
+        with stop_on_interrupt(proc.stop):
+            proc.run(
+                duration_s=args.duration,
+                progress=lambda s: print(s, flush=True),
+                progress_period_s=args.progress_s,
+            )
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
         proc.close()
         link.close()
     print(proc.status_line(), flush=True)

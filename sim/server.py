@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 import threading
 import time
@@ -33,6 +32,7 @@ import msgspec
 
 from protocol import keys
 from protocol.config import CONFIGS_DIR, ConfigError, load_config
+from protocol.process_cli import add_link_arguments, link_config, stop_on_interrupt
 from protocol.radio import RadioConfig
 from protocol.sensors import ClockTick, RobotCommand, encode_sensor_frame
 from sim.simulator import CommandError, Simulator, SimulatorConfig, load_world_config
@@ -166,13 +166,7 @@ def _parser() -> argparse.ArgumentParser:
         help="world config (configs/world/*.yaml)",
     )
     p.add_argument("--sim-config", type=Path, help="simulator config YAML (SimulatorConfig)")
-    p.add_argument(
-        "--radio",
-        type=Path,
-        default=CONFIGS_DIR / "radio" / "magic2010.yaml",
-        help="radio config (configs/radio/*.yaml)",
-    )
-    p.add_argument("--mission", default="default", help="mission name in the zenoh keys")
+    add_link_arguments(p)
     p.add_argument(
         "--rtf", type=float, default=1.0, help="target real-time factor; 0 runs as fast as possible"
     )
@@ -182,8 +176,6 @@ def _parser() -> argparse.ArgumentParser:
         help="advance only when every robot node consumed its last sweep",
     )
     p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
-    p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on")
-    p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect")
     p.add_argument("--no-zenoh", action="store_true", help="step the world without serving it")
     p.add_argument("--progress-s", type=float, default=2.0, help="wall seconds between reports")
     return p
@@ -216,14 +208,9 @@ def main(argv: list[str]) -> int:
         return 2
     link = None
     if not args.no_zenoh:
-        from protocol.link import Link, LinkConfig
+        from protocol.link import Link
 
-        fields: dict[str, Any] = {"radio": radio_cfg}
-        if args.listen:
-            fields["listen"] = tuple(args.listen)
-        if args.connect:
-            fields["connect"] = tuple(args.connect)
-        link = Link(LinkConfig(**fields), mission=args.mission, clock=sim.clock)
+        link = Link(link_config(radio_cfg, args), mission=args.mission, clock=sim.clock)
     w = sim.world
     print(
         f"magic sim: world {w.size_m[0]:.0f} x {w.size_m[1]:.0f} m, {len(w.solids)} solids, "
@@ -243,14 +230,10 @@ def main(argv: list[str]) -> int:
         progress=lambda s: print(s, file=out, flush=True),
         progress_period_s=args.progress_s,
     )
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGINT, lambda *_: server.stop())
     try:
-        server.run(args.duration)
+        with stop_on_interrupt(server.stop):
+            server.run(args.duration)
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
         server.close()
         if link is not None:
             link.close()
