@@ -100,8 +100,14 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     backup_speed_m_s: float = 0.3
     conservative_stop_m: float = 0.6  # conservative tele-operation stops this far from obstacles
     # the simulated MAGIC robot's wheel slip on hard ground, calibrated on straight and curved
-    # runs (mission.evaluation.odometry_drive): 2% straight, 6.7% more per rad/s of turning
-    odometry: OdometryConfig = OdometryConfig(wheel_slip_frac=0.02, wheel_slip_per_rad_s=0.067)
+    # runs (mission.evaluation.odometry_drive): 2% straight, 6.7% more per rad/s of turning;
+    # its gyro's datasheet: 0.003 rad/s noise per 20 Hz sample, bias walk 2e-4 rad/s/sqrt(s)
+    odometry: OdometryConfig = OdometryConfig(
+        wheel_slip_frac=0.02,
+        wheel_slip_per_rad_s=0.067,
+        gyro_noise_density_rad_s_sqrt_hz=6.7e-4,
+        gyro_bias_walk_rad_s_sqrt_s=2e-4,
+    )
     pose_nodes: PoseNodeConfig = PoseNodeConfig()
     terrain: TerrainConfig = TerrainConfig()
     # paper 4.3.4: MAGIC's grids averaged about 150 x 150 cells at 10 cm (a 15 m square)

@@ -47,3 +47,7 @@ def test_robot_node_defaults_carry_the_simulated_robots_calibration() -> None:
     assert node_odometry.wheel_slip_per_rad_s == pytest.approx(
         datasheet.wheel_slip_per_rad_s, abs=1e-3
     )
+    assert node_odometry.gyro_noise_density_rad_s_sqrt_hz == pytest.approx(
+        datasheet.gyro_noise_density_rad_s_sqrt_hz, rel=1e-2
+    )
+    assert node_odometry.gyro_bias_walk_rad_s_sqrt_s == datasheet.gyro_bias_walk_rad_s_sqrt_s
