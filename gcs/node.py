@@ -13,7 +13,6 @@ import argparse
 import queue
 import sys
 import threading
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,11 +22,15 @@ from protocol import keys
 from protocol.clock import ManualClock, WallClock
 from protocol.config import ConfigError, load_config
 from protocol.link import Link
-from protocol.process_cli import add_link_arguments, link_config, stop_on_interrupt
+from protocol.process_cli import (
+    add_link_arguments,
+    follow_sim_clock,
+    link_config,
+    spin_until,
+    stop_on_interrupt,
+)
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
-from protocol.sensors import ClockTick, decode_sensor_frame
-from protocol.wire import ProtocolError
 
 __all__ = ["GcsProcess", "main"]
 
@@ -56,17 +59,9 @@ class GcsProcess:
         )
         self._clock_sub = None
         if isinstance(clock, ManualClock):
-            self._clock_sub = link.subscribe(keys.sim_clock(link.mission), self._on_clock)
+            self._clock_sub = follow_sim_clock(link, clock)
         self._stop = threading.Event()
         self._last_step_s = -float("inf")
-
-    def _on_clock(self, _key: str, payload: bytes) -> None:
-        try:
-            tick = decode_sensor_frame(payload)
-        except ProtocolError:
-            return
-        if isinstance(tick, ClockTick) and tick.time_s > self.clock.now():
-            self.clock.set(tick.time_s)
 
     def spin_once(self, timeout_s: float = 0.05) -> int:
         """Hand the queued messages to the station; step it when due. Returns messages taken."""
@@ -99,15 +94,15 @@ class GcsProcess:
         progress: Callable[[str], None] | None = None,
         progress_period_s: float = 5.0,
     ) -> None:
-        last = time.monotonic()
-        start = self.clock.now()
-        while not self._stop.is_set():
-            self.spin_once()
-            if duration_s is not None and self.clock.now() - start >= duration_s:
-                return
-            if progress is not None and time.monotonic() - last >= progress_period_s:
-                progress(self.status_line())
-                last = time.monotonic()
+        spin_until(
+            self.spin_once,
+            now=self.clock.now,
+            stop=self._stop,
+            duration_s=duration_s,
+            progress=progress,
+            status=self.status_line,
+            progress_period_s=progress_period_s,
+        )
 
     def status_line(self) -> str:
         s = self.station.stats

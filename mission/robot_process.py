@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
-import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,11 +20,15 @@ from protocol import keys
 from protocol.clock import ManualClock
 from protocol.link import Link
 from protocol.messages import Direction
-from protocol.process_cli import add_link_arguments, link_config, stop_on_interrupt
+from protocol.process_cli import (
+    add_link_arguments,
+    follow_sim_clock,
+    link_config,
+    spin_until,
+    stop_on_interrupt,
+)
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
-from protocol.sensors import ClockTick, decode_sensor_frame
-from protocol.wire import ProtocolError
 from robot.node import RobotNode, RobotNodeConfig
 
 __all__ = ["RobotProcess", "main"]
@@ -45,7 +49,7 @@ class RobotProcess:
             robot_id, on_message=self.node.handle_downlink, follow_radio=True
         )
         self.driver = link.remote_driver(robot_id)
-        self._clock_sub = link.subscribe(keys.sim_clock(link.mission), self._on_clock)
+        self._clock_sub = follow_sim_clock(link, clock)
         self._stop = threading.Event()
 
     def _send(self, msg: Any) -> object:
@@ -55,14 +59,6 @@ class RobotProcess:
             self.refused += 1  # not accepted; the node's next report supersedes it
             return None
 
-    def _on_clock(self, _key: str, payload: bytes) -> None:
-        try:
-            tick = decode_sensor_frame(payload)
-        except ProtocolError:
-            return
-        if isinstance(tick, ClockTick) and tick.time_s > self.clock.now():
-            self.clock.set(tick.time_s)
-
     def spin_once(self, timeout_s: float = 0.1) -> int:
         """Process the frames that arrived; returns how many."""
         frames = self.driver.poll(timeout_s)
@@ -71,17 +67,21 @@ class RobotProcess:
         return len(frames)
 
     def run(
-        self, *, duration_s: float | None = None, progress=None, progress_period_s: float = 5.0
-    ) -> None:  # type: ignore[no-untyped-def]
-        last = time.monotonic()
-        start_mission = self.clock.now()
-        while not self._stop.is_set():
-            self.spin_once()
-            if duration_s is not None and self.clock.now() - start_mission >= duration_s:
-                return
-            if progress is not None and time.monotonic() - last >= progress_period_s:
-                progress(self.status_line())
-                last = time.monotonic()
+        self,
+        *,
+        duration_s: float | None = None,
+        progress: Callable[[str], None] | None = None,
+        progress_period_s: float = 5.0,
+    ) -> None:
+        spin_until(
+            self.spin_once,
+            now=self.clock.now,
+            stop=self._stop,
+            duration_s=duration_s,
+            progress=progress,
+            status=self.status_line,
+            progress_period_s=progress_period_s,
+        )
 
     def status_line(self) -> str:
         s = self.node.stats

@@ -10,6 +10,7 @@ import argparse
 import contextlib
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -18,9 +19,16 @@ from protocol.config import CONFIGS_DIR
 from protocol.radio import RadioConfig
 
 if TYPE_CHECKING:
-    from protocol.link import LinkConfig
+    from protocol.clock import ManualClock
+    from protocol.link import Link, LinkConfig, Subscription
 
-__all__ = ["add_link_arguments", "link_config", "stop_on_interrupt"]
+__all__ = [
+    "add_link_arguments",
+    "follow_sim_clock",
+    "link_config",
+    "spin_until",
+    "stop_on_interrupt",
+]
 
 
 def add_link_arguments(parser: argparse.ArgumentParser) -> None:
@@ -61,3 +69,44 @@ def stop_on_interrupt(stop: Callable[[], None]) -> Iterator[None]:
     finally:
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
+
+
+def follow_sim_clock(link: Link, clock: ManualClock) -> Subscription:
+    """Advance ``clock`` with the simulator's clock ticks (mission time; never backwards).
+    Close the returned subscription to stop following."""
+    from protocol import keys
+    from protocol.sensors import ClockTick, decode_sensor_frame
+    from protocol.wire import ProtocolError
+
+    def on_tick(_key: str, payload: bytes) -> None:
+        try:
+            tick = decode_sensor_frame(payload)
+        except ProtocolError:
+            return
+        if isinstance(tick, ClockTick) and tick.time_s > clock.now():
+            clock.set(tick.time_s)
+
+    return link.subscribe(keys.sim_clock(link.mission), on_tick)
+
+
+def spin_until(
+    spin_once: Callable[[], object],
+    *,
+    now: Callable[[], float],
+    stop: threading.Event,
+    duration_s: float | None = None,
+    progress: Callable[[str], None] | None = None,
+    status: Callable[[], str] = lambda: "",
+    progress_period_s: float = 5.0,
+) -> None:
+    """Call ``spin_once`` until ``stop`` is set or ``duration_s`` mission seconds (by ``now``)
+    have passed, reporting ``status()`` to ``progress`` every ``progress_period_s`` wall s."""
+    last = time.monotonic()
+    start = now()
+    while not stop.is_set():
+        spin_once()
+        if duration_s is not None and now() - start >= duration_s:
+            return
+        if progress is not None and time.monotonic() - last >= progress_period_s:
+            progress(status())
+            last = time.monotonic()
