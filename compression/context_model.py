@@ -347,7 +347,6 @@ def _kernel(  # type: ignore[no-untyped-def]
     if mode == 1:
         for i in range(4):
             code = (code << 8) | (data[i] if i < data.shape[0] else 0)
-    nd = data.shape[0]
     T = 2
     L = 4
     for r in range(h):
@@ -485,19 +484,7 @@ def _kernel(  # type: ignore[no-untyped-def]
                         c += 1
                 else:
                     while True:
-                        bound = (rng >> 16) * _q(p1)
-                        if code < bound:
-                            rng = bound
-                            bit = 0
-                        else:
-                            code -= bound
-                            rng -= bound
-                            bit = 1
-                        while rng < _TOP:
-                            byte = data[dpos] if dpos < nd else 0
-                            dpos += 1
-                            rng = (rng << 8) & _MASK32
-                            code = ((code << 8) | byte) & _MASK32
+                        bit, code, rng, dpos = _dec(code, rng, dpos, data, _q(p1))
                         if adaptive:
                             if bit:
                                 p1 = p1 + (((_ONE - p1) * recip[n]) >> 24)
@@ -545,19 +532,7 @@ def _kernel(  # type: ignore[no-untyped-def]
                         rng = (rng << 8) & _MASK32
                         low, cache, csize, pos = _shift_low(low, cache, csize, pos, out)
                 else:
-                    bound = (rng >> 16) * q
-                    if code < bound:
-                        rng = bound
-                        bit = 0
-                    else:
-                        code -= bound
-                        rng -= bound
-                        bit = 1
-                    while rng < _TOP:
-                        byte = data[dpos] if dpos < nd else 0
-                        dpos += 1
-                        rng = (rng << 8) & _MASK32
-                        code = ((code << 8) | byte) & _MASK32
+                    bit, code, rng, dpos = _dec(code, rng, dpos, data, q)
                     p[pr, pc] = bit
                 if adaptive:
                     n = np.int64(tab[ctx, 1])
