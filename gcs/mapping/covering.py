@@ -53,21 +53,7 @@ def _footprint(patch, row0, col0):  # type: ignore[no-untyped-def]
                 bj = gj // 16 - bj0
                 bit = sub_r * 16 + gj - (gj // 16) * 16
                 masks[bi, bj, bit >> 6] |= np.int64(1) << np.int64(bit & 63)
-    n = 0
-    for bi in range(nbi):
-        for bj in range(nbj):
-            if masks[bi, bj, 0] | masks[bi, bj, 1] | masks[bi, bj, 2] | masks[bi, bj, 3]:
-                n += 1
-    out = np.empty((n, 6), dtype=np.int64)
-    k = 0
-    for bi in range(nbi):
-        for bj in range(nbj):
-            if masks[bi, bj, 0] | masks[bi, bj, 1] | masks[bi, bj, 2] | masks[bi, bj, 3]:
-                out[k, 0] = bi + bi0
-                out[k, 1] = bj + bj0
-                out[k, 2:6] = masks[bi, bj]
-                k += 1
-    return out
+    return _compact(masks, bi0, bj0)
 
 
 def footprint(patch: NDArray[np.int8], row0: int, col0: int) -> NDArray[np.int64]:
