@@ -193,6 +193,7 @@ class GroundStation:
         self.loop_closer = LoopCloser(self.graph, self.config.loops)
         self.last_loop_report: LoopClosingReport | None = None
         self.hazards: list[Hazard] = []
+        self._sightings: list[int] = []  # per hazard, detections merged into it
         self._tracks: dict[int, _Track] = {}
         self._dirty = False
         self._last_frames_s: dict[int, float] = {}
@@ -494,11 +495,17 @@ class GroundStation:
         xy = transform_points(self.graph.pose(key), p[None, :])[0]
         for i, h in enumerate(self.hazards):
             if h.kind == msg.kind and math.dist(h.position_in_map, xy) < self.config.hazard_merge_m:
-                self.hazards[i] = Hazard(h.hazard_id, h.kind, h.position_in_map, h.radius_m)
+                # the same object seen again: its position is the mean of the sightings
+                n = self._sightings[i] = self._sightings[i] + 1
+                mean = np.asarray(h.position_in_map) + (xy - np.asarray(h.position_in_map)) / n
+                self.hazards[i] = Hazard(
+                    h.hazard_id, h.kind, (float(mean[0]), float(mean[1])), h.radius_m
+                )
                 return
         self.hazards.append(
             Hazard(len(self.hazards) + 1, msg.kind, (float(xy[0]), float(xy[1])), radius)
         )
+        self._sightings.append(1)
 
     # ---- output ----------------------------------------------------------------------------
 
