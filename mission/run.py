@@ -3,7 +3,8 @@
 The simulator, one robot node per robot and a ground-control side run in this process, in
 lockstep with the simulator's mission clock; robots and the ground side talk over two real
 zenoh sessions on loopback through the radio link (rates granted by the simulator's radio
-model, every byte metered). Until the GCS node exists, the ground side is a script: it sends
+model, every byte metered). Until task allocation exists, the ground side is a script (the
+GCS's estimation runs in ``magic gcs`` and in :mod:`mission.team_mapping`): it sends
 each robot a sequence of goals (``GoToTask``, in that robot's private frame) and follows the
 reports that come back (task status, pose nodes, terrain grids, telemetry).
 
