@@ -58,7 +58,8 @@ class LidarSweep(_Frame, tag=1, frozen=True):
 
     ``points_in_base`` is ``(N, 3)`` float32, each point in the body frame *at the instant it
     was measured* (the robot moves during a sweep: de-skew with odometry and
-    ``point_time_s``). ``point_time_s`` is ``(N,)`` float32, seconds after ``time_s``.
+    ``point_time_s``). ``point_time_s`` is ``(N,)`` float32, seconds after ``time_s``. Points
+    come scan line by scan line, each line in beam order; the points of a line share its time.
     ``sweep_index`` counts sweeps from 0.
     """
 

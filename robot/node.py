@@ -362,6 +362,7 @@ class RobotNode:
             roll_rad=roll,
             pitch_rad=pitch,
             base_from_point_base=relative(node_pose, poses),
+            point_time_s=sweep.point_time_s,
         )
         occ = vs.occupied
         rows = np.flatnonzero(occ.any(axis=1))

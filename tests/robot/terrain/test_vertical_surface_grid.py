@@ -63,3 +63,39 @@ def test_bad_input_names_the_problem() -> None:
         vertical_surface_grid(np.zeros((3, 3)), config=cfg, base_from_point_base=np.zeros((2, 3)))
     with pytest.raises(ValueError, match="z_min_m"):
         VerticalSurfaceConfig(z_min_m=2.0, z_max_m=1.0)
+
+
+def _sparse_wall_lines(spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """A wall along x = 3 m seen by six scan lines (heights 0.3..1.8 m), returns every
+    ``spacing_m`` along y; a 1.2 m doorway at y in (0, 1.2). One time stamp per line."""
+    y = np.arange(-2.0, 3.0, spacing_m) + 0.013
+    y = y[(y < 0.0) | (y > 1.2)]
+    pts, times = [], []
+    for k, z in enumerate(np.linspace(0.3, 1.8, 6)):
+        pts.append(np.c_[np.full(len(y), 3.04), y, np.full(len(y), z)])
+        times.append(np.full(len(y), 0.05 * k))
+    return np.vstack(pts).astype(np.float32), np.concatenate(times).astype(np.float32)
+
+
+def test_scan_line_segments_close_the_gaps_between_beams_but_not_doorways() -> None:
+    cfg = VerticalSurfaceConfig(size_cells=100)
+    pts, times = _sparse_wall_lines(0.25)
+    column = round((3.04 + 5.0) / 0.1)
+    y_cell = -5.0 + (np.arange(100) + 0.5) * 0.1  # cell centres
+    rows_door = np.flatnonzero((0.0 < y_cell) & (y_cell < 1.2))
+    # between the first and last returns, off the doorway and its edge cells
+    rows_solid = np.flatnonzero(
+        ((-1.95 <= y_cell) & (y_cell <= -0.3)) | ((1.3 <= y_cell) & (y_cell <= 2.75))
+    )
+    alone = vertical_surface_grid(pts, config=cfg).occupied
+    joined = vertical_surface_grid(pts, config=cfg, point_time_s=times).occupied
+    assert alone[rows_solid, column].mean() < 0.5  # 25 cm beams leave most 10 cm cells empty
+    assert joined[rows_solid, column].all()  # the segments fill them
+    assert not joined[rows_door, column].any()  # 1.2 m apart: a doorway stays open
+    assert joined.sum() == joined[:, column].sum()  # nothing off the wall
+    off = VerticalSurfaceConfig(size_cells=100, connect_max_gap_m=0.0)
+    assert np.array_equal(vertical_surface_grid(pts, config=off, point_time_s=times).occupied, alone)
+    with pytest.raises(ValueError, match="point_time_s"):
+        vertical_surface_grid(pts, config=cfg, point_time_s=times[:-1])
+    with pytest.raises(ValueError, match="connect_max_gap_m"):
+        VerticalSurfaceConfig(connect_max_gap_m=-1.0)
