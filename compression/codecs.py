@@ -59,17 +59,12 @@ def _register_intra(name: str, codec_id: int, model: ContextModel, version: int,
 
 
 def reference_code_for(
-    height: int,
-    width: int,
-    origin_cells: tuple[int, int],
-    ref: GridReference,
-    feature: str = "near",
+    height: int, width: int, origin_cells: tuple[int, int], ref: GridReference
 ) -> np.ndarray:
-    """The inter-frame ``feature`` (``"near"`` or ``"patch"``) of a ``(height, width)`` grid at
-    ``origin_cells`` from ``ref`` (:mod:`compression.reference_warp`); training uses it to
-    count reference contexts."""
+    """The inter-frame feature of a ``(height, width)`` grid at ``origin_cells`` from ``ref``
+    (:mod:`compression.reference_warp`); training uses it to count reference contexts."""
     pose = quantize_pose(ref.reference_from_current, ref.resolution_m)
-    return reference_code(ref.grid, ref.origin_cells, pose, origin_cells, height, width, feature)
+    return reference_code(ref.grid, ref.origin_cells, pose, origin_cells, height, width)
 
 
 def _register_inter(
@@ -77,13 +72,12 @@ def _register_inter(
 ) -> None:
     def encode(grid: np.ndarray, origin_cells: tuple[int, int], ref: GridReference) -> bytes:
         h, w = grid.shape
-        refcode = reference_code_for(h, w, origin_cells, ref, model.reference)
-        return encode_context(grid, model, refcode)
+        return encode_context(grid, model, reference_code_for(h, w, origin_cells, ref))
 
     def decode(
         body: bytes, height: int, width: int, origin_cells: tuple[int, int], ref: GridReference
     ) -> np.ndarray:
-        refcode = reference_code_for(height, width, origin_cells, ref, model.reference)
+        refcode = reference_code_for(height, width, origin_cells, ref)
         return decode_context(body, height, width, model, refcode)
 
     register_codec(

@@ -15,15 +15,9 @@ Two optional features multiply the context:
 * *extrapolation* (3 values): every pair of coded ones ``q`` before ``p`` within
   :data:`EXTRAPOLATION_REACH` cells marks ``2p - q``, the next point of a straight line
   through them, dotted or solid (walls seen by a LIDAR); the feature is ``min(marks, 2)``;
-* *reference* (inter-frame coding, issue 5): the previous grid warped into this one
-  (:mod:`compression.reference_warp`), one of :data:`REFERENCE_FEATURES`: ``"near"`` (3
-  values: 0 nothing within one cell, 1 a reference cell within one cell, 2 one on this very
-  cell), multiplying the table; or ``"patch"``: the 3 x 3 reference cells around this one, one
-  bit each, like JBIG2's refinement template (a wall's local direction in the reference tells
-  where a diagonal wall's staircase steps in the new grid). With a patch the context is
-  *split*: where the patch is empty the pixel is coded in the full template's context (new
-  walls: the intra model), elsewhere in a smaller ``ref_template`` (a sub-template of
-  ``template``) times the 511 non-empty patches, so the table stays small.
+* *reference* (3 values, inter-frame coding, issue 5): the previous grid warped into this one
+  (:mod:`compression.reference_warp`): 0 nothing within one cell, 1 a reference cell within
+  one cell, 2 a reference cell on this very cell.
 
 *Quiet runs* (``runs=True``): where a pixel's whole context is 0 (nothing coded nearby, no
 mark, no reference), the pixels up to where something would enter the context form a *quiet
@@ -65,7 +59,6 @@ from compression.binary_coder import PROB_ONE, max_encoded_bytes
 __all__ = [
     "COUNT_CAP",
     "EXTRAPOLATION_REACH",
-    "REFERENCE_FEATURES",
     "TEMPLATES",
     "ContextModel",
     "context_counts",
@@ -86,9 +79,6 @@ COUNT_CAP = 1023
 _PAD_TOP, _PAD_LEFT, _PAD_RIGHT = 2, 4, 4
 _N_EXTRA = 3  # values of each optional feature
 _RUN_CONTEXTS = 64  # quiet extents: bit length of the extent, whether it starts / ends a row
-#: Inter-frame reference features and their number of values ("": none, an intra model).
-REFERENCE_FEATURES = {"": 1, "near": 3, "patch": 512}
-_REF_NAMES = sorted(k for k in REFERENCE_FEATURES if k)
 
 
 def template_size(template: str) -> int:
@@ -98,32 +88,24 @@ def template_size(template: str) -> int:
 @dataclass(frozen=True, eq=False)
 class ContextModel:
     """A template, its optional features, the prior table, its strength, and whether counts
-    adapt. ``prior1`` has ``2**K * 3**extrapolate * REFERENCE_FEATURES[reference]`` entries
-    (with ``"patch"``: ``2**K * 3**extrapolate`` plus ``2**k * 3**extrapolate * 512`` for the
-    ``ref_template`` of ``k`` pixels), plus 64 for the quiet-run decisions with ``runs``."""
+    adapt. ``prior1`` has ``2**K * 3**(extrapolate + reference)`` entries, plus 64 for the
+    quiet-run decisions with ``runs``."""
 
     template: str
     prior1: np.ndarray  # float64: P(1 | context) before any counts
     strength: float
     adaptive: bool
     extrapolate: bool = False
-    reference: str = ""  # "" (intra), or a key of REFERENCE_FEATURES
+    reference: bool = False
     runs: bool = False
-    ref_template: str = ""  # with reference "patch": the template next to a non-empty patch
-    _state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int] = field(
-        init=False, repr=False
-    )
+    _state: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = field(init=False, repr=False)
     _lock: threading.Lock = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if self.template not in TEMPLATES:
             raise ValueError(f"unknown template {self.template!r}; known: {sorted(TEMPLATES)}")
         n = self.table_size(
-            self.template,
-            extrapolate=self.extrapolate,
-            reference=self.reference,
-            runs=self.runs,
-            ref_template=self.ref_template,
+            self.template, extrapolate=self.extrapolate, reference=self.reference, runs=self.runs
         )
         prior = np.ascontiguousarray(self.prior1, dtype=np.float64)
         if prior.shape != (n,):
@@ -140,49 +122,19 @@ class ContextModel:
         # one 16-byte row per context (one cache line): probability, count, generation, prior
         table = np.zeros((n, 4), dtype=np.int32)
         table[:, 3] = np.clip(np.rint(prior * one), 1, one - 1)
-        # the split context of a "patch" model: its sub-template spans and where its part of
-        # the table starts (0: no split)
-        rspans = np.array(TEMPLATES[self.ref_template or self.template], dtype=np.int64)
-        split = 0
-        if self.reference == "patch":
-            split = (1 << template_size(self.template)) * _N_EXTRA ** int(self.extrapolate)
-        state = (spans, recip, table, np.zeros(1, dtype=np.int64), rspans, split)
+        state = (spans, recip, table, np.zeros(1, dtype=np.int64))
         object.__setattr__(self, "_state", state)
         object.__setattr__(self, "_lock", threading.Lock())
 
     @staticmethod
     def table_size(
-        template: str,
-        *,
-        extrapolate: bool = False,
-        reference: str = "",
-        runs: bool = False,
-        ref_template: str = "",
+        template: str, *, extrapolate: bool = False, reference: bool = False, runs: bool = False
     ) -> int:
-        if template not in TEMPLATES:
-            raise ValueError(f"unknown template {template!r}; known: {sorted(TEMPLATES)}")
-        if reference not in REFERENCE_FEATURES:
-            raise ValueError(f"unknown reference feature {reference!r}; known: {_REF_NAMES}")
-        if (reference == "patch") != bool(ref_template):
-            raise ValueError("a ref_template goes with reference 'patch', and only with it")
-        ex = _N_EXTRA ** int(extrapolate)
-        size = (1 << template_size(template)) * ex
-        if reference == "patch":
-            if ref_template not in TEMPLATES:
-                raise ValueError(f"unknown ref_template {ref_template!r}")
-            inner, outer = TEMPLATES[ref_template], TEMPLATES[template]
-            pairs = zip(inner, outer, strict=True)
-            if any(lo < olo or hi > ohi for (lo, hi), (olo, ohi) in pairs if lo <= hi):
-                raise ValueError(f"ref_template {ref_template!r} is not inside {template!r}")
-            size += (1 << template_size(ref_template)) * ex * REFERENCE_FEATURES[reference]
-        else:
-            size *= REFERENCE_FEATURES[reference]
+        size = (1 << template_size(template)) * _N_EXTRA ** (int(extrapolate) + int(reference))
         return size + (_RUN_CONTEXTS if runs else 0)
 
     @classmethod
-    def uniform(
-        cls, template: str, *, strength: float = 0.4, **features: bool | str
-    ) -> ContextModel:
+    def uniform(cls, template: str, *, strength: float = 0.4, **features: bool) -> ContextModel:
         """An adaptive model that starts knowing nothing."""
         if template not in TEMPLATES:
             raise ValueError(f"unknown template {template!r}; known: {sorted(TEMPLATES)}")
@@ -199,14 +151,14 @@ class ContextModel:
         strength: float,
         adaptive: bool,
         pseudo: float = 0.4,
-        **features: bool | str,
+        **features: bool,
     ) -> ContextModel:
         """A model whose prior is the corpus frequency ``(n1 + a) / (n0 + n1 + 2a)``."""
         prior = (np.asarray(n1, float) + pseudo) / (np.asarray(n0, float) + n1 + 2 * pseudo)
         return cls(template, prior, strength, adaptive, **features)
 
 
-_NO_REF = np.zeros((1, 1), dtype=np.uint16)
+_NO_REF = np.zeros((1, 1), dtype=np.uint8)
 _TOP = 1 << 24
 _ONE = 1 << 24  # probabilities of a one are fixed point Q24 in [1, 2**24 - 1]
 _HALF = 1 << 15  # P(0) = 1/2 for the coder
@@ -345,10 +297,8 @@ def _kernel(  # type: ignore[no-untyped-def]
     w,
     spans,
     extrapolate,
-    refcode,  # uint16 (h, w) reference feature in [0, nref), or (1, 1) unused
-    nref,  # values of the reference feature; 0: no reference
-    rspans,  # the split context's sub-template (reference "patch")
-    split,  # where the split context's table part starts; 0: the feature multiplies
+    refcode,  # uint8 (h, w) reference feature 0/1/2, or (1, 1) unused
+    use_ref,
     runs,  # quiet extents coded as "a one in it?" + its position (see ContextModel)
     adaptive,
     recip,
@@ -373,15 +323,6 @@ def _kernel(  # type: ignore[no-untyped-def]
     m1 = (1 << k1) - 1
     m0 = (1 << k0) - 1
     sh2 = k1 + k0
-    # the sub-template's bits inside the registers (bit j of a row register is dx = hi - j)
-    rk2 = rspans[0, 1] - rspans[0, 0] + 1
-    rk1 = rspans[1, 1] - rspans[1, 0] + 1
-    rk0 = rspans[2, 1] - rspans[2, 0] + 1
-    rs2 = hi2 - rspans[0, 1] if rk2 > 0 else 0
-    rs1 = hi1 - rspans[1, 1] if rk1 > 0 else 0
-    rm2 = (1 << rk2) - 1 if rk2 > 0 else 0
-    rm1 = (1 << rk1) - 1 if rk1 > 0 else 0
-    rm0 = (1 << rk0) - 1 if rk0 > 0 else 0
     nbase = tab.shape[0] - _RUN_CONTEXTS if runs else tab.shape[0]
     g = gbox[0] + 1
     if g > 0x7FFFFFF0:  # the stamps are int32: start over (every 2**31 grids)
@@ -423,16 +364,8 @@ def _kernel(  # type: ignore[no-untyped-def]
             ctx = (reg2 << sh2) | (reg1 << k0) | reg0
             if extrapolate:
                 ctx = ctx * 3 + ex[r, c]
-            if nref:
-                rv = refcode[r, c]
-                if split == 0:
-                    ctx = ctx * nref + rv
-                elif rv:
-                    sub = (((reg2 >> rs2) & rm2) << (rk1 + rk0)) | (((reg1 >> rs1) & rm1) << rk0)
-                    sub |= reg0 & rm0
-                    if extrapolate:
-                        sub = sub * 3 + ex[r, c]
-                    ctx = split + sub * nref + rv
+            if use_ref:
+                ctx = ctx * 3 + refcode[r, c]
             bit = 0
             p1 = 0
             n = 0
@@ -445,7 +378,7 @@ def _kernel(  # type: ignore[no-untyped-def]
                         break
                     if extrapolate and ex[r, end]:
                         break
-                    if nref and refcode[r, end]:
+                    if use_ref and refcode[r, end]:
                         break
                     end += 1
                 extent = end - c
@@ -513,7 +446,7 @@ def _kernel(  # type: ignore[no-untyped-def]
                         break
                     if extrapolate and ex[r, end]:
                         break
-                    if nref and refcode[r, end]:
+                    if use_ref and refcode[r, end]:
                         break
                     end += 1
                 if mode == 2:
@@ -647,15 +580,11 @@ def _call(
 ) -> int:
     if model.reference and refcode is None:
         raise ValueError("this model codes against a reference: refcode is required")
-    spans, recip, tab, gbox, rspans, split = model._state
-    nref = REFERENCE_FEATURES[model.reference] if model.reference else 0
-    rc = _NO_REF if refcode is None else np.ascontiguousarray(refcode, dtype=np.uint16)
-    if model.reference:
-        if rc.shape != (h, w):
-            raise ValueError(f"refcode must have shape {(h, w)}, got {rc.shape}")
-        if rc.size and int(rc.max()) >= nref:
-            raise ValueError(f"refcode values must be below {nref} for {model.reference!r}")
-    args = (p, h, w, spans, model.extrapolate, rc, nref, rspans, split, model.runs)
+    spans, recip, tab, gbox = model._state
+    rc = _NO_REF if refcode is None else np.ascontiguousarray(refcode, dtype=np.uint8)
+    if model.reference and rc.shape != (h, w):
+        raise ValueError(f"refcode must have shape {(h, w)}, got {rc.shape}")
+    args = (p, h, w, spans, model.extrapolate, rc, model.reference, model.runs)
     state = (model.adaptive, recip, tab, gbox)
     with model._lock:  # the adaptive state is shared by calls on this model
         return int(_kernel(mode, *args, *state, data, out, n0, n1))
@@ -669,7 +598,7 @@ def encode_context(
     grid: np.ndarray, model: ContextModel, refcode: np.ndarray | None = None
 ) -> bytes:
     """Code a binary ``(height, width)`` grid with ``model`` (no header: see the registry).
-    ``refcode``: the reference feature per cell (models with a ``reference``)."""
+    ``refcode``: the reference feature per cell (models with ``reference=True``)."""
     h, w = grid.shape
     p = _padded(h, w)
     p[_PAD_TOP:, _PAD_LEFT : _PAD_LEFT + w] = grid
@@ -695,17 +624,12 @@ def context_counts(
     *,
     extrapolate: bool = False,
     refcodes: list[np.ndarray] | None = None,
-    reference: str = "",
     runs: bool = False,
-    ref_template: str = "",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Counts ``(n0, n1)`` of each context over a corpus of grids (training the priors);
-    ``refcodes`` (one per grid) trains a model with the ``reference`` feature they hold."""
-    if (refcodes is None) != (not reference):
-        raise ValueError("refcodes and reference go together")
-    model = ContextModel.uniform(
-        template, extrapolate=extrapolate, reference=reference, runs=runs, ref_template=ref_template
-    )
+    ``refcodes`` (one per grid) trains a ``reference`` model."""
+    reference = refcodes is not None
+    model = ContextModel.uniform(template, extrapolate=extrapolate, reference=reference, runs=runs)
     n = model.prior1.shape[0]
     n0 = np.zeros(n, dtype=np.float64)
     n1 = np.zeros(n, dtype=np.float64)

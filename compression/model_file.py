@@ -35,14 +35,13 @@ class TrainedModel:
     codec_id: int
     template: str
     extrapolate: bool
-    reference: str  # "" intra, else the inter-frame feature (compression.context_model)
+    reference: bool
     adaptive: bool
     strength: float
     n0: np.ndarray
     n1: np.ndarray
     description: str = ""
     runs: bool = False
-    ref_template: str = ""
 
     def context_model(self) -> ContextModel:
         return ContextModel.trained(
@@ -54,7 +53,6 @@ class TrainedModel:
             extrapolate=self.extrapolate,
             reference=self.reference,
             runs=self.runs,
-            ref_template=self.ref_template,
         )
 
 
@@ -72,7 +70,6 @@ _SPEC_KEYS = (
     "extrapolate",
     "reference",
     "runs",
-    "ref_template",
     "adaptive",
     "strength",
 )
@@ -105,15 +102,11 @@ def load_model_file(path: str | Path) -> ModelFile:
             models = []
             for spec in header["models"]:
                 name = str(spec["name"])
-                reference = spec["reference"]
-                if isinstance(reference, bool):  # version 2 files: True meant "near"
-                    reference = "near" if reference else ""
                 size = ContextModel.table_size(
                     spec["template"],
                     extrapolate=spec["extrapolate"],
-                    reference=str(reference),
+                    reference=spec["reference"],
                     runs=spec.get("runs", False),
-                    ref_template=str(spec.get("ref_template", "")),
                 )
                 index = f[f"{name}.index"].astype(np.int64)
                 if index.size and (index.min() < 0 or index.max() >= size):
@@ -128,14 +121,13 @@ def load_model_file(path: str | Path) -> ModelFile:
                         codec_id=int(spec["codec_id"]),
                         template=str(spec["template"]),
                         extrapolate=bool(spec["extrapolate"]),
-                        reference=str(reference),
+                        reference=bool(spec["reference"]),
                         adaptive=bool(spec["adaptive"]),
                         strength=float(spec["strength"]),
                         n0=n0,
                         n1=n1,
                         description=str(spec.get("description", "")),
                         runs=bool(spec.get("runs", False)),
-                        ref_template=str(spec.get("ref_template", "")),
                     )
                 )
     except (OSError, KeyError, ValueError, TypeError) as err:

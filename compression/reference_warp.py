@@ -3,15 +3,14 @@
 The paper's coder (4.3.4) codes each grid alone. Consecutive pose nodes of a robot see mostly
 the same walls, so the grid the receiver already has predicts the new one: each occupied cell
 of the reference is carried by the odometry between the two nodes into the current grid, and
-the current grid's cells get a feature from the reference cells that land around them:
-``near`` (0: none within one cell, 1: one within one cell, 2: one on this cell) or ``patch``
-(which of the 3 x 3 cells around this one hold a reference cell, 9 bits).
+the current grid's cells get a feature ``0`` (no reference cell within one cell), ``1`` (a
+reference cell within one cell) or ``2`` (a reference cell on this cell).
 
 The warp must be identical on the robot and at the GCS, on any platform. So the pose is first
 rounded to float32 (what the radio carries), then quantized: translation to 1/256 cell, angle
 to 2*pi/65536, and the warp runs in integer arithmetic with a sine table in Q16 (rounded from
 ``math.sin``; :data:`SINE_TABLE_CHECKSUM` pins it). The reference cells are mapped forward (one
-point per occupied cell, the cell's centre), so the warp costs O(occupied cells).
+point per occupied cell, the cell's centre), so the cost is O(occupied cells), not O(pixels).
 """
 
 from __future__ import annotations
@@ -64,9 +63,8 @@ def quantize_pose(
 
 
 @numba.njit(cache=True)
-def _hits(ref, ref_ox, ref_oy, tx, ty, c, s, ox, oy, h, w):  # type: ignore[no-untyped-def]
-    """``(h + 2, w + 2)``: 1 where a reference cell's centre lands (one cell of margin)."""
-    hits = np.zeros((h + 2, w + 2), dtype=np.uint8)
+def _reference_code(ref, ref_ox, ref_oy, tx, ty, c, s, ox, oy, h, w):  # type: ignore[no-untyped-def]
+    code = np.zeros((h, w), dtype=np.uint8)
     rh, rw = ref.shape
     for rr in range(rh):
         for rc in range(rw):
@@ -80,45 +78,14 @@ def _hits(ref, ref_ox, ref_oy, tx, ty, c, s, ox, oy, h, w):  # type: ignore[no-u
             y = (c * dy - s * dx) >> 16
             col = (x >> 8) - ox
             row = (y >> 8) - oy
-            if -1 <= row <= h and -1 <= col <= w:
-                hits[row + 1, col + 1] = 1
-    return hits
-
-
-@numba.njit(cache=True)
-def _near(hits, h, w):  # type: ignore[no-untyped-def]
-    code = np.zeros((h, w), dtype=np.uint16)
-    for hr in range(h + 2):
-        for hc in range(w + 2):
-            if not hits[hr, hc]:
+            if row < -1 or row > h or col < -1 or col > w:
                 continue
-            for r in range(max(hr - 2, 0), min(hr + 1, h)):
-                for q in range(max(hc - 2, 0), min(hc + 1, w)):
+            for r in range(max(row - 1, 0), min(row + 2, h)):
+                for q in range(max(col - 1, 0), min(col + 2, w)):
                     if code[r, q] == 0:
                         code[r, q] = 1
-    for r in range(h):
-        for q in range(w):
-            if hits[r + 1, q + 1]:
-                code[r, q] = 2
-    return code
-
-
-@numba.njit(cache=True)
-def _patch(hits, h, w):  # type: ignore[no-untyped-def]
-    code = np.zeros((h, w), dtype=np.uint16)
-    for hr in range(h + 2):
-        for hc in range(w + 2):
-            if not hits[hr, hc]:
-                continue
-            # the hit is neighbour (dr, dc) = (hr - 1 - r, hc - 1 - q) of cell (r, q)
-            for dr in range(-1, 2):
-                r = hr - 1 - dr
-                if r < 0 or r >= h:
-                    continue
-                for dc in range(-1, 2):
-                    q = hc - 1 - dc
-                    if 0 <= q < w:
-                        code[r, q] |= 1 << (3 * (dr + 1) + dc + 1)
+            if 0 <= row < h and 0 <= col < w:
+                code[row, col] = 2
     return code
 
 
@@ -129,18 +96,14 @@ def reference_code(
     origin_cells: tuple[int, int],
     height: int,
     width: int,
-    feature: str = "near",
 ) -> np.ndarray:
-    """The ``(height, width)`` uint16 reference feature of the current grid at
-    ``origin_cells`` from the reference grid, with ``pose`` from :func:`quantize_pose`:
-    ``"near"`` 0/1/2 (nothing within one cell / a reference cell within one cell / on this
-    cell) or ``"patch"`` the 3 x 3 reference cells around each cell, bit ``3 (dr + 1) +
-    (dc + 1)`` for the neighbour ``(row + dr, col + dc)``."""
+    """The ``(height, width)`` uint8 feature (0/1/2) of the current grid at ``origin_cells``
+    from the reference grid, with ``pose`` from :func:`quantize_pose`."""
     tx, ty, angle = pose
     s = int(_SIN[angle])
     c = int(_SIN[(angle + _ANGLE_STEPS // 4) % _ANGLE_STEPS])
     ref = np.ascontiguousarray(reference_grid, dtype=np.bool_)
-    hits = _hits(
+    return _reference_code(
         ref,
         int(reference_origin_cells[0]),
         int(reference_origin_cells[1]),
@@ -153,8 +116,3 @@ def reference_code(
         int(height),
         int(width),
     )
-    if feature == "near":
-        return _near(hits, int(height), int(width))
-    if feature == "patch":
-        return _patch(hits, int(height), int(width))
-    raise ValueError(f"unknown reference feature {feature!r}: 'near' or 'patch'")

@@ -288,8 +288,7 @@ class ModelSpec(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     codec_id: int
     template: str
     extrapolate: bool = False
-    reference: str = ""  # inter-frame: "near" or "patch" (compression.context_model)
-    ref_template: str = ""  # with "patch": the template next to the reference
+    reference: bool = False
     runs: bool = False
     adaptive: bool = True
     description: str = ""
@@ -313,7 +312,7 @@ MODEL_SPECS: tuple[ModelSpec, ...] = (
               description="16 neighbours, trained prior that adapts"),
     ModelSpec(name="intra16", codec_id=30, template="16", extrapolate=True, runs=True,
               description="16 neighbours + line extrapolation + quiet runs, trained, adapts"),
-    ModelSpec(name="inter16", codec_id=40, template="16", extrapolate=True, reference="near",
+    ModelSpec(name="inter16", codec_id=40, template="16", extrapolate=True, reference=True,
               runs=True, description="intra16 + the previous grid warped by odometry"),
 )  # fmt: skip
 
@@ -331,7 +330,7 @@ def _counts(
     refcodes = None
     if spec.reference:
         refcodes = [
-            reference_code_for(*c.grid.shape, c.origin_cells, c.reference, spec.reference)  # type: ignore[arg-type]
+            reference_code_for(c.grid.shape[0], c.grid.shape[1], c.origin_cells, c.reference)  # type: ignore[arg-type]
             for c in used
         ]
     n0, n1 = context_counts(
@@ -339,9 +338,7 @@ def _counts(
         spec.template,
         extrapolate=spec.extrapolate,
         refcodes=refcodes,
-        reference=spec.reference,
         runs=spec.runs,
-        ref_template=spec.ref_template,
     )
     return n0, n1, used
 
@@ -355,7 +352,7 @@ def _body_bytes(model: object, spec: ModelSpec, cases: list[CodingCase]) -> int:
         rc = None
         if spec.reference:
             h, w = c.grid.shape
-            rc = reference_code_for(h, w, c.origin_cells, c.reference, spec.reference)  # type: ignore[arg-type]
+            rc = reference_code_for(h, w, c.origin_cells, c.reference)  # type: ignore[arg-type]
         total += len(encode_context(c.grid, model, rc))  # type: ignore[arg-type]
     return total
 
@@ -395,7 +392,6 @@ def train_models(
                         extrapolate=spec.extrapolate,
                         reference=spec.reference,
                         runs=spec.runs,
-                        ref_template=spec.ref_template,
                     )
                     total[s] += _body_bytes(model, spec, held_out)
             strength = min(strengths, key=lambda s: total[s])
@@ -419,7 +415,6 @@ def train_models(
                 n1=n1,
                 description=spec.description,
                 runs=spec.runs,
-                ref_template=spec.ref_template,
             )
         )
     meta: dict[str, object] = {

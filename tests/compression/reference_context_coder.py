@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from compression.binary_coder import PROB_ONE, ReferenceDecoder, ReferenceEncoder
-from compression.context_model import REFERENCE_FEATURES, TEMPLATES, ContextModel
+from compression.context_model import TEMPLATES, ContextModel
 
 _ONE = 1 << 24
 
@@ -47,23 +47,13 @@ def _code(
     enc = ReferenceEncoder() if data is None else None
     dec = ReferenceDecoder(data) if data is not None else None
 
-    nref = REFERENCE_FEATURES[model.reference]
-    split = (1 << sum(hi - lo + 1 for lo, hi in TEMPLATES[model.template])) * (
-        3 if model.extrapolate else 1
-    )
-
     def full_context(r: int, c: int) -> int:
-        rv = int(refcode[r, c]) if refcode is not None else 0
-        if model.reference == "patch" and rv:  # the split context: sub-template x patch
-            sub = _context(out, r, c, model.ref_template)
-            if model.extrapolate:
-                sub = sub * 3 + min(int(marks[r, c]), 2)
-            return split + sub * nref + rv
         ctx = _context(out, r, c, model.template)
         if model.extrapolate:
             ctx = ctx * 3 + min(int(marks[r, c]), 2)
-        if model.reference == "near":
-            ctx = ctx * nref + rv
+        if model.reference:
+            assert refcode is not None
+            ctx = ctx * 3 + int(refcode[r, c])
         return ctx
 
     def code(bit: int | None, p1: int) -> int:

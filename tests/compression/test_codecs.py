@@ -163,39 +163,22 @@ MODELS = {
     "inter6": ContextModel(
         "6",
         np.random.default_rng(3).uniform(
-            0.001, 0.5, ContextModel.table_size("6", extrapolate=True, reference="near", runs=True)
+            0.001, 0.5, ContextModel.table_size("6", extrapolate=True, reference=True, runs=True)
         ),
         3.0,
         True,
         extrapolate=True,
-        reference="near",
+        reference=True,
         runs=True,
     ),
-    "inter4": ContextModel.uniform("4", strength=1.0, reference="near"),
-    "patch16": ContextModel(
-        "16",
-        np.random.default_rng(4).uniform(
-            0.001,
-            0.5,
-            ContextModel.table_size(
-                "16", extrapolate=True, reference="patch", runs=True, ref_template="6"
-            ),
-        ),
-        2.0,
-        True,
-        extrapolate=True,
-        reference="patch",
-        runs=True,
-        ref_template="6",
-    ),
-    "patch10": ContextModel.uniform("10", strength=1.0, reference="patch", ref_template="4"),
+    "inter4": ContextModel.uniform("4", strength=1.0, reference=True),
 }
 
 
-def _refcode(grid: np.ndarray, seed: int, feature: str) -> np.ndarray:
+def _refcode(grid: np.ndarray, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     ref = GridReference(0, rng.random(grid.shape) < 0.05, (0, 0), (0.05, -0.02, 0.03), 0.1)
-    return reference_code_for(grid.shape[0], grid.shape[1], (0, 0), ref, feature)
+    return reference_code_for(grid.shape[0], grid.shape[1], (0, 0), ref)
 
 
 @pytest.mark.parametrize("model_name", sorted(MODELS))
@@ -203,7 +186,7 @@ def _refcode(grid: np.ndarray, seed: int, feature: str) -> np.ndarray:
 def test_compiled_coder_equals_python_reference(model_name: str, grid_name: str) -> None:
     model = MODELS[model_name]
     grid = structured_grid(4, (40, 50)) if grid_name == "structured_small" else GRIDS[grid_name]
-    refcode = _refcode(grid, 5, model.reference) if model.reference else None
+    refcode = _refcode(grid, 5) if model.reference else None
     data = encode_context(grid, model, refcode)
     assert data == reference_encode(grid, model, refcode)
     assert np.array_equal(reference_decode(data, grid.shape, model, refcode), grid)
@@ -223,7 +206,7 @@ def test_compiled_coder_equals_python_reference_fuzzed(
 ) -> None:
     model = MODELS[model_name]
     grid = np.random.default_rng(seed).random((h, w)) < density
-    refcode = _refcode(grid, seed, model.reference) if model.reference else None
+    refcode = _refcode(grid, seed) if model.reference else None
     data = encode_context(grid, model, refcode)
     assert data == reference_encode(grid, model, refcode)
     assert np.array_equal(decode_context(data, h, w, model, refcode), grid)

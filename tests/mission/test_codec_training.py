@@ -76,7 +76,7 @@ def test_references_link_consecutive_nodes_only() -> None:
 def test_training_and_model_file(tmp_path: Path) -> None:
     specs = (
         ModelSpec(name="s4", codec_id=200, template="4", adaptive=False),
-        ModelSpec(name="r6", codec_id=201, template="6", extrapolate=True, reference="near"),
+        ModelSpec(name="r6", codec_id=201, template="6", extrapolate=True, reference=True),
     )
     model_file = train_models(tiny_corpus(), version=3, specs=specs, strengths=(1.0, 4.0))
     s4, r6 = model_file.models
