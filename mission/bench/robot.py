@@ -89,7 +89,7 @@ def terrain_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, 
     cfg = TerrainConfig()
     rng = np.random.default_rng(11)
     hits = cast_sweep(issue_scene(), (0.2, -0.1, 0.3), rng=rng, **DENSE)
-    pts, pose = hits.points_in_base, hits.odom_from_base
+    pts, pose, line = hits.points_in_base, hits.odom_from_base, hits.line_index
     classify_ms = 1e3 * median_time_s(
         lambda: classify_sweep(pts, pose, config=cfg), repeats=10 if quick else 40, warmup=2
     )
@@ -115,7 +115,8 @@ def terrain_speed(*, quick: bool, progress: Callable[[str], None]) -> dict[str, 
     fuse_ms = 1e3 * median_time_s(lambda: fusion.fused(geo), repeats=10 if quick else 40)
     vcfg = VerticalSurfaceConfig()
     vertical_ms = 1e3 * median_time_s(
-        lambda: vertical_surface_grid(pts, config=vcfg), repeats=10 if quick else 40
+        lambda: vertical_surface_grid(pts, config=vcfg, point_time_s=line),
+        repeats=10 if quick else 40,
     )
     return {
         "terrain_ms_400x400": classify_ms,

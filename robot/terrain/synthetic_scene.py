@@ -133,14 +133,16 @@ class Scene:
 @dataclass(frozen=True)
 class LidarHits:
     """One sweep: ``points_in_base`` ``(N, 3)`` float32 (noisy), ``points_in_odom`` (noisy,
-    float64), the surface label of each hit, the index of the solid hit (``-1``: ground) and
-    the robot's ``odom_from_base`` pose."""
+    float64), the surface label of each hit, the index of the solid hit (``-1``: ground), the
+    robot's ``odom_from_base`` pose, and each hit's scan line (hits come line by line, each
+    line in beam order, like :class:`~protocol.sensors.LidarSweep`)."""
 
     points_in_base: NDArray[np.float32]
     points_in_odom: NDArray[np.float64]
     labels: NDArray[np.int64]
     solid_index: NDArray[np.int64]
     odom_from_base: NDArray[np.float64]
+    line_index: NDArray[np.int64]
 
 
 def _ray_dirs(beams: int, lines: int, tilt_min_deg: float, tilt_max_deg: float) -> NDArray:
@@ -208,6 +210,7 @@ def cast_sweep(
         label[ok],
         which[ok],
         np.array([x, y, yaw], dtype=np.float64),
+        np.flatnonzero(ok) // beams,
     )
 
 
