@@ -356,17 +356,10 @@ class GroundStation:
         res = msg.resolution_m
         if not (self.config.min_grid_resolution_m <= res <= self.config.max_grid_resolution_m):
             raise _Rejected("bad_grid", f"{what}: resolution_m {res} outside accepted range")
-        _finite(msg.origin_in_base, f"{what} origin_in_base")
         try:
-            header = read_header(msg.data)
+            read_header(msg.data)
         except CodecError as err:
             raise _Rejected("bad_grid", f"{what}: {err}") from None
-        if (header.height, header.width) != (msg.height, msg.width):
-            raise _Rejected(
-                "bad_grid",
-                f"{what}: message says {msg.height}x{msg.width} cells, "
-                f"stream holds {header.height}x{header.width}",
-            )
         key = track.keys.get(msg.node_index)
         if (
             msg.node_index in track.decoded
@@ -438,19 +431,15 @@ class GroundStation:
 
     def _attach_grid(self, track: _Track, key: int, msg: TerrainGrid, grid: np.ndarray) -> None:
         time_s = self._key_time[key]
-        record = GridRecord(
-            key,
-            time_s,
-            grid,
-            (float(msg.origin_in_base[0]), float(msg.origin_in_base[1])),
-            float(msg.resolution_m),
-        )
+        header = read_header(msg.data)
+        res = float(msg.resolution_m)
+        origin = (header.origin_cells[0] * res, header.origin_cells[1] * res)
+        record = GridRecord(key, time_s, grid, origin, res)
         self.rasterizer.add_node(key, time_s, grid, record.origin_in_base, record.resolution_m)
         points = grid_points(grid, origin_m=record.origin_in_base, resolution_m=record.resolution_m)
         self.loop_closer.add_scan(key, points)
         self.grids[key] = record
         self.stats.terrain_grids += 1
-        header = read_header(msg.data)
         track.decoded[msg.node_index] = (grid, header.origin_cells, record.resolution_m)
         track.undecodable.discard(msg.node_index)
         for old in [i for i in track.decoded if i < msg.node_index - _REFERENCE_MEMORY]:

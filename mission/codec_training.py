@@ -116,7 +116,7 @@ def record_corpus(
     runs: Sequence[RecordRun], *, progress: Callable[[str], None] = lambda _msg: None
 ) -> Corpus:
     """Run each world with its whole team and keep every pose node's grid (see module doc)."""
-    from compression import decode_grid
+    from compression import decode_grid, read_header
     from mission.config import CONFIGS_DIR
     from mission.run import RunConfig, scripted_goals
     from protocol.messages import GoToTask, PoseNode, TerrainGrid
@@ -128,6 +128,7 @@ def record_corpus(
     vs = node_cfg.vertical_surfaces
     size = vs.size_cells
     half = size * vs.resolution_m / 2
+    base = origin_cells_of((-half, -half), vs.resolution_m)
     seq_rows: list[int] = []
     idx_rows: list[int] = []
     poses: list[tuple[float, float, float]] = []
@@ -176,10 +177,12 @@ def record_corpus(
                         continue
                     node = pose_nodes[msg.node_index]
                     full = np.zeros((size, size), dtype=bool)
-                    if msg.width and msg.height:
-                        c0 = int(round((msg.origin_in_base[0] + half) / vs.resolution_m))
-                        r0 = int(round((msg.origin_in_base[1] + half) / vs.resolution_m))
-                        full[r0 : r0 + msg.height, c0 : c0 + msg.width] = decode_grid(msg.data)
+                    header = read_header(msg.data)
+                    if header.width and header.height:
+                        c0 = header.origin_cells[0] - base[0]
+                        r0 = header.origin_cells[1] - base[1]
+                        crop = decode_grid(msg.data)
+                        full[r0 : r0 + header.height, c0 : c0 + header.width] = crop
                     seq_rows.append(seq)
                     idx_rows.append(msg.node_index)
                     poses.append(node.pose_in_odom)

@@ -44,7 +44,7 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
-from compression import encode_grid
+from compression import encode_grid, origin_cells_of
 from gcs.graph.pose_graph import Provenance
 from gcs.ground_station import GroundStation, GroundStationConfig
 from gcs.mapping.map_export import write_pgm_yaml, write_png
@@ -292,10 +292,8 @@ def replay_messages(log: CarmenLog, config: ReplayConfig | None = None) -> list[
             ]
         )
         grid, origin = scan_grid(points, resolution_m=res)
-        data = encode_grid(grid, cfg.grid.codec)
-        msg = TerrainGrid(
-            node.node_index, cfg.grid.codec, res, grid.shape[1], grid.shape[0], origin, data
-        )
+        data = encode_grid(grid, cfg.grid.codec, origin_cells=origin_cells_of(origin, res))
+        msg = TerrainGrid(node.node_index, res, data)
         out.append(ReplayNode(scan=k, pose_node=node, terrain_grid=msg))
     return out
 

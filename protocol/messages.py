@@ -208,20 +208,16 @@ class PoseNode(_Message, tag=1, frozen=True):
 class TerrainGrid(_Message, tag=2, frozen=True):
     """Binary grid of vertical surfaces around pose node ``node_index`` (paper 4.3.3, 4.3.4).
 
-    Cell ``(row, col)`` covers ``origin_in_base + (col, row) * resolution_m`` in the node's
-    ``base`` frame (axes aligned with it); ``width`` columns by ``height`` rows. ``data`` is
-    the grid compressed by the codec registered as ``codec`` in ``compression/``.
+    ``data`` is the grid compressed by ``compression/`` (``encode_grid``); its header names the
+    codec and model version and holds the grid's size and origin, so they are not repeated
+    here: cell ``(row, col)`` covers ``(origin_cells + (col, row)) * resolution_m`` in the
+    node's ``base`` frame (axes aligned with it). ``resolution_m``: the cell side.
     """
 
     _F32 = ("resolution_m",)
-    _F32_TUPLES = ("origin_in_base",)
 
     node_index: int
-    codec: str
     resolution_m: float
-    width: int
-    height: int
-    origin_in_base: F2
     data: bytes
 
 

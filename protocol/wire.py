@@ -9,7 +9,7 @@ Three things msgspec does not do on its own live here:
 * **numpy arrays** (sensor frames) travel as a msgpack extension: dtype code, ndim, shape as
   uint32 little-endian, then the raw little-endian data. Decoded arrays are read-only views.
 * **errors that name fields.** msgspec reports array-like structs by index (``$[2][3]``);
-  :func:`describe_path` maps that back to ``TerrainGrid.width`` using the declared types.
+  :func:`describe_path` maps that back to ``TerrainGrid.data`` using the declared types.
 
 Every decoding failure, whatever its cause, surfaces as :class:`ProtocolError`.
 """
@@ -191,7 +191,7 @@ def _struct_for(tinfo: mi.Type, raw: Any) -> mi.StructType | None:
 
 
 def describe_path(root: type, raw: Any, path: str) -> str:
-    """Name the field that msgspec's ``$``-relative ``path`` points at, e.g. ``TerrainGrid.width``.
+    """Name the field that msgspec's ``$``-relative ``path`` points at, e.g. ``TerrainGrid.data``.
 
     ``raw`` is the same bytes decoded without a type (plain lists), used to read union tags.
     Falls back to the raw path where the structure does not match the declared types.

@@ -389,9 +389,7 @@ class RobotNode:
             log.error("robot %d: cannot encode terrain grid: %s", self.robot_id, err)
             self._last_grid = None
             return
-        accepted = self._send(
-            TerrainGrid(index, self._codec, res, crop.shape[1], crop.shape[0], origin, data)
-        )
+        accepted = self._send(TerrainGrid(index, res, data))
         self._last_grid = (index, crop, cells) if accepted is not None else None
         self.stats.terrain_grids += 1
         self.stats.terrain_grid_bytes += len(data)

@@ -46,9 +46,7 @@ def _pose_node(i: int) -> PoseNode:
 
 
 def _grid(i: int, nbytes: int) -> TerrainGrid:
-    return TerrainGrid(
-        i, "zlib", 0.1, 120, 120, (-6.0, -6.0), bytes((i + k) % 251 for k in range(nbytes))
-    )
+    return TerrainGrid(i, 0.1, bytes((i + k) % 251 for k in range(nbytes)))
 
 
 def _drain(pair: LockstepPair, up: list[int], down: list[int]) -> None:

@@ -38,8 +38,8 @@ def test_gcs_node_takes_uplink_and_sends_frames_over_zenoh() -> None:
             pose = (0.5 * i, 0.0, 0.0)
             robot0.send(PoseNode(i, float(i), pose, (0.5, 0.0, 0.0) if i else (0.0,) * 3,
                                  COV if i else (0.0,) * 6))  # fmt: skip
-            robot0.send(TerrainGrid(i, "zlib", 0.1, 30, 20, (-1.5, -1.0), encode_grid(grid)))
-        robot0.send(TerrainGrid(4, "zlib", 0.1, 30, 20, (-1.5, -1.0), b"\x01\x00garbage"))
+            robot0.send(TerrainGrid(i, 0.1, encode_grid(grid, origin_cells=(-15, -10))))
+        robot0.send(TerrainGrid(4, 0.1, b"\xfe\x00garbage"))
         stranger.send(PoseNode(0, 0.0, (0.0, 0.0, 0.0), (0.0,) * 3, (0.0,) * 6))
         deadline = 200
         s = proc.station.stats

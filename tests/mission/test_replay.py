@@ -8,7 +8,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from compression import decode_grid
+from compression import decode_grid, origin_cells_of, read_header
 from gcs.mapping.map_export import read_pgm_yaml
 from gcs.replay.carmen_log import CarmenLog, parse_carmen_log, read_carmen_log
 from gcs.replay.relations import parse_relations, read_relations
@@ -125,7 +125,8 @@ def test_messages_follow_the_node_rule_and_carry_the_scan() -> None:
         assert np.all(np.linalg.eigvalsh(covariance_from_upper(cur.pose_node.odom_covariance)) > 0)
     n = nodes[5]
     grid = decode_grid(n.terrain_grid.data)
-    assert grid.shape == (n.terrain_grid.height, n.terrain_grid.width)
+    header = read_header(n.terrain_grid.data)
+    assert grid.shape == (header.height, header.width)
     # The grid holds the scans of the last 2 m: this one and the six before (0.3 m apart).
     assert n.scan >= 6 and cfg.grid.aggregate_m == 2.0
     recent = [
@@ -137,8 +138,8 @@ def test_messages_follow_the_node_rule_and_carry_the_scan() -> None:
     ]
     expect, origin = scan_grid(np.concatenate(recent), resolution_m=0.1)
     np.testing.assert_array_equal(grid, expect)
-    np.testing.assert_allclose(n.terrain_grid.origin_in_base, origin, atol=1e-6)
-    assert n.terrain_grid.codec == "ctx4a" and n.terrain_grid.resolution_m == pytest.approx(0.1)
+    assert header.origin_cells == origin_cells_of(origin, 0.1)
+    assert header.codec == "ctx4a" and n.terrain_grid.resolution_m == pytest.approx(0.1)
     # Without aggregation, the node's own scan only.
     single = replay_messages(log, ReplayConfig(grid=ScanGridConfig(aggregate_m=0.0)))[5]
     own, _ = scan_grid(log.points_in_base(single.scan, max_range_m=10.0), resolution_m=0.1)

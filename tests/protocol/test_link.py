@@ -95,7 +95,7 @@ def test_rate_limit_holds_in_mission_time_over_zenoh() -> None:
         i = 0
         for _ in range(240):  # 60 mission-seconds in 0.25 s steps
             while pair.robot.channel.pending() < 10:
-                pair.robot.send(TerrainGrid(i, "zlib", 0.1, 10, 10, (0.0, 0.0), bytes(150)))
+                pair.robot.send(TerrainGrid(i, 0.1, bytes(150)))
                 i += 1
             pair.step(0.25)
             drain_up(pair)

@@ -81,11 +81,7 @@ pose_nodes = st.builds(
 terrain_grids = st.builds(
     TerrainGrid,
     node_index=ints,
-    codec=texts,
     resolution_m=f32v,
-    width=ints,
-    height=ints,
-    origin_in_base=f32_tuple(2),
     data=blobs,
 )
 fiducials = st.builds(
@@ -265,19 +261,10 @@ def test_f32_fields_hold_the_float32_rounding(
 
 
 def test_f32_fields_travel_as_msgpack_float32() -> None:
-    msg = TerrainGrid(7, "rle", 0.1, 3, 4, (1.5, -2.5), b"\x01")
+    msg = TerrainGrid(7, 0.1, b"\x01")
     wire = encode_frame(9, msg)
-    # [version, seq, [tag, node, codec, resolution, width, height, [ox, oy], data]]
-    expected = (
-        b"\x93\x01\x09\x98\x02\x07\xa3rle"
-        + b"\xca"
-        + struct.pack(">f", 0.1)
-        + b"\x03\x04\x92\xca"
-        + struct.pack(">f", 1.5)
-        + b"\xca"
-        + struct.pack(">f", -2.5)
-        + b"\xc4\x01\x01"
-    )
+    # [version, seq, [tag, node, resolution, data]]
+    expected = b"\x93\x01\x09\x94\x02\x07\xca" + struct.pack(">f", 0.1) + b"\xc4\x01\x01"
     assert wire == expected
 
 
@@ -315,7 +302,7 @@ def _sample(direction: Direction, cls: type) -> Any:
     samples = {
         Ack: Ack([]),
         PoseNode: PoseNode(0, 0.0, (0, 0, 0), (0, 0, 0), (0, 0, 0, 0, 0, 0)),
-        TerrainGrid: TerrainGrid(0, "rle", 0.1, 1, 1, (0, 0), b""),
+        TerrainGrid: TerrainGrid(0, 0.1, b""),
         FiducialObservation: FiducialObservation(0, 0.0, 1, 2, (0, 0, 0), (0, 0, 0, 0, 0, 0)),
         Detection: Detection(0, 0, 0.0, ObjectKind.UNKNOWN, (0, 0), (0, 0, 0), 0, 0, 0),
         DetectionImage: DetectionImage(0, 0, 0.0, 0.0, "png", 1, 1, b""),
@@ -464,20 +451,16 @@ def _raw(*frame: Any) -> bytes:
     return msgspec.msgpack.encode(list(frame))
 
 
-GRID = [2, 5, "rle", 0.1, 4, 3, [0.0, 0.0], b""]
+GRID = [2, 5, 0.1, b""]
 HAZARDS = [32, 1.0, [[1, 4, [0.0, 0.0], 5.0], [2, 1, [1.0, 1.0], 2.0]], [[3, [0.0, 0.0, 0.0]]]]
 
 
 @pytest.mark.parametrize(
     ("frame", "direction", "expected"),
     [
-        ([1, 3, [*GRID[:4], "4", *GRID[5:]]], UP, "TerrainGrid.width: expected int, got str"),
-        (
-            [1, 3, [*GRID[:6], [0.0], b""]],
-            UP,
-            "TerrainGrid.origin_in_base: expected array of length 2, got 1",
-        ),  # noqa: E501
-        ([1, 3, [*GRID[:7], "data"]], UP, "TerrainGrid.data: expected bytes, got str"),
+        ([1, 3, [2, "5", *GRID[2:]]], UP, "TerrainGrid.node_index: expected int, got str"),
+        ([1, 3, [*GRID[:2], "0.1", b""]], UP, "TerrainGrid.resolution_m: expected float, got str"),
+        ([1, 3, [*GRID[:3], "data"]], UP, "TerrainGrid.data: expected bytes, got str"),
         (
             [1, 3, [32, 1.0, [[1, 4, [0.0, 0.0], "5"]], []]],
             DOWN,

@@ -163,7 +163,7 @@ def test_rate_holds_in_mission_time(step_s: float) -> None:
     robot.poll(0.0)
     while t < 60.0 - 1e-9:
         while robot.pending() < 200:  # more than one step can drain: always backlogged
-            robot.send(TerrainGrid(i, "zlib", 0.1, 50, 50, (0.0, 0.0), bytes(200)))
+            robot.send(TerrainGrid(i, 0.1, bytes(200)))
             i += 1
         t += step_s
         exchange(robot, gcs, t)
@@ -185,7 +185,7 @@ def test_rate_zero_holds_everything_and_loses_nothing() -> None:
 def test_priority_order_when_link_opens() -> None:
     robot, _ = make_pair(rate_bps=0.0)
     robot.send(telemetry(1.0))
-    robot.send(TerrainGrid(0, "zlib", 0.1, 1, 1, (0.0, 0.0), b"\x00"))
+    robot.send(TerrainGrid(0, 0.1, b"\x00"))
     robot.send(PoseNode(0, 0.0, (0, 0, 0), (0, 0, 0), (1, 0, 0, 1, 0, 1)))
     robot.send(status(1))
     robot.set_grant(math.inf)
@@ -237,7 +237,7 @@ def test_acks_stay_a_small_fraction_at_one_kilobit() -> None:
     while t < 300.0:
         if t >= node * 1.25:
             robot.send(PoseNode(node, t, (0, 0, 0), (0.5, 0, 0), (1e-3, 0, 0, 1e-3, 0, 1e-4)))
-            robot.send(TerrainGrid(node, "zlib", 0.1, 100, 100, (-5.0, -5.0), bytes(60)))
+            robot.send(TerrainGrid(node, 0.1, bytes(60)))
             node += 1
         t += 0.05
         exchange(robot, gcs, t)

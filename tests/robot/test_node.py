@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from compression import decode_grid
+from compression import decode_grid_with_header, read_header
 from protocol.messages import (
     GoToTask,
     Hazard,
@@ -67,8 +67,8 @@ def test_goto_reaches_goal_and_reports_nodes_grids_and_telemetry(sim: Simulator)
     assert len(nodes) >= 2 and [n.node_index for n in nodes] == list(range(len(nodes)))
     assert [g.node_index for g in grids] == [n.node_index for n in nodes]
     for g in grids:
-        occ = decode_grid(g.data)
-        assert occ.shape == (g.height, g.width) and occ.any()
+        occ, header = decode_grid_with_header(g.data)  # key frames: send() returned None
+        assert occ.shape == (header.height, header.width) and occ.any()
     pose = np.array(nodes[0].pose_in_odom)
     for n in nodes[1:]:  # the constraints chain to the reported poses
         pose = compose(pose, np.array(n.odom_delta))
@@ -92,7 +92,8 @@ def test_bad_tasks_and_messages_are_rejected_and_the_node_carries_on(sim: Simula
     node.handle_downlink(GoToTask(8, sim.time_s, [(3.0, 0.0)]))
     run(sim, node, 30.0, until=lambda: TaskState.SUCCEEDED in statuses(sent, 8))
     assert statuses(sent, 8)[-1] is TaskState.SUCCEEDED
-    assert [m.codec for m in sent if isinstance(m, TerrainGrid)][-1] == "rle_zlib"
+    grids = [m for m in sent if isinstance(m, TerrainGrid)]
+    assert read_header(grids[-1].data).codec == "rle_zlib"
 
 
 def test_never_enters_a_hazard_keepout_disk(sim: Simulator) -> None:

@@ -94,7 +94,9 @@ def test_scan_line_segments_close_the_gaps_between_beams_but_not_doorways() -> N
     assert not joined[rows_door, column].any()  # 1.2 m apart: a doorway stays open
     assert joined.sum() == joined[:, column].sum()  # nothing off the wall
     off = VerticalSurfaceConfig(size_cells=100, connect_max_gap_m=0.0)
-    assert np.array_equal(vertical_surface_grid(pts, config=off, point_time_s=times).occupied, alone)
+    assert np.array_equal(
+        vertical_surface_grid(pts, config=off, point_time_s=times).occupied, alone
+    )
     with pytest.raises(ValueError, match="point_time_s"):
         vertical_surface_grid(pts, config=cfg, point_time_s=times[:-1])
     with pytest.raises(ValueError, match="connect_max_gap_m"):
