@@ -247,6 +247,28 @@ def _dec(code, rng, dpos, data, q):  # type: ignore[no-untyped-def]
     return bit, code, rng, dpos
 
 
+@numba.njit(cache=True)
+def _check_termination(code, rng, dpos, data):  # type: ignore[no-untyped-def]
+    """After the last pixel: 0 if the body ends exactly as the encoder ends every body, else
+    1. The encoder's final value is the one in its last interval with the most trailing zero
+    bytes, and it drops trailing zero bytes; the decoder's window is that interval (its low is
+    the window's bytes minus ``code``), so a truncated, extended or altered body almost always
+    breaks one of: no byte left unread, the window holds that value, no trailing zero byte."""
+    n = data.shape[0]
+    if n > dpos or (n > 0 and data[n - 1] == 0):
+        return 1
+    window = 0
+    for i in range(dpos - 4, dpos):
+        window = (window << 8) | (data[i] if 0 <= i < n else 0)
+    low = (window - code) & _MASK32
+    for k in range(4, -1, -1):
+        unit = 1 << (8 * k)
+        v = ((low + unit - 1) // unit) * unit
+        if v < low + rng:
+            return 0 if (v & _MASK32) == window else 1
+    return 1
+
+
 @numba.njit(cache=True, inline="always")
 def _p1_of(tab, i, g, adaptive):  # type: ignore[no-untyped-def]
     """Context ``i``'s probability of a one (Q24): its state in this grid, or its prior."""
@@ -546,8 +568,10 @@ def _kernel(  # type: ignore[no-untyped-def]
             if extrapolate and bit:
                 n_ones = _extrapolate(ex, ones_r, ones_c, n_ones, r, c, h, w)
             c += 1
-    if mode != 0:
+    if mode == 2:
         return 0
+    if mode == 1:
+        return _check_termination(code, rng, dpos, data)
     # termination: the value in [low, low + range) with the most trailing zero bytes
     for k in range(4, -1, -1):
         unit = 1 << (8 * k)
@@ -611,10 +635,12 @@ def decode_context(
     data: bytes, height: int, width: int, model: ContextModel, refcode: np.ndarray | None = None
 ) -> np.ndarray:
     """Decode a grid coded by :func:`encode_context` with the same model (and reference).
-    Any bytes decode to some grid of the given size: corruption is not detected here."""
+    Raises ValueError when the body does not end as the encoder ends every body (truncated,
+    extended or altered bytes, almost always; the coder has no redundancy to catch all)."""
     p = _padded(height, width)
     buf = np.frombuffer(data, dtype=np.uint8)
-    _call(model, 1, p, height, width, refcode, buf, _EMPTY_U8, _EMPTY_F8, _EMPTY_F8)
+    if _call(model, 1, p, height, width, refcode, buf, _EMPTY_U8, _EMPTY_F8, _EMPTY_F8):
+        raise ValueError("the body does not end where its coded pixels end (truncated or corrupt)")
     return p[_PAD_TOP:, _PAD_LEFT : _PAD_LEFT + width].astype(bool)
 
 

@@ -275,6 +275,26 @@ def test_truncated_streams_decode_or_fail_cleanly() -> None:
             assert out.shape == (60, 60)
 
 
+def test_context_coded_bodies_must_end_as_the_encoder_ends_them() -> None:
+    """The decoder checks the range coder's termination: bytes appended to a body are
+    refused (every trailing zero byte, most other bytes); some truncations and bit
+    flips are caught too, not all (the coder has no redundancy: integrity is the link's)."""
+    ref = _reference()
+    rng = np.random.default_rng(3)
+    for codec in ("magic4", BEST_INTRA_CODEC, DEFAULT_CODEC):
+        refused = 0
+        for seed in range(40):
+            good = encode_grid(structured_grid(seed, (40, 50)), codec, reference=ref)
+            assert np.array_equal(decode_grid(good, reference=ref), structured_grid(seed, (40, 50)))
+            with pytest.raises(CodecError, match="does not end where its coded pixels end"):
+                decode_grid(good + b"\x00", reference=ref)
+            try:
+                decode_grid(good + bytes([int(rng.integers(1, 256))]), reference=ref)
+            except CodecError:
+                refused += 1
+        assert refused >= 32, codec  # 34-40 of 40 measured
+
+
 def test_wrong_model_version_is_refused_by_name() -> None:
     data = bytearray(encode_grid(GRIDS["structured"], "magic4"))
     data[1] = (MODEL_VERSION + 1) % 256
