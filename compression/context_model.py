@@ -252,8 +252,10 @@ def _check_termination(code, rng, dpos, data):  # type: ignore[no-untyped-def]
     """After the last pixel: 0 if the body ends exactly as the encoder ends every body, else
     1. The encoder's final value is the one in its last interval with the most trailing zero
     bytes, and it drops trailing zero bytes; the decoder's window is that interval (its low is
-    the window's bytes minus ``code``), so a truncated, extended or altered body almost always
-    breaks one of: no byte left unread, the window holds that value, no trailing zero byte."""
+    the window's bytes minus ``code``). Bytes appended to a body break one of: no byte left
+    unread, the window holds that value, no trailing zero byte (every zero byte, most others).
+    A cut body reads as zero padding, a round value that often ends its (wrong) decoding just
+    as well: only some truncations and bit flips are caught."""
     n = data.shape[0]
     if n > dpos or (n > 0 and data[n - 1] == 0):
         return 1
@@ -635,8 +637,8 @@ def decode_context(
     data: bytes, height: int, width: int, model: ContextModel, refcode: np.ndarray | None = None
 ) -> np.ndarray:
     """Decode a grid coded by :func:`encode_context` with the same model (and reference).
-    Raises ValueError when the body does not end as the encoder ends every body (truncated,
-    extended or altered bytes, almost always; the coder has no redundancy to catch all)."""
+    Raises ValueError when the body does not end as the encoder ends every body: appended
+    bytes, and some truncations and flips (the coder has no redundancy to catch them all)."""
     p = _padded(height, width)
     buf = np.frombuffer(data, dtype=np.uint8)
     if _call(model, 1, p, height, width, refcode, buf, _EMPTY_U8, _EMPTY_F8, _EMPTY_F8):
