@@ -25,6 +25,8 @@ Metrics:
   a reference;
 - ``uncropped_bytes_<codec>``: the same grids sent whole (150 x 150 around the robot) instead
   of cropped, for the default codec and ``magic4``: does the crop pay for its header?
+- ``wire_bytes_per_grid``: what the radio carries for a grid with the default codec, the
+  :class:`~protocol.messages.TerrainGrid` in its frame (the stream plus about 17 bytes).
 
 Writes the Fig. 10 plot (bytes per grid by method) to ``OUT_DIR/fig10_bytes_per_grid.png``.
 """
@@ -52,7 +54,8 @@ from compression import (
     origin_cells_of,
 )
 from mission.bench import BenchError
-from mission.codec_training import CORPUS_DIR, CodingCase, coding_cases, load_corpus
+from mission.codec_training import CORPUS_DIR, CodingCase, Corpus, coding_cases, load_corpus
+from protocol.messages import TerrainGrid, encode_frame
 
 OUT_DIR = Path(tempfile.gettempdir()) / "magic-bench" / "compression"
 PAPER_BYTES = {"zlib": 378.0, "rle_zlib": 300.0, "magic4": 132.0}  # Fig. 10 (rle_zlib: 132/0.44)
@@ -91,6 +94,16 @@ def _speed(codec: str, cases: list[CodingCase], repeats: int) -> tuple[float, fl
         cpu.append(time.process_time() - c0)
     n = len(cases)
     return n / statistics.median(wall), n / statistics.median(cpu)
+
+
+def _wire_bytes(codec: str, cases: list[CodingCase], corpus: Corpus) -> float:
+    """Mean frame bytes of the TerrainGrid messages that carry the grids (sequence numbers and
+    node indices as a mission's would be)."""
+    total = 0
+    for seq, (c, node) in enumerate(zip(cases, corpus.node_index, strict=True)):
+        data = encode_grid(c.grid, codec, origin_cells=c.origin_cells, reference=c.reference)
+        total += len(encode_frame(seq, TerrainGrid(int(node), corpus.resolution_m, data)))
+    return total / max(len(cases), 1)
 
 
 def _uncropped(
@@ -177,6 +190,7 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     for codec in dict.fromkeys((intra, "magic4")):
         out[f"grids_per_s_{codec}"] = _speed(codec, cases, repeats)[1]
 
+    out["wire_bytes_per_grid"] = _wire_bytes(DEFAULT_CODEC, cases, corpus)
     base = origin_cells_of(corpus.origin_in_base, corpus.resolution_m)
     whole = _uncropped(cases, corpus.grids, base)
     for codec in dict.fromkeys((DEFAULT_CODEC, "magic4")):
