@@ -272,6 +272,24 @@ def _check_termination(code, rng, dpos, data):  # type: ignore[no-untyped-def]
 
 
 @numba.njit(cache=True, inline="always")
+def _quiet_end(p, pr, r, c, w, k2, hi2, k1, hi1, extrapolate, ex, use_ref, refcode):  # type: ignore[no-untyped-def]
+    """The first column after ``c`` where something enters pixel ``(r, col)``'s context (a one
+    in the template's rows above, an extrapolation mark, a reference cell), or ``w``."""
+    end = c + 1
+    while end < w:
+        if k2 > 0 and p[pr - 2, end + _PAD_LEFT + hi2]:
+            break
+        if k1 > 0 and p[pr - 1, end + _PAD_LEFT + hi1]:
+            break
+        if extrapolate and ex[r, end]:
+            break
+        if use_ref and refcode[r, end]:
+            break
+        end += 1
+    return end
+
+
+@numba.njit(cache=True, inline="always")
 def _p1_of(tab, i, g, adaptive):  # type: ignore[no-untyped-def]
     """Context ``i``'s probability of a one (Q24): its state in this grid, or its prior."""
     if not adaptive:
@@ -394,17 +412,9 @@ def _kernel(  # type: ignore[no-untyped-def]
             p1 = 0
             n = 0
             if ctx == 0 and runs:
-                end = c + 1
-                while end < w:
-                    if k2 > 0 and p[pr - 2, end + L + hi2]:
-                        break
-                    if k1 > 0 and p[pr - 1, end + L + hi1]:
-                        break
-                    if extrapolate and ex[r, end]:
-                        break
-                    if use_ref and refcode[r, end]:
-                        break
-                    end += 1
+                end = _quiet_end(
+                    p, pr, r, c, w, k2, hi2, k1, hi1, extrapolate, ex, use_ref, refcode
+                )
                 extent = end - c
                 rctx = nbase + 4 * min(_bit_length(extent), 15) + 2 * (c == 0) + (end == w)
                 z = 0
@@ -462,17 +472,9 @@ def _kernel(  # type: ignore[no-untyped-def]
                         p1 = np.int64(tab[0, 3])
                         n = 0
                 # the quiet extent: columns c .. end - 1 stay in context 0 while they are 0
-                end = c + 1
-                while end < w:
-                    if k2 > 0 and p[pr - 2, end + L + hi2]:
-                        break
-                    if k1 > 0 and p[pr - 1, end + L + hi1]:
-                        break
-                    if extrapolate and ex[r, end]:
-                        break
-                    if use_ref and refcode[r, end]:
-                        break
-                    end += 1
+                end = _quiet_end(
+                    p, pr, r, c, w, k2, hi2, k1, hi1, extrapolate, ex, use_ref, refcode
+                )
                 if mode == 2:
                     while c < end - 1 and not p[pr, c + L]:
                         c += 1
