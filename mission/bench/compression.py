@@ -26,7 +26,13 @@ Metrics:
 - ``uncropped_bytes_<codec>``: the same grids sent whole (150 x 150 around the robot) instead
   of cropped, for the default codec and ``magic4``: does the crop pay for its header?
 - ``wire_bytes_per_grid``: what the radio carries for a grid with the default codec, the
-  :class:`~protocol.messages.TerrainGrid` in its frame (the stream plus about 17 bytes).
+  :class:`~protocol.messages.TerrainGrid` in its frame (the stream plus about 17 bytes);
+  ``header_bytes_<codec>``: the mean stream header of the default codec and ``magic4``;
+- what inter-frame coding can hope for, on the whole grids with the previous whole grid
+  warped by odometry (:mod:`compression.reference_warp`): ``inter_new_cell_frac``, occupied
+  cells with no reference cell within one cell (news the previous grid cannot predict), and
+  ``inter_vanished_ref_frac``, reference cells landing in the grid with no occupied cell
+  within one cell (walls that left the field of view or were not seen again).
 
 Writes the Fig. 10 plot (bytes per grid by method) to ``OUT_DIR/fig10_bytes_per_grid.png``.
 """
@@ -43,6 +49,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from compression import (
     DEFAULT_CODEC,
@@ -52,7 +59,9 @@ from compression import (
     decode_grid,
     encode_grid,
     origin_cells_of,
+    read_header,
 )
+from compression.codecs import reference_code_for
 from mission.bench import BenchError
 from mission.codec_training import CORPUS_DIR, CodingCase, Corpus, coding_cases, load_corpus
 from protocol.messages import TerrainGrid, encode_frame
@@ -104,6 +113,32 @@ def _wire_bytes(codec: str, cases: list[CodingCase], corpus: Corpus) -> float:
         data = encode_grid(c.grid, codec, origin_cells=c.origin_cells, reference=c.reference)
         total += len(encode_frame(seq, TerrainGrid(int(node), corpus.resolution_m, data)))
     return total / max(len(cases), 1)
+
+
+def _header_bytes(codec: str, cases: list[CodingCase]) -> float:
+    sizes = [
+        read_header(
+            encode_grid(c.grid, codec, origin_cells=c.origin_cells, reference=c.reference)
+        ).size
+        for c in cases
+    ]
+    return float(np.mean(sizes))
+
+
+def _churn(whole: list[CodingCase]) -> tuple[float, float]:
+    """``(new cell fraction, vanished reference fraction)`` over the grids with a reference."""
+    occupied = new = landed = vanished = 0
+    for c in whole:
+        if c.reference is None:
+            continue
+        h, w = c.grid.shape
+        code = reference_code_for(h, w, c.origin_cells, c.reference)
+        near = ndimage.binary_dilation(c.grid, structure=np.ones((3, 3), dtype=bool))
+        occupied += int(c.grid.sum())
+        new += int((c.grid & (code == 0)).sum())
+        landed += int((code == 2).sum())
+        vanished += int(((code == 2) & ~near).sum())
+    return new / max(occupied, 1), vanished / max(landed, 1)
 
 
 def _uncropped(
@@ -195,6 +230,8 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     whole = _uncropped(cases, corpus.grids, base)
     for codec in dict.fromkeys((DEFAULT_CODEC, "magic4")):
         out[f"uncropped_bytes_{codec}"] = _code_all(codec, whole)[0]
+        out[f"header_bytes_{codec}"] = _header_bytes(codec, cases)
+    out["inter_new_cell_frac"], out["inter_vanished_ref_frac"] = _churn(whole)
 
     bars = [(c, out[f"bytes_{c}"], PAPER_BYTES.get(c)) for c in ("rle", "zlib", "rle_zlib")]
     bars += [(c, out[f"bytes_{c}"], PAPER_BYTES.get(c)) for c in ("magic4", "magic10")]
