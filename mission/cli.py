@@ -20,6 +20,8 @@ _NOT_BUILT = {
 
 
 def _build_parser() -> argparse.ArgumentParser:
+    from mission.bench import SUITES  # names only: the suites import when they run
+
     parser = argparse.ArgumentParser(
         prog="magic",
         description="magic-recon: supervise a team of autonomous ground robots (MAGIC 2010).",
@@ -27,13 +29,17 @@ def _build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     bench = sub.add_parser("bench", help="run a benchmark suite and print its metrics")
-    bench.add_argument("suite", help="suite name, e.g. 'link'")
+    bench.add_argument("suite", help=f"one of: {', '.join(sorted(SUITES))}")
     bench.add_argument("--quick", action="store_true", help="short run (under 60 s)")
     bench.add_argument("--json", metavar="FILE", help="also write the metrics as JSON to FILE")
 
     run = sub.add_parser("run", help="simulate a robot team on this machine, end to end")
     run.add_argument("--config", metavar="YAML", help="run configuration (mission.run.RunConfig)")
-    run.add_argument("--world", metavar="YAML", help="world configuration (default: small)")
+    run.add_argument(
+        "--world",
+        metavar="WORLD",
+        help="world: a name in configs/world/ (small, magic_phase) or a YAML path (default: small)",
+    )
     run.add_argument("--duration", type=float, metavar="S", help="mission seconds to run")
     run.add_argument("--seed", type=int, help="seed of the scripted goals")
     run.add_argument("--quiet", action="store_true", help="no live table, only the summary")
@@ -100,27 +106,51 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from rich.live import Live
 
     from mission.config import ConfigError, load_config
-    from mission.run import RunConfig, format_progress, run_mission
+    from mission.run import RunConfig, RunReport, format_progress, run_mission
 
     err = Console(stderr=True)
+
+    def fail(problem: object) -> int:
+        err.print(f"magic run: {problem}", style="red", markup=False, highlight=False)
+        return 2
+
     try:
         config = load_config(args.config, RunConfig) if args.config else RunConfig()
+        overrides = {
+            k: v
+            for k, v in (("world", args.world), ("duration_s", args.duration), ("seed", args.seed))
+            if v is not None
+        }
+        if overrides:
+            config = msgspec.structs.replace(config, **overrides)
+    except (ConfigError, ValueError) as exc:
+        return fail(exc)
+    total_s = config.duration_s
+    try:
+        if args.quiet:
+            report = run_mission(config)
+        elif err.is_terminal:
+            with Live(console=err, refresh_per_second=4) as live:
+                report = run_mission(
+                    config, on_progress=lambda r: live.update(format_progress(r, total_s))
+                )
+        else:  # a log or a pipe: a line every tenth of the run, not a redrawn table
+            next_s = [0.0]
+
+            def line(r: RunReport) -> None:
+                if r.mission_s >= next_s[0]:
+                    next_s[0] += total_s / 10
+                    err.print(
+                        f"magic run: {r.mission_s:.0f} / {total_s:g} mission-s, "
+                        f"x{r.rtf:.1f} real time, {len(r.events)} events",
+                        markup=False,
+                        highlight=False,
+                    )
+
+            report = run_mission(config, on_progress=line)
     except ConfigError as exc:
-        err.print(f"magic run: {exc}", style="red", markup=False, highlight=False)
-        return 2
-    overrides = {
-        k: v
-        for k, v in (("world", args.world), ("duration_s", args.duration), ("seed", args.seed))
-        if v is not None
-    }
-    if overrides:
-        config = msgspec.structs.replace(config, **overrides)
-    if args.quiet:
-        report = run_mission(config)
-    else:
-        with Live(console=err, refresh_per_second=4) as live:
-            report = run_mission(config, on_progress=lambda r: live.update(format_progress(r)))
-    Console().print(format_progress(report))
+        return fail(exc)
+    Console().print(format_progress(report, total_s))
     return 0
 
 

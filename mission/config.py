@@ -4,6 +4,20 @@ The loader lives in ``protocol/`` because every process (``sim/``, ``robot/``, `
 typed YAML configs and none of them may import ``mission/`` (DESIGN section 2).
 """
 
-from protocol.config import CONFIGS_DIR, ConfigError, decode_config, load_config, load_config_text
+from protocol.config import (
+    CONFIGS_DIR,
+    ConfigError,
+    config_path,
+    decode_config,
+    load_config,
+    load_config_text,
+)
 
-__all__ = ["CONFIGS_DIR", "ConfigError", "decode_config", "load_config", "load_config_text"]
+__all__ = [
+    "CONFIGS_DIR",
+    "ConfigError",
+    "config_path",
+    "decode_config",
+    "load_config",
+    "load_config_text",
+]

@@ -18,17 +18,17 @@ report counts, from the truth, how close each robot came to each kind of hazard.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
 import msgspec
 import numpy as np
 
-from mission.config import CONFIGS_DIR, load_config
+from mission.config import config_path, load_config
 from protocol.clock import ManualClock
 from protocol.link import Link, LinkConfig
 from protocol.loopback import free_loopback_port, unique_mission
@@ -55,9 +55,11 @@ __all__ = ["RobotProgress", "RunConfig", "RunReport", "run_mission", "scripted_g
 
 
 class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    """``configs/run/*.yaml``: which world, how long, and the scripted goals."""
+    """A run (``magic run --config YAML``): which world, how long, and the scripted goals.
+    ``world`` and ``radio`` name a YAML file: a path, a path under ``configs/``, or a config
+    name (``small``: ``configs/world/small.yaml``)."""
 
-    world: str = "world/small.yaml"  # relative to configs/ unless absolute
+    world: str = "world/small.yaml"
     radio: str = "radio/magic2010.yaml"
     duration_s: float = 180.0
     goals_per_robot: int = 4
@@ -70,6 +72,12 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     seed: int = 0
     simulator: SimulatorConfig = SimulatorConfig()
     robot: RobotNodeConfig = RobotNodeConfig()
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.duration_s) and self.duration_s > 0):
+            raise ValueError(f"duration_s must be > 0 mission-seconds, got {self.duration_s}")
+        if self.goals_per_robot < 0:
+            raise ValueError(f"goals_per_robot must be >= 0, got {self.goals_per_robot}")
 
 
 @dataclass
@@ -117,11 +125,6 @@ class RunReport:
             "deadlocks": float(sum(p.deadlocks for p in ps)),
             "events": float(len(self.events)),
         }
-
-
-def _resolve(path: str) -> Path:
-    p = Path(path)
-    return p if p.is_absolute() or p.exists() else CONFIGS_DIR / p
 
 
 def scripted_goals(
@@ -245,8 +248,8 @@ def run_mission(
     progress_period_s: float = 0.5,
 ) -> RunReport:
     """Run the team for ``config.duration_s`` mission-seconds; returns what happened."""
-    world_cfg = load_world_config(_resolve(config.world))
-    radio_cfg = load_config(_resolve(config.radio), RadioConfig)
+    world_cfg = load_world_config(config_path(config.world, "world"))
+    radio_cfg = load_config(config_path(config.radio, "radio"), RadioConfig)
     clock = ManualClock()
     port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -380,12 +383,13 @@ def _hazard_caption(report: RunReport) -> str:
     return closest + f"; teammate deadlocks broken: {summary['deadlocks']:.0f}"
 
 
-def format_progress(report: RunReport) -> Any:
-    """A rich table of the run so far."""
+def format_progress(report: RunReport, duration_s: float | None = None) -> Any:
+    """A rich table of the run so far (of ``duration_s`` mission-seconds, if given)."""
     from rich.table import Table
 
+    of = f" / {duration_s:g}" if duration_s is not None else ""
     table = Table(
-        title=f"magic run: {report.mission_s:6.1f} mission-s, x{report.rtf:.1f} real time",
+        title=f"magic run: {report.mission_s:6.1f}{of} mission-s, x{report.rtf:.1f} real time",
         caption=f"events: {len(report.events)}"
         + (f" (last: {report.events[-1]})" if report.events else "")
         + _hazard_caption(report),

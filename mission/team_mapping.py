@@ -34,7 +34,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -43,7 +42,7 @@ import numpy as np
 
 from gcs.graph.pose_graph import Provenance
 from gcs.ground_station import GroundStation, GroundStationConfig
-from protocol.config import CONFIGS_DIR
+from protocol.config import config_path
 from protocol.messages import GoToTask, PoseNode, TaskState, TaskStatus
 from protocol.se2 import compose, inverse, relative, transform_points, wrap_angle
 from robot.node import RobotNode, RobotNodeConfig
@@ -106,11 +105,6 @@ class TeamMappingReport:
     closure_errors_m: list[float] = field(default_factory=list)
     ate_rmse_m: float = math.nan
     ate_rmse_prior_m: float = math.nan  # odometry + hints only, before any loop closure
-
-
-def _resolve(path: str) -> Path:
-    p = Path(path)
-    return p if p.is_absolute() or p.exists() else CONFIGS_DIR / p
 
 
 def shared_waypoints(
@@ -284,7 +278,7 @@ def run_team_mapping(
     """Run the team for ``config.duration_s`` mission-seconds; returns the scored report and
     the station (its graph, grids and maps) for further inspection."""
     config = config or TeamMappingConfig()
-    world = load_world_config(_resolve(config.world))
+    world = load_world_config(config_path(config.world, "world"))
     if config.firm_ground:
         world = msgspec.structs.replace(world, sand=msgspec.structs.replace(world.sand, count=0))
     sim_cfg = config.simulator

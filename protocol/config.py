@@ -19,7 +19,7 @@ import msgspec
 import yaml
 from msgspec import inspect as mi
 
-__all__ = ["ConfigError", "decode_config", "load_config", "load_config_text"]
+__all__ = ["ConfigError", "config_path", "decode_config", "load_config", "load_config_text"]
 
 T = TypeVar("T")
 
@@ -134,6 +134,20 @@ def load_config_text(text: str, config_type: type[T], *, source: str = "<string>
         problem = getattr(err, "problem", None) or str(err)
         raise ConfigError(source, "", f"invalid YAML: {where}{problem}") from None
     return decode_config(data, config_type, source=source)
+
+
+def config_path(name: str | Path, kind: str) -> Path:
+    """The YAML file a command line names: ``name`` as a path if it exists, else under
+    ``configs/`` (``world/small.yaml``), else ``configs/<kind>/<name>.yaml`` (``small``).
+    Raises :class:`ConfigError` listing the shipped ``kind`` configs when none exists."""
+    given = Path(name)
+    candidates = [given, CONFIGS_DIR / given, CONFIGS_DIR / kind / given.with_suffix(".yaml")]
+    for path in candidates if not given.is_absolute() else [given]:
+        if path.is_file():
+            return path
+    shipped = sorted(p.stem for p in (CONFIGS_DIR / kind).glob("*.yaml"))
+    problem = f"no such file, nor a {kind} config under {CONFIGS_DIR} (shipped: "
+    raise ConfigError(str(name), "", problem + ", ".join(shipped) + ")")
 
 
 def load_config(path: str | Path, config_type: type[T]) -> T:

@@ -24,11 +24,13 @@ of the link: they are counted (``stats.rejected``) and logged.
 
 from __future__ import annotations
 
+import atexit
 import json
 import logging
 import math
 import queue
 import threading
+import weakref
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -62,6 +64,22 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: Links not closed yet. zenoh runs subscriber callbacks in non-daemon threads that live as
+#: long as the session, and the interpreter joins such threads before ``atexit`` handlers
+#: run: a script that ends without ``close()`` would hang. So the links still open are closed
+#: at interpreter shutdown *before* that join (the hook ``concurrent.futures`` uses; plain
+#: ``atexit`` where it does not exist).
+_OPEN_LINKS: weakref.WeakSet[Link] = weakref.WeakSet()
+
+
+def _close_open_links() -> None:
+    for link in list(_OPEN_LINKS):
+        link.close()
+
+
+getattr(threading, "_register_atexit", atexit.register)(_close_open_links)
+
 
 _GRANT_DECODER = msgspec.msgpack.Decoder(RadioGrant)
 _GRANT_ENCODER = msgspec.msgpack.Encoder()
@@ -499,6 +517,7 @@ class Link:
         self.meter = meter if meter is not None else Meter()
         self.seed = seed
         self._session = zenoh.open(_zenoh_config(self.config))
+        _OPEN_LINKS.add(self)
         self._endpoints: list[_Endpoint] = []
         self._publishers: dict[str, Any] = {}
         self._subs: list[Subscription] = []
@@ -597,7 +616,9 @@ class Link:
     # -- lifetime
 
     def close(self) -> None:
-        """Stop the pump, undeclare everything and close the session (idempotent)."""
+        """Stop the pump, undeclare everything and close the session (idempotent; links still
+        open when the program exits are closed then)."""
+        _OPEN_LINKS.discard(self)
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)

@@ -23,15 +23,17 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-import pybullet as pb
 
 from sim.apriltag import head_mesh, tag_texture
+from sim.quiet_pybullet import import_pybullet
 
 if TYPE_CHECKING:
     from sim.ray_worker import RayWorkerProcess
 from sim.world_generator import Human, Ooi, Solid, World
 
 __all__ = ["MAX_RAYS_PER_CALL", "RobotGeometry", "Scene"]
+
+pb = import_pybullet()
 
 #: Rays per ``rayTestBatch`` call (PyBullet refuses more than 16384 and silently returns
 #: nothing for exactly 16384).

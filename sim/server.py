@@ -31,7 +31,7 @@ from typing import Any
 import msgspec
 
 from protocol import keys
-from protocol.config import CONFIGS_DIR, ConfigError, load_config
+from protocol.config import ConfigError, config_path, load_config
 from protocol.process_cli import add_link_arguments, link_config, stop_on_interrupt
 from protocol.radio import RadioConfig
 from protocol.sensors import ClockTick, RobotCommand, encode_sensor_frame
@@ -161,9 +161,8 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="magic sim", description="Run the PyBullet simulator server.")
     p.add_argument(
         "--world",
-        type=Path,
-        default=CONFIGS_DIR / "world" / "small.yaml",
-        help="world config (configs/world/*.yaml)",
+        default="small",
+        help="world: a name in configs/world/ (small, magic_phase) or a YAML path (default: small)",
     )
     p.add_argument("--sim-config", type=Path, help="simulator config YAML (SimulatorConfig)")
     add_link_arguments(p)
@@ -189,6 +188,7 @@ def main(argv: list[str]) -> int:
         return int(exit_.code or 0)
     out = sys.stdout
     try:
+        args.world = config_path(args.world, "world")
         world_cfg = load_world_config(args.world)
         sim_cfg = (
             load_config(args.sim_config, SimulatorConfig) if args.sim_config else SimulatorConfig()

@@ -87,7 +87,7 @@ def test_console_script() -> None:
     [
         (["robot"], "the following arguments are required: --id"),
         (["robot", "--id", "-2"], "--id must be >= 0"),
-        (["sim", "--world", "configs/worlds/x.yaml"], "cannot read"),
+        (["sim", "--world", "configs/worlds/x.yaml"], "x.yaml: no such file"),
         (["sim", "--bogus"], "unrecognized arguments: --bogus"),
     ],
 )

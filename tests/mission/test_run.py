@@ -38,3 +38,25 @@ def test_run_command_reports_a_bad_config_file(tmp_path, capsys) -> None:
     bad.write_text("duration_s: soon\n")
     assert main(["run", "--config", str(bad), "--quiet"]) == 2
     assert "duration_s: expected float, got str" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "problem"),
+    [
+        (["--world", "nosuch"], "nosuch: no such file, nor a world config under"),
+        (["--world", "/tmp/no/such/world.yaml"], "(shipped: magic_phase, small)"),
+        (["--duration", "-5"], "duration_s must be > 0 mission-seconds, got -5.0"),
+        (["--duration", "nan"], "duration_s must be > 0 mission-seconds, got nan"),
+    ],
+)
+def test_run_command_refuses_bad_arguments_before_running(argv, problem, capsys) -> None:
+    assert main(["run", *argv, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert problem in err.replace("\n", " ") and "Traceback" not in err
+
+
+def test_run_command_reports_a_bad_world_file(tmp_path, capsys) -> None:
+    bad = tmp_path / "world.yaml"
+    bad.write_text("sizee: [10, 10]\n")
+    assert main(["run", "--world", str(bad), "--duration", "1", "--quiet"]) == 2
+    assert f"{bad}: sizee: unknown key" in capsys.readouterr().err.replace("\n", "")

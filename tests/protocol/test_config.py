@@ -7,7 +7,14 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from protocol.config import CONFIGS_DIR, ConfigError, decode_config, load_config, load_config_text
+from protocol.config import (
+    CONFIGS_DIR,
+    ConfigError,
+    config_path,
+    decode_config,
+    load_config,
+    load_config_text,
+)
 from protocol.radio import RadioConfig
 
 
@@ -254,3 +261,17 @@ def test_strings_and_prefixes() -> None:
         decode_config([{"name": 1}], list[ItemConfig], source="--set", prefix="gcs.loops.items")
     assert str(info.value) == "--set: gcs.loops.items[0].name: expected str, got int"
     assert decode_config(None, MatcherConfig, source="x") == MatcherConfig()
+
+
+def test_config_path_finds_names_paths_and_says_what_exists(tmp_path: Path) -> None:
+    small = CONFIGS_DIR / "world" / "small.yaml"
+    assert config_path("small", "world") == small
+    assert config_path("world/small.yaml", "world") == small
+    assert config_path(small, "world") == small
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("seed: 3\n")
+    assert config_path(mine, "world") == mine
+    with pytest.raises(ConfigError, match=r"shipped: magic_phase, small\)"):
+        config_path("smal", "world")
+    with pytest.raises(ConfigError, match="no such file"):
+        config_path(tmp_path / "small.yaml", "world")  # an absolute path is taken as given

@@ -228,3 +228,27 @@ def test_remote_driver_carries_sensor_frames_and_commands() -> None:
     finally:
         robot_link.close()
         sim_link.close()
+
+
+def test_a_script_that_never_closes_its_links_still_exits() -> None:
+    # the README's link example: zenoh's callback threads must not keep the process alive
+    import subprocess
+    import sys
+    import textwrap
+
+    from protocol.loopback import free_loopback_port
+
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    script = textwrap.dedent(f"""
+        from protocol.link import Link, LinkConfig
+        from protocol.messages import PoseNode
+
+        gcs = Link(LinkConfig(listen=("{endpoint}",)), mission="exit").gcs_endpoint()
+        robot = Link(LinkConfig(connect=("{endpoint}",)), mission="exit").robot_endpoint(3)
+        robot.send(PoseNode(0, 0.0, (0, 0, 0), (0, 0, 0), (1e-4, 0, 0, 1e-4, 0, 1e-5)))
+        print(gcs.recv(timeout_s=5.0)[0])
+    """)
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert (done.returncode, done.stdout) == (0, "3\n"), done.stderr
