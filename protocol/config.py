@@ -141,8 +141,10 @@ def config_path(name: str | Path, kind: str) -> Path:
     ``configs/`` (``world/small.yaml``), else ``configs/<kind>/<name>.yaml`` (``small``).
     Raises :class:`ConfigError` listing the shipped ``kind`` configs when none exists."""
     given = Path(name)
-    candidates = [given, CONFIGS_DIR / given, CONFIGS_DIR / kind / given.with_suffix(".yaml")]
-    for path in candidates if not given.is_absolute() else [given]:
+    candidates = [given]
+    if not given.is_absolute():
+        candidates += [CONFIGS_DIR / given, CONFIGS_DIR / kind / given.with_suffix(".yaml")]
+    for path in candidates:
         if path.is_file():
             return path
     shipped = sorted(p.stem for p in (CONFIGS_DIR / kind).glob("*.yaml"))
