@@ -33,16 +33,10 @@ def _build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--quick", action="store_true", help="short run (under 60 s)")
     bench.add_argument("--json", metavar="FILE", help="also write the metrics as JSON to FILE")
 
-    run = sub.add_parser("run", help="simulate a robot team on this machine, end to end")
-    run.add_argument("--config", metavar="YAML", help="run configuration (mission.run.RunConfig)")
-    run.add_argument(
-        "--world",
-        metavar="WORLD",
-        help="world: a name in configs/world/ (small, magic_phase) or a YAML path (default: small)",
+    run = sub.add_parser(  # its own parser: mission/run.py
+        "run", help="simulate a robot team on this machine, end to end", add_help=False
     )
-    run.add_argument("--duration", type=float, metavar="S", help="mission seconds to run")
-    run.add_argument("--seed", type=int, help="seed of the scripted goals")
-    run.add_argument("--quiet", action="store_true", help="no live table, only the summary")
+    run.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 
     codec = sub.add_parser("codec", help="terrain-grid codecs: record a corpus, train the models")
     codec_sub = codec.add_subparsers(dest="codec_command", metavar="ACTION", required=True)
@@ -100,63 +94,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_run(args: argparse.Namespace) -> int:
-    import msgspec
-    from rich.console import Console
-    from rich.live import Live
-
-    from mission.config import ConfigError, load_config
-    from mission.run import RunConfig, RunReport, format_progress, run_mission
-
-    err = Console(stderr=True)
-
-    def fail(problem: object) -> int:
-        err.print(f"magic run: {problem}", style="red", markup=False, highlight=False)
-        return 2
-
-    try:
-        config = load_config(args.config, RunConfig) if args.config else RunConfig()
-        overrides = {
-            k: v
-            for k, v in (("world", args.world), ("duration_s", args.duration), ("seed", args.seed))
-            if v is not None
-        }
-        if overrides:
-            config = msgspec.structs.replace(config, **overrides)
-    except (ConfigError, ValueError) as exc:
-        return fail(exc)
-    total_s = config.duration_s
-    try:
-        if args.quiet:
-            report = run_mission(config)
-        elif err.is_terminal:
-            with Live(console=err, refresh_per_second=4) as live:
-                report = run_mission(
-                    config, on_progress=lambda r: live.update(format_progress(r, total_s))
-                )
-        else:  # a log or a pipe: a line every tenth of the run, not a redrawn table
-            next_s = [0.0]
-
-            def line(r: RunReport) -> None:
-                if r.mission_s >= next_s[0]:
-                    next_s[0] += total_s / 10
-                    err.print(
-                        f"magic run: {r.mission_s:.0f} / {total_s:g} mission-s, "
-                        f"x{r.rtf:.1f} real time, {len(r.events)} events",
-                        markup=False,
-                        highlight=False,
-                    )
-
-            report = run_mission(config, on_progress=line)
-    except ConfigError as exc:
-        return fail(exc)
-    Console().print(format_progress(report, total_s))
-    return 0
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in ("sim", "robot", "gcs", "replay"):  # commands with their own parsers
+    if argv and argv[0] in ("sim", "robot", "gcs", "replay", "run"):  # their own parsers
+        if argv[0] == "run":
+            from mission.run import main as run_main
+
+            return run_main(argv[1:])
         if argv[0] == "sim":
             from sim.server import main as sim_main
 
@@ -181,10 +125,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from mission.codec_training import codec_command
 
         return codec_command(args)
-    if args.command in ("bench", "run"):
+    if args.command == "bench":
         if unknown:
             parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-        return _cmd_bench(args) if args.command == "bench" else _cmd_run(args)
+        return _cmd_bench(args)
     what = _NOT_BUILT[args.command]
     print(f"magic {args.command}: not built yet; it arrives with {what}.", file=sys.stderr)
     return 2

@@ -51,7 +51,7 @@ from protocol.se2 import inverse, transform_points
 from robot.node import RobotNode, RobotNodeConfig
 from sim.simulator import Simulator, SimulatorConfig, load_world_config
 
-__all__ = ["RobotProgress", "RunConfig", "RunReport", "run_mission", "scripted_goals"]
+__all__ = ["RobotProgress", "RunConfig", "RunReport", "main", "run_mission", "scripted_goals"]
 
 
 class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -408,3 +408,75 @@ def format_progress(report: RunReport, duration_s: float | None = None) -> Any:
             f"{bps:.0f}",
         )
     return table
+
+
+def _parser() -> Any:
+    import argparse
+
+    p = argparse.ArgumentParser(
+        prog="magic run", description="simulate a robot team on this machine, end to end"
+    )
+    p.add_argument("--config", metavar="YAML", help="run configuration (mission.run.RunConfig)")
+    p.add_argument(
+        "--world",
+        metavar="WORLD",
+        help="world: a name in configs/world/ (small, magic_phase) or a YAML path (default: small)",
+    )
+    p.add_argument("--duration", type=float, metavar="S", help="mission seconds to run")
+    p.add_argument("--seed", type=int, help="seed of the scripted goals")
+    p.add_argument("--quiet", action="store_true", help="no live table, only the summary")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``magic run``: exit 0 on success, 2 on bad input (named on stderr)."""
+    from rich.console import Console
+    from rich.live import Live
+
+    from mission.config import ConfigError
+
+    args = _parser().parse_args(argv)
+    err = Console(stderr=True)
+
+    def fail(problem: object) -> int:
+        err.print(f"magic run: {problem}", style="red", markup=False, highlight=False)
+        return 2
+
+    try:
+        config = load_config(args.config, RunConfig) if args.config else RunConfig()
+        overrides = {
+            k: v
+            for k, v in (("world", args.world), ("duration_s", args.duration), ("seed", args.seed))
+            if v is not None
+        }
+        if overrides:
+            config = msgspec.structs.replace(config, **overrides)
+    except (ConfigError, ValueError) as exc:
+        return fail(exc)
+    total_s = config.duration_s
+    try:
+        if args.quiet:
+            report = run_mission(config)
+        elif err.is_terminal:
+            with Live(console=err, refresh_per_second=4) as live:
+                report = run_mission(
+                    config, on_progress=lambda r: live.update(format_progress(r, total_s))
+                )
+        else:  # a log or a pipe: a line every tenth of the run, not a redrawn table
+            next_s = [0.0]
+
+            def line(r: RunReport) -> None:
+                if r.mission_s >= next_s[0]:
+                    next_s[0] += total_s / 10
+                    err.print(
+                        f"magic run: {r.mission_s:.0f} / {total_s:g} mission-s, "
+                        f"x{r.rtf:.1f} real time, {len(r.events)} events",
+                        markup=False,
+                        highlight=False,
+                    )
+
+            report = run_mission(config, on_progress=line)
+    except ConfigError as exc:
+        return fail(exc)
+    Console().print(format_progress(report, total_s))
+    return 0
