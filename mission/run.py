@@ -29,11 +29,8 @@ import msgspec
 import numpy as np
 
 from mission.config import config_path, load_config
-from protocol.clock import ManualClock
-from protocol.link import Link, LinkConfig
-from protocol.loopback import free_loopback_port, unique_mission
+from mission.lockstep import TeamInLockstep, seed_streams
 from protocol.messages import (
-    Direction,
     GoToTask,
     Hazard,
     HazardUpdate,
@@ -46,9 +43,8 @@ from protocol.messages import (
     TerrainGrid,
 )
 from protocol.radio import RadioConfig
-from protocol.radio_channel import LinkBackpressure
 from protocol.se2 import inverse, transform_points
-from robot.node import RobotNode, RobotNodeConfig
+from robot.node import RobotNodeConfig
 from sim.simulator import Simulator, SimulatorConfig, load_world_config
 
 __all__ = ["RobotProgress", "RunConfig", "RunReport", "main", "run_mission", "scripted_goals"]
@@ -69,13 +65,16 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     goal_separation_m: float = 8.0  # teammates' goals at the same step stay this far apart
     ooi_clearance_m: float = 7.0  # goals stay well away from objects of interest
     hazard_period_s: float = 1.0  # hazard updates to every robot (0: none)
-    seed: int = 0
+    seed: int = 0  # every random stream of the run derives from it (mission.lockstep)
+    realtime: bool = False  # wall-clock delivery (hardware in the loop): not repeatable
     simulator: SimulatorConfig = SimulatorConfig()
     robot: RobotNodeConfig = RobotNodeConfig()
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.duration_s) and self.duration_s > 0):
             raise ValueError(f"duration_s must be > 0 mission-seconds, got {self.duration_s}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
         if self.goals_per_robot < 0:
             raise ValueError(f"goals_per_robot must be >= 0, got {self.goals_per_robot}")
 
@@ -99,14 +98,38 @@ class RobotProgress:
     deadlocks: int = 0  # teammate deadlocks the robot detected and backed off from
     closest_static_m: float = float("inf")  # to a static OOI or toxic vat (truth; trigger 2.5)
     closest_hostile_m: float = float("inf")  # to a hostile (truth; keep-out 5 m)
+    final_pose: tuple[float, ...] = ()  # world_from_base x, y, yaw at the end (truth)
 
 
 @dataclass
 class RunReport:
+    """What a run did. ``events``: the simulator's rule events (ground truth), e.g. a robot
+    disabled by a static OOI's trigger or a hostile, a hostile neutralized, a civilian
+    lasered. ``interrupted``: the ``KeyboardInterrupt`` (SIGINT, or SIGTERM's subclass) that
+    ended the run early, or None."""
+
     mission_s: float
     wall_s: float
     robots: dict[int, RobotProgress] = field(default_factory=dict)
     events: list[str] = field(default_factory=list)
+    realtime: bool = False
+    interrupted: BaseException | None = None
+
+    def fields(self) -> dict[str, float | str]:
+        """Every figure of the run by name (team summary, per-robot progress and final pose,
+        each event): two runs are the same run when these compare equal, floats bit for bit."""
+        out: dict[str, float | str] = {"mission_s": self.mission_s}
+        out.update(self.summary())
+        for rid, p in sorted(self.robots.items()):
+            for name, value in vars(p).items():
+                if name == "final_pose":
+                    for axis, v in zip(("x_m", "y_m", "yaw_rad"), value, strict=False):
+                        out[f"robot{rid}.final_{axis}"] = v
+                elif name != "robot_id":
+                    out[f"robot{rid}.{name}"] = value if isinstance(value, str) else float(value)
+        for k, event in enumerate(self.events):
+            out[f"event{k}"] = event
+        return out
 
     @property
     def rtf(self) -> float:
@@ -174,10 +197,13 @@ class _GroundScript:
     """The ground side until the GCS node lands: sends goals, follows the reports."""
 
     def __init__(
-        self, sim: Simulator, config: RunConfig, progress: dict[int, RobotProgress]
+        self,
+        sim: Simulator,
+        config: RunConfig,
+        progress: dict[int, RobotProgress],
+        rng: np.random.Generator,
     ) -> None:
         self.progress = progress
-        rng = np.random.default_rng(config.seed)
         self.goals_in_odom: dict[int, np.ndarray] = {}
         chosen: list[np.ndarray] = []
         for k, rid in enumerate(sim.robot_ids):
@@ -247,99 +273,99 @@ def run_mission(
     on_progress: Callable[[RunReport], None] | None = None,
     progress_period_s: float = 0.5,
 ) -> RunReport:
-    """Run the team for ``config.duration_s`` mission-seconds; returns what happened."""
+    """Run the team for ``config.duration_s`` mission-seconds; returns what happened.
+
+    Deterministic unless ``config.realtime`` (see :mod:`mission.lockstep`). ^C or SIGTERM
+    (any ``KeyboardInterrupt``) ends the run early: links are closed and the report so far is
+    returned with ``interrupted`` set to the exception; an interrupt before the team is up
+    propagates.
+    """
     world_cfg = load_world_config(config_path(config.world, "world"))
     radio_cfg = load_config(config_path(config.radio, "radio"), RadioConfig)
-    clock = ManualClock()
-    port = free_loopback_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    mission = unique_mission("run")
-    ground_link = Link(
-        LinkConfig(listen=(endpoint,), radio=radio_cfg), mission=mission, clock=clock
-    )
-    robot_link = Link(
-        LinkConfig(listen=(), connect=(endpoint,), radio=radio_cfg), mission=mission, clock=clock
-    )
+    seeds = seed_streams(config.seed, simulator_seed=config.simulator.seed)
+    sim_cfg = msgspec.structs.replace(config.simulator, seed=seeds.simulator)
     t_wall = time.perf_counter()
-    try:
-        with Simulator(world_cfg, config=config.simulator) as sim:
-            report = RunReport(0.0, 0.0)
-            for rid in sim.robot_ids:
-                report.robots[rid] = RobotProgress(rid)
-            script = _GroundScript(sim, config, report.robots)
-            ground = ground_link.gcs_endpoint(on_message=script.on_message)
-            nodes: dict[int, RobotNode] = {}
-            radios: dict[int, Any] = {}
-            drivers = {}
-            for rid in sim.robot_ids:
-                nodes[rid] = RobotNode(rid, send=_uplink(radios, rid), config=config.robot)
-                radios[rid] = robot_link.robot_endpoint(rid, on_message=nodes[rid].handle_downlink)
-                drivers[rid] = sim.driver(rid)
-            for rid in sim.robot_ids:
-                if not ground.wait_for_robot(rid, 10.0):
-                    raise TimeoutError(f"robot {rid}'s radio did not come up on {endpoint}")
-            last_pose = {
-                rid: sim.robot_poses()[k][:2].copy() for k, rid in enumerate(sim.robot_ids)
-            }
-            last_report = time.perf_counter()
-            next_hazards_s = 0.0
-            statics = np.array(
-                [o.xy_m for o in sim.truth.oois if o.kind in ("static_ooi", "toxic_vat")]
-            ).reshape(-1, 2)
-            n_steps = int(round(config.duration_s / sim.config.step_s))
-            for _ in range(n_steps):
-                sim.step()
-                clock.set(sim.time_s)
-                for rid, grant in sim.radio_grants().items():
-                    radios[rid].set_grant(grant)
-                    ground.set_grant(rid, grant)
-                if config.hazard_period_s > 0 and sim.time_s >= next_hazards_s:
-                    update = script.hazards(sim)
-                    for rid in sim.robot_ids:
-                        ground.send(rid, update)
-                    next_hazards_s = sim.time_s + config.hazard_period_s
-                alive = sim.alive()
-                poses = sim.robot_poses()
-                blocked = sim.bodies.state.blocked_steps
-                hostiles = np.array([xy for _, xy in _hostiles(sim)]).reshape(-1, 2)
-                for k, rid in enumerate(sim.robot_ids):
-                    p = report.robots[rid]
-                    p.alive = bool(alive[k])
-                    p.blocked_steps = int(blocked[k])
-                    p.stuck_recoveries = nodes[rid].stats.stuck_recoveries
-                    p.plan_failures = nodes[rid].stats.plan_failures
-                    p.deadlocks = nodes[rid].stats.deadlocks
-                    for points, attr in (
-                        (statics, "closest_static_m"),
-                        (hostiles, "closest_hostile_m"),
-                    ):
-                        if len(points):
-                            d = float(np.min(np.hypot(*(points - poses[k][:2]).T)))
-                            setattr(p, attr, min(getattr(p, attr), d))
-                    p.distance_m += float(np.hypot(*(poses[k][:2] - last_pose[rid])))
-                    last_pose[rid] = poses[k][:2].copy()
-                    for command in nodes[rid].process(drivers[rid].poll(0.0)):
-                        drivers[rid].send(command)
-                    task = script.next_goal(rid, sim.time_s)
-                    if task is not None:
-                        ground.send(rid, task)
-                for event in sim.events[len(report.events) :]:
-                    report.events.append(str(event))
-                report.mission_s = sim.time_s
-                if (
-                    on_progress is not None
-                    and time.perf_counter() - last_report >= progress_period_s
-                ):
-                    _fill_bytes(report, robot_link)
-                    report.wall_s = time.perf_counter() - t_wall
-                    on_progress(report)
-                    last_report = time.perf_counter()
-            _fill_bytes(report, robot_link)
+    with Simulator(world_cfg, config=sim_cfg) as sim:
+        report = RunReport(0.0, 0.0, realtime=config.realtime)
+        for rid in sim.robot_ids:
+            report.robots[rid] = RobotProgress(rid)
+        script = _GroundScript(sim, config, report.robots, np.random.default_rng(seeds.ground))
+        with TeamInLockstep(
+            sim,
+            radio=radio_cfg,
+            seeds=seeds,
+            on_ground_message=script.on_message,
+            robot_config=config.robot,
+            realtime=config.realtime,
+        ) as team:
+            try:
+                _run_steps(config, sim, team, script, report, on_progress, progress_period_s)
+            except KeyboardInterrupt as exc:
+                report.interrupted = exc
+            _fill_bytes(report, team)
+            _fill_poses(report, sim)
             report.wall_s = time.perf_counter() - t_wall
             return report
-    finally:
-        robot_link.close()
-        ground_link.close()
+
+
+def _run_steps(
+    config: RunConfig,
+    sim: Simulator,
+    team: TeamInLockstep,
+    script: _GroundScript,
+    report: RunReport,
+    on_progress: Callable[[RunReport], None] | None,
+    progress_period_s: float,
+) -> None:
+    t_wall = time.perf_counter()
+    last_pose = {rid: sim.robot_poses()[k][:2].copy() for k, rid in enumerate(sim.robot_ids)}
+    last_report = time.perf_counter()
+    next_hazards_s = [0.0]
+    statics = np.array(
+        [o.xy_m for o in sim.truth.oois if o.kind in ("static_ooi", "toxic_vat")]
+    ).reshape(-1, 2)
+
+    def ground_turn() -> None:
+        """The ground side's turn in a step: hazards when due, the next goals."""
+        if config.hazard_period_s > 0 and sim.time_s >= next_hazards_s[0]:
+            update = script.hazards(sim)
+            for rid in sim.robot_ids:
+                team.ground.send(rid, update)
+            next_hazards_s[0] = sim.time_s + config.hazard_period_s
+        for rid in sim.robot_ids:
+            task = script.next_goal(rid, sim.time_s)
+            if task is not None:
+                team.ground.send(rid, task)
+
+    n_steps = int(round(config.duration_s / sim.config.step_s))
+    for _ in range(n_steps):
+        team.step(ground_turn)
+        alive = sim.alive()
+        poses = sim.robot_poses()
+        blocked = sim.bodies.state.blocked_steps
+        hostiles = np.array([xy for _, xy in _hostiles(sim)]).reshape(-1, 2)
+        for k, rid in enumerate(sim.robot_ids):
+            p = report.robots[rid]
+            stats = team.nodes[rid].stats
+            p.alive = bool(alive[k])
+            p.blocked_steps = int(blocked[k])
+            p.stuck_recoveries = stats.stuck_recoveries
+            p.plan_failures = stats.plan_failures
+            p.deadlocks = stats.deadlocks
+            for points, attr in ((statics, "closest_static_m"), (hostiles, "closest_hostile_m")):
+                if len(points):
+                    d = float(np.min(np.hypot(*(points - poses[k][:2]).T)))
+                    setattr(p, attr, min(getattr(p, attr), d))
+            p.distance_m += float(np.hypot(*(poses[k][:2] - last_pose[rid])))
+            last_pose[rid] = poses[k][:2].copy()
+        for event in sim.events[len(report.events) :]:
+            report.events.append(str(event))
+        report.mission_s = sim.time_s
+        if on_progress is not None and time.perf_counter() - last_report >= progress_period_s:
+            _fill_bytes(report, team)
+            report.wall_s = time.perf_counter() - t_wall
+            on_progress(report)
+            last_report = time.perf_counter()
 
 
 def _hostiles(sim: Simulator) -> list[tuple[int, tuple[float, float]]]:
@@ -354,22 +380,14 @@ def _hostiles(sim: Simulator) -> list[tuple[int, tuple[float, float]]]:
     ]
 
 
-def _uplink(radios: dict[int, Any], robot_id: int) -> Callable[[Any], object]:
-    """The node's ``send``: its radio endpoint's, tolerating a full queue (the message was
-    refused, not accepted; the node's next report supersedes it)."""
-
-    def send(msg: Any) -> object:
-        try:
-            return radios[robot_id].send(msg)
-        except LinkBackpressure:
-            return None
-
-    return send
-
-
-def _fill_bytes(report: RunReport, robot_link: Link) -> None:
+def _fill_bytes(report: RunReport, team: TeamInLockstep) -> None:
     for rid, p in report.robots.items():
-        p.uplink_bytes = robot_link.meter.total_bytes(robot_id=rid, direction=Direction.UP)
+        p.uplink_bytes = team.uplink_bytes(rid)
+
+
+def _fill_poses(report: RunReport, sim: Simulator) -> None:
+    for k, rid in enumerate(sim.robot_ids):
+        report.robots[rid].final_pose = tuple(float(v) for v in sim.robot_poses()[k])
 
 
 def _hazard_caption(report: RunReport) -> str:

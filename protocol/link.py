@@ -154,8 +154,11 @@ class _Endpoint:
         self.callback_errors = 0
         self.rejected_keys = 0
         self.packets_out = 0  # radio packets this endpoint put on zenoh (lost ones excluded)
-        self._arrivals = 0  # radio packets that arrived and were processed
+        self.packets_out_by_robot: dict[int, int] = {}  # the same, per robot channel
+        self._arrivals = 0  # radio packets that arrived and were processed (or held)
         self._arrived = threading.Condition()
+        # lockstep: arrivals kept, not processed, until deliver_held() (see hold_arrivals)
+        self._held: list[tuple[int, str, bytes]] | None = None
 
     # -- construction helpers
 
@@ -204,7 +207,38 @@ class _Endpoint:
 
     # -- data path
 
+    def hold_arrivals(self) -> None:
+        """Lockstep mode: from now on radio packets that arrive are counted in
+        :attr:`packets_in` but kept, untouched, until :meth:`deliver_held` processes them on
+        the caller's thread in a canonical order. Without it, packets are processed and
+        messages delivered on zenoh's thread, in arrival order (wall-clock dependent)."""
+        with self._arrived:
+            if self._held is None:
+                self._held = []
+
+    def deliver_held(self) -> int:
+        """Process the packets held since the last call, in canonical order: by robot, then
+        stream name, then the order the stream's sender put them on the air (zenoh keeps one
+        publisher's order); the channels see the current mission time. Messages go to
+        ``on_message`` (on this thread) or the inbox. Returns the packets processed."""
+        with self._arrived:
+            held, self._held = self._held, ([] if self._held is not None else None)
+        if not held:
+            return 0
+        held.sort(key=lambda h: (h[0], h[1]))  # stable: keeps each stream's order
+        for robot_id, stream, data in held:
+            self._receive(robot_id, stream, data)
+        return len(held)
+
     def _on_sample(self, sample: Any) -> None:
+        if self._held is not None:
+            addr = self._address(str(sample.key_expr))
+            with self._arrived:
+                if addr is not None and self._held is not None:
+                    self._held.append((addr[0], addr[1], sample.payload.to_bytes()))
+                self._arrivals += 1
+                self._arrived.notify_all()
+            return
         try:
             self._handle_sample(sample)
         finally:
@@ -226,8 +260,8 @@ class _Endpoint:
         with self._arrived:
             return self._arrived.wait_for(lambda: self._arrivals >= count, timeout_s)
 
-    def _handle_sample(self, sample: Any) -> None:
-        key = str(sample.key_expr)
+    def _address(self, key: str) -> tuple[int, str] | None:
+        """``(robot_id, stream)`` of a radio key; None (counted, logged) if it is not one."""
         addr = self._key_cache.get(key)
         if addr is None:
             try:
@@ -235,11 +269,17 @@ class _Endpoint:
             except ValueError as err:
                 self.rejected_keys += 1
                 log.warning("ignoring %s", err)
-                return
+                return None
             addr = (parsed.robot_id, parsed.stream)
             self._key_cache[key] = addr
-        robot_id, stream = addr
-        data = sample.payload.to_bytes()
+        return addr
+
+    def _handle_sample(self, sample: Any) -> None:
+        addr = self._address(str(sample.key_expr))
+        if addr is not None:
+            self._receive(addr[0], addr[1], sample.payload.to_bytes())
+
+    def _receive(self, robot_id: int, stream: str, data: bytes) -> None:
         now = self._link.clock.now()
         with self._rx_lock:
             with self._lock:
@@ -280,6 +320,9 @@ class _Endpoint:
             for pkt in packets:
                 self._publisher(robot_id, pkt.stream).put(pkt.payload)
             n += len(packets)
+            if packets:
+                by_robot = self.packets_out_by_robot
+                by_robot[robot_id] = by_robot.get(robot_id, 0) + len(packets)
         self.packets_out += n
         return n
 

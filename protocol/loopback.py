@@ -5,6 +5,13 @@ zenoh sessions (two sessions, TCP on 127.0.0.1) while mission time advances only
 each :meth:`LockstepPair.step` moves the shared :class:`~protocol.clock.ManualClock`, pumps one
 side, waits until everything it put on the air has been processed by the other side, then does
 the same the other way. Runs are therefore repeatable and as fast as the machine allows.
+
+:class:`LockstepRadio` is the general form (one ground endpoint, any number of robot
+endpoints on one or more links): :meth:`LockstepRadio.exchange` pumps every robot link, waits
+until the ground side has *received* every packet put on the air, processes them in canonical
+order (:meth:`~protocol.link._Endpoint.deliver_held`: robot, stream, sender's order), then does
+the same for the downlink. Wall-clock timing then decides nothing: what a side sees at a
+mission step is exactly what was due, in an order fixed by the run.
 """
 
 from __future__ import annotations
@@ -12,12 +19,19 @@ from __future__ import annotations
 import socket
 import uuid
 from dataclasses import dataclass
+from typing import Any
 
 from protocol.clock import ManualClock
 from protocol.link import GcsEndpoint, Link, LinkConfig, RobotEndpoint
 from protocol.meter import Meter
 
-__all__ = ["LockstepPair", "free_loopback_port", "open_pair", "unique_mission"]
+__all__ = [
+    "LockstepPair",
+    "LockstepRadio",
+    "free_loopback_port",
+    "open_pair",
+    "unique_mission",
+]
 
 
 def unique_mission(prefix: str) -> str:
@@ -57,6 +71,64 @@ def open_pair(
         gcs.close()
         raise
     return gcs, robot
+
+
+def _wait(endpoint: Any, count: int, timeout_s: float, what: str) -> None:
+    if endpoint.packets_in < count and not endpoint.wait_packets_in(count, timeout_s):
+        raise TimeoutError(
+            f"{what}: {count - endpoint.packets_in} radio packets not delivered within "
+            f"{timeout_s} s"
+        )
+
+
+class LockstepRadio:
+    """One ground endpoint and robot endpoints, exchanging in lockstep (module docstring).
+
+    Every endpoint is switched to held arrivals (:meth:`~protocol.link._Endpoint.hold_arrivals`)
+    and every link must have ``pump_period_s == 0`` (nothing sends behind the driver's back).
+    Messages reach the endpoints' ``on_message`` callbacks (or inboxes) inside
+    :meth:`exchange`, on the caller's thread.
+    """
+
+    def __init__(
+        self,
+        ground_link: Link,
+        ground: GcsEndpoint,
+        robot_links: list[Link],
+        robots: dict[int, RobotEndpoint],
+    ) -> None:
+        for link in (ground_link, *robot_links):
+            if link.config.pump_period_s != 0:
+                raise ValueError(
+                    f"lockstep needs links without a pump thread (pump_period_s 0), got "
+                    f"{link.config.pump_period_s}"
+                )
+        self.ground_link = ground_link
+        self.ground = ground
+        self.robot_links = list(robot_links)
+        self.robots = dict(sorted(robots.items()))
+        ground.hold_arrivals()
+        for ep in self.robots.values():
+            ep.hold_arrivals()
+
+    def wait_connected(self, timeout_s: float) -> None:
+        """Block until every robot and the ground side hear each other (TimeoutError)."""
+        for rid, ep in self.robots.items():
+            if not (ep.wait_for_gcs(timeout_s) and self.ground.wait_for_robot(rid, timeout_s)):
+                raise TimeoutError(f"robot {rid}'s radio did not come up within {timeout_s} s")
+
+    def exchange(self, timeout_s: float = 10.0) -> None:
+        """Uplink then downlink at the current mission time: pump, wait for every packet to
+        arrive, process them in canonical order."""
+        for link in self.robot_links:
+            link.pump()
+        sent_up = sum(ep.packets_out for ep in self.robots.values())
+        _wait(self.ground, sent_up, timeout_s, "uplink")
+        self.ground.deliver_held()
+        self.ground_link.pump()
+        for rid, ep in self.robots.items():
+            _wait(ep, self.ground.packets_out_by_robot.get(rid, 0), timeout_s, f"robot {rid}")
+            ep.deliver_held()
 
 
 @dataclass

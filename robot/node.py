@@ -153,7 +153,10 @@ class RobotNode:
         *,
         send: Callable[[Any], object],
         config: RobotNodeConfig | None = None,
+        seed: int | None = None,
     ) -> None:
+        """``seed``: the node's random draws (deadlock back-off); a run derives it from its
+        own seed (``mission.lockstep.seed_streams``); default: the robot id."""
         self.robot_id = robot_id
         self.config = config or RobotNodeConfig()
         cfg = self.config
@@ -169,7 +172,7 @@ class RobotNode:
         self.follower = PathFollower(cfg.follower)
         self.tasks = TaskExecutor(cfg.tasks)
         self.stuck = StuckDetector(cfg.stuck)
-        self.deadlock = DeadlockBreaker(cfg.deadlock, seed=robot_id)
+        self.deadlock = DeadlockBreaker(cfg.deadlock, seed=robot_id if seed is None else seed)
         self.traversability = TraversabilityMap(cfg.traversability)
         self._prev_sweep: tuple[np.ndarray, GridGeometry, float] | None = None
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
