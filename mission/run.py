@@ -390,27 +390,39 @@ def _fill_poses(report: RunReport, sim: Simulator) -> None:
         report.robots[rid].final_pose = tuple(float(v) for v in sim.robot_poses()[k])
 
 
-def _hazard_caption(report: RunReport) -> str:
+def _footer(report: RunReport) -> list[str]:
+    """The lines under the table, each short enough never to wrap mid-phrase."""
     summary = report.summary()
+    lines = [
+        f"events (rule events, truth): {len(report.events)}"
+        + (f"; last: {report.events[-1]}" if report.events else "")
+    ]
     near = [
         f"{name} {summary[key]:.1f} m"
         for name, key in (("static OOI", "closest_static_m"), ("hostile", "closest_hostile_m"))
         if np.isfinite(summary[key])
     ]
-    closest = f"; closest to a {', '.join(near)}" if near else ""
-    return closest + f"; teammate deadlocks broken: {summary['deadlocks']:.0f}"
+    if near:
+        lines.append(f"closest to a {', '.join(near)} (truth)")
+    lines.append(f"teammate deadlocks broken: {summary['deadlocks']:.0f}")
+    lines.append(
+        "mode: --realtime, wall-clock delivery (not repeatable)"
+        if report.realtime
+        else "mode: deterministic lockstep (same seed, same run)"
+    )
+    return lines
 
 
 def format_progress(report: RunReport, duration_s: float | None = None) -> Any:
-    """A rich table of the run so far (of ``duration_s`` mission-seconds, if given)."""
+    """The run so far (of ``duration_s`` mission-seconds, if given): a rich table of the
+    robots, then one short line per team figure."""
+    from rich.console import Group
     from rich.table import Table
+    from rich.text import Text
 
     of = f" / {duration_s:g}" if duration_s is not None else ""
     table = Table(
-        title=f"magic run: {report.mission_s:6.1f}{of} mission-s, x{report.rtf:.1f} real time",
-        caption=f"events: {len(report.events)}"
-        + (f" (last: {report.events[-1]})" if report.events else "")
-        + _hazard_caption(report),
+        title=f"magic run: {report.mission_s:.1f}{of} mission-s, x{report.rtf:.1f} real time"
     )
     for col in ("robot", "mode", "goals ok/sent", "task", "driven m", "nodes", "uplink B/s"):
         table.add_column(col, justify="right" if col not in ("mode", "task") else "left")
@@ -425,53 +437,154 @@ def format_progress(report: RunReport, duration_s: float | None = None) -> Any:
             str(p.pose_nodes),
             f"{bps:.0f}",
         )
-    return table
+    return Group(table, *(Text(line, no_wrap=True, overflow="ignore") for line in _footer(report)))
+
+
+_HELP_EPILOG = """\
+what a run produces: nothing on disk. Progress goes to stderr (a live table on a terminal,
+else one line per tenth of the run), the final summary table to stdout; status 0 when the run
+completes, 2 on bad input (one line on stderr), 130 after ^C and 143 after SIGTERM (the run
+stops at once, its links are closed and the summary so far is printed).
+
+deterministic by default: a run is fixed by its world, seed, duration and configuration;
+running it twice (on a loaded machine too) gives the same poses, events and figures, bit for
+bit. --realtime delivers radio traffic on wall-clock threads instead: not repeatable.
+
+terms: mission-s: simulated seconds; "xN real time": mission-s per wall second; events: the
+simulator's rule events, from ground truth (a robot disabled by a trigger or a hostile, a
+hostile neutralized, a civilian lasered); goals ok/sent: scripted goals reached / given;
+task: the latest task status the robot reported; driven m: distance driven (truth); nodes:
+pose nodes received by the ground side over the radio; uplink B/s: radio bytes the robot sent
+per mission-second; closest to a static OOI / hostile: the team's nearest approach (truth;
+keep-out 2.5 m / 5 m); teammate deadlocks broken: times a robot backed off a teammate.
+"""
 
 
 def _parser() -> Any:
     import argparse
 
+    d = RunConfig()
     p = argparse.ArgumentParser(
-        prog="magic run", description="simulate a robot team on this machine, end to end"
+        prog="magic run",
+        description="Simulate a robot team on this machine, end to end: the simulator, one "
+        "robot node per robot and a scripted ground side (sends each robot goals) talking "
+        "over the simulated radio on real zenoh sessions.",
+        epilog=_HELP_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--config", metavar="YAML", help="run configuration (mission.run.RunConfig)")
+    p.add_argument(
+        "--config",
+        metavar="YAML",
+        help="run configuration, a mission.run.RunConfig YAML (default: built-in defaults)",
+    )
     p.add_argument(
         "--world",
         metavar="WORLD",
         help="world: a name in configs/world/ (small, magic_phase) or a YAML path (default: small)",
     )
-    p.add_argument("--duration", type=float, metavar="S", help="mission seconds to run")
-    p.add_argument("--seed", type=int, help="seed of the scripted goals")
-    p.add_argument("--quiet", action="store_true", help="no live table, only the summary")
+    p.add_argument(
+        "--duration",
+        type=float,
+        metavar="S",
+        help=f"mission-seconds to run (default: {d.duration_s:g})",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        metavar="N",
+        help=f"the run's seed, >= 0: goals, sensor noise, radio loss, robots' draws "
+        f"(default: {d.seed})",
+    )
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="wall-clock radio delivery (hardware in the loop); the run is NOT repeatable "
+        "(default: deterministic lockstep)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress, only the summary")
     return p
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like ^C so that the run stops the same way (exit 143)."""
+
+
+def _terminated_type() -> type[KeyboardInterrupt]:
+    """The process-wide SIGTERM exception if :mod:`protocol.process_cli` defines one."""
+    from protocol import process_cli
+
+    shared = getattr(process_cli, "Terminated", None)
+    if isinstance(shared, type) and issubclass(shared, KeyboardInterrupt):
+        return shared
+    return _Terminated
+
+
+def _exit_status(exc: BaseException) -> tuple[int, str]:
+    if isinstance(exc, _terminated_type() | _Terminated):
+        return 143, "SIGTERM"
+    return 130, "SIGINT"
+
+
+def _check_inputs(config: RunConfig) -> None:
+    """Everything a run reads, read before it starts (ConfigError/ValueError naming it)."""
+    world = load_world_config(config_path(config.world, "world"))
+    load_config(config_path(config.radio, "radio"), RadioConfig)
+    if world.robots.sensors + world.robots.disruptors < 1:  # pragma: no cover - config refuses
+        raise ValueError(f"world {config.world}: no robots")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``magic run``: exit 0 on success, 2 on bad input (named on stderr)."""
+    """``magic run``: 0 when the run completes, 2 on bad input (one line on stderr), 130 on
+    SIGINT and 143 on SIGTERM (partial summary printed)."""
+    import signal
+    import sys
+
     from rich.console import Console
     from rich.live import Live
 
     from mission.config import ConfigError
 
     args = _parser().parse_args(argv)
-    err = Console(stderr=True)
+    err = Console(stderr=True, highlight=False)
+    # a pipe or a file: lines are never wrapped mid-phrase (a terminal keeps its width)
+    out = Console(highlight=False) if sys.stdout.isatty() else Console(width=160, soft_wrap=True)
 
     def fail(problem: object) -> int:
-        err.print(f"magic run: {problem}", style="red", markup=False, highlight=False)
+        text = " ".join(str(problem).split())
+        err.print(f"magic run: {text}", style="red", markup=False, soft_wrap=True)
         return 2
 
     try:
         config = load_config(args.config, RunConfig) if args.config else RunConfig()
         overrides = {
             k: v
-            for k, v in (("world", args.world), ("duration_s", args.duration), ("seed", args.seed))
+            for k, v in (
+                ("world", args.world),
+                ("duration_s", args.duration),
+                ("seed", args.seed),
+                ("realtime", True if args.realtime else None),
+            )
             if v is not None
         }
         if overrides:
             config = msgspec.structs.replace(config, **overrides)
+        _check_inputs(config)
     except (ConfigError, ValueError) as exc:
         return fail(exc)
     total_s = config.duration_s
+    terminated = _terminated_type()
+
+    def on_sigterm(_signum: int, _frame: object) -> None:
+        raise terminated("SIGTERM")
+
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    if config.realtime:
+        err.print(
+            "magic run: --realtime: radio delivery on wall-clock threads; this run is not "
+            "repeatable",
+            markup=False,
+            soft_wrap=True,
+        )
     try:
         if args.quiet:
             report = run_mission(config)
@@ -490,11 +603,26 @@ def main(argv: list[str] | None = None) -> int:
                         f"magic run: {r.mission_s:.0f} / {total_s:g} mission-s, "
                         f"x{r.rtf:.1f} real time, {len(r.events)} events",
                         markup=False,
-                        highlight=False,
+                        soft_wrap=True,
                     )
 
             report = run_mission(config, on_progress=line)
+    except KeyboardInterrupt as exc:  # before the team was up: nothing ran
+        status, name = _exit_status(exc)
+        err.print(f"magic run: stopped by {name} before the run started", soft_wrap=True)
+        return status
     except ConfigError as exc:
         return fail(exc)
-    Console().print(format_progress(report, total_s))
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    out.print(format_progress(report, total_s))
+    if report.interrupted is not None:
+        status, name = _exit_status(report.interrupted)
+        err.print(
+            f"magic run: stopped by {name} at {report.mission_s:.2f} of {total_s:g} "
+            "mission-s; the summary above is the run so far",
+            markup=False,
+            soft_wrap=True,
+        )
+        return status
     return 0
