@@ -19,6 +19,7 @@ report counts, from the truth, how close each robot came to each kind of hazard.
 from __future__ import annotations
 
 import math
+import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -47,7 +48,15 @@ from protocol.se2 import inverse, transform_points
 from robot.node import RobotNodeConfig
 from sim.simulator import Simulator, SimulatorConfig, load_world_config
 
-__all__ = ["RobotProgress", "RunConfig", "RunReport", "main", "run_mission", "scripted_goals"]
+__all__ = [
+    "RobotProgress",
+    "RunConfig",
+    "RunReport",
+    "fields_differing",
+    "main",
+    "run_mission",
+    "scripted_goals",
+]
 
 
 class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -148,6 +157,16 @@ class RunReport:
             "deadlocks": float(sum(p.deadlocks for p in ps)),
             "events": float(len(self.events)),
         }
+
+
+def fields_differing(a: dict[str, float | str], b: dict[str, float | str]) -> list[str]:
+    """Names of the :meth:`RunReport.fields` that differ between two runs (or exist in one
+    only); floats compare bit for bit (``-0.0 != 0.0``, NaN equals the same NaN)."""
+
+    def bits(v: float | str | None) -> object:
+        return struct.pack("<d", v) if isinstance(v, float) else v
+
+    return [k for k in sorted(a.keys() | b.keys()) if bits(a.get(k)) != bits(b.get(k))]
 
 
 def scripted_goals(

@@ -32,6 +32,7 @@ SUITES: dict[str, str] = {
     "robot": "mission.bench.robot",
     "loops": "mission.bench.loops",
     "compression": "mission.bench.compression",
+    "repeat": "mission.bench.repeat",
 }
 
 

@@ -1,0 +1,78 @@
+"""``magic bench repeat``: same seed, same mission (issue 20; DESIGN section 4).
+
+The small world's default mission (:class:`mission.run.RunConfig`, 4 robots, scripted goals),
+run in deterministic lockstep (:mod:`mission.lockstep`):
+
+1. seed 0;
+2. seed 0 again, with a CPU-bound process beside it (the machine loaded);
+3. seed 1;
+4. seed 0 with ``realtime`` (wall-clock delivery), for the speed comparison only.
+
+Metrics:
+
+- ``fields_compared``: figures of a run compared (:meth:`mission.run.RunReport.fields`: team
+  summary, every robot's progress and final pose from ground truth, every rule event);
+- ``same_seed_fields_differing``: of those, how many differ between runs 1 and 2, floats
+  compared bit for bit (must be 0);
+- ``other_seed_fields_differing``: how many differ between runs 1 and 3 (must be > 0: the seed
+  matters);
+- ``lockstep_rtf``, ``realtime_rtf``: real-time factors (mission-s per wall second) of runs 1
+  and 4; ``lockstep_rtf_over_free``: their ratio (the cost of determinism; >= 0.8 expected);
+- ``loaded_rtf``: run 2's real-time factor (slower, same result).
+
+Not measured yet: the same mission with the robots in separate processes (``magic sim
+--lockstep`` + ``magic robot --id N``); that mode does not give the in-process mission yet
+(see :mod:`mission.lockstep`), so it has no run here.
+
+``--quick``: 20 mission-seconds per run (about 40 s in all); full: 90 mission-seconds.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Callable
+
+from mission.run import RunConfig, RunReport, fields_differing, run_mission
+
+__all__ = ["run"]
+
+_BUSY = "import time\nend = time.monotonic() + 600\nwhile time.monotonic() < end:\n    pass\n"
+
+
+def _busy_process() -> subprocess.Popen[bytes]:
+    """A CPU-bound process (bounded to 10 minutes should its parent die)."""
+    return subprocess.Popen([sys.executable, "-c", _BUSY])
+
+
+def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    duration_s = 20.0 if quick else 90.0
+    base = RunConfig(duration_s=duration_s, seed=0)
+
+    def one(label: str, config: RunConfig) -> RunReport:
+        report = run_mission(config)
+        progress(f"{label}: {report.mission_s:g} mission-s at x{report.rtf:.2f} real time")
+        return report
+
+    first = one("seed 0", base)
+    busy = _busy_process()
+    try:
+        loaded = one("seed 0, a CPU-bound process beside", base)
+    finally:
+        busy.kill()
+        busy.wait()
+    other = one("seed 1", RunConfig(duration_s=duration_s, seed=1))
+    free = one("seed 0, --realtime", RunConfig(duration_s=duration_s, seed=0, realtime=True))
+    fields = first.fields()
+    same = fields_differing(fields, loaded.fields())
+    if same:
+        progress(f"same seed, differing: {', '.join(same[:8])}")
+    return {
+        "fields_compared": float(len(fields)),
+        "same_seed_fields_differing": float(len(same)),
+        "other_seed_fields_differing": float(len(fields_differing(fields, other.fields()))),
+        "lockstep_rtf": first.rtf,
+        "loaded_rtf": loaded.rtf,
+        "realtime_rtf": free.rtf,
+        "lockstep_rtf_over_free": first.rtf / free.rtf,
+    }
