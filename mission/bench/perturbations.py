@@ -1,0 +1,119 @@
+"""Perturbations of a CARMEN log for the robustness bench (issue 19 items 3 and 6).
+
+Pure functions over a :class:`~gcs.replay.carmen_log.CarmenLog` that return a new log with one
+defect public logs are known to carry, so a replay can be scored on data it was never tuned on:
+
+* :func:`scale_turns`: every odometry heading increment multiplied by ``factor`` (0.92 / 1.08: a
+  gyro or wheel-base calibration error) and the odometry re-chained from the first pose, each
+  translation increment kept in the robot frame. Only ``odometry_in_log`` changes; the laser and
+  base poses (the reference in a corrected log) stay. For a corrected log, whose odometry
+  repeats the reference, the replay's added noise then comes on top of the bias.
+* :func:`freeze_clock`: every timestamp 0 (a logger without a clock).
+* :func:`coarsen_clock`: timestamps quantized to ``step_s`` (1e4 s) around ``epoch_s``
+  (1.13486e9): what ``%g`` printing of a Unix time gives (``1.13486e+09``).
+* :func:`jump_clock`: ``jump_s`` (4.29e9 s, a 32-bit wrap) added to every stamp from one scan on.
+* :func:`drop_scans`: a stretch of scans removed (an odometry and laser gap).
+
+Each function leaves its input untouched (the arrays are copied).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from gcs.replay.carmen_log import CarmenLog
+from protocol.se2 import compose, relative, wrap_angle
+
+__all__ = [
+    "COARSE_CLOCK_EPOCH_S",
+    "COARSE_CLOCK_STEP_S",
+    "CLOCK_JUMP_S",
+    "coarsen_clock",
+    "drop_scans",
+    "freeze_clock",
+    "jump_clock",
+    "scale_turns",
+]
+
+#: The coarse clock of the public logs: ``1.13486e+09`` changing every 1e4 s.
+COARSE_CLOCK_EPOCH_S = 1.13486e9
+COARSE_CLOCK_STEP_S = 1.0e4
+#: A 32-bit wrap of a microsecond/second counter seen in public logs.
+CLOCK_JUMP_S = 4.29e9
+
+
+def scale_turns(log: CarmenLog, factor: float) -> CarmenLog:
+    """``log`` with every odometry heading increment multiplied by ``factor``, re-chained.
+
+    The increments ``relative(odom[i-1], odom[i])`` keep their translation (in the robot frame
+    of scan ``i-1``) and get their yaw multiplied by ``factor``; the odometry is composed again
+    from the first scan's pose, so the heading error grows with the total turning as a
+    mis-calibrated gyro's does.
+    """
+    if not np.isfinite(factor) or factor <= 0.0:
+        raise ValueError(f"scale_turns: factor must be positive and finite, got {factor!r}")
+    odom = np.array(log.odometry_in_log, dtype=np.float64, copy=True)
+    if len(odom) >= 2:
+        inc = relative(odom[:-1], odom[1:])
+        inc[:, 2] = wrap_angle(inc[:, 2]) * factor
+        out = np.empty_like(odom)
+        out[0] = odom[0]
+        for i in range(1, len(odom)):
+            out[i] = compose(out[i - 1], inc[i - 1])
+        out[:, 2] = wrap_angle(out[:, 2])
+        odom = out
+    return dataclasses.replace(log, odometry_in_log=odom)
+
+
+def _with_time(log: CarmenLog, time_s: np.ndarray) -> CarmenLog:
+    return dataclasses.replace(log, time_s=np.asarray(time_s, dtype=np.float64))
+
+
+def freeze_clock(log: CarmenLog, value_s: float = 0.0) -> CarmenLog:
+    """``log`` with every timestamp ``value_s`` (0: a frozen clock)."""
+    return _with_time(log, np.full(len(log), float(value_s)))
+
+
+def coarsen_clock(
+    log: CarmenLog,
+    step_s: float = COARSE_CLOCK_STEP_S,
+    epoch_s: float = COARSE_CLOCK_EPOCH_S,
+) -> CarmenLog:
+    """``log`` with its clock moved to start at ``epoch_s`` and quantized to ``step_s``.
+
+    The stamps keep their spacing (relative to the first finite one) before quantization, so a
+    log shorter than ``step_s`` ends up with one or two distinct values.
+    """
+    if not step_s > 0.0:
+        raise ValueError(f"coarsen_clock: step_s must be positive, got {step_s!r}")
+    t = np.asarray(log.time_s, dtype=np.float64)
+    finite = np.isfinite(t)
+    t0 = float(t[finite][0]) if finite.any() else 0.0
+    rel = np.where(finite, t - t0, np.arange(len(t), dtype=np.float64) * 0.1)
+    return _with_time(log, np.round((epoch_s + rel) / step_s) * step_s)
+
+
+def jump_clock(
+    log: CarmenLog, from_scan: int | None = None, jump_s: float = CLOCK_JUMP_S
+) -> CarmenLog:
+    """``log`` with ``jump_s`` added to the stamps of scans ``from_scan..`` (default: middle)."""
+    n = len(log)
+    start = n // 2 if from_scan is None else int(from_scan)
+    if not 0 <= start <= n:
+        raise ValueError(f"jump_clock: from_scan {start} outside 0..{n}")
+    t = np.array(log.time_s, dtype=np.float64, copy=True)
+    t[start:] += jump_s
+    return _with_time(log, t)
+
+
+def drop_scans(log: CarmenLog, start: int, count: int) -> CarmenLog:
+    """``log`` without scans ``start .. start+count-1`` (an odometry and laser gap)."""
+    n = len(log)
+    if not (0 <= start < n and count > 0):
+        raise ValueError(f"drop_scans: start {start}, count {count} outside a log of {n} scans")
+    keep = np.r_[np.arange(0, start), np.arange(min(n, start + count), n)]
+    if len(keep) == 0:
+        raise ValueError("drop_scans: no scan would remain")
+    return log.subset(keep.astype(np.int64))
