@@ -39,7 +39,7 @@ import zenoh
 
 from protocol import keys
 from protocol.clock import Clock, WallClock
-from protocol.messages import Direction
+from protocol.messages import STREAMS, Direction
 from protocol.meter import Meter
 from protocol.radio import RadioConfig, RadioGrant
 from protocol.radio_channel import RadioChannel, ReliabilityConfig
@@ -218,14 +218,17 @@ class _Endpoint:
 
     def deliver_held(self) -> int:
         """Process the packets held since the last call, in canonical order: by robot, then
-        stream name, then the order the stream's sender put them on the air (zenoh keeps one
-        publisher's order); the channels see the current mission time. Messages go to
-        ``on_message`` (on this thread) or the inbox. Returns the packets processed."""
+        stream (by its id: acks first), then the order the stream's sender put them on the
+        air (zenoh keeps one publisher's order); the channels see the current mission time.
+        Messages go to ``on_message`` (on this thread) or the inbox. Returns the packets
+        processed."""
         with self._arrived:
             held, self._held = self._held, ([] if self._held is not None else None)
         if not held:
             return 0
-        held.sort(key=lambda h: (h[0], h[1]))  # stable: keeps each stream's order
+        incoming = Direction.UP if self.sends is Direction.DOWN else Direction.DOWN
+        rank = {name: spec.stream_id for name, spec in STREAMS[incoming].items()}
+        held.sort(key=lambda h: (h[0], rank.get(h[1], len(rank))))  # stable: stream order kept
         for robot_id, stream, data in held:
             self._receive(robot_id, stream, data)
         return len(held)

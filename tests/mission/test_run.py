@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
 import pytest
 
 from mission.cli import main
-from mission.run import RunConfig, run_mission
+from mission.run import RunConfig, fields_differing, run_mission
+
+REPO = Path(__file__).resolve().parents[2]
 
 pytestmark = pytest.mark.slow
 
@@ -60,3 +68,93 @@ def test_run_command_reports_a_bad_world_file(tmp_path, capsys) -> None:
     bad.write_text("sizee: [10, 10]\n")
     assert main(["run", "--world", str(bad), "--duration", "1", "--quiet"]) == 2
     assert f"{bad}: sizee: unknown key" in capsys.readouterr().err.replace("\n", "")
+
+
+def _short(seed: int = 0) -> RunConfig:
+    return RunConfig(duration_s=12.0, seed=seed)
+
+
+def test_same_seed_gives_the_same_mission_bit_for_bit_even_under_load() -> None:
+    """DESIGN section 4: a run is fixed by its world, team, seed, duration and configuration,
+    whatever the load; another seed is another mission."""
+    first = run_mission(_short()).fields()
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        again = run_mission(_short()).fields()
+    finally:
+        busy.kill()
+        busy.wait()
+    assert len(first) > 60  # team figures, every robot's progress and final pose
+    assert fields_differing(first, again) == []
+    other = run_mission(_short(seed=1)).fields()
+    differing = fields_differing(first, other)
+    assert any(name.endswith(".final_x_m") for name in differing), differing
+
+
+def test_fields_differing_compares_floats_bit_for_bit() -> None:
+    assert fields_differing({"a": 0.1 + 0.2}, {"a": 0.3}) == ["a"]
+    assert fields_differing({"a": 0.0}, {"a": -0.0}) == ["a"]
+    assert fields_differing({"a": float("nan"), "b": "x"}, {"a": float("nan"), "b": "x"}) == []
+    assert fields_differing({"a": 1.0}, {"b": 1.0}) == ["a", "b"]
+
+
+@pytest.mark.parametrize(
+    ("sig", "status", "name"),
+    [(signal.SIGINT, 130, "SIGINT"), (signal.SIGTERM, 143, "SIGTERM")],
+)
+def test_a_signal_mid_run_ends_it_with_the_summary_so_far(sig, status, name) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mission.cli", "run", "--duration", "600"],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    watchdog = threading.Timer(180.0, proc.kill)  # a hung run fails the test, not the suite
+    watchdog.start()
+    try:
+        assert proc.stderr is not None
+        seen = []
+        for line in proc.stderr:  # progress lines (stderr is a pipe)
+            seen.append(line)
+            if "mission-s" in line:
+                break
+        assert any("mission-s" in line for line in seen), seen
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        watchdog.cancel()
+        proc.kill()
+    err = "".join(seen) + err
+    assert proc.returncode == status, err
+    assert "Traceback" not in err
+    assert f"magic run: stopped by {name} at " in err
+    lines = out.splitlines()
+    assert any("goals ok/sent" in line for line in lines)  # the table of the run so far
+    # a pipe: every summary line whole, none wrapped mid-phrase
+    assert any(line.startswith("teammate deadlocks broken: ") for line in lines), out
+    assert any(line.startswith("mode: deterministic lockstep") for line in lines), out
+
+
+def test_run_help_gives_defaults_units_outputs_and_terms(capsys) -> None:
+    with pytest.raises(SystemExit) as exit_:
+        main(["run", "--help"])
+    assert exit_.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for needle in (
+        "mission-seconds to run (default: 180)",
+        "(default: 0)",
+        "(default: small)",
+        "what a run produces: nothing on disk",
+        "events: the simulator's rule events",
+        "130 after ^C and 143 after SIGTERM",
+        "--realtime",
+        "NOT repeatable",
+    ):
+        assert needle in text, needle
+
+
+def test_run_command_refuses_a_negative_seed_in_one_line(capsys) -> None:
+    assert main(["run", "--seed", "-1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == "magic run: seed must be >= 0, got -1"

@@ -252,3 +252,70 @@ def test_a_script_that_never_closes_its_links_still_exits() -> None:
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=60, check=False
     )
     assert (done.returncode, done.stdout) == (0, "3\n"), done.stderr
+
+
+def telemetry(time_s: float, task_id: int) -> Telemetry:
+    return Telemetry(
+        time_s, (0.0, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), 1.0, AutonomyMode.AUTONOMOUS, task_id
+    )
+
+
+def test_lockstep_radio_delivers_on_the_stepping_thread_in_canonical_order() -> None:
+    """Several robots' packets, whatever order zenoh's threads see them in, reach the ground
+    side inside ``exchange`` on the caller's thread, by robot then stream then sequence; what
+    is held is counted as arrived but not delivered before ``exchange``."""
+    from protocol.loopback import LockstepRadio
+
+    clock = ManualClock()
+    cfg = LinkConfig(pump_period_s=0.0)
+    ground_link, robot_link = open_pair(config=cfg, clock=clock)
+    got: list[tuple[int, str, int, int]] = []
+    down: dict[int, list[int]] = {7: [], 2: []}
+    caller = threading.get_ident()
+
+    def on_up(robot_id: int, msg: object) -> None:
+        assert threading.get_ident() == caller
+        kind = type(msg).__name__
+        got.append((robot_id, kind, getattr(msg, "task_id", -1), threading.get_ident()))
+
+    try:
+        ground = ground_link.gcs_endpoint(on_message=on_up)
+        robots = {
+            rid: robot_link.robot_endpoint(
+                rid, on_message=lambda m, r=rid: down[r].append(m.task_id)
+            )
+            for rid in (7, 2)
+        }
+        radio = LockstepRadio(ground_link, ground, [robot_link], robots)
+        radio.wait_connected(10.0)
+        for step in range(3):
+            clock.advance(0.05)
+            for rid in (7, 2):  # robot 7 sends first
+                robots[rid].send(status(10 * rid + step))
+                robots[rid].send(telemetry(clock.now(), 10 * rid + step))
+                ground.send(rid, GoToTask(100 * rid + step, clock.now(), [(1.0, 0.0)]))
+            robot_link.pump()
+            sent = sum(ep.packets_out for ep in robots.values())
+            assert ground.wait_packets_in(sent, 10.0)  # arrived, held
+            assert got == []  # nothing delivered before the exchange
+            radio.exchange()
+            assert [t for r, k, t, _ in got if k == "TaskStatus"] == [20 + step, 70 + step]
+            assert [(r, k) for r, k, _, _ in got] == [  # robot, then stream id
+                (2, "TaskStatus"),
+                (2, "Telemetry"),
+                (7, "TaskStatus"),
+                (7, "Telemetry"),
+            ]
+            got.clear()
+        assert down == {7: [700, 701, 702], 2: [200, 201, 202]}
+    finally:
+        robot_link.close()
+        ground_link.close()
+
+
+def test_lockstep_radio_refuses_links_with_a_pump_thread() -> None:
+    from protocol.loopback import LockstepRadio
+
+    with Link(LinkConfig(listen=(), pump_period_s=0.01), mission=unique_mission("t")) as link:
+        with pytest.raises(ValueError, match="pump_period_s 0"):
+            LockstepRadio(link, link.gcs_endpoint(), [], {})
