@@ -15,6 +15,12 @@ Gaussian edges between the same nodes add their information): the merged measure
 information-weighted mean on the manifold, its information the sum. The constant part of the
 chi2 that the merge removes (the disagreement of the repeated measurements among themselves)
 is kept in ``chi2_offset`` so that chi2 values stay comparable with the original graph.
+
+Initial estimates (:func:`initial_poses`): the file's vertices, chained odometry (edges
+``i -> i+1``) or the minimum-uncertainty spanning tree over all edges (paper 4.6). A graph whose
+odometry chain has a gap, or whose file lacks some vertices, falls back to the spanning tree and
+says so. Every connected component (an isolated vertex is one) is anchored on its smallest id:
+:func:`to_gtsam` puts a prior there, so a graph in pieces solves without a singular system.
 """
 
 from __future__ import annotations
@@ -22,18 +28,24 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
 from gcs.graph import se2
+from gcs.graph.pose2_gauss_newton import Pose2Factors
+from gcs.graph.spanning_tree_init import component_labels, spanning_tree_from_factors
 
 __all__ = [
     "G2oError",
     "G2oGraph",
+    "G2oStart",
+    "StartKind",
     "chained_odometry",
+    "component_roots",
+    "initial_poses",
     "merge_repeated_edges",
     "parse_g2o",
     "read_g2o",
@@ -75,7 +87,7 @@ class G2oGraph:
 
     def chi2(self, poses_by_id: dict[int, FloatArray] | gtsam.Values) -> float:
         """``sum e' Omega e`` (GTSAM ``BetweenFactorPose2`` residuals) plus ``chi2_offset``."""
-        graph, _ = to_gtsam(self, prior_sigma=None)
+        graph, _ = to_gtsam(self, prior_sigma=None, poses=np.zeros((self.node_ids.size, 3)))
         values = poses_by_id if isinstance(poses_by_id, gtsam.Values) else _values(poses_by_id)
         return 2.0 * graph.error(values) + self.chi2_offset
 
@@ -323,13 +335,98 @@ def chained_odometry(graph: G2oGraph, *, first_pose: FloatArray | None = None) -
         elif i == j + 1 and j not in odo:
             odo[j] = se2.inverse(z)
     poses = np.zeros((ids.size, 3))
+    if ids.size == 0:
+        return poses
     poses[0] = np.zeros(3) if first_pose is None else first_pose
     for n in range(1, ids.size):
         prev = int(ids[n - 1])
         if int(ids[n]) != prev + 1 or prev not in odo:
-            raise G2oError(f"chained odometry: no edge between vertices {prev} and {prev + 1}")
+            raise G2oError(
+                f"chained odometry: no edge between vertices {prev} and {prev + 1} "
+                "(initial_poses(graph, 'chained') falls back to the spanning tree)"
+            )
         poses[n] = se2.compose(poses[n - 1], odo[prev])
     return poses
+
+
+StartKind = Literal["file", "chained", "tree"]
+
+
+@dataclass(frozen=True)
+class G2oStart:
+    """An initial estimate: ``poses`` (N, 3) in ``graph.node_ids`` order, the ``kind`` that made
+    it, and ``note``: empty, or why the requested kind fell back to the spanning tree."""
+
+    poses: FloatArray
+    kind: StartKind
+    note: str = ""
+
+
+def component_roots(graph: G2oGraph) -> IntArray:
+    """The smallest vertex id of every connected component of ``graph`` (sorted); a vertex
+    without edges is a component of its own."""
+    ids = graph.node_ids
+    if ids.size == 0:
+        return ids
+    labels = component_labels(ids.size, np.searchsorted(ids, graph.edge_ij))
+    first = np.full(int(labels.max()) + 1, ids.size, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(ids.size))
+    return ids[np.sort(first)]
+
+
+def _file_poses(graph: G2oGraph) -> tuple[FloatArray, IntArray]:
+    """The file's vertex poses in ``node_ids`` order (identity where absent) and the ids of
+    the nodes without a ``VERTEX_SE2``."""
+    ids = graph.node_ids
+    poses = np.zeros((ids.size, 3))
+    poses[np.searchsorted(ids, graph.vertex_ids)] = graph.vertex_poses
+    return poses, np.setdiff1d(ids, graph.vertex_ids)
+
+
+def _spanning_tree(graph: G2oGraph, current: FloatArray) -> FloatArray:
+    ids = graph.node_ids
+    roots = np.searchsorted(ids, component_roots(graph))
+    factors = Pose2Factors(
+        n=int(ids.size),
+        ij=np.searchsorted(ids, graph.edge_ij),
+        z=graph.edge_z,
+        info=graph.edge_info,
+        prior_index=roots,
+        prior_pose=current[roots],
+        prior_info=np.tile(np.eye(3) * 1e12, (roots.size, 1, 1)),
+    )
+    return spanning_tree_from_factors(factors, current)
+
+
+def initial_poses(graph: G2oGraph, kind: StartKind = "chained") -> G2oStart:
+    """Initial estimate (N, 3) of ``graph.node_ids`` (see module docstring).
+
+    ``"file"``: the ``VERTEX_SE2`` poses; ``"chained"``: :func:`chained_odometry` from the first
+    vertex's file pose (identity if absent); ``"tree"``: the spanning tree over all edges, every
+    component rooted at its smallest id at that vertex's file pose (identity if absent), edges
+    weighted by their covariance. ``"file"`` with vertices missing from the file and
+    ``"chained"`` on a chain with a gap fall back to ``"tree"``; the result's ``note`` says why.
+    """
+    if kind not in ("file", "chained", "tree"):
+        raise ValueError(f"initial_poses: unknown kind {kind!r}; expected file, chained or tree")
+    file_poses, missing = _file_poses(graph)
+    if graph.node_ids.size == 0:
+        return G2oStart(file_poses, kind)
+    note = ""
+    if kind == "file":
+        if missing.size == 0:
+            return G2oStart(file_poses, "file")
+        note = (
+            f"{missing.size} of {graph.node_ids.size} vertices have no VERTEX_SE2 "
+            f"(first: {int(missing[0])}); initialized by spanning tree over all edges"
+        )
+    elif kind == "chained":
+        try:
+            return G2oStart(chained_odometry(graph, first_pose=file_poses[0]), "chained")
+        except G2oError as err:
+            reason = str(err).removeprefix("chained odometry: ").split(" (")[0]
+            note = f"odometry chain broken ({reason}); initialized by spanning tree over all edges"
+    return G2oStart(_spanning_tree(graph, file_poses), "tree", note)
 
 
 def to_gtsam(
@@ -337,8 +434,10 @@ def to_gtsam(
 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """``BetweenFactorPose2`` per edge (keys = vertex ids) and the vertices' values.
 
-    ``prior_sigma`` adds a tight prior on the first vertex at its value (gauge freedom), or
-    none when ``None``. ``poses`` (N, 3), in ``graph.node_ids`` order, replaces the vertex values.
+    ``prior_sigma`` adds a tight prior at its value on the first vertex of every connected
+    component (:func:`component_roots`; the gauge freedom of each), or none when ``None``.
+    ``poses`` (N, 3), in ``graph.node_ids`` order, replaces the vertex values; without it every
+    node needs a ``VERTEX_SE2`` (raises :class:`G2oError` naming a missing one).
     """
     fg = gtsam.NonlinearFactorGraph()
     for (i, j), z, info in zip(graph.edge_ij.tolist(), graph.edge_z, graph.edge_info, strict=True):
@@ -346,17 +445,22 @@ def to_gtsam(
         fg.add(gtsam.BetweenFactorPose2(i, j, se2.pose2(z), noise))
     values = gtsam.Values()
     if poses is None:
+        missing = np.setdiff1d(graph.node_ids, graph.vertex_ids)
+        if missing.size:
+            raise G2oError(
+                f"to_gtsam: vertex {int(missing[0])} (and {missing.size - 1} more) has edges but "
+                "no VERTEX_SE2; pass poses=initial_poses(graph, ...).poses"
+            )
         for vid, p in zip(graph.vertex_ids.tolist(), graph.vertex_poses, strict=True):
             values.insert(vid, se2.pose2(p))
-        first = int(graph.vertex_ids[0]) if graph.vertex_ids.size else None
     else:
         ids = graph.node_ids
         if poses.shape != (ids.size, 3):
             raise ValueError(f"poses has shape {poses.shape}, expected {(ids.size, 3)}")
         for vid, p in zip(ids.tolist(), poses, strict=True):
             values.insert(vid, se2.pose2(p))
-        first = int(ids[0]) if ids.size else None
-    if prior_sigma is not None and first is not None:
+    if prior_sigma is not None:
         noise = gtsam.noiseModel.Isotropic.Sigma(3, prior_sigma)
-        fg.add(gtsam.PriorFactorPose2(first, values.atPose2(first), noise))
+        for root in component_roots(graph).tolist():
+            fg.add(gtsam.PriorFactorPose2(root, values.atPose2(root), noise))
     return fg, values

@@ -1,14 +1,26 @@
 """Optimization of the pose graph: batch Gauss-Newton / Levenberg-Marquardt / Dogleg with a
 chosen variable ordering, and incremental iSAM2 for online use (paper 4.6).
 
-Methods ``"gn"``, ``"lm"``, ``"dogleg"`` are GTSAM's optimizers. ``"block_gn"`` is Gauss-Newton
-on the compiled block Cholesky of :mod:`gcs.graph.pose2_gauss_newton` for graphs of
-``BetweenFactorPose2`` and ``PriorFactorPose2`` with Gaussian noise: the same model, error,
-retraction and stopping rule as GTSAM's Gauss-Newton, about 4x faster on manhattan_olson3500
-(GTSAM's multifrontal elimination spends ~20 ms on the 7 Mflop of that factor, mostly per-clique
-overhead; the compiled kernel ~1.3 ms). Its result comes back as ``gtsam.Values`` and its chi2 is
-GTSAM's. :func:`optimize_pose2` takes the factors as arrays (no per-factor Python work), e.g.
-from :func:`pose2_factors_from_g2o`; :func:`optimize_batch` extracts them from the graph.
+Methods ``"gn"``, ``"lm"``, ``"dogleg"`` are GTSAM's optimizers. ``"block_lm"`` (the default)
+and ``"block_gn"`` run on the compiled block Cholesky for graphs of ``BetweenFactorPose2`` and
+``PriorFactorPose2`` with Gaussian noise (the same model, error and retraction as GTSAM;
+GTSAM's multifrontal elimination spends ~20 ms on the 7 Mflop of manhattan_olson3500's factor,
+mostly per-clique overhead; the compiled kernel ~1.3 ms):
+
+- ``"block_lm"``: :func:`solve_pose2`, Levenberg-Marquardt
+  (:mod:`gcs.graph.pose2_levenberg_marquardt`), which never accepts a step that raises the
+  chi2 and takes the Gauss-Newton step where that is good (as fast as ``"block_gn"`` on
+  manhattan_olson3500); when the estimate it reaches fails the chi2 test (chi2 above
+  ``dof + 3 sqrt(2 dof)``, ``dof`` = residual dimensions minus variable dimensions: a local
+  minimum, as Levenberg-Marquardt from chained odometry on manhattan_M3500b) it solves again
+  from the minimum-uncertainty spanning-tree initialization (paper 4.6) and keeps the lower;
+- ``"block_gn"``: plain Gauss-Newton (:mod:`gcs.graph.pose2_gauss_newton`), GTSAM's
+  Gauss-Newton stopping rule; it stops at the first step that raises the chi2 and returns the
+  estimate before that step, so from a poor start it can end far above the optimum.
+
+Their result comes back as ``gtsam.Values`` and its chi2 is GTSAM's. :func:`optimize_pose2`
+takes the factors as arrays (no per-factor Python work), e.g. from
+:func:`pose2_factors_from_g2o`; :func:`optimize_batch` extracts them from the graph.
 
 Orderings: ``"colamd"`` (GTSAM's COLAMD), ``"metis"`` (GTSAM's METIS), ``"natural"`` (key order)
 and ``"emd"``, the exact minimum degree ordering of :mod:`gcs.graph.emd_ordering`, handed to
@@ -29,8 +41,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gcs.graph.emd_ordering import elimination_degrees, factor_nnz, minimum_degree_ordering
-from gcs.graph.g2o import G2oGraph
+from gcs.graph.g2o import G2oGraph, component_roots
 from gcs.graph.pose2_gauss_newton import Pose2Factors, gauss_newton_pose2, local_coordinates
+from gcs.graph.pose2_levenberg_marquardt import (
+    LevenbergMarquardtConfig,
+    levenberg_marquardt_pose2,
+)
+from gcs.graph.spanning_tree_init import spanning_tree_from_factors
 
 __all__ = [
     "METHODS",
@@ -39,8 +56,10 @@ __all__ = [
     "Isam2Config",
     "Isam2Solver",
     "OrderingKind",
+    "Pose2Solution",
     "SolveMethod",
     "chi2",
+    "chi2_test_threshold",
     "compute_ordering",
     "ordering_keys",
     "ordering_nnz",
@@ -48,15 +67,17 @@ __all__ = [
     "optimize_pose2",
     "pose2_factors",
     "pose2_factors_from_g2o",
+    "solve_pose2",
     "values_from_poses",
     "variable_adjacency",
 ]
 
 IntArray = NDArray[np.int64]
 OrderingKind = Literal["colamd", "metis", "natural", "emd"]
-SolveMethod = Literal["gn", "lm", "dogleg", "block_gn"]
+SolveMethod = Literal["gn", "lm", "dogleg", "block_gn", "block_lm"]
+BlockMethod = Literal["block_lm", "block_gn"]
 ORDERINGS: tuple[OrderingKind, ...] = ("colamd", "metis", "natural", "emd")
-METHODS: tuple[SolveMethod, ...] = ("gn", "lm", "dogleg", "block_gn")
+METHODS: tuple[SolveMethod, ...] = ("gn", "lm", "dogleg", "block_gn", "block_lm")
 FloatArray = NDArray[np.floating[Any]]
 
 
@@ -111,13 +132,18 @@ def ordering_nnz(
 
 @dataclass(frozen=True)
 class BatchResult:
-    """Outcome of :func:`optimize_batch`: the estimate, its chi2, iterations and timings (s)."""
+    """Outcome of :func:`optimize_batch`: the estimate, its chi2, iterations and timings (s);
+    for the block methods ``chi2_history`` (the solver's chi2 before the first and after every
+    accepted step, of the run whose estimate is returned) and ``start`` (``"given"`` or
+    ``"spanning_tree"``, the start that run began from)."""
 
     values: gtsam.Values
     chi2: float
     iterations: int
     ordering_s: float
     total_s: float
+    chi2_history: tuple[float, ...] = ()
+    start: str = "given"
 
 
 def _optimizer(
@@ -161,7 +187,7 @@ def optimize_batch(
     graph: gtsam.NonlinearFactorGraph,
     initial: gtsam.Values,
     *,
-    method: SolveMethod = "gn",
+    method: SolveMethod = "block_lm",
     ordering: OrderingKind | gtsam.Ordering = "colamd",
     max_iterations: int = 100,
     relative_error_tol: float = 1e-5,
@@ -169,13 +195,14 @@ def optimize_batch(
     """Maximum-likelihood estimate of ``graph`` from ``initial`` (paper 4.2, 4.6).
 
     The ordering is computed once (or given) and reused by every iteration. Iterations stop when
-    the relative decrease of the error falls below ``relative_error_tol``. ``"block_gn"`` reads
-    the factors out of ``graph`` first (see :func:`pose2_factors`; :func:`optimize_pose2` skips
-    that when the arrays are at hand).
+    the relative decrease of the error falls below ``relative_error_tol``. The block methods
+    (``"block_lm"``, the default, and ``"block_gn"``; see the module docstring) read the factors
+    out of ``graph`` first (see :func:`pose2_factors`; :func:`optimize_pose2` skips that when the
+    arrays are at hand) and raise ``ValueError`` for a graph with other factors.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
-    if method == "block_gn":
+    if method in ("block_gn", "block_lm"):
         t0 = time.perf_counter()
         keys = np.asarray(initial.keys(), dtype=np.int64)
         res = optimize_pose2(
@@ -183,6 +210,7 @@ def optimize_batch(
             initial,
             pose2_factors(graph, keys),
             keys,
+            method=method,  # type: ignore[arg-type]
             ordering=ordering,
             max_iterations=max_iterations,
             relative_error_tol=relative_error_tol,
@@ -258,7 +286,7 @@ def pose2_factors(graph: gtsam.NonlinearFactorGraph, keys: IntArray) -> Pose2Fac
             prior_sqrt_info.append(noise.R())
         else:
             raise ValueError(
-                f"pose2_factors: factor {m} is a {type(f).__name__}; block_gn handles only "
+                f"pose2_factors: factor {m} is a {type(f).__name__}; the block methods handle only "
                 "BetweenFactorPose2 and PriorFactorPose2"
             )
     raw_ij = np.array(ij, dtype=np.int64).reshape(-1, 2)
@@ -284,24 +312,29 @@ def pose2_factors(graph: gtsam.NonlinearFactorGraph, keys: IntArray) -> Pose2Fac
 def pose2_factors_from_g2o(
     graph: G2oGraph, poses: FloatArray, *, prior_sigma: float | None = 1e-6
 ) -> tuple[Pose2Factors, IntArray]:
-    """The factors of :func:`gcs.graph.g2o.to_gtsam` (same prior) as arrays, without GTSAM.
+    """The factors of :func:`gcs.graph.g2o.to_gtsam` (same priors) as arrays, without GTSAM.
 
-    ``poses`` (N, 3) are the values in ``graph.node_ids`` order (the prior sits on the first at
-    its value). Returns the factors and the keys (``graph.node_ids``) of their variables.
+    ``poses`` (N, 3) are the values in ``graph.node_ids`` order; a prior sits at its value on
+    the first vertex of every connected component (see :func:`gcs.graph.g2o.component_roots`).
+    Returns the factors and the keys (``graph.node_ids``) of their variables.
     """
     keys = graph.node_ids
     if poses.shape != (keys.size, 3):
         raise ValueError(f"poses has shape {poses.shape}, expected {(keys.size, 3)}")
-    n_prior = 1 if prior_sigma is not None and keys.size > 0 else 0
+    roots = (
+        np.searchsorted(keys, component_roots(graph))
+        if prior_sigma is not None
+        else np.zeros(0, dtype=np.int64)
+    )
     sigma = 1.0 if prior_sigma is None else prior_sigma
     factors = Pose2Factors(
         n=int(keys.size),
         ij=np.searchsorted(keys, graph.edge_ij),
         z=graph.edge_z,
         info=graph.edge_info,
-        prior_index=np.zeros(n_prior, dtype=np.int64),
-        prior_pose=poses[:n_prior],
-        prior_info=np.tile(np.eye(3) / sigma**2, (n_prior, 1, 1)),
+        prior_index=roots.astype(np.int64),
+        prior_pose=poses[roots],
+        prior_info=np.tile(np.eye(3) / sigma**2, (roots.size, 1, 1)),
     )
     return factors, keys
 
@@ -328,23 +361,102 @@ def values_from_poses(template: gtsam.Values, keys: IntArray, poses: FloatArray)
     return template.retract(delta)
 
 
+def chi2_test_threshold(factors: Pose2Factors) -> float:
+    """``dof + 3 sqrt(2 dof)``: the chi2 of an optimum lies below it unless the noise models are
+    too confident (``dof`` = residual dimensions minus variable dimensions, the chi2
+    distribution's mean; ``sqrt(2 dof)`` its standard deviation). A solve that ends above it is
+    suspect of a local minimum."""
+    dof = max(3 * (factors.ij.shape[0] + factors.prior_index.shape[0] - factors.n), 0)
+    return float(dof + 3.0 * np.sqrt(2.0 * max(dof, 1)))
+
+
+@dataclass(frozen=True)
+class Pose2Solution:
+    """Outcome of :func:`solve_pose2`: ``poses`` (n, 3), ``chi2``, ``iterations`` (accepted
+    steps of the returned run), ``chi2_history`` of that run, ``start`` it began from
+    (``"given"`` or ``"spanning_tree"``), and ``runs``: every run's ``(start, chi2_history)``
+    (one or two) for inspection."""
+
+    poses: FloatArray
+    chi2: float
+    iterations: int
+    chi2_history: tuple[float, ...]
+    start: str
+    runs: tuple[tuple[str, tuple[float, ...]], ...]
+
+
+def solve_pose2(
+    factors: Pose2Factors,
+    initial: FloatArray,
+    *,
+    order: IntArray | None = None,
+    method: BlockMethod = "block_lm",
+    config: LevenbergMarquardtConfig | None = None,
+    restart_from_tree: bool = True,
+) -> Pose2Solution:
+    """Maximum-likelihood poses of ``factors`` from ``initial`` (n, 3), the GCS's batch solve.
+
+    ``"block_lm"``: Levenberg-Marquardt from ``initial``; if its chi2 fails
+    :func:`chi2_test_threshold` and ``restart_from_tree``, again from the spanning-tree
+    initialization (:func:`gcs.graph.spanning_tree_init.spanning_tree_from_factors`), keeping the
+    lower chi2. The result is never worse than ``initial``. ``"block_gn"``: plain Gauss-Newton
+    (``config`` gives its ``max_iterations``, ``relative_error_tol`` and ``error_tol``).
+    """
+    cfg = config or LevenbergMarquardtConfig()
+    if method == "block_gn":
+        gn = gauss_newton_pose2(
+            factors,
+            initial,
+            order=order,
+            max_iterations=cfg.max_iterations,
+            relative_error_tol=cfg.relative_error_tol,
+            error_tol=cfg.error_tol,
+        )
+        return Pose2Solution(
+            gn.poses,
+            gn.chi2,
+            gn.iterations,
+            gn.chi2_history,
+            "given",
+            (("given", gn.chi2_history),),
+        )
+    if method != "block_lm":
+        raise ValueError(f"solve_pose2: unknown method {method!r}; expected block_lm or block_gn")
+    lm = levenberg_marquardt_pose2(factors, initial, order=order, config=cfg)
+    best, start = lm, "given"
+    runs = [("given", lm.chi2_history)]
+    if restart_from_tree and lm.chi2 > chi2_test_threshold(factors):
+        tree = spanning_tree_from_factors(factors, lm.poses)
+        again = levenberg_marquardt_pose2(factors, tree, order=order, config=cfg)
+        runs.append(("spanning_tree", again.chi2_history))
+        if again.chi2 < best.chi2:
+            best, start = again, "spanning_tree"
+    return Pose2Solution(
+        best.poses, best.chi2, best.iterations, best.chi2_history, start, tuple(runs)
+    )
+
+
 def optimize_pose2(
     graph: gtsam.NonlinearFactorGraph,
     initial: gtsam.Values,
     factors: Pose2Factors,
     keys: IntArray,
     *,
+    method: BlockMethod = "block_lm",
     ordering: OrderingKind | gtsam.Ordering = "emd",
     max_iterations: int = 100,
     relative_error_tol: float = 1e-5,
     initial_poses: FloatArray | None = None,
+    restart_from_tree: bool = True,
 ) -> BatchResult:
-    """Gauss-Newton on the compiled block Cholesky (``"block_gn"``, see module docstring).
+    """:func:`solve_pose2` on the compiled block Cholesky (``"block_lm"`` or ``"block_gn"``, see
+    the module docstring) with GTSAM types at the edges.
 
     ``factors`` are ``graph``'s factors as arrays over the variables ``keys`` (sorted, the keys
     of ``initial``); ``initial_poses`` (N, 3) the values of ``initial`` in that order when at
     hand (read from ``initial`` otherwise). ``"emd"`` orders from the arrays; the other
     orderings are GTSAM's on ``graph``. Returns ``gtsam.Values`` and GTSAM's chi2 of ``graph``.
+    ``max_iterations`` bounds the linear solves of each run.
     """
     t0 = time.perf_counter()
     keys = np.asarray(keys, dtype=np.int64)
@@ -359,12 +471,15 @@ def optimize_pose2(
             raise ValueError(f"optimize_pose2: the ordering holds {order.size} of {keys.size} keys")
     t1 = time.perf_counter()
     start = gtsam.utilities.extractPose2(initial) if initial_poses is None else initial_poses
-    res = gauss_newton_pose2(
+    res = solve_pose2(
         factors,
         start,
         order=order,
-        max_iterations=max_iterations,
-        relative_error_tol=relative_error_tol,
+        method=method,
+        config=LevenbergMarquardtConfig(
+            max_iterations=max_iterations, relative_error_tol=relative_error_tol
+        ),
+        restart_from_tree=restart_from_tree,
     )
     values = values_from_poses(initial, keys, res.poses)
     return BatchResult(
@@ -373,6 +488,8 @@ def optimize_pose2(
         iterations=res.iterations,
         ordering_s=t1 - t0,
         total_s=time.perf_counter() - t0,
+        chi2_history=res.chi2_history,
+        start=res.start,
     )
 
 

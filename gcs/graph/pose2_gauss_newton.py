@@ -16,7 +16,12 @@ iteration costs one sweep over the edges plus one numeric factorization
 Stopping rule as GTSAM's ``GaussNewtonOptimizer``: after each step, stop when the relative
 decrease of the chi2 falls below ``relative_error_tol`` (or the chi2 below
 ``error_tol``), or after ``max_iterations`` steps. The chi2 of the new estimate is the
-by-product of the next linearization, so the check costs nothing extra.
+by-product of the next linearization, so the check costs nothing extra. A step that raises the
+chi2 also stops the loop (its relative decrease is negative); unlike GTSAM, the estimate before
+that step is returned, never the worse one. Plain Gauss-Newton has no remedy for such a step:
+from a poor start it can stop orders of magnitude above the optimum (manhattan from its
+spanning-tree start, manhattan_M3500b from any start); :mod:`gcs.graph.pose2_levenberg_marquardt`
+is the solver that does not.
 """
 
 from __future__ import annotations
@@ -106,13 +111,16 @@ class Pose2Factors:
 @dataclass(frozen=True)
 class GaussNewtonResult:
     """The estimate ``poses`` (n, 3), its ``chi2``, the number of steps taken, the chi2 before
-    each step and after the last (``chi2_history``) and the symbolic factorization used."""
+    each step and after the last (``chi2_history``) and the symbolic factorization used. When
+    the last step raised the chi2, ``poses`` and ``chi2`` are those before it (the lowest of
+    the history) and ``rejected_last_step`` is set."""
 
     poses: FloatArray
     chi2: float
     iterations: int
     chi2_history: tuple[float, ...]
     symbolic: BlockSymbolic
+    rejected_last_step: bool = False
 
 
 @numba.njit(cache=True, inline="always")
@@ -436,6 +444,7 @@ def gauss_newton_pose2(
     history: list[float] = []
     args = (f.ij, f.z, f.info, f.prior_index, f.prior_pose, f.prior_info)
     steps = 0
+    previous = np.empty_like(poses)
     while True:
         chi2 = float(_linearize(poses, *args, sym.position, diag_slot, edge_slot, x, g))
         history.append(chi2)
@@ -447,12 +456,15 @@ def gauss_newton_pose2(
             break
         factorize(sym, x)
         delta = solve(sym, x, -g)
+        previous[:] = poses
         _retract(poses, delta)
         steps += 1
+    rejected = steps > 0 and not history[-1] <= history[-2]
     return GaussNewtonResult(
-        poses=poses,
-        chi2=history[-1],
+        poses=previous if rejected else poses,
+        chi2=history[-2] if rejected else history[-1],
         iterations=steps,
         chi2_history=tuple(history),
         symbolic=sym,
+        rejected_last_step=rejected,
     )
