@@ -9,9 +9,12 @@ rates and timeouts hold in mission time however fast the simulation runs.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
 import threading
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,13 +28,16 @@ from protocol.process_cli import (
     follow_sim_clock,
     link_config,
     spin_until,
-    stop_on_interrupt,
 )
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
 from robot.node import RobotNode, RobotNodeConfig
 
-__all__ = ["RobotProcess", "main"]
+__all__ = ["NotServed", "RobotProcess", "main"]
+
+
+class NotServed(RuntimeError):
+    """The mission's simulator does not simulate this robot id."""
 
 
 class RobotProcess:
@@ -51,6 +57,7 @@ class RobotProcess:
         self.driver = link.remote_driver(robot_id)
         self._clock_sub = follow_sim_clock(link, clock)
         self._stop = threading.Event()
+        self.frames_seen = 0
 
     def _send(self, msg: Any) -> object:
         try:
@@ -62,9 +69,30 @@ class RobotProcess:
     def spin_once(self, timeout_s: float = 0.1) -> int:
         """Process the frames that arrived; returns how many."""
         frames = self.driver.poll(timeout_s)
+        self.frames_seen += len(frames)
         for command in self.node.process(frames):
             self.driver.send(command)
         return len(frames)
+
+    def simulator_robots(self, timeout_s: float = 1.0) -> list[int]:
+        """The robot ids a simulator of this mission serves (its presence tokens; empty when
+        no simulator is up, or the sensors come from hardware)."""
+        ids = set()
+        for key in self.link.present(keys.sim_radio(self.link.mission, None), timeout_s):
+            try:
+                ids.add(int(key.rsplit("/", 1)[1]))
+            except ValueError:
+                continue
+        return sorted(ids)
+
+    def check_served(self) -> None:
+        """Raise :class:`NotServed` if a simulator is up and does not have this robot."""
+        robots = self.simulator_robots()
+        if robots and self.robot_id not in robots:
+            raise NotServed(
+                f"the simulator of mission {self.link.mission!r} has no robot {self.robot_id}; "
+                f"its robots are {', '.join(map(str, robots))}"
+            )
 
     def run(
         self,
@@ -102,6 +130,28 @@ class RobotProcess:
         self.driver.close()
 
 
+@contextlib.contextmanager
+def _stop_on_signals(stop: Callable[[], None]) -> Iterator[list[int]]:
+    """SIGINT and SIGTERM call ``stop`` within the block; yields the signals received (the
+    same as ``sim.server.stop_on_signals``, kept here so that a robot host needs no
+    simulator)."""
+    got: list[int] = []
+    previous: dict[int, Any] = {}
+
+    def handler(signum: int, _frame: object) -> None:
+        got.append(signum)
+        stop()
+
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+    try:
+        yield got
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="magic robot", description="Run one robot node.")
     p.add_argument("--id", type=int, required=True, help="robot id (as the simulator numbers them)")
@@ -130,19 +180,40 @@ def main(argv: list[str]) -> int:
     clock = ManualClock()
     link = Link(link_config(radio, args), mission=args.mission, clock=clock)
     proc = RobotProcess(link, args.id, clock, config)
-    print(
-        f"magic robot: robot {args.id} of mission {args.mission!r} waiting for sensor frames",
-        flush=True,
-    )
+    next_check = [0.0]
+
+    def spin_once() -> None:
+        # until frames flow, check now and then that a simulator that is up has this robot
+        if proc.frames_seen == 0 and time.monotonic() >= next_check[0]:
+            proc.check_served()
+            next_check[0] = time.monotonic() + 1.0
+        proc.spin_once()
+
     try:
-        with stop_on_interrupt(proc.stop):
-            proc.run(
+        with _stop_on_signals(proc.stop) as stopped_by:
+            proc.check_served()
+            print(
+                f"magic robot: robot {args.id} of mission {args.mission!r} waiting for sensor "
+                "frames",
+                flush=True,
+            )
+            spin_until(
+                spin_once,
+                now=proc.clock.now,
+                stop=proc._stop,
                 duration_s=args.duration,
                 progress=lambda s: print(s, flush=True),
+                status=proc.status_line,
                 progress_period_s=args.progress_s,
             )
+    except NotServed as err:
+        print(f"magic robot: {err}", file=sys.stderr)
+        return 2
     finally:
         proc.close()
         link.close()
     print(proc.status_line(), flush=True)
+    if stopped_by:
+        print(f"magic robot: stopped by {signal.Signals(stopped_by[0]).name}", flush=True)
+        return 128 + stopped_by[0]
     return 0

@@ -567,6 +567,7 @@ class Link:
         self._endpoints: list[_Endpoint] = []
         self._publishers: dict[str, Any] = {}
         self._subs: list[Subscription] = []
+        self._tokens: list[Any] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -659,6 +660,24 @@ class Link:
         self._subs.append(sub)
         return sub
 
+    # -- presence (zenoh liveliness): who serves what, while its process lives
+
+    def declare_presence(self, key: str) -> None:
+        """Say that this process serves ``key`` until it closes (a zenoh liveliness token;
+        it vanishes with the process, cleanly closed or not)."""
+        token = self._session.liveliness().declare_token(key)
+        with self._lock:
+            self._tokens.append(token)
+
+    def present(self, key_expr: str, timeout_s: float = 1.0) -> list[str]:
+        """The keys matching ``key_expr`` that some live process declared (sorted; waits at
+        most ``timeout_s`` for the answers)."""
+        found = set()
+        for reply in self._session.liveliness().get(key_expr, timeout=timeout_s):
+            if reply.ok is not None:
+                found.add(str(reply.ok.key_expr))
+        return sorted(found)
+
     # -- lifetime
 
     def close(self) -> None:
@@ -673,6 +692,10 @@ class Link:
             endpoints, self._endpoints = self._endpoints, []
         for ep in endpoints:
             ep._close()
+        with self._lock:
+            tokens, self._tokens = self._tokens, []
+        for token in tokens:
+            token.undeclare()
         for sub in self._subs:
             sub.close()
         self._subs.clear()

@@ -7,24 +7,31 @@ Steps a :class:`~sim.simulator.Simulator` and, over zenoh (``protocol.link``):
 - publishes the mission clock (a ``ClockTick``) on ``magic/<mission>/sim/clock`` every step;
 - publishes every robot's radio grant on ``magic/<mission>/sim/radio/<id>`` when the radio
   model updates (endpoints that follow the radio apply it);
+- declares, while it runs, a zenoh liveliness token on ``magic/<mission>/sim/radio/<id>`` for
+  every robot it simulates (``Link.present`` lists them: a ``magic robot --id N`` checks that
+  the simulator has robot N);
 - publishes ground truth for evaluation only on ``magic/<mission>/sim/truth/events`` (each rule
   event, JSON) and ``.../truth/poses`` (all robots' poses once per mission second, JSON).
 
 Pacing: ``--rtf R`` runs at R times real time (0: as fast as possible); ``--lockstep``
 advances only when every live robot node has consumed its latest sweep (a remote node
 acknowledges a sweep by sending any command stamped at or after the sweep's ``time_s``),
-which makes a seeded run repeatable. Bad commands (NaN/inf, undecodable) are refused, counted
+which makes a seeded run repeatable. ^C (SIGINT) and SIGTERM stop the server cleanly: the
+link is closed, the last status line and the events are printed, exit status 130 / 143.
+Bad commands (NaN/inf, undecodable) are refused, counted
 and logged; the server runs on. Progress goes to stdout every ``--progress-s`` wall seconds.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -32,12 +39,12 @@ import msgspec
 
 from protocol import keys
 from protocol.config import ConfigError, config_path, load_config
-from protocol.process_cli import add_link_arguments, link_config, stop_on_interrupt
+from protocol.process_cli import add_link_arguments, link_config
 from protocol.radio import RadioConfig
 from protocol.sensors import ClockTick, RobotCommand, encode_sensor_frame
 from sim.simulator import CommandError, Simulator, SimulatorConfig, load_world_config
 
-__all__ = ["SimServer", "main"]
+__all__ = ["SimServer", "main", "stop_on_signals"]
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +84,8 @@ class SimServer:
             self._poses_key = keys.sim_truth(mission, "poses")
             for rid in sim.robot_ids:
                 self._ports[rid] = link.driver_port(rid, self._on_command(rid))
+                # the team this simulator serves, for robot processes to check their --id
+                link.declare_presence(keys.sim_radio(mission, rid))
 
     def _on_command(self, robot_id: int) -> Callable[[RobotCommand], None]:
         def handle(command: RobotCommand) -> None:
@@ -206,6 +215,9 @@ def main(argv: list[str]) -> int:
     except ValueError as err:
         print(f"magic sim: {args.world}: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("magic sim: stopped by SIGINT before the simulation started", file=sys.stderr)
+        return 130
     link = None
     if not args.no_zenoh:
         from protocol.link import Link
@@ -231,7 +243,7 @@ def main(argv: list[str]) -> int:
         progress_period_s=args.progress_s,
     )
     try:
-        with stop_on_interrupt(server.stop):
+        with stop_on_signals(server.stop) as stopped_by:
             server.run(args.duration)
     finally:
         server.close()
@@ -240,7 +252,33 @@ def main(argv: list[str]) -> int:
         sim.close()
     for ev in sim.events:
         print(f"event t={ev.time_s:.2f} {ev.kind} {ev.subject} ({ev.cause})", file=out)
+    if stopped_by:
+        name = signal.Signals(stopped_by[0]).name
+        print(f"magic sim: stopped by {name} at t={sim.time_s:.2f} s", file=out, flush=True)
+        return 128 + stopped_by[0]
     return 0
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: Callable[[], None]) -> Iterator[list[int]]:
+    """Within the block, SIGINT and SIGTERM call ``stop`` (the process winds down, closes its
+    link and reports) instead of raising or killing; yields the list of signals received
+    (exit status ``128 + signal``). Off the main thread nothing changes."""
+    got: list[int] = []
+    previous: dict[int, Any] = {}
+
+    def handler(signum: int, _frame: object) -> None:
+        got.append(signum)
+        stop()
+
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, handler)
+    try:
+        yield got
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -3,7 +3,11 @@ side on three separate zenoh sessions over loopback, the simulator in lockstep."
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -67,3 +71,54 @@ def test_remote_robot_reaches_a_goal_sent_over_the_radio() -> None:
             link.close()
         server.close()
         sim.close()
+
+
+def test_a_robot_id_the_simulator_does_not_have_gets_one_line_and_status_2(capsys) -> None:
+    """``magic robot --id 99`` against a four-robot simulator: no quiet run with no sweeps."""
+    from mission.robot_process import main
+
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    mission = unique_mission("ids")
+    sim = Simulator(load_world_config("configs/world/small.yaml"))
+    sim_link = Link(LinkConfig(listen=(endpoint,)), mission=mission, clock=sim.clock)
+    server = SimServer(sim, link=sim_link, mission=mission, rtf=0.0)
+    try:
+        argv = ["--mission", mission, "--connect", endpoint, "--listen", "tcp/127.0.0.1:0"]
+        assert main(["--id", "99", *argv]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err == (
+            f"magic robot: the simulator of mission {mission!r} has no robot 99; its robots "
+            "are 0, 1, 2, 3"
+        )
+        assert len(err) < 200 and "\n" not in err
+    finally:
+        server.close()
+        sim_link.close()
+        sim.close()
+
+
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_stops_a_robot_process_cleanly(sig, status) -> None:
+    repo = Path(__file__).resolve().parents[2]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mission.cli", "robot", "--id", "0"]
+        + ["--mission", unique_mission("stop"), "--listen", "tcp/127.0.0.1:0"],
+        cwd=repo,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    watchdog = threading.Timer(60.0, proc.kill)
+    watchdog.start()
+    try:
+        assert proc.stdout is not None
+        assert "waiting for sensor frames" in proc.stdout.readline()
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        watchdog.cancel()
+        proc.kill()
+    assert proc.returncode == status, err
+    assert "Traceback" not in err
+    assert f"magic robot: stopped by {signal.Signals(sig).name}" in out
+    assert "robot 0 t=" in out  # its last status line

@@ -4,10 +4,17 @@ refuses bad input without stopping, and steps in lockstep with remote robot node
 from __future__ import annotations
 
 import math
+import signal
+import subprocess
+import sys
 import threading
 import time
 
+import pytest
+
+from protocol import keys
 from protocol.clock import WallClock
+from protocol.link import Link, LinkConfig
 from protocol.loopback import open_pair, unique_mission
 from protocol.sensors import ImuSample, LidarSweep, VelocityCommand
 from sim.server import SimServer, main
@@ -109,3 +116,52 @@ def test_lockstep_over_zenoh_waits_for_the_remote_node() -> None:
         robot_link.close()
         sim_link.close()
         sim.close()
+
+
+@pytest.mark.parametrize(("sig", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_stops_the_server_cleanly(sig, status) -> None:
+    """No traceback: the server stops, prints its last status and the events, 130 / 143."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mission.cli", "sim", "--world", SMALL, "--no-zenoh"]
+        + ["--rtf", "1", "--progress-s", "0.5"],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    watchdog = threading.Timer(120.0, proc.kill)
+    watchdog.start()
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if "robots alive" in line:
+                break
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        watchdog.cancel()
+        proc.kill()
+    assert proc.returncode == status, err
+    assert "Traceback" not in err
+    assert f"magic sim: stopped by {signal.Signals(sig).name} at t=" in out
+
+
+def test_the_server_declares_the_robots_it_simulates() -> None:
+    mission = unique_mission("team")
+    sim_link, robot_link = open_pair(mission=mission, clock=WallClock())
+    sim = Simulator(make_world())
+    server = SimServer(sim, link=sim_link, mission=mission, rtf=0.0)
+    try:
+        deadline = time.monotonic() + 10.0
+        present: list[str] = []
+        while not present and time.monotonic() < deadline:  # declarations propagate
+            present = robot_link.present(keys.sim_radio(mission, None), timeout_s=1.0)
+        assert [int(k.rsplit("/", 1)[1]) for k in present] == sim.robot_ids
+    finally:
+        server.close()
+        robot_link.close()
+        sim_link.close()
+        sim.close()
+    # gone with the server's session
+    with Link(LinkConfig(), mission=mission) as alone:
+        assert alone.present(keys.sim_radio(mission, None), timeout_s=0.5) == []
