@@ -28,6 +28,18 @@ increment ``(ds, dyaw, dt)`` drawn from that covariance model itself,
 ``σ_ds² = slip²|ds|``, ``σ_dyaw² = turn²|dyaw| + gyro²·dt``, with every σ multiplied by
 ``scale``; the nodes' covariances then use the same scaled model, so they state the noise that
 was really added.
+
+Clocks. Every time the replay uses (node times, the gyro term ``gyro²·dt`` of the node
+covariances and of the added noise, the node maker's interval rule) comes from
+:func:`log_clock`, the log's stamps checked and repaired by :mod:`gcs.replay.log_clock`: a
+frozen, coarse, jumping or backwards clock never reaches the GCS, and never inflates a
+covariance; each anomaly is one line in the summary (``clock``).
+
+Results first. The map, the poses and the summary are written to ``out_dir`` *before* any
+evaluation, and written again with the evaluation added; an evaluation that cannot be done (a
+relations file on another clock, a log without timestamps) is one line under ``evaluation``
+in the summary and leaves the rest of the result intact. An interrupted replay (^C,
+``KeyboardInterrupt``) stops feeding scans, and the result holds the nodes that ran.
 """
 
 from __future__ import annotations
@@ -35,7 +47,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,11 +62,13 @@ from gcs.ground_station import GroundStation, GroundStationConfig
 from gcs.mapping.map_export import write_pgm_yaml, write_png
 from gcs.mapping.rasterization import RasterConfig
 from gcs.replay.carmen_log import CarmenLog
+from gcs.replay.log_clock import ClockCheck, check_clock
 from gcs.replay.relations import (
     MatchedRelations,
     Relations,
+    RelationsAlignment,
     RelationsError,
-    estimate_time_offset_s,
+    align_relations,
     match_relations,
     relations_error,
 )
@@ -72,6 +86,8 @@ __all__ = [
     "ReplayNode",
     "ReplayResult",
     "ScanGridConfig",
+    "iter_replay_messages",
+    "log_clock",
     "replay_messages",
     "replay_odometry",
     "run_replay",
@@ -141,7 +157,9 @@ class ReplayConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     how many pose nodes between two calls of ``GroundStation.step`` and ``step_budget_s`` the
     budget each call gets (None: unbounded); ``reference`` whether to evaluate against the log's
     poses (None: when they can be a reference, see :func:`run_replay`);
-    ``relations_tolerance_s`` how close a relation timestamp must fall to a node's; ``station``
+    ``relations_tolerance_s`` how close a relation timestamp must fall to a scan's (None: as
+    :func:`~gcs.replay.relations.align_relations` finds, identical stamps 6 ms, else half the
+    median scan period); ``station``
     the GCS (its rasterizer maps occupied cells only by default: a 180-degree laser saw
     nothing behind it, while the visibility sweep assumes the robot's all-round view);
     ``odometry_sigma_scale`` multiplies the sigmas of ``nodes`` (module docstring).
@@ -156,7 +174,7 @@ class ReplayConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     step_every_nodes: int = 1
     step_budget_s: float | None = None
     reference: bool | None = None
-    relations_tolerance_s: float = 0.006
+    relations_tolerance_s: float | None = None
     odometry_sigma_scale: float = 1.0
 
     def __post_init__(self) -> None:
@@ -168,6 +186,9 @@ class ReplayConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
             raise ValueError(f"step_every_nodes: expected >= 1, got {self.step_every_nodes}")
         if self.step_budget_s is not None and not self.step_budget_s > 0:
             raise ValueError(f"step_budget_s: expected > 0 or None, got {self.step_budget_s}")
+        tol = self.relations_tolerance_s
+        if tol is not None and not (math.isfinite(tol) and tol > 0):
+            raise ValueError(f"relations_tolerance_s: expected > 0 or None, got {tol}")
 
 
 def scan_grid(
@@ -191,11 +212,16 @@ def scan_grid(
     return grid, (float(c0 * resolution_m), float(r0 * resolution_m))
 
 
+def log_clock(log: CarmenLog, period_s: float = 0.5) -> ClockCheck:
+    """The log's clock, checked and repaired (:func:`gcs.replay.log_clock.check_clock`, with
+    the log's odometry for plausibility and ``period_s`` for a log without a usable clock)."""
+    return check_clock(log.time_s, odometry=log.odometry_in_log, default_period_s=period_s)
+
+
 def _scan_times(log: CarmenLog, period_s: float) -> FloatArray:
-    """Mission time of each scan from 0: the log's clock, else a constant period."""
-    if log.has_timestamps:
-        return log.time_s - log.time_s[0]  # type: ignore[no-any-return]
-    return np.arange(len(log), dtype=np.float64) * period_s
+    """Mission time of each scan from 0, on the repaired clock (:func:`log_clock`)."""
+    t = log_clock(log, period_s).time_s
+    return t - t[0] if len(t) else t  # type: ignore[no-any-return]
 
 
 def _scaled_model(cfg: PoseNodeConfig, scale: float) -> PoseNodeConfig:
@@ -220,7 +246,8 @@ def replay_odometry(
     times = _scan_times(log, config.period_s)
     steps = relative(odom[:-1], odom[1:]).reshape(-1, 3)
     ds = np.hypot(steps[:, 0], steps[:, 1]) * np.where(steps[:, 0] < 0, -1.0, 1.0)
-    dt = np.maximum(np.diff(times), 0.0)  # corrected logs have a few stamps out of order
+    # The repaired clock's steps: never negative, never a clock jump (module docstring).
+    dt = np.maximum(np.diff(times), 0.0)
     increments = [
         OdometryIncrement(distance_m=float(a), dyaw_rad=float(b), dt_s=float(c))
         for a, b, c in zip(ds, steps[:, 2], dt, strict=True)
@@ -261,6 +288,13 @@ class ReplayNode:
 
 def replay_messages(log: CarmenLog, config: ReplayConfig | None = None) -> list[ReplayNode]:
     """Pose nodes and terrain grids of a log, in order (see the module docstring)."""
+    return list(iter_replay_messages(log, config))
+
+
+def iter_replay_messages(
+    log: CarmenLog, config: ReplayConfig | None = None
+) -> Iterator[ReplayNode]:
+    """:func:`replay_messages` one node at a time (a replay can stop between two)."""
     cfg = config or ReplayConfig()
     odom, increments, model = replay_odometry(log, cfg)
     times = _scan_times(log, cfg.period_s)
@@ -269,7 +303,6 @@ def replay_messages(log: CarmenLog, config: ReplayConfig | None = None) -> list[
     res = gcfg.resolution_m
     travelled = np.concatenate([[0.0], np.cumsum(np.abs([i.distance_m for i in increments]))])
     points_of: dict[int, FloatArray] = {}  # a scan joins several nodes' grids: convert once
-    out: list[ReplayNode] = []
     for k in range(len(log)):
         if k > 0:
             maker.add_increment(increments[k - 1])
@@ -294,8 +327,7 @@ def replay_messages(log: CarmenLog, config: ReplayConfig | None = None) -> list[
         grid, origin = scan_grid(points, resolution_m=res)
         data = encode_grid(grid, cfg.grid.codec, origin_cells=origin_cells_of(origin, res))
         msg = TerrainGrid(node.node_index, res, data)
-        out.append(ReplayNode(scan=k, pose_node=node, terrain_grid=msg))
-    return out
+        yield ReplayNode(scan=k, pose_node=node, terrain_grid=msg)
 
 
 @dataclass
@@ -310,6 +342,10 @@ class ReplayResult:
     ``closure_nodes`` ``(K, 2)`` (indices into the per-node arrays) and ``closure_a_from_b``
     ``(K, 3)``; against the reference, ``closure_err_m`` / ``closure_err_rad`` ``(K,)`` and
     ``false_closures``, those off by more than ``FALSE_CLOSURE_M`` or ``FALSE_CLOSURE_RAD``.
+    ``clock`` the clock anomalies found and what was done (one line each, empty: a good clock);
+    ``evaluation_errors`` one line per evaluation that could not be done; ``relations_alignment``
+    how the relations' clock was mapped; ``interrupted`` the signal's name when the replay was
+    stopped early (``scans_done`` scans were fed).
     """
 
     log_path: str
@@ -332,6 +368,11 @@ class ReplayResult:
     relations: RelationsError | None = None
     relations_odometry: RelationsError | None = None
     files: dict[str, str] = field(default_factory=dict)
+    clock: list[str] = field(default_factory=list)
+    evaluation_errors: list[str] = field(default_factory=list)
+    relations_alignment: RelationsAlignment | None = None
+    interrupted: str | None = None
+    scans_done: int = 0
 
     @property
     def false_closures(self) -> int | None:
@@ -349,7 +390,12 @@ class ReplayResult:
             "loop_closures": self.loop_closures,
             "wall_s": round(self.wall_s, 3),
             "station": self.station_stats,
+            "clock": list(self.clock),
         }
+        if self.interrupted is not None:
+            out["interrupted"] = self.interrupted
+            out["scans_done"] = self.scans_done
+        out["evaluation"] = list(self.evaluation_errors) or "ok"
         for name, ate in (("ate", self.ate), ("ate_odometry", self.ate_odometry)):
             if ate is not None:
                 out[f"{name}_rmse_m"] = ate.rmse_m
@@ -365,6 +411,10 @@ class ReplayResult:
         if self.relations_matched is not None:
             out["relations_matched"] = len(self.relations_matched)
             out["relations_total"] = self.relations_matched.total
+        if self.relations_alignment is not None:
+            out["relations_offset_s"] = self.relations_alignment.offset_s
+            out["relations_tolerance_s"] = self.relations_alignment.tolerance_s
+            out["relations_alignment"] = self.relations_alignment.method
         for name, rel in (
             ("relations", self.relations),
             ("relations_odometry", self.relations_odometry),
@@ -406,28 +456,42 @@ def run_replay(
 
     ``progress(scans_done, scans_total, text)`` is called after every ``GroundStation.step``.
     With ``out_dir``, writes there ``map.png`` and ``map.pgm`` + ``map.yaml`` (the station's
-    global map at the final posterior), ``summary.json``, ``poses.txt`` and ``closures.txt``.
-    Raises ValueError when ``relations`` are given for a log without timestamps or on another
-    clock.
+    global map at the final posterior), ``summary.json``, ``poses.txt`` and ``closures.txt``,
+    first before the evaluation and again with it. An evaluation that cannot be done (relations
+    on another clock, or for a log without timestamps) does not raise: it is one line in
+    ``evaluation_errors``. A ``KeyboardInterrupt`` while scans are fed ends the feeding: the
+    result (and the files) hold what ran, with ``interrupted`` set to the exception's name.
     """
     cfg = config or ReplayConfig()
     t_start = time.perf_counter()
-    if relations is not None and not log.has_timestamps:
-        raise ValueError(f"{log.path}: relations need scan timestamps, and this log has none")
-    nodes = replay_messages(log, cfg)
+    clock = log_clock(log, cfg.period_s)
     station = GroundStation(cfg.station)
     rid = cfg.robot_id
-    for n, rn in enumerate(nodes, start=1):
-        now = rn.pose_node.time_s
-        station.handle(rid, rn.pose_node, now_s=now)
-        station.handle(rid, rn.terrain_grid, now_s=now)
-        if n % cfg.step_every_nodes == 0 or n == len(nodes):
-            station.step(now_s=now, budget_s=cfg.step_budget_s)
-            if progress is not None:
-                accepted = len(station.graph.edges(Provenance.LOOP_AUTO))
-                progress(rn.scan + 1, len(log), f"{n} nodes, {accepted} loop closures")
+    nodes: list[ReplayNode] = []
+    interrupted: str | None = None
+    try:
+        for rn in iter_replay_messages(log, cfg):
+            nodes.append(rn)
+            n = len(nodes)
+            now = rn.pose_node.time_s
+            station.handle(rid, rn.pose_node, now_s=now)
+            station.handle(rid, rn.terrain_grid, now_s=now)
+            if n % cfg.step_every_nodes == 0:
+                station.step(now_s=now, budget_s=cfg.step_budget_s)
+                if progress is not None:
+                    accepted = len(station.graph.edges(Provenance.LOOP_AUTO))
+                    progress(rn.scan + 1, len(log), f"{n} nodes, {accepted} loop closures")
+    except KeyboardInterrupt as exc:
+        interrupted = "SIGTERM" if isinstance(exc, ReplayTerminated) else "SIGINT"
+    if nodes and len(nodes) % cfg.step_every_nodes != 0:
+        now = nodes[-1].pose_node.time_s
+        station.step(now_s=now, budget_s=cfg.step_budget_s)
+        if progress is not None:
+            accepted = len(station.graph.edges(Provenance.LOOP_AUTO))
+            progress(nodes[-1].scan + 1, len(log), f"{len(nodes)} nodes, {accepted} loop closures")
     scans = np.array([rn.scan for rn in nodes], dtype=np.int64)
     odometry = np.array([rn.pose_node.pose_in_odom for rn in nodes], dtype=np.float64)
+    odometry = odometry.reshape(-1, 3)
     keys = [station.key_of(rid, rn.pose_node.node_index) for rn in nodes]
     missing = [rn.pose_node.node_index for rn, k in zip(nodes, keys, strict=True) if k is None]
     if missing:
@@ -446,7 +510,7 @@ def run_replay(
         time_s=log.time_s[scans],
         odometry=odometry,
         estimate=estimate,
-        reference=log.base_in_log[scans] if _has_reference(log, cfg) else None,
+        reference=None,
         loop_closures=len(closures),
         closure_nodes=closure_nodes,
         closure_a_from_b=np.array([e.z for e in closures], dtype=np.float64).reshape(-1, 3),
@@ -456,36 +520,101 @@ def run_replay(
             "optimizations": stats.optimizations,
             "rejected": dict(stats.rejected),
         },
-        wall_s=0.0,
+        wall_s=time.perf_counter() - t_start,
+        clock=clock.lines(),
+        interrupted=interrupted,
+        scans_done=int(scans[-1]) + 1 if len(scans) else 0,
     )
-    if result.reference is not None:
-        result.ate = trajectory_error(estimate, result.reference)
-        result.ate_odometry = trajectory_error(odometry, result.reference)
-        truth = relative(
-            result.reference[closure_nodes[:, 0]], result.reference[closure_nodes[:, 1]]
-        ).reshape(-1, 3)
-        err = relative(truth, result.closure_a_from_b).reshape(-1, 3)
-        result.closure_err_m = np.hypot(err[:, 0], err[:, 1])
-        result.closure_err_rad = np.abs(err[:, 2])
-    if relations is not None:
-        offset = estimate_time_offset_s(relations, log.time_s)
-        matched = match_relations(
-            relations, result.time_s, time_offset_s=offset, tolerance_s=cfg.relations_tolerance_s
-        )
-        result.relations_matched = matched
-        if len(matched):
-            result.relations = relations_error(estimate, matched)
-            result.relations_odometry = relations_error(odometry, matched)
+    out = Path(out_dir) if out_dir is not None else None
+    if out is not None:  # the result is saved before anything can fail in its evaluation
+        _write_outputs(result, station, out)
+    _evaluate(result, log, cfg, clock, relations)
     result.wall_s = time.perf_counter() - t_start
-    if out_dir is not None:
-        _write_outputs(result, station, Path(out_dir))
+    if out is not None:
+        _write_outputs(result, station, out, with_map=False)
     return result
 
 
-def _write_outputs(result: ReplayResult, station: GroundStation, out: Path) -> None:
+def _evaluate(
+    result: ReplayResult,
+    log: CarmenLog,
+    cfg: ReplayConfig,
+    clock: ClockCheck,
+    relations: Relations | None,
+) -> None:
+    """Fill in the reference and relations evaluations; failures become one line each."""
+    scans, estimate, odometry = result.scans, result.estimate, result.odometry
+    if _has_reference(log, cfg) and len(scans):
+        result.reference = log.base_in_log[scans]
+        result.ate = trajectory_error(estimate, result.reference)
+        result.ate_odometry = trajectory_error(odometry, result.reference)
+        cn = result.closure_nodes
+        truth = relative(result.reference[cn[:, 0]], result.reference[cn[:, 1]]).reshape(-1, 3)
+        err = relative(truth, result.closure_a_from_b).reshape(-1, 3)
+        result.closure_err_m = np.hypot(err[:, 0], err[:, 1])
+        result.closure_err_rad = np.abs(err[:, 2])
+    if relations is None:
+        return
+    try:
+        _evaluate_relations(result, log, cfg, clock, relations)
+    except ValueError as exc:
+        result.evaluation_errors.append(_one_line(f"relations not evaluated: {exc}"))
+
+
+def _evaluate_relations(
+    result: ReplayResult,
+    log: CarmenLog,
+    cfg: ReplayConfig,
+    clock: ClockCheck,
+    relations: Relations,
+) -> None:
+    if not log.has_timestamps:
+        raise ValueError(f"{log.path} has no timestamps to match {relations.path} with")
+    if len(result.scans) == 0:
+        raise ValueError("no pose node ran")
+    # The relations are on the log's own clock; only a clock that had to be rewritten as a
+    # whole (frozen, coarse, jumping) is replaced by the repaired one.
+    times = clock.time_s if clock.rewritten else log.time_s
+    last = int(result.scans[-1]) + 1
+    align = align_relations(relations, times[:last], log.odometry_in_log[:last])
+    tol = cfg.relations_tolerance_s if cfg.relations_tolerance_s is not None else align.tolerance_s
+    result.relations_alignment = RelationsAlignment(
+        align.offset_s, tol, align.method, align.votes, align.runner_up
+    )
+    # Relations fall on scans (not only nodes): a scan's pose is its node's estimate carried
+    # on by the odometry the robot reported since that node.
+    odom_all, _increments, _model = replay_odometry(log.subset(slice(0, last)), cfg)
+    node_at = np.searchsorted(result.scans, np.arange(last), side="right") - 1
+    node_at = np.maximum(node_at, 0)
+    per_scan = compose(
+        result.estimate[node_at],
+        relative(odom_all[result.scans[node_at]], odom_all[:last]).reshape(-1, 3),
+    )
+    per_scan_odom = compose(
+        result.odometry[node_at],
+        relative(odom_all[result.scans[node_at]], odom_all[:last]).reshape(-1, 3),
+    )
+    matched = match_relations(
+        relations, times[:last], time_offset_s=align.offset_s, tolerance_s=tol
+    )
+    result.relations_matched = matched
+    if len(matched) == 0:
+        raise ValueError(f"{relations.path}: clock aligned, but no relation falls on two scans")
+    result.relations = relations_error(per_scan, matched)
+    result.relations_odometry = relations_error(per_scan_odom, matched)
+
+
+def _one_line(text: str, limit: int = 199) -> str:
+    line = " ".join(text.split())
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+def _write_outputs(
+    result: ReplayResult, station: GroundStation, out: Path, *, with_map: bool = True
+) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    occupancy = station.rasterize()
-    if occupancy.values.size:
+    occupancy = station.rasterize() if with_map else None
+    if occupancy is not None and occupancy.values.size:
         result.files["map"] = str(write_png(occupancy, out / "map.png"))
         pgm, yml = write_pgm_yaml(occupancy, out / "map")
         result.files["map_pgm"] = str(pgm)
@@ -534,30 +663,56 @@ def _parser() -> Any:
     p = argparse.ArgumentParser(
         prog="magic replay",
         description="Replay a CARMEN laser log through the GCS: pose nodes and scan grids into "
-        "loop closing and optimization, evaluated against the log's poses and relations.",
+        "loop closing and optimization, evaluated against the log's poses and relations. "
+        "Exit 0 with the result saved (an evaluation that could not be done is listed under "
+        "'evaluation'), 2 on bad input, 130 on ^C and 143 on SIGTERM (what ran is saved).",
     )
-    p.add_argument("--carmen", required=True, metavar="FILE", help="CARMEN log (.log or .log.gz)")
-    p.add_argument("--relations", metavar="FILE", help="Kuemmerle et al. relations file")
-    p.add_argument("--out", metavar="DIR", help="write summary.json, poses.txt and the map here")
-    p.add_argument("--config", metavar="YAML", help="replay configuration (ReplayConfig)")
+    p.add_argument(
+        "--carmen", required=True, metavar="FILE", help="CARMEN log (.log or .log.gz); required"
+    )
+    p.add_argument(
+        "--relations",
+        metavar="FILE",
+        help="Kuemmerle et al. relations file 't1 t2 x y z roll pitch yaw' (s, m, rad); "
+        "default: none",
+    )
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="write summary.json, poses.txt, closures.txt and the map here; default: nothing "
+        "written",
+    )
+    p.add_argument(
+        "--config", metavar="YAML", help="replay configuration (ReplayConfig); default: built in"
+    )
     p.add_argument(
         "--odom-noise",
         type=float,
         metavar="SCALE",
-        help="add odometry noise: SCALE times the pose-node model's sigmas (0: none)",
+        help="add odometry noise: SCALE times the pose-node model's sigmas (unitless); "
+        "default: the config's noise.scale, 0 (none)",
     )
-    p.add_argument("--seed", type=int, help="seed of the odometry noise")
+    p.add_argument("--seed", type=int, help="seed of the odometry noise; default: the config's, 0")
     p.add_argument(
         "--odom-sigma-scale",
         type=float,
         metavar="S",
-        help="the log's odometry is S times less certain than the pose-node model says",
+        help="the log's odometry is S times less certain than the pose-node model says "
+        "(unitless); default: the config's, 1",
     )
-    p.add_argument("--scans", type=int, metavar="N", help="replay only the first N scans")
     p.add_argument(
-        "--progress-every", type=int, default=50, metavar="N", help="a progress line every N scans"
+        "--scans", type=int, metavar="N", help="replay only the first N scans; default: all"
     )
-    p.add_argument("--quiet", action="store_true", help="no progress lines, only the summary")
+    p.add_argument(
+        "--progress-every",
+        type=int,
+        default=50,
+        metavar="N",
+        help="a progress line every N scans (default: %(default)s)",
+    )
+    p.add_argument(
+        "--quiet", action="store_true", help="no progress lines, only the summary (default: off)"
+    )
     return p
 
 
@@ -591,14 +746,28 @@ def _format_summary(summary: dict[str, Any]) -> list[str]:
                 f"{summary['relations_odometry_trans_err_m']:.3f} m, "
                 f"{summary['relations_odometry_rot_err_deg']:.2f} deg)"
             )
+    for line in summary.get("clock", []):
+        lines.append(f"clock of the log: {line.removeprefix('clock ')}")
+    if summary.get("evaluation", "ok") != "ok":
+        lines.append(f"evaluation missing: {len(summary['evaluation'])} part(s), see above")
+    if "interrupted" in summary:
+        lines.append(f"interrupted by {summary['interrupted']} after {summary['scans_done']} scans")
     for name, path in summary.get("files", {}).items():
         lines.append(f"wrote {name}: {path}")
     return lines
 
 
+class ReplayTerminated(KeyboardInterrupt):
+    """SIGTERM during a replay: ends it as ^C does (what ran is saved), exit 143."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``magic replay``: exit 0 on success, 2 on bad input (named on stderr)."""
+    """``magic replay``: exit 0 with the result saved (an evaluation that could not be done is
+    listed, not fatal), 2 on bad input (one line on stderr naming the file and the problem),
+    130 on ^C, 143 on SIGTERM (both after saving and summarising what ran)."""
+    import signal
     import sys
+    import threading
 
     from gcs.replay.carmen_log import CarmenLogError, read_carmen_log
     from gcs.replay.relations import RelationsFileError, read_relations
@@ -618,15 +787,20 @@ def main(argv: list[str] | None = None) -> int:
             config = msgspec.structs.replace(config, odometry_sigma_scale=args.odom_sigma_scale)
         if args.progress_every < 1:
             raise ValueError(f"--progress-every must be >= 1, got {args.progress_every}")
+        if args.scans is not None and args.scans < 1:
+            raise ValueError(f"--scans must be >= 1, got {args.scans}")
         log = read_carmen_log(args.carmen)
         if args.scans is not None:
-            if args.scans < 1:
-                raise ValueError(f"--scans must be >= 1, got {args.scans}")
             log = log.subset(slice(0, args.scans))
         relations = read_relations(args.relations) if args.relations else None
     except (ConfigError, CarmenLogError, RelationsFileError, ValueError) as exc:
-        print(f"magic replay: {exc}", file=err)
+        print(_one_line(f"magic replay: {exc}"), file=err)
         return 2
+    except KeyboardInterrupt:
+        print("magic replay: interrupted while reading the input; nothing ran", file=err)
+        return 130
+    for line in log_clock(log, config.period_s).lines():
+        print(_one_line(f"magic replay: {log.path}: {line}"), file=err)
     t0 = time.perf_counter()
     last = [-args.progress_every]
 
@@ -639,12 +813,33 @@ def main(argv: list[str] | None = None) -> int:
         elapsed = time.perf_counter() - t0
         print(f"replay [{bar:<{width}}] {done}/{total} scans, {text}, {elapsed:.1f} s", file=err)
 
+    def on_term(_signum: int, _frame: object) -> None:
+        raise ReplayTerminated
+
+    on_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, on_term) if on_main else None
     try:
         result = run_replay(
             log, config=config, relations=relations, out_dir=args.out, progress=progress
         )
-    except ValueError as exc:
-        print(f"magic replay: {exc}", file=err)
-        return 2
+    except KeyboardInterrupt as exc:  # outside the feeding loop: nothing to save
+        print(f"magic replay: {_signal_name(exc)} before any scan ran; nothing saved", file=err)
+        return 143 if isinstance(exc, ReplayTerminated) else 130
+    finally:
+        if on_main:
+            signal.signal(signal.SIGTERM, previous)
+    for line in result.evaluation_errors:
+        print(_one_line(f"magic replay: {line}"), file=err)
     print("\n".join(_format_summary(result.summary())))
+    if result.interrupted is not None:
+        print(
+            f"magic replay: stopped by {result.interrupted} after {result.scans_done} of "
+            f"{result.scans_total} scans; what ran is summarised above",
+            file=err,
+        )
+        return 143 if result.interrupted == "SIGTERM" else 130
     return 0
+
+
+def _signal_name(exc: BaseException) -> str:
+    return "SIGTERM" if isinstance(exc, ReplayTerminated) else "SIGINT"

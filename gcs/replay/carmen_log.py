@@ -240,8 +240,14 @@ def parse_carmen_log(text: str, *, path: str = "<string>") -> CarmenLog:
             skipped[kind] += 1
 
     if not ranges or angles is None:
-        found = ", ".join(f"{k} x{v}" for k, v in sorted(skipped.items())) or "nothing"
-        raise CarmenLogError(f"{path}: no laser scans (FLASER or Laser lines); found {found}")
+        # Name a few of the most common first words, not all of them: a text that is no log
+        # at all (a README) has thousands of distinct words.
+        common = sorted(skipped.items(), key=lambda kv: (-kv[1], kv[0]))[:3]
+        found = ", ".join(f"{k[:20]} x{v}" for k, v in common) or "nothing"
+        more = f" and {len(skipped) - 3} other kinds" if len(skipped) > 3 else ""
+        raise CarmenLogError(
+            f"{path}: no laser scans (FLASER or Laser lines), not a CARMEN log; found {found}{more}"
+        )
     laser_in_log = np.asarray(laser, dtype=np.float64)
     # FLASER's pose is the laser's; the base is offset_m behind it along the heading.
     base_in_log = compose(laser_in_log, np.array([-offset_m, 0.0, 0.0]))

@@ -266,6 +266,21 @@ def _agreeing(
     return out
 
 
+def _poses_of(poses: ArrayLike, n: int) -> FloatArray:
+    p = np.asarray(poses, dtype=np.float64)
+    if p.shape != (n, 3):
+        raise ValueError(f"poses: expected ({n}, 3), got shape {p.shape}")
+    return p
+
+
+def _median_step(ts: FloatArray, path: str) -> float:
+    steps = np.diff(ts)
+    steps = steps[steps > 0]
+    if len(steps) == 0:
+        raise ValueError(f"{path}: the log's stamps do not advance: no clock to align")
+    return float(np.median(steps))
+
+
 def align_relations(
     relations: Relations,
     times_s: ArrayLike,
@@ -294,7 +309,6 @@ def align_relations(
     t = _times(times_s, "times_s")
     try:
         offset = estimate_time_offset_s(relations, t)
-        return RelationsAlignment(offset, stamp_tolerance_s, "stamps", 0, 0.0)
     except ValueError as exc:
         if poses is None:
             raise
@@ -302,16 +316,33 @@ def align_relations(
         words = str(exc).split("only ", 1)[-1].split()
         stamp_votes = f"{words[0]} agree, need {words[8].rstrip(';')}" if len(words) > 8 else "?"
 
-    p = np.asarray(poses, dtype=np.float64)
-    if p.shape != (len(t), 3):
-        raise ValueError(f"poses: expected ({len(t)}, 3), got shape {p.shape}")
+    else:
+        if poses is None:
+            return RelationsAlignment(offset, stamp_tolerance_s, "stamps", 0, 0.0)
+        # A regular clock votes almost as much for the offsets a few scan periods away: the
+        # one whose relations agree with the poses wins.
+        p = _poses_of(poses, len(t))
+        order = np.argsort(t, kind="stable")
+        ts = t[order]
+        period = _median_step(ts, relations.path)
+        near = offset + period * np.arange(-5, 6, dtype=np.float64)
+        args0 = (gate_m, gate_frac, gate_rad)
+        rows_all = np.arange(len(relations), dtype=np.int64)
+        score0 = _agreeing(relations, rows_all, ts, order, p, near, stamp_tolerance_s, *args0)
+        k0 = int(np.argmax(score0))
+        if score0[k0] <= score0[5]:
+            k0 = 5
+        return RelationsAlignment(
+            float(near[k0]),
+            stamp_tolerance_s,
+            "stamps",
+            int(score0[k0]),
+            float(np.delete(score0, k0).max()),
+        )
+    p = _poses_of(poses, len(t))
     order = np.argsort(t, kind="stable")
     ts = t[order]
-    steps = np.diff(ts)
-    steps = steps[steps > 0]
-    if len(steps) == 0:
-        raise ValueError(f"{relations.path}: the log's stamps do not advance: no clock to align")
-    tol = 0.5 * float(np.median(steps))
+    tol = 0.5 * _median_step(ts, relations.path)
     stamps = np.concatenate([relations.t1_s, relations.t2_s])
     lo = float(np.percentile(stamps, 50)) - float(ts[-1])
     hi = float(np.percentile(stamps, 50)) - float(ts[0])

@@ -236,7 +236,7 @@ def test_replay_through_the_ground_station_evaluates_against_the_reference(
     np.testing.assert_allclose(closures[:, 5], res.closure_err_m, atol=1e-5)
 
 
-def test_relations_need_timestamps_and_are_evaluated_on_nodes() -> None:
+def test_relations_are_evaluated_on_scans_and_need_timestamps() -> None:
     log = synthetic_log(laps=0.4)
     rows = []
     for i in range(0, len(log) - 4, 2):
@@ -250,9 +250,12 @@ def test_relations_need_timestamps_and_are_evaluated_on_nodes() -> None:
     assert len(res.relations_matched) >= 5 and res.relations_matched.total == len(rel)
     # Exact odometry: only the loop closures (matched to a cell) move the poses, by millimetres.
     assert res.relations.trans_mean_m < 0.01 and res.relations.rot_mean_deg < 0.1
+    assert res.summary()["evaluation"] == "ok"
+    # A log without timestamps still replays; the relations evaluation is one line, missing.
     no_time = parse_carmen_log("Odometry 0 0 0\nLaser 3 1 1 1\n", path="old.log")
-    with pytest.raises(ValueError, match="old.log: relations need scan timestamps"):
-        run_replay(no_time, relations=rel)
+    res = run_replay(no_time, relations=rel)
+    assert res.relations is None and len(res.evaluation_errors) == 1
+    assert "old.log has no timestamps" in res.evaluation_errors[0]
 
 
 def test_configs_refuse_bad_values() -> None:
