@@ -19,8 +19,33 @@ with every robot's ``map_from_odom`` (paper 4.1: robots never receive the map).
 Bad input never raises: it is rejected with a reason naming the robot, message and field,
 counted in :attr:`GroundStation.stats` and logged. Nothing accepted is lost: pose nodes that
 arrive out of order wait for the missing ones; a gap that does not fill within
-``max_pending_nodes`` is bridged from the reported ``pose_in_odom`` values with the summed
-covariance of the messages that did arrive, inflated.
+``max_pending_nodes`` is bridged from the reported ``pose_in_odom`` values with the covariance
+of the node after the gap, inflated by ``gap_covariance_scale`` (and kept within the physical
+bounds below). A node rejected at the door leaves a gap that is bridged as soon as the next node
+is here.
+
+Physical covariances. A covariance (``PoseNode.odom_covariance``, ``FiducialObservation.
+covariance``, ``Detection.position_covariance``) is rejected as ``non_physical_covariance`` when
+it has a non-finite entry, is not positive definite, is numerically singular (condition number
+above :data:`gcs.graph.pose_graph.MAX_COVARIANCE_CONDITION`), or states a standard deviation
+above ``max_sigma_xy_m`` (default 1 km: no odometry, tag or detection is that uncertain and
+still informative) or ``max_sigma_yaw_rad`` (default 2 pi: a heading variance beyond (2 pi)^2
+rad^2 says nothing about the heading and only hurts the solver's conditioning; a robot clock
+jump once turned into 1.7e4 rad^2 here).
+
+Clocks. Each robot's node times are checked in chain order: a step of 0 (``frozen``), below 0
+(``backwards``), above ``max_node_interval_s`` (``jump``) or a non-finite time
+(``non_finite``) is reported once per robot and kind (a log line, ``stats.clock_anomalies``),
+and the node is still accepted with a monotone substitute time: the previous node's time plus
+the median of the robot's recent plausible steps (``clock_fallback_step_s`` before there are
+any). Everything at the GCS that uses node time (graph records, edge times for rewinding,
+grid and fiducial matching) sees the substitute; no covariance depends on time here. The
+station's own ``now_s`` gets the same treatment (except that a repeated time is normal).
+
+Solver faults. :meth:`GroundStation.step` never raises: an iSAM2 failure is recovered by the
+graph (:meth:`gcs.graph.pose_graph.PoseGraph.optimize_incremental`: batch re-solve, fresh
+iSAM2) and counted in ``stats.solver_faults`` / ``stats.solver_recoveries``; an unrecovered one
+keeps the last good estimate and is retried at the next step.
 
 The GCS node (:mod:`gcs.node`) is the thin zenoh shell around this class; the CARMEN replay
 (:mod:`mission.replay`) drives it directly.
@@ -31,6 +56,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import statistics
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,7 +64,13 @@ import msgspec
 import numpy as np
 
 from compression import CodecError, GridReference, decode_grid, read_header
-from gcs.graph.pose_graph import PoseGraph, PoseGraphConfig, PoseGraphError, Provenance
+from gcs.graph.pose_graph import (
+    MAX_COVARIANCE_CONDITION,
+    PoseGraph,
+    PoseGraphConfig,
+    PoseGraphError,
+    Provenance,
+)
 from gcs.loops.correlative_matcher import MatchResult, grid_points
 from gcs.loops.loop_closer import LoopCloser, LoopCloserConfig, LoopClosingReport
 from gcs.mapping.rasterization import OccupancyMap, RasterConfig, Rasterizer
@@ -85,6 +117,10 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     ``max_grid_resolution_m`` / ``min_grid_resolution_m``: accepted grid cell sizes.
     ``gap_covariance_scale``: inflation of the odometry covariance across a bridged gap.
     ``hazard_merge_m``: detections of one kind closer than this are the same hazard.
+    ``max_sigma_xy_m`` / ``max_sigma_yaw_rad``: largest standard deviation (m, rad) an input
+    covariance may state (module docstring, "Physical covariances").
+    ``max_node_interval_s``: largest plausible step (s) between a robot's consecutive node
+    times; ``clock_fallback_step_s``: the substitute step (s) before a robot has plausible ones.
     """
 
     robots: tuple[int, ...] = ()
@@ -104,9 +140,22 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     gap_covariance_scale: float = 4.0
     hazard_merge_m: float = 1.5
     error_log_size: int = 100
+    max_sigma_xy_m: float = 1000.0
+    max_sigma_yaw_rad: float = 2.0 * math.pi
+    max_node_interval_s: float = 3600.0
+    clock_fallback_step_s: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("frames_period_s", "gap_covariance_scale", "hazard_merge_m", "loop_budget_s"):
+        for name in (
+            "frames_period_s",
+            "gap_covariance_scale",
+            "hazard_merge_m",
+            "loop_budget_s",
+            "max_sigma_xy_m",
+            "max_sigma_yaw_rad",
+            "max_node_interval_s",
+            "clock_fallback_step_s",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v}")
@@ -119,7 +168,16 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
 
 @dataclass
 class GroundStationStats:
-    """Counters of what the station accepted and rejected (rejections by reason)."""
+    """Counters of what the station accepted and rejected (rejections by reason).
+
+    ``solver_faults``: incremental solves that failed; ``solver_recoveries``: those answered by
+    a batch re-solve (the others kept the last good estimate and were retried).
+    ``clock_anomalies``: clock faults detected, by kind (``frozen``, ``backwards``, ``jump``,
+    ``non_finite``), each counted once per robot (``gcs`` for the station's own clock);
+    ``clock_substitutions``: node times replaced by a monotone substitute.
+    ``loop_closer_faults`` / ``internal_errors``: exceptions the station caught in the loop
+    closer and elsewhere (a bug, logged with its traceback; the station went on).
+    """
 
     pose_nodes: int = 0
     terrain_grids: int = 0
@@ -128,6 +186,12 @@ class GroundStationStats:
     duplicates: int = 0
     gaps_bridged: int = 0
     optimizations: int = 0
+    solver_faults: int = 0
+    solver_recoveries: int = 0
+    clock_substitutions: int = 0
+    loop_closer_faults: int = 0
+    internal_errors: int = 0
+    clock_anomalies: collections.Counter[str] = field(default_factory=collections.Counter)
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     errors: collections.deque[str] = field(default_factory=lambda: collections.deque(maxlen=100))
 
@@ -148,12 +212,54 @@ class GridRecord:
 
 
 @dataclass
+class _ClockCheck:
+    """Monotone substitute of a clock that may freeze, run backwards or jump (module doc)."""
+
+    allow_repeat: bool = False
+    last_raw_s: float | None = None
+    last_s: float | None = None
+    steps_s: collections.deque[float] = field(default_factory=lambda: collections.deque(maxlen=15))
+    reported: set[str] = field(default_factory=set)
+
+    def check(self, raw_s: float, max_step_s: float, fallback_s: float) -> tuple[float, str | None]:
+        """``(substitute time, anomaly kind or None)`` of the next reading ``raw_s``."""
+        if self.last_s is None or self.last_raw_s is None:
+            if not math.isfinite(raw_s):
+                self.last_s = 0.0
+                return 0.0, "non_finite"
+            self.last_raw_s = self.last_s = raw_s
+            return raw_s, None
+        kind: str | None = None
+        if not math.isfinite(raw_s):
+            kind = "non_finite"
+        else:
+            dt = raw_s - self.last_raw_s
+            if dt == 0.0 and not self.allow_repeat:
+                kind = "frozen"
+            elif dt < 0.0:
+                kind = "backwards"
+            elif dt > max_step_s:
+                kind = "jump"
+            self.last_raw_s = raw_s
+            if kind is None:
+                self.steps_s.append(dt)
+                self.last_s += dt
+                return self.last_s, None
+        step = statistics.median(self.steps_s) if self.steps_s else fallback_s
+        self.last_s += 0.0 if self.allow_repeat else step
+        return self.last_s, kind
+
+
+@dataclass
 class _Track:
     """What the station knows of one robot's stream of pose nodes."""
 
     next_index: int = 0
     keys: dict[int, int] = field(default_factory=dict)  # node_index -> graph key
-    times: list[float] = field(default_factory=list)  # node times, in graph order
+    times: list[float] = field(default_factory=list)  # node times (substitutes), graph order
+    raw_times: dict[int, tuple[float, float]] = field(default_factory=dict)  # index -> raw, used
+    clock: _ClockCheck = field(default_factory=_ClockCheck)
+    lost: set[int] = field(default_factory=set)  # indices rejected at the door: bridge them
     graph_keys: list[int] = field(default_factory=list)
     pending_nodes: dict[int, PoseNode] = field(default_factory=dict)
     pending_grids: dict[int, TerrainGrid] = field(default_factory=dict)
@@ -181,6 +287,32 @@ def _finite(values: Any, what: str) -> np.ndarray:
     return a
 
 
+def _physical_covariance(
+    cov: np.ndarray, what: str, *, max_sigma_xy_m: float, max_sigma_yaw_rad: float | None
+) -> np.ndarray:
+    """``cov`` (3x3 x, y, yaw or 2x2 x, y) if it is a physical covariance (module docstring),
+    else :class:`_Rejected` with reason ``non_physical_covariance`` saying what is wrong."""
+
+    def bad(text: str) -> _Rejected:
+        return _Rejected("non_physical_covariance", f"{what}: {text}")
+
+    if not np.all(np.isfinite(cov)):
+        raise bad(f"non-finite entry in {tuple(np.round(cov[np.triu_indices(len(cov))], 9))}")
+    eig = np.linalg.eigvalsh(cov)
+    if not eig[0] > 0:
+        raise bad(f"not positive definite (eigenvalues {tuple(float(f'{e:.3g}') for e in eig)})")
+    if eig[-1] > MAX_COVARIANCE_CONDITION * eig[0]:
+        raise bad(f"numerically singular (condition number {eig[-1] / eig[0]:.3g})")
+    sigma_xy = math.sqrt(float(np.linalg.eigvalsh(cov[:2, :2])[-1]))
+    if sigma_xy > max_sigma_xy_m:
+        raise bad(f"xy sigma {sigma_xy:.4g} m above the {max_sigma_xy_m:g} m bound")
+    if max_sigma_yaw_rad is not None and cov[2, 2] > max_sigma_yaw_rad**2:
+        raise bad(
+            f"yaw variance {cov[2, 2]:.4g} rad^2 above the {max_sigma_yaw_rad**2:.4g} rad^2 bound"
+        )
+    return cov
+
+
 class GroundStation:
     """Sans-IO core of the GCS: uplink messages in, graph and maps inside, downlink out."""
 
@@ -199,6 +331,7 @@ class GroundStation:
         self._last_frames_s: dict[int, float] = {}
         self._key_time: dict[int, float] = {}
         self._hints: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._clock = _ClockCheck(allow_repeat=True)  # the station's own now_s
 
     # ---- input -----------------------------------------------------------------------------
 
@@ -234,6 +367,11 @@ class GroundStation:
         except (PoseGraphError, ValueError) as err:  # the graph refused it: same treatment
             self._reject(robot_id, msg, "graph_refused", str(err))
             return False
+        except Exception as err:  # a bug: the station keeps running, the message is refused
+            self.stats.internal_errors += 1
+            log.exception("internal error on robot %s %s", robot_id, type(msg).__name__)
+            self._reject(robot_id, msg, "internal_error", f"{type(err).__name__}: {err}")
+            return False
         return True
 
     def _reject(self, robot_id: int, msg: object, reason: str, text: str) -> None:
@@ -244,43 +382,111 @@ class GroundStation:
 
     def _on_pose_node(self, robot_id: int, track: _Track, msg: PoseNode) -> None:
         what = f"node {msg.node_index}"
-        _finite(msg.pose_in_odom, f"{what} pose_in_odom")
-        _finite(msg.odom_covariance, f"{what} odom_covariance")
         if msg.node_index < track.next_index or msg.node_index in track.pending_nodes:
             self.stats.duplicates += 1
             return
+        try:
+            _finite(msg.pose_in_odom, f"{what} pose_in_odom")
+            if msg.node_index > 0:  # a robot's first node carries no constraint
+                self._check_covariance(
+                    covariance_from_upper(msg.odom_covariance), f"{what} odom_covariance"
+                )
+        except _Rejected:
+            # the chain goes on without it: the next node is bridged to the previous one
+            track.lost.add(msg.node_index)
+            self._drain_nodes(robot_id, track)
+            raise
+        track.lost.discard(msg.node_index)
         track.pending_nodes[msg.node_index] = msg
         self._drain_nodes(robot_id, track)
         if len(track.pending_nodes) > self.config.max_pending_nodes:
             # The missing nodes are lost for good (a robot restart, a dropped queue): bridge.
-            self.stats.gaps_bridged += 1
             track.next_index = min(track.pending_nodes)
+            track.lost = {i for i in track.lost if i > track.next_index}
             self._drain_nodes(robot_id, track, bridging=True)
 
+    def _check_covariance(self, cov: np.ndarray, what: str) -> np.ndarray:
+        cfg = self.config
+        return _physical_covariance(
+            cov,
+            what,
+            max_sigma_xy_m=cfg.max_sigma_xy_m,
+            max_sigma_yaw_rad=cfg.max_sigma_yaw_rad if cov.shape == (3, 3) else None,
+        )
+
+    def _bounded(self, cov: np.ndarray) -> np.ndarray:
+        """``cov`` scaled down (per axis, so it stays positive definite) to the physical bounds."""
+        cfg = self.config
+        bound = np.array([cfg.max_sigma_xy_m**2, cfg.max_sigma_xy_m**2, cfg.max_sigma_yaw_rad**2])
+        d = np.sqrt(np.minimum(1.0, bound / np.diag(cov)))
+        return cov * d[:, None] * d[None, :]
+
+    def _node_time(self, robot_id: int, track: _Track, msg: PoseNode) -> float:
+        """The node's time on the robot's monotone substitute clock (module docstring)."""
+        cfg = self.config
+        previous_s = track.clock.last_raw_s
+        time_s, kind = track.clock.check(
+            float(msg.time_s), cfg.max_node_interval_s, cfg.clock_fallback_step_s
+        )
+        track.raw_times[msg.node_index] = (float(msg.time_s), time_s)
+        if kind is not None:
+            self.stats.clock_substitutions += 1
+            where = f"robot {robot_id} node {msg.node_index}"
+            self._clock_anomaly(where, track.clock, kind, msg.time_s, previous_s, time_s)
+        return time_s
+
+    def _clock_anomaly(
+        self,
+        where: str,
+        clock: _ClockCheck,
+        kind: str,
+        raw_s: float,
+        previous_s: float | None,
+        substitute_s: float,
+    ) -> None:
+        if kind in clock.reported:
+            return
+        clock.reported.add(kind)
+        self.stats.clock_anomalies[kind] += 1
+        line = (
+            f"{where}: {kind} clock (time {raw_s!r} s after {previous_s!r} s); accepted with "
+            f"monotone substitute time {substitute_s:.3f} s (reported once per kind)"
+        )
+        self.stats.errors.append(line)
+        log.warning("clock anomaly: %s", line)
+
     def _drain_nodes(self, robot_id: int, track: _Track, *, bridging: bool = False) -> None:
-        while track.next_index in track.pending_nodes:
-            msg = track.pending_nodes.pop(track.next_index)
+        while True:
+            if track.next_index in track.pending_nodes:
+                msg = track.pending_nodes.pop(track.next_index)
+            elif track.next_index in track.lost and any(
+                i > track.next_index for i in track.pending_nodes
+            ):
+                # rejected at the door and a later node is here: bridge over it now
+                track.lost.discard(track.next_index)
+                track.next_index += 1
+                bridging = True
+                continue
+            else:
+                break
             cov = None
             if track.graph_keys:
                 cov = covariance_from_upper(msg.odom_covariance)
                 if bridging:
-                    cov = cov * self.config.gap_covariance_scale
-                    bridging = False
-                if not np.all(np.linalg.eigvalsh(cov) > 0):
-                    raise _Rejected(
-                        "bad_covariance",
-                        f"node {msg.node_index} odom_covariance is not positive definite",
-                    )
+                    self.stats.gaps_bridged += 1
+                    cov = self._bounded(cov * self.config.gap_covariance_scale)
+            bridging = False
             key = self.graph.add_pose(
                 robot_id,
                 odom_from_base=np.asarray(msg.pose_in_odom, dtype=float),
-                time_s=msg.time_s,
+                time_s=self._node_time(robot_id, track, msg),
                 odometry_covariance=cov,
             )
+            time_s = track.raw_times[msg.node_index][1]
             track.keys[msg.node_index] = key
             track.graph_keys.append(key)
-            track.times.append(msg.time_s)
-            self._key_time[key] = msg.time_s
+            track.times.append(time_s)
+            self._key_time[key] = time_s
             track.next_index = msg.node_index + 1
             self.stats.pose_nodes += 1
             self._dirty = True
@@ -449,7 +655,7 @@ class GroundStation:
     def _on_fiducial(self, robot_id: int, track: _Track, msg: FiducialObservation) -> None:
         what = f"fiducial of node {msg.node_index}"
         z = _finite(msg.observed_in_base, f"{what} observed_in_base")
-        cov = covariance_from_upper(_finite(msg.covariance, f"{what} covariance"))
+        cov = self._check_covariance(covariance_from_upper(msg.covariance), f"{what} covariance")
         key_a = track.keys.get(msg.node_index)
         if key_a is None:
             raise _Rejected("orphan_fiducial", f"{what}: pose node not received")
@@ -459,14 +665,19 @@ class GroundStation:
                 "unknown_robot",
                 f"{what}: observed robot {msg.observed_robot_id} has no pose nodes here",
             )
-        i = int(np.argmin(np.abs(np.asarray(other.times) - msg.time_s)))
+        # the observation's time on the observer's substitute clock (its node's, if the stamp
+        # is implausibly far from the node's own)
+        raw_node_s, node_s = track.raw_times[msg.node_index]
+        offset_s = float(msg.time_s) - raw_node_s
+        seen_s = node_s + offset_s if abs(offset_s) <= self.config.max_node_interval_s else node_s
+        i = int(np.argmin(np.abs(np.asarray(other.times) - seen_s)))
         self.graph.add_edge(
             key_a,
             other.graph_keys[i],
             a_from_b=z,
             covariance=cov,
             provenance=Provenance.FIDUCIAL,
-            time_s=msg.time_s,
+            time_s=seen_s,
         )
         self.stats.fiducials += 1
         self._dirty = True
@@ -474,6 +685,10 @@ class GroundStation:
     def _on_detection(self, robot_id: int, track: _Track, msg: Detection) -> None:
         what = f"detection {msg.detection_id}"
         p = _finite(msg.position_in_base, f"{what} position_in_base")
+        xx, xy, yy = msg.position_covariance
+        self._check_covariance(
+            np.array([[xx, xy], [xy, yy]], dtype=float), f"{what} position_covariance"
+        )
         key = track.keys.get(msg.node_index)
         if key is None:
             raise _Rejected("orphan_detection", f"{what}: pose node {msg.node_index} not received")
@@ -505,16 +720,58 @@ class GroundStation:
 
     def step(self, *, now_s: float, budget_s: float | None = None) -> list[tuple[int, Any]]:
         """Close loops within ``budget_s`` wall seconds (default ``loop_budget_s``), optimize
-        what changed (iSAM2) and return the ``(robot_id, message)`` downlink messages."""
-        budget = self.config.loop_budget_s if budget_s is None else budget_s
-        report = self.loop_closer.step(now_s=now_s, budget_s=budget)
+        what changed (iSAM2) and return the ``(robot_id, message)`` downlink messages.
+
+        Never raises: a solver failure is recovered (or the last good estimate kept and the
+        solve retried next time), a loop-closer or internal failure is logged and counted, and
+        the frames go out at the last good estimate either way."""
+        try:
+            now = self._station_now(now_s)
+            budget = self.config.loop_budget_s if budget_s is None else budget_s
+            self._close_loops(now, budget)
+            if self._dirty:
+                self._optimize()
+            return self._downlink(now)
+        except Exception:
+            self.stats.internal_errors += 1
+            log.exception("internal error in GroundStation.step (the station goes on)")
+            return []
+
+    def _station_now(self, now_s: float) -> float:
+        cfg = self.config
+        previous_s = self._clock.last_raw_s
+        now, kind = self._clock.check(float(now_s), cfg.max_node_interval_s, 0.0)
+        if kind is not None:
+            self._clock_anomaly("gcs station", self._clock, kind, now_s, previous_s, now)
+        return now
+
+    def _close_loops(self, now_s: float, budget_s: float) -> None:
+        try:
+            report = self.loop_closer.step(now_s=now_s, budget_s=budget_s)
+        except Exception as err:
+            self.stats.loop_closer_faults += 1
+            self.stats.errors.append(f"loop closer failed: {type(err).__name__}: {err}")
+            log.exception("loop closer failed at t=%.3f s (the station goes on)", now_s)
+            return
         self.last_loop_report = report
         if report.accepted_edge_ids:
             self._dirty = True
-        if self._dirty:
-            self.graph.optimize_incremental()
-            self.stats.optimizations += 1
+
+    def _optimize(self) -> None:
+        """iSAM2 with the graph's recovery; an unrecovered fault keeps ``_dirty`` (retry)."""
+        fault = self.graph.optimize_incremental()
+        self.stats.optimizations += 1
+        if fault is None:
             self._dirty = False
+            return
+        self.stats.solver_faults += 1
+        line = f"solver fault: {fault.error}; {fault.action}"
+        self.stats.errors.append(line)
+        if fault.recovered:
+            self.stats.solver_recoveries += 1
+            self._dirty = False
+
+    def _downlink(self, now_s: float) -> list[tuple[int, Any]]:
         out: list[tuple[int, Any]] = []
         robots = self.graph.robots
         due = [

@@ -16,15 +16,26 @@ split components again; anchors are derived from the current edges at every solv
 
 For every robot ``map_from_odom = map_from_base(latest) * odom_from_base(latest)^-1`` follows
 from the posterior.
+
+Solver faults. iSAM2's incremental state can go bad on a long mission (GTSAM raises
+``Indeterminate linear system detected while working near variable ...`` on a graph that solves
+in batch and in a fresh iSAM2), and an estimate can come back non-finite. Neither ever raises
+out of :meth:`PoseGraph.optimize_incremental`: the graph re-solves in batch (:meth:`optimize`)
+from the last good estimate, seeds a fresh iSAM2 from the result and reports a
+:class:`SolverFault`; if the batch solve fails too, the last good estimate stays and the next
+call tries again. Every node and edge is kept either way. :meth:`PoseGraph.inject_solver_fault`
+makes the next iSAM2 updates fail for real (a degenerate factor GTSAM refuses, or a NaN
+measurement), for tests and the robustness bench.
 """
 
 from __future__ import annotations
 
 import copy
 import enum
+import logging
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import gtsam
 import msgspec
@@ -56,7 +67,23 @@ __all__ = [
     "PoseGraphSnapshot",
     "Provenance",
     "SolveSummary",
+    "SolverFault",
+    "SolverFaultKind",
 ]
+
+log = logging.getLogger("magic.gcs.graph")
+
+#: Largest condition number (largest / smallest eigenvalue) of an accepted covariance: beyond
+#: it the information matrix is numerically singular in double precision once summed with the
+#: others, and iSAM2 raises on the indeterminate system it makes.
+MAX_COVARIANCE_CONDITION = 1e12
+
+#: Kinds of injected solver faults (:meth:`PoseGraph.inject_solver_fault`).
+SolverFaultKind = Literal["indeterminate", "nan"]
+
+#: GTSAM key of the variable an injected ``"indeterminate"`` fault constrains (a
+#: ``gtsam.Symbol`` key: never a pose key, see :mod:`gcs.graph.keys`).
+_FAULT_KEY = int(gtsam.symbol("z", 0))
 
 FloatArray = NDArray[np.floating[Any]]
 _Arrays = tuple[NDArray[np.int64], FloatArray, FloatArray]
@@ -159,6 +186,20 @@ class SolveSummary:
     components: int = field(default=1)
 
 
+@dataclass(frozen=True)
+class SolverFault:
+    """An incremental solve that failed, and what the graph did about it.
+
+    ``error``: what failed (the exception's type and first line, or the non-finite estimate).
+    ``action``: what was done, one line. ``recovered``: the estimate is a fresh batch solution
+    (False: the last good estimate was kept and the next solve tries again).
+    """
+
+    error: str
+    action: str
+    recovered: bool
+
+
 def _check_pose(p: object, what: str) -> FloatArray:
     arr = np.asarray(p, dtype=float)
     if arr.shape != (3,):
@@ -176,13 +217,17 @@ def _check_cov(c: object, what: str) -> FloatArray:
         raise PoseGraphError(f"{what}: covariance has non-finite entries")
     if not np.allclose(arr, arr.T, rtol=1e-9, atol=1e-12):
         raise PoseGraphError(f"{what}: covariance is not symmetric")
+    eig = np.linalg.eigvalsh(arr)
     try:
         np.linalg.cholesky(arr)
     except np.linalg.LinAlgError:
+        eig = np.minimum(eig, 0.0)  # reported as not positive definite below
+    if not (eig[0] > 0 and eig[-1] <= MAX_COVARIANCE_CONDITION * eig[0]):
         raise PoseGraphError(
             f"{what}: covariance is singular or not positive definite "
-            f"(eigenvalues {np.linalg.eigvalsh(arr).tolist()})"
-        ) from None
+            f"(eigenvalues {np.linalg.eigvalsh(arr).tolist()}, condition limit "
+            f"{MAX_COVARIANCE_CONDITION:g})"
+        )
     return arr.copy()
 
 
@@ -212,6 +257,7 @@ class PoseGraph:
         self._isam_keys: set[int] = set()
         self._isam_anchors: set[tuple[str, int]] = set()
         self._isam_stale = True
+        self._injected_faults: list[SolverFaultKind] = []
 
     # ---- queries -------------------------------------------------------------------------
 
@@ -519,17 +565,34 @@ class PoseGraph:
             values.insert(key, se2.pose2(p))
         return fg, values
 
-    def optimize_incremental(self) -> None:
+    def optimize_incremental(self) -> SolverFault | None:
         """Online update with iSAM2: push the edges and poses added since the last call.
 
         Removals, restores, component merges and anchor changes re-seed iSAM2 from the whole
         graph (they are rare operator or topology events); otherwise the update is incremental.
+
+        Never raises on a solver failure (module docstring): an exception out of iSAM2's update
+        or estimate, or a non-finite estimate, is answered by a batch re-solve from the last
+        good estimate and a fresh iSAM2 seeded from it; the returned :class:`SolverFault` says
+        what failed and what was done (None: the update went through). The estimate only ever
+        changes to a finite one.
         """
+        try:
+            self._isam_step()
+            return None
+        except Exception as err:  # GTSAM raises RuntimeError; bindings may raise others
+            error = _describe(err)
+        return self._recover(error)
+
+    def _isam_step(self) -> None:
         anchors = self._anchor_factors()
         if self._isam is None or self._isam_stale or not self._isam_anchors <= anchors.keys():
-            self._isam = Isam2Solver(self.config.isam2)
+            self._isam = None  # a failure below leaves no half-seeded solver behind
+            self._isam_stale = True
+            solver = Isam2Solver(self.config.isam2)
             fg, values = self.factor_graph()
-            self._isam.update(fg, values)
+            self._isam_update(solver, fg, values)
+            self._isam = solver
             self._isam_edges = set(self._edges)
             self._isam_keys = set(self._nodes)
             self._isam_anchors = set(anchors)
@@ -543,19 +606,98 @@ class PoseGraph:
             values = gtsam.Values()
             for key in self._nodes.keys() - self._isam_keys:
                 values.insert(key, se2.pose2(self._estimate[key]))
-            self._isam.update(fg, values)
+            # From here on iSAM2 holds the new factors whatever happens: if it fails it is
+            # re-seeded, so mark it stale until the update is through.
+            self._isam_stale = True
+            self._isam_update(self._isam, fg, values)
             self._isam_edges |= self._edges.keys()
             self._isam_keys |= self._nodes.keys()
             self._isam_anchors |= anchors.keys()
-        self.set_estimate(self._isam.estimate())
+            self._isam_stale = False
+        self._assign_estimate(self._isam.estimate(), "iSAM2")
 
-    def set_estimate(self, values: gtsam.Values) -> None:
-        """Replace the estimate with ``values`` (must hold every pose)."""
+    def _isam_update(
+        self, solver: Isam2Solver, fg: gtsam.NonlinearFactorGraph, values: gtsam.Values
+    ) -> None:
+        """``solver.update``, with an injected fault added to the update when one is due."""
+        if self._injected_faults:
+            kind = self._injected_faults.pop(0)
+            fg = gtsam.NonlinearFactorGraph(fg)
+            values = gtsam.Values(values)
+            if kind == "indeterminate":
+                # a prior that leaves a new variable's heading free: GTSAM's elimination hits
+                # a zero pivot and raises its IndeterminantLinearSystemException
+                values.insert(_FAULT_KEY, gtsam.Pose2())
+                free_yaw = gtsam.noiseModel.Diagonal.Precisions(np.array([1.0, 1.0, 0.0]))
+                fg.add(gtsam.PriorFactorPose2(_FAULT_KEY, gtsam.Pose2(), free_yaw))
+            else:  # "nan": a measurement that makes every pose it reaches NaN
+                key = max(self._nodes)
+                noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([1.0, 1.0, 1.0]))
+                nan = gtsam.Pose2(math.nan, math.nan, math.nan)
+                fg.add(gtsam.PriorFactorPose2(key, nan, noise))
+        solver.update(fg, values)
+
+    def _recover(self, error: str) -> SolverFault:
+        """Batch re-solve from the last good estimate, then a fresh iSAM2 seeded from it."""
+        self._isam = None
+        self._isam_stale = True
+        try:
+            summary = self.optimize()
+        except Exception as err:
+            fault = SolverFault(
+                error=error,
+                action=f"batch re-solve failed too ({_describe(err)}); kept the last good "
+                "estimate, will retry at the next solve",
+                recovered=False,
+            )
+            log.error("solver fault: %s; %s", fault.error, fault.action)
+            return fault
+        action = f"batch re-solved ({summary.iterations} iterations, chi2 {summary.chi2:.6g})"
+        try:
+            self._isam_step()
+            action += ", fresh iSAM2 seeded from it"
+        except Exception as err:
+            self._isam = None
+            self._isam_stale = True
+            action += f"; re-seeding iSAM2 failed ({_describe(err)}), retried at the next solve"
+        fault = SolverFault(error=error, action=action, recovered=True)
+        log.warning("solver fault: %s; %s", fault.error, fault.action)
+        return fault
+
+    def inject_solver_fault(self, kind: SolverFaultKind = "indeterminate", count: int = 1) -> None:
+        """Make the next ``count`` iSAM2 updates fail for real (tests, robustness bench).
+
+        ``"indeterminate"``: the update also carries a prior on a spare variable that leaves
+        its heading free, so GTSAM itself raises its indeterminate-system ``RuntimeError`` in
+        ``ISAM2.update``. ``"nan"``: the update carries a NaN measurement on the newest pose, so
+        iSAM2's estimate comes back non-finite. The injected factor only ever lives in the
+        iSAM2 that fails; the graph's own nodes and edges are untouched.
+        """
+        if kind not in ("indeterminate", "nan"):
+            raise ValueError(f"inject_solver_fault: unknown kind {kind!r}")
+        if count < 0:
+            raise ValueError(f"inject_solver_fault: count must be >= 0, got {count}")
+        self._injected_faults.extend([kind] * count)
+
+    def _assign_estimate(self, values: gtsam.Values, source: str) -> None:
+        """Take every pose from ``values``; raises (estimate untouched) if one is non-finite."""
         for key in self._nodes:
             if not values.exists(key):
-                raise PoseGraphError(f"set_estimate: no value for pose {split_key(key)}")
-        for key in self._nodes:
-            self._estimate[key] = se2.pose_vec(values.atPose2(key))
+                raise PoseGraphError(f"{source}: no value for pose {split_key(key)}")
+        new = {key: se2.pose_vec(values.atPose2(key)) for key in self._nodes}
+        bad = [k for k, p in new.items() if not np.all(np.isfinite(p))]
+        if bad:
+            raise FloatingPointError(
+                f"{source} estimate is non-finite at {len(bad)} poses, e.g. {split_key(bad[0])}"
+            )
+        self._estimate.update(new)
+
+    def set_estimate(self, values: gtsam.Values) -> None:
+        """Replace the estimate with ``values`` (must hold every pose, all finite)."""
+        try:
+            self._assign_estimate(values, "set_estimate")
+        except FloatingPointError as err:
+            raise PoseGraphError(str(err)) from None
 
     def optimize(
         self,
@@ -575,7 +717,7 @@ class PoseGraph:
             max_iterations=self.config.max_iterations,
             relative_error_tol=self.config.relative_error_tol,
         )
-        self.set_estimate(result.values)
+        self._assign_estimate(result.values, "batch")
         self._isam_stale = True
         return SolveSummary(
             chi2=result.chi2,
@@ -774,3 +916,12 @@ class PoseGraph:
     def copy(self) -> PoseGraph:
         """An independent copy."""
         return copy.deepcopy(self)
+
+
+def _describe(err: BaseException) -> str:
+    """``Type: message`` of an exception on one line, without GTSAM's long explanation."""
+    text = " ".join(str(err).split())
+    text = text.split(" Thrown when", 1)[0]
+    if len(text) > 160:
+        text = text[:157] + "..."
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
