@@ -245,8 +245,14 @@ class _ClockCheck:
                 self.steps_s.append(dt)
                 self.last_s += dt
                 return self.last_s, None
-        step = statistics.median(self.steps_s) if self.steps_s else fallback_s
-        self.last_s += 0.0 if self.allow_repeat else step
+        step = (
+            0.0
+            if self.allow_repeat
+            else (statistics.median(self.steps_s) if self.steps_s else fallback_s)
+        )
+        self.last_s += step
+        if kind == "non_finite":
+            self.last_raw_s += step  # the missing reading, assumed one step on
         return self.last_s, kind
 
 
@@ -297,12 +303,11 @@ def _physical_covariance(
         return _Rejected("non_physical_covariance", f"{what}: {text}")
 
     if not np.all(np.isfinite(cov)):
-        raise bad(f"non-finite entry in {tuple(np.round(cov[np.triu_indices(len(cov))], 9))}")
+        upper = tuple(float(v) for v in cov[np.triu_indices(len(cov))])
+        raise bad(f"non-finite entry in {upper}")
     eig = np.linalg.eigvalsh(cov)
     if not eig[0] > 0:
         raise bad(f"not positive definite (eigenvalues {tuple(float(f'{e:.3g}') for e in eig)})")
-    if eig[-1] > MAX_COVARIANCE_CONDITION * eig[0]:
-        raise bad(f"numerically singular (condition number {eig[-1] / eig[0]:.3g})")
     sigma_xy = math.sqrt(float(np.linalg.eigvalsh(cov[:2, :2])[-1]))
     if sigma_xy > max_sigma_xy_m:
         raise bad(f"xy sigma {sigma_xy:.4g} m above the {max_sigma_xy_m:g} m bound")
@@ -310,6 +315,8 @@ def _physical_covariance(
         raise bad(
             f"yaw variance {cov[2, 2]:.4g} rad^2 above the {max_sigma_yaw_rad**2:.4g} rad^2 bound"
         )
+    if eig[-1] > MAX_COVARIANCE_CONDITION * eig[0]:
+        raise bad(f"numerically singular (condition number {eig[-1] / eig[0]:.3g})")
     return cov
 
 

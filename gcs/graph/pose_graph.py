@@ -641,9 +641,13 @@ class PoseGraph:
         """Batch re-solve from the last good estimate, then a fresh iSAM2 seeded from it."""
         self._isam = None
         self._isam_stale = True
+        last_good = {k: v.copy() for k, v in self._estimate.items()}
         try:
             summary = self.optimize()
+            if not math.isfinite(summary.chi2):
+                raise FloatingPointError(f"batch solve ended with chi2 {summary.chi2}")
         except Exception as err:
+            self._estimate = last_good
             fault = SolverFault(
                 error=error,
                 action=f"batch re-solve failed too ({_describe(err)}); kept the last good "

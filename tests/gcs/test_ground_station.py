@@ -267,3 +267,132 @@ def test_inter_frame_grids_are_decoded_against_the_previous_nodes_grid() -> None
     assert not gs.handle(0, bad, now_s=0.0)
     assert not gs.handle(0, msgs[5], now_s=0.0)
     assert gs.stats.rejected["missing_reference"] == 1
+
+
+# ---- robustness: solver faults, non-physical covariances, clocks (issue 19) -----------------
+
+
+def _two_robots_with_a_tag(gs: GroundStation, *, fault_at: dict[int, str] | None = None) -> None:
+    """Robot 0 (map) and robot 1 drive 20 nodes each; robot 1's node 8 sees robot 0's node 8.
+    Steps after every pair of nodes; ``fault_at[i]`` injects a solver fault before step ``i``."""
+    path0, path1 = straight(20), straight(20, heading=0.4)
+    map_from_odom1 = np.array([2.0, -1.0, 0.3])
+    msgs0, msgs1 = nodes_along(path0), nodes_along(path1)
+    seen = relative(compose(map_from_odom1, path1[8]), path0[8])
+    for i in range(20):
+        assert gs.handle(0, msgs0[i], now_s=float(i))
+        assert gs.handle(1, msgs1[i], now_s=float(i))
+        if i == 8:
+            tag = FiducialObservation(8, 8.0, 0, 7, tuple(seen), COV)  # type: ignore[arg-type]
+            assert gs.handle(1, tag, now_s=float(i))
+        if fault_at and i in fault_at:
+            gs.graph.inject_solver_fault(fault_at[i])  # type: ignore[arg-type]
+        gs.step(now_s=float(i))
+
+
+def test_a_solver_fault_mid_run_is_recovered_and_the_estimate_is_unchanged() -> None:
+    clean = GroundStation()
+    _two_robots_with_a_tag(clean)
+    faulty = GroundStation()
+    _two_robots_with_a_tag(faulty, fault_at={4: "indeterminate", 9: "nan", 15: "indeterminate"})
+    s = faulty.stats
+    assert s.solver_faults == 3 and s.solver_recoveries == 3
+    assert clean.stats.solver_faults == 0
+    assert any("Indeterminate linear system" in e for e in s.errors)
+    assert s.pose_nodes == 40 and s.fiducials == 1  # nothing accepted was lost
+    for r in (0, 1):
+        np.testing.assert_allclose(faulty.graph.poses(r)[1], clean.graph.poses(r)[1], atol=1e-6)
+    (update,) = {id(m): m for _, m in faulty.step(now_s=30.0)}.values()
+    assert isinstance(update, HazardUpdate) and len(update.frames) == 2
+    frames = {f.robot_id: np.array(f.map_from_odom) for f in update.frames}
+    np.testing.assert_allclose(frames[1], (2.0, -1.0, 0.3), atol=1e-4)
+    # the station's iSAM2 is healthy again: later updates are incremental and fault-free
+    msg = nodes_along(straight(21))[20]
+    assert faulty.handle(0, msg, now_s=31.0)
+    faulty.step(now_s=31.0)
+    assert s.solver_faults == 3
+
+
+def test_non_physical_covariances_are_rejected_and_the_chain_is_bridged_at_once() -> None:
+    gs = GroundStation(GroundStationConfig(robots=(0,)))
+    path = straight(12)
+    msgs = nodes_along(path)
+    bad = {
+        3: (float("nan"), 0.0, 0.0, 1e-4, 0.0, 4e-6),  # NaN
+        5: (1e-4, 0.0, 0.0, -1e-4, 0.0, 4e-6),  # not positive definite
+        8: (1e-4, 0.0, 0.0, 1e-4, 0.0, 1.7e4),  # a clock jump's yaw variance
+        9: (4e8, 0.0, 0.0, 1e-4, 0.0, 4e-6),  # 20 km sigma
+    }
+    for i, msg in enumerate(msgs):
+        if i in bad:
+            msg = msgspec.structs.replace(msg, odom_covariance=bad[i])
+            assert not gs.handle(0, msg, now_s=0.0)
+        else:
+            assert gs.handle(0, msg, now_s=0.0)
+    s = gs.stats
+    assert s.rejected["non_physical_covariance"] == 4 and s.rejected_total == 4
+    text = "\n".join(s.errors)
+    assert "robot 0 PoseNode: node 8 odom_covariance: yaw variance 1.7e+04 rad^2" in text
+    assert "node 5 odom_covariance: not positive definite" in text
+    assert "node 3 odom_covariance: non-finite entry" in text
+    assert "node 9 odom_covariance: xy sigma 2e+04 m above the 1000 m bound" in text
+    # every good node is in the chain at once (no wait for max_pending_nodes), bridged
+    assert s.pose_nodes == 8 and s.gaps_bridged == 3
+    assert [gs.key_of(0, i) is not None for i in range(12)] == [i not in bad for i in range(12)]
+    gs.step(now_s=1.0)
+    _, poses = gs.graph.poses(0)
+    np.testing.assert_allclose(poses[-1], path[-1], atol=1e-6)
+    bound = np.array([1000.0**2, 1000.0**2, (2 * np.pi) ** 2])
+    for e in gs.graph.edges(Provenance.ODOMETRY):
+        assert np.all(np.diag(e.covariance) <= bound) and np.linalg.eigvalsh(e.covariance)[0] > 0
+
+    # a fiducial and a detection with non-physical covariances are refused the same way
+    gs1 = GroundStation()
+    for r in (0, 1):
+        for msg in nodes_along(straight(3)):
+            gs1.handle(r, msg, now_s=0.0)
+    tag = FiducialObservation(1, 1.0, 0, 7, (1.0, 0.0, 0.0), (1e-4, 0, 0, 1e-4, 0, 0.0))
+    det = Detection(1, 2, 2.0, ObjectKind.STATIC_OOI, (4.0, 0.0), (1e7, 0, 1e7), 0.3, 0.5, 0.9)
+    assert not gs1.handle(1, tag, now_s=0.0) and not gs1.handle(0, det, now_s=0.0)
+    assert gs1.stats.rejected["non_physical_covariance"] == 2
+    assert "fiducial of node 1 covariance" in gs1.stats.errors[0]
+    assert "detection 1 position_covariance: xy sigma" in gs1.stats.errors[1]
+
+
+def test_a_bridge_over_a_rejected_node_stays_within_the_physical_bounds() -> None:
+    cfg = GroundStationConfig(max_sigma_xy_m=1.0, max_sigma_yaw_rad=1.0, gap_covariance_scale=4.0)
+    gs = GroundStation(cfg)
+    near_bound = covariance_to_upper(np.diag([0.9**2, 0.9**2, 0.9**2]))
+    msgs = nodes_along(straight(4), cov_upper=near_bound)
+    msgs[2] = msgspec.structs.replace(msgs[2], odom_covariance=(float("inf"),) + (0.0,) * 5)
+    for msg in msgs:
+        gs.handle(0, msg, now_s=0.0)
+    bridge = gs.graph.edges(Provenance.ODOMETRY)[-1]
+    np.testing.assert_allclose(np.diag(bridge.covariance), [1.0, 1.0, 1.0])  # 4 x 0.81, capped
+
+
+def test_clock_anomalies_are_reported_once_per_kind_and_times_stay_monotone() -> None:
+    gs = GroundStation()
+    msgs = nodes_along(straight(16))
+    raw = [0.0, 1.0, 2.0, 3.0, 3.0, 3.0, 4.0, 5.0, 4.29e9 + 6, 4.29e9 + 7, 1.5, 2.5, 2.5, 3.5,
+           float("nan"), 5.5]  # fmt: skip
+    for msg, t in zip(msgs, raw, strict=True):
+        assert gs.handle(0, msgspec.structs.replace(msg, time_s=t), now_s=0.0)
+    s = gs.stats
+    assert s.pose_nodes == 16 and s.rejected_total == 0  # nothing lost
+    assert dict(s.clock_anomalies) == {"frozen": 1, "jump": 1, "backwards": 1, "non_finite": 1}
+    assert s.clock_substitutions == 6  # 2 frozen, 1 jump, 1 backwards, 1 frozen, 1 NaN
+    assert sum("clock" in e for e in s.errors) == 4  # one line per kind
+    times = np.array([n.time_s for n in gs.graph.nodes(0)])
+    assert np.all(np.diff(times) > 0) and times[-1] < 20.0
+    np.testing.assert_allclose(np.diff(times), 1.0)  # plausible steps were all 1 s
+    # odometry covariances are the robot's, whatever its clock did
+    for e in gs.graph.edges(Provenance.ODOMETRY):
+        np.testing.assert_allclose(e.covariance, np.diag([0.01**2, 0.01**2, 0.002**2]), rtol=1e-6)
+    gs.step(now_s=1.0)
+    # the station's own clock going backwards or jumping is reported once and substituted
+    gs.step(now_s=0.5)
+    gs.step(now_s=1e10)
+    out = gs.step(now_s=1e10 + 3.0)
+    assert s.clock_anomalies["backwards"] == 2 and s.clock_anomalies["jump"] == 2
+    assert out and out[0][1].time_s == pytest.approx(4.0)

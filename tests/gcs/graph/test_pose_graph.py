@@ -9,7 +9,14 @@ import pytest
 from gcs.graph import se2
 from gcs.graph.g2o import read_g2o, write_g2o
 from gcs.graph.keys import pose_key
-from gcs.graph.pose_graph import PoseGraph, PoseGraphConfig, PoseGraphError, Provenance
+from gcs.graph.pose_graph import (
+    EdgeRecord,
+    PoseGraph,
+    PoseGraphConfig,
+    PoseGraphError,
+    PoseGraphSnapshot,
+    Provenance,
+)
 from mission.config import ConfigError, load_config_text
 
 ODO_COV = np.diag([0.02**2, 0.02**2, 0.01**2])
@@ -438,3 +445,85 @@ def test_rewind_that_splits_components_restores_weak_anchor() -> None:
     np.testing.assert_allclose(graph.map_from_odom(1), linked, atol=1e-6)
     graph.optimize_incremental()
     np.testing.assert_allclose(graph.map_from_odom(1), linked, atol=1e-6)
+
+
+# ---- solver faults (issue 19) ----------------------------------------------------------------
+
+
+def _two_linked_robots(rng: np.random.Generator) -> tuple[PoseGraph, list[int], list[int]]:
+    g = PoseGraph()
+    truth0 = trajectory(rng, 30, np.zeros(3))
+    truth1 = trajectory(rng, 30, np.array([3.0, 4.0, 1.0]))
+    k0 = drive(g, 0, truth0, np.zeros(3), rng)
+    k1 = drive(g, 1, truth1, np.array([3.0, 4.0, 1.0]), rng)
+    g.add_edge(k0[10], k1[12], a_from_b=se2.between(truth0[10], truth1[12]), covariance=FID_COV,
+               provenance=Provenance.FIDUCIAL, time_s=12.0)  # fmt: skip
+    g.add_edge(k0[20], k0[3], a_from_b=se2.between(truth0[20], truth0[3]), covariance=LOOP_COV,
+               provenance=Provenance.LOOP_AUTO, time_s=20.0)  # fmt: skip
+    return g, k0, k1
+
+
+def test_an_isam2_fault_is_recovered_by_a_batch_solve_and_a_fresh_isam2() -> None:
+    rng = np.random.default_rng(4)
+    clean, _, _ = _two_linked_robots(rng)
+    assert clean.optimize_incremental() is None
+    faulty, _, _ = _two_linked_robots(np.random.default_rng(4))
+    assert faulty.optimize_incremental() is None
+    for kind in ("indeterminate", "nan"):
+        faulty.inject_solver_fault(kind)  # type: ignore[arg-type]
+        for g in (clean, faulty):
+            g.add_pose(0, odom_from_base=(40.0, 1.0, 0.2), time_s=40.0, odometry_covariance=ODO_COV)
+        assert clean.optimize_incremental() is None
+        fault = faulty.optimize_incremental()
+        assert fault is not None and fault.recovered
+        assert fault.error.startswith("RuntimeError: Indeterminate linear system")
+        assert "batch re-solved" in fault.action and "fresh iSAM2 seeded" in fault.action
+        # the recovered estimate is the batch optimum of the same graph; iSAM2's (one
+        # relinearization per update) is close to it
+        batch = clean.copy()
+        batch.optimize()
+        for r in (0, 1):
+            np.testing.assert_allclose(faulty.poses(r)[1], batch.poses(r)[1], atol=1e-6)
+            np.testing.assert_allclose(faulty.poses(r)[1], clean.poses(r)[1], atol=0.05)
+    # a fault in the re-seeding iSAM2 too: the batch estimate stands, iSAM2 is retried later
+    faulty.inject_solver_fault("indeterminate", count=2)
+    faulty.add_pose(1, odom_from_base=(9.0, 9.0, 0.0), time_s=41.0, odometry_covariance=ODO_COV)
+    fault = faulty.optimize_incremental()
+    assert fault is not None and fault.recovered and "re-seeding iSAM2 failed" in fault.action
+    assert faulty.optimize_incremental() is None
+    with pytest.raises(ValueError, match="unknown kind"):
+        faulty.inject_solver_fault("boom")  # type: ignore[arg-type]
+
+
+def test_when_the_batch_solve_fails_too_the_last_good_estimate_is_kept() -> None:
+    g, k0, _ = _two_linked_robots(np.random.default_rng(5))
+    assert g.optimize_incremental() is None
+    good = {r: g.poses(r)[1].copy() for r in (0, 1)}
+    # an edge whose measurement is NaN (only restore() can put one in: add_edge refuses it)
+    snap = g.snapshot()
+    bad = EdgeRecord(snap.next_edge_id, k0[5], k0[25], np.array([np.nan, 0.0, 0.0]), LOOP_COV,
+                     Provenance.LOOP_AUTO, 30.0)  # fmt: skip
+    g.restore(PoseGraphSnapshot(snap.nodes, {**snap.edges, bad.edge_id: bad}, snap.estimate,
+                                snap.next_edge_id + 1))  # fmt: skip
+    for _ in range(2):  # every later solve tries again, and fails the same way
+        fault = g.optimize_incremental()
+        assert fault is not None and not fault.recovered
+        assert "kept the last good estimate" in fault.action
+        for r in (0, 1):
+            np.testing.assert_array_equal(g.poses(r)[1], good[r])
+    g.remove_edges([bad.edge_id])  # the operator removes it: solving works again
+    assert g.optimize_incremental() is None
+
+
+def test_add_edge_refuses_non_positive_definite_and_numerically_singular_covariances() -> None:
+    g, k0, k1 = _two_linked_robots(np.random.default_rng(6))
+    for cov, why in (
+        (np.diag([1e-4, 1e-4, -1e-6]), "not positive definite"),
+        (np.diag([1e-4, 1e-4, 0.0]), "not positive definite"),
+        (np.diag([1.0, 1.0, 1e-14]), "condition limit"),
+        (np.array([[1e-2, 1e-2, 0], [1e-2, 1e-2, 0], [0, 0, 1e-4]]), "not positive definite"),
+    ):
+        with pytest.raises(PoseGraphError, match="singular or not positive definite") as info:
+            g.add_edge(k0[2], k1[2], a_from_b=(1.0, 0.0, 0.0), covariance=cov,
+                       provenance=Provenance.LOOP_OPERATOR, time_s=1.0)  # fmt: skip
+        assert why in str(info.value) or why == "not positive definite"
