@@ -29,13 +29,20 @@ repeatability.
 
 from __future__ import annotations
 
+import time as _time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import msgspec
-import numpy as np
 
+from mission.lockstep_protocol import (
+    RunSeeds,
+    StepDone,
+    StepGo,
+    seed_streams,
+    step_done_key,
+    step_go_key,
+)
 from protocol.clock import ManualClock
 from protocol.link import GcsEndpoint, Link, LinkConfig, RobotEndpoint
 from protocol.loopback import LockstepRadio, free_loopback_port, unique_mission
@@ -44,42 +51,7 @@ from protocol.radio_channel import LinkBackpressure
 from robot.node import RobotNode, RobotNodeConfig
 from sim.simulator import SimDriver, Simulator
 
-__all__ = ["RunSeeds", "TeamInLockstep", "seed_streams"]
-
-
-def _draw(ss: np.random.SeedSequence) -> int:
-    return int(ss.generate_state(1, dtype=np.uint32)[0])
-
-
-@dataclass(frozen=True)
-class RunSeeds:
-    """Independent seeds of one run, all derived from its seed (numpy ``SeedSequence``
-    children: the same seed always gives the same streams, distinct streams never overlap)."""
-
-    seed: int
-    simulator: int  # the simulator's sensor noise and slip (with the world's own seed)
-    ground: int  # the ground side's draws (scripted goals)
-    ground_link: int  # loss draws of the ground's radio channels
-    robot_link: int  # loss draws of the robots' radio channels
-
-    def robot(self, index: int) -> int:
-        """Robot number ``index``'s node draws (deadlock back-off)."""
-        return _draw(np.random.SeedSequence(self.seed, spawn_key=(4, index)))
-
-
-def seed_streams(seed: int, *, simulator_seed: int = 0) -> RunSeeds:
-    """Seeds for every random stream of a run, from ``seed`` (``simulator_seed``:
-    ``SimulatorConfig.seed``, mixed in so that it still matters)."""
-    if seed < 0:
-        raise ValueError(f"seed must be >= 0, got {seed}")
-    sim_ss, ground, ground_link, robot_link = np.random.SeedSequence(seed).spawn(4)
-    return RunSeeds(
-        seed=seed,
-        simulator=_draw(np.random.SeedSequence([_draw(sim_ss), simulator_seed])),
-        ground=_draw(ground),
-        ground_link=_draw(ground_link),
-        robot_link=_draw(robot_link),
-    )
+__all__ = ["RunSeeds", "TeamInLockstep", "TeamOverProcesses", "seed_streams"]
 
 
 class TeamInLockstep:
@@ -134,9 +106,9 @@ class TeamInLockstep:
             self.nodes: dict[int, RobotNode] = {}
             self.radios: dict[int, RobotEndpoint] = {}
             self.drivers: dict[int, SimDriver] = {}
-            for k, rid in enumerate(sim.robot_ids):
+            for rid in sim.robot_ids:
                 node = RobotNode(
-                    rid, send=self._uplink(rid), config=robot_config, seed=seeds.robot(k)
+                    rid, send=self._uplink(rid), config=robot_config, seed=seeds.robot(rid)
                 )
                 self.nodes[rid] = node
                 self.radios[rid] = self.robot_link.robot_endpoint(
@@ -187,6 +159,11 @@ class TeamInLockstep:
         if self.radio is not None:
             self.radio.exchange(self.exchange_timeout_s)
 
+    def node_counters(self, robot_id: int) -> tuple[int, int, int]:
+        """Robot ``robot_id``'s node's deadlocks, stuck recoveries and plan failures."""
+        s = self.nodes[robot_id].stats
+        return (s.deadlocks, s.stuck_recoveries, s.plan_failures)
+
     def uplink_bytes(self, robot_id: int) -> int:
         from protocol.messages import Direction
 
@@ -200,6 +177,174 @@ class TeamInLockstep:
         self.ground_link.close()
 
     def __enter__(self) -> TeamInLockstep:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class TeamOverProcesses:
+    """The same team with each robot node in its own process (``magic robot --lockstep``),
+    the simulator and the ground side in this one; same interface as :class:`TeamInLockstep`
+    except ``nodes`` (empty: the nodes live elsewhere) and ``uplink_bytes`` (metered there).
+
+    Each :meth:`step` mirrors the in-process one (see :mod:`mission.lockstep_protocol`): the
+    simulator steps and the ground end gets the grants; the step's frames, each robot's
+    end-of-step tick and a :class:`StepGo` per robot go out; the ground side has its turn;
+    then this process waits for every robot's :class:`StepDone` and for the uplink packets
+    and commands it counts, processes the uplink in canonical order and pumps the downlink.
+    A robot processes that downlink at its next step, at this step's time, as in one process.
+    """
+
+    def __init__(
+        self,
+        sim: Simulator,
+        *,
+        radio: RadioConfig,
+        radio_path: str,
+        seeds: RunSeeds,
+        on_ground_message: Callable[[int, Any], None],
+        robot_config: RobotNodeConfig | None = None,
+        connect_timeout_s: float = 60.0,
+        step_timeout_s: float = 30.0,
+    ) -> None:
+        import subprocess
+        import sys
+        import tempfile
+        import threading
+
+        from sim.server import SimServer
+
+        self.sim = sim
+        self.realtime = False
+        self.seeds = seeds
+        self.step_timeout_s = step_timeout_s
+        self.clock = sim.clock  # the simulator's mission clock
+        self.nodes: dict[int, RobotNode] = {}
+        endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+        self.mission = mission = unique_mission("run")
+        cfg = LinkConfig(listen=(endpoint,), radio=radio, pump_period_s=0.0)
+        self.ground_link = Link(cfg, mission=mission, clock=self.clock, seed=seeds.ground_link)
+        self._procs: list[subprocess.Popen[bytes]] = []
+        self._tmp = tempfile.TemporaryDirectory(prefix="magic-run-")
+        self.server: SimServer | None = None
+        self._done: dict[int, StepDone] = {}
+        self._done_cond = threading.Condition()
+        self._decode_done = msgspec.msgpack.Decoder(StepDone)
+        self._encode = msgspec.msgpack.Encoder()
+        try:
+            self.ground: GcsEndpoint = self.ground_link.gcs_endpoint(on_message=on_ground_message)
+            self.ground.hold_arrivals()
+            self.server = SimServer(sim, link=self.ground_link, mission=mission, rtf=0.0)
+            self.server.end_of_step_ticks = True
+            for rid in sim.robot_ids:
+                self.ground_link.subscribe(step_done_key(mission, rid), self._on_done(rid))
+            argv = ["--mission", mission, "--connect", endpoint, "--radio", radio_path]
+            argv += ["--listen", "tcp/127.0.0.1:0", "--lockstep", "--seed", str(seeds.seed)]
+            if robot_config is not None and robot_config != RobotNodeConfig():
+                path = f"{self._tmp.name}/robot.json"  # JSON is YAML
+                with open(path, "wb") as f:
+                    f.write(msgspec.json.encode(robot_config))
+                argv += ["--config", path]
+            for rid in sim.robot_ids:
+                self._procs.append(
+                    subprocess.Popen(
+                        [sys.executable, "-m", "mission.cli", "robot", "--id", str(rid), *argv],
+                        stdout=subprocess.DEVNULL,
+                    )
+                )
+            for rid in sim.robot_ids:
+                if not self.ground.wait_for_robot(rid, connect_timeout_s):
+                    raise TimeoutError(f"robot {rid}'s process did not come up on {endpoint}")
+            self._wait_done(0.0, connect_timeout_s)  # every robot said hello
+        except BaseException:
+            self.close()
+            raise
+
+    def _on_done(self, robot_id: int) -> Callable[[str, bytes], None]:
+        def handle(_key: str, payload: bytes) -> None:
+            done = self._decode_done.decode(payload)
+            with self._done_cond:
+                last = self._done.get(robot_id)
+                if last is None or done.time_s >= last.time_s:
+                    self._done[robot_id] = done
+                self._done_cond.notify_all()
+
+        return handle
+
+    def _wait_done(self, time_s: float, timeout_s: float) -> dict[int, StepDone]:
+        def all_done() -> bool:
+            return all(
+                rid in self._done and self._done[rid].time_s >= time_s for rid in self.sim.robot_ids
+            )
+
+        deadline = _time.monotonic() + timeout_s
+        with self._done_cond:
+            while not self._done_cond.wait_for(all_done, 0.5):
+                if _time.monotonic() > deadline or any(p.poll() is not None for p in self._procs):
+                    late = [r for r in self.sim.robot_ids if r not in self._done]
+                    raise TimeoutError(
+                        f"robots did not answer mission time {time_s:.2f} s (none yet from {late})"
+                    )
+            return dict(self._done)
+
+    def _send_go(self) -> None:
+        sim = self.sim
+        grants = sim.radio_grants()
+        for rid in sim.robot_ids:
+            go = StepGo(sim.time_s, self.ground.packets_out_by_robot.get(rid, 0), grants[rid])
+            self.ground_link.publish(step_go_key(self.mission, rid), self._encode.encode(go))
+
+    def step(self, on_step: Callable[[], None] | None = None) -> None:
+        sim = self.sim
+        assert self.server is not None
+        sim.step()
+        for rid, grant in sim.radio_grants().items():
+            self.ground.set_grant(rid, grant)
+        self.server.publish()
+        self._send_go()
+        if on_step is not None:
+            on_step()
+        done = self._wait_done(sim.time_s, self.step_timeout_s)
+        uplink = sum(d.uplink_packets for d in done.values())
+        if not self.ground.wait_packets_in(uplink, self.step_timeout_s):
+            raise TimeoutError(f"uplink packets not delivered at {sim.time_s:.2f} s")
+        for rid, d in done.items():
+            if not self.server.wait_commands(rid, d.commands, self.step_timeout_s):
+                raise TimeoutError(f"robot {rid}'s commands not delivered at {sim.time_s:.2f} s")
+        self.ground.deliver_held()
+        self.ground_link.pump()
+
+    def uplink_bytes(self, robot_id: int) -> int:
+        """Radio bytes robot ``robot_id`` sent (metered in its process, told each step)."""
+        done = self._done.get(robot_id)
+        return 0 if done is None else done.uplink_bytes
+
+    def node_counters(self, robot_id: int) -> tuple[int, int, int]:
+        """Robot ``robot_id``'s node's deadlocks, stuck recoveries and plan failures."""
+        done = self._done.get(robot_id)
+        if done is None:
+            return (0, 0, 0)
+        return (done.deadlocks, done.stuck_recoveries, done.plan_failures)
+
+    def close(self) -> None:
+        for p in self._procs:
+            if p.poll() is None:
+                p.terminate()
+        for p in self._procs:
+            try:
+                p.wait(timeout=10.0)
+            except Exception:  # noqa: BLE001 - a robot that will not end is killed
+                p.kill()
+                p.wait()
+        self._procs.clear()
+        if self.server is not None:
+            self.server.close()
+            self.server = None
+        self.ground_link.close()
+        self._tmp.cleanup()
+
+    def __enter__(self) -> TeamOverProcesses:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
+import queue
 import signal
 import sys
 import threading
@@ -18,7 +20,10 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from mission.config import ConfigError, load_config
+from mission.lockstep_protocol import StepDone, StepGo, seed_streams, step_done_key, step_go_key
 from protocol import keys
 from protocol.clock import ManualClock
 from protocol.link import Link
@@ -31,13 +36,38 @@ from protocol.process_cli import (
 )
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
+from protocol.sensors import ClockTick
 from robot.node import RobotNode, RobotNodeConfig
 
-__all__ = ["NotServed", "RobotProcess", "main"]
+__all__ = ["LockstepRobot", "NotServed", "RobotProcess", "main", "simulator_robots"]
+
+log = logging.getLogger(__name__)
 
 
 class NotServed(RuntimeError):
     """The mission's simulator does not simulate this robot id."""
+
+
+def simulator_robots(link: Link, timeout_s: float = 1.0) -> list[int]:
+    """The robot ids a simulator of ``link``'s mission serves (its presence tokens); empty
+    when no simulator is up (or the sensors come from hardware)."""
+    ids = set()
+    for key in link.present(keys.sim_radio(link.mission, None), timeout_s):
+        try:
+            ids.add(int(key.rsplit("/", 1)[1]))
+        except ValueError:
+            continue
+    return sorted(ids)
+
+
+def _check_served(link: Link, robot_id: int) -> None:
+    """Raise :class:`NotServed` if a simulator is up and does not have this robot."""
+    robots = simulator_robots(link)
+    if robots and robot_id not in robots:
+        raise NotServed(
+            f"the simulator of mission {link.mission!r} has no robot {robot_id}; "
+            f"its robots are {', '.join(map(str, robots))}"
+        )
 
 
 class RobotProcess:
@@ -73,26 +103,6 @@ class RobotProcess:
         for command in self.node.process(frames):
             self.driver.send(command)
         return len(frames)
-
-    def simulator_robots(self, timeout_s: float = 1.0) -> list[int]:
-        """The robot ids a simulator of this mission serves (its presence tokens; empty when
-        no simulator is up, or the sensors come from hardware)."""
-        ids = set()
-        for key in self.link.present(keys.sim_radio(self.link.mission, None), timeout_s):
-            try:
-                ids.add(int(key.rsplit("/", 1)[1]))
-            except ValueError:
-                continue
-        return sorted(ids)
-
-    def check_served(self) -> None:
-        """Raise :class:`NotServed` if a simulator is up and does not have this robot."""
-        robots = self.simulator_robots()
-        if robots and self.robot_id not in robots:
-            raise NotServed(
-                f"the simulator of mission {self.link.mission!r} has no robot {self.robot_id}; "
-                f"its robots are {', '.join(map(str, robots))}"
-            )
 
     def run(
         self,
@@ -130,6 +140,136 @@ class RobotProcess:
         self.driver.close()
 
 
+class LockstepRobot:
+    """A robot node in its own process, stepped by the ground side's :class:`StepGo` so that
+    the mission is the one the same team gives in one process (:mod:`mission.lockstep`,
+    :mod:`mission.lockstep_protocol`).
+
+    At each step (mission time ``t``): wait for the step's frames (up to the simulator's
+    end-of-step ``ClockTick`` on this robot's sensor key) and for the downlink packets the
+    ground side counted; process that downlink at the previous step's time (as the in-process
+    exchange does); apply the grant; move the clock to ``t``; hand the frames to the node;
+    send its commands; pump the radio by hand; answer with :class:`StepDone` (totals of
+    uplink packets and commands). ``link`` must have no pump thread and a ManualClock.
+    """
+
+    def __init__(
+        self,
+        link: Link,
+        robot_id: int,
+        clock: ManualClock,
+        config: RobotNodeConfig,
+        seed: int,
+        *,
+        timeout_s: float = 30.0,
+    ) -> None:
+        if link.config.pump_period_s != 0:
+            raise ValueError("a lockstep robot needs a link without a pump thread")
+        self.link = link
+        self.robot_id = robot_id
+        self.clock = clock
+        self.timeout_s = timeout_s
+        self.refused = 0
+        self.node = RobotNode(robot_id, send=self._send, config=config, seed=seed)
+        self.radio = link.robot_endpoint(robot_id, on_message=self.node.handle_downlink)
+        self.radio.hold_arrivals()
+        self.driver = link.remote_driver(robot_id)
+        self._go: queue.SimpleQueue[StepGo] = queue.SimpleQueue()
+        self._go_decoder = msgspec.msgpack.Decoder(StepGo)
+        self._encoder = msgspec.msgpack.Encoder()
+        self._sub = link.subscribe(step_go_key(link.mission, robot_id), self._on_go)
+        self._done_key = step_done_key(link.mission, robot_id)
+        self._frames: list[Any] = []
+        self._last_t = 0.0
+        self.commands_sent = 0
+        self.steps = 0
+        self.frames_seen = 0
+        self._next_hello = 0.0
+
+    def _send(self, msg: Any) -> object:
+        try:
+            return self.radio.send(msg)
+        except LinkBackpressure:
+            self.refused += 1
+            return None
+
+    def _on_go(self, _key: str, payload: bytes) -> None:
+        try:
+            self._go.put(self._go_decoder.decode(payload))
+        except (msgspec.DecodeError, msgspec.ValidationError) as err:
+            log.warning("robot %d: bad lockstep message: %s", self.robot_id, err)
+
+    def _done(self, time_s: float) -> None:
+        stats = self.node.stats
+        done = StepDone(
+            time_s,
+            self.radio.packets_out,
+            self.commands_sent,
+            self.link.meter.total_bytes(robot_id=self.robot_id, direction=Direction.UP),
+            stats.deadlocks,
+            stats.stuck_recoveries,
+            stats.plan_failures,
+        )
+        self.link.publish(self._done_key, self._encoder.encode(done))
+
+    def hello(self) -> None:
+        """Tell the ground side this robot is up (repeated until the first step comes)."""
+        self._done(0.0)
+        self._next_hello = time.monotonic() + 0.5
+
+    def _frames_until(self, t: float) -> list[Any]:
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            for i, f in enumerate(self._frames):
+                if isinstance(f, ClockTick) and f.time_s >= t:
+                    out, self._frames = self._frames[:i], self._frames[i + 1 :]
+                    return [f for f in out if not isinstance(f, ClockTick)]
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"robot {self.robot_id}: frames of {t:.2f} s never ended")
+            self._frames += self.driver.poll(0.5)
+
+    def step_once(self, timeout_s: float = 0.1) -> bool:
+        """Answer the next step (False if none came within ``timeout_s``)."""
+        try:
+            go = self._go.get(timeout=timeout_s)
+        except queue.Empty:
+            if self.steps == 0 and time.monotonic() >= self._next_hello:
+                self.hello()
+            return False
+        t = go.time_s
+        if t <= self._last_t and self.steps > 0:
+            return True  # a repeated step: answered already
+        frames = self._frames_until(t)
+        if not self.radio.wait_packets_in(go.downlink_packets, self.timeout_s):
+            raise TimeoutError(f"robot {self.robot_id}: downlink of {t:.2f} s not delivered")
+        self.radio.deliver_held()  # at the previous step's time
+        self.radio.set_grant(go.grant)
+        if t > self.clock.now():
+            self.clock.set(t)
+        self.frames_seen += len(frames)
+        for command in self.node.process(frames):
+            self.driver.send(command)
+            self.commands_sent += 1
+        self.link.pump()
+        self._done(t)
+        self._last_t = t
+        self.steps += 1
+        return True
+
+    def status_line(self) -> str:
+        s = self.node.stats
+        up = self.link.meter.total_bytes(robot_id=self.robot_id, direction=Direction.UP)
+        return (
+            f"robot {self.robot_id} t={self.clock.now():7.1f}s lockstep steps {self.steps} "
+            f"sweeps {s.sweeps} nodes {s.pose_nodes} uplink bytes {up} "
+            f"deadlocks {s.deadlocks} stuck recoveries {s.stuck_recoveries}"
+        )
+
+    def close(self) -> None:
+        self._sub.close()
+        self.driver.close()
+
+
 @contextlib.contextmanager
 def _stop_on_signals(stop: Callable[[], None]) -> Iterator[list[int]]:
     """SIGINT and SIGTERM call ``stop`` within the block; yields the signals received (the
@@ -159,11 +299,24 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, help="robot node config YAML (RobotNodeConfig)")
     p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
     p.add_argument("--progress-s", type=float, default=5.0, help="wall seconds between reports")
+    p.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="answer every step of a lockstep simulator, radio pumped per step: the mission of "
+        "one process (magic run --robot-processes); default: as frames come",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="the run's seed (the node's draws derive from it and the id; default: 0)",
+    )
     return p
 
 
 def main(argv: list[str]) -> int:
-    """``magic robot``: returns the exit status (2 on bad arguments or configuration)."""
+    """``magic robot``: 0 at the end, 2 on bad arguments or configuration or an id the
+    simulator does not have (one line on stderr), 130 / 143 on SIGINT / SIGTERM."""
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exit_:
@@ -171,6 +324,8 @@ def main(argv: list[str]) -> int:
     try:
         if args.id < 0:
             raise ValueError(f"--id must be >= 0, got {args.id}")
+        if args.seed < 0:
+            raise ValueError(f"--seed must be >= 0, got {args.seed}")
         keys.sim_clock(args.mission)
         config = load_config(args.config, RobotNodeConfig) if args.config else RobotNodeConfig()
         radio = load_config(args.radio, RadioConfig)
@@ -178,29 +333,47 @@ def main(argv: list[str]) -> int:
         print(f"magic robot: {err}", file=sys.stderr)
         return 2
     clock = ManualClock()
-    link = Link(link_config(radio, args), mission=args.mission, clock=clock)
-    proc = RobotProcess(link, args.id, clock, config)
+    link_cfg = link_config(radio, args)
+    proc: RobotProcess | LockstepRobot
+    if args.lockstep:
+        seeds = seed_streams(args.seed)
+        link = Link(
+            msgspec.structs.replace(link_cfg, pump_period_s=0.0),
+            mission=args.mission,
+            clock=clock,
+            seed=seeds.robot_link,
+        )
+        proc = LockstepRobot(link, args.id, clock, config, seeds.robot(args.id))
+    else:
+        link = Link(link_cfg, mission=args.mission, clock=clock)
+        proc = RobotProcess(link, args.id, clock, config)
+    stop = threading.Event()
     next_check = [0.0]
 
     def spin_once() -> None:
         # until frames flow, check now and then that a simulator that is up has this robot
         if proc.frames_seen == 0 and time.monotonic() >= next_check[0]:
-            proc.check_served()
+            _check_served(link, args.id)
             next_check[0] = time.monotonic() + 1.0
-        proc.spin_once()
+        if isinstance(proc, LockstepRobot):
+            proc.step_once()
+        else:
+            proc.spin_once()
 
     try:
-        with _stop_on_signals(proc.stop) as stopped_by:
-            proc.check_served()
+        with _stop_on_signals(stop.set) as stopped_by:
+            _check_served(link, args.id)
+            if isinstance(proc, LockstepRobot):
+                proc.hello()
             print(
                 f"magic robot: robot {args.id} of mission {args.mission!r} waiting for sensor "
-                "frames",
+                "frames" + (" (lockstep)" if args.lockstep else ""),
                 flush=True,
             )
             spin_until(
                 spin_once,
                 now=proc.clock.now,
-                stop=proc._stop,
+                stop=stop,
                 duration_s=args.duration,
                 progress=lambda s: print(s, flush=True),
                 status=proc.status_line,

@@ -30,7 +30,7 @@ import msgspec
 import numpy as np
 
 from mission.config import config_path, load_config
-from mission.lockstep import TeamInLockstep, seed_streams
+from mission.lockstep import TeamInLockstep, TeamOverProcesses, seed_streams
 from protocol.messages import (
     GoToTask,
     Hazard,
@@ -76,6 +76,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     hazard_period_s: float = 1.0  # hazard updates to every robot (0: none)
     seed: int = 0  # every random stream of the run derives from it (mission.lockstep)
     realtime: bool = False  # wall-clock delivery (hardware in the loop): not repeatable
+    robot_processes: bool = False  # each robot node in its own process (magic robot --lockstep)
     simulator: SimulatorConfig = SimulatorConfig()
     robot: RobotNodeConfig = RobotNodeConfig()
 
@@ -84,6 +85,8 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
             raise ValueError(f"duration_s must be > 0 mission-seconds, got {self.duration_s}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.realtime and self.robot_processes:
+            raise ValueError("realtime and robot_processes cannot be combined (yet)")
         if self.goals_per_robot < 0:
             raise ValueError(f"goals_per_robot must be >= 0, got {self.goals_per_robot}")
 
@@ -300,23 +303,38 @@ def run_mission(
     propagates.
     """
     world_cfg = load_world_config(config_path(config.world, "world"))
-    radio_cfg = load_config(config_path(config.radio, "radio"), RadioConfig)
+    radio_path = config_path(config.radio, "radio")
+    radio_cfg = load_config(radio_path, RadioConfig)
     seeds = seed_streams(config.seed, simulator_seed=config.simulator.seed)
     sim_cfg = msgspec.structs.replace(config.simulator, seed=seeds.simulator)
+    if config.robot_processes:
+        sim_cfg = msgspec.structs.replace(sim_cfg, lockstep_ack="step")
     t_wall = time.perf_counter()
     with Simulator(world_cfg, config=sim_cfg) as sim:
         report = RunReport(0.0, 0.0, realtime=config.realtime)
         for rid in sim.robot_ids:
             report.robots[rid] = RobotProgress(rid)
         script = _GroundScript(sim, config, report.robots, np.random.default_rng(seeds.ground))
-        with TeamInLockstep(
-            sim,
-            radio=radio_cfg,
-            seeds=seeds,
-            on_ground_message=script.on_message,
-            robot_config=config.robot,
-            realtime=config.realtime,
-        ) as team:
+        team: TeamInLockstep | TeamOverProcesses
+        if config.robot_processes:
+            team = TeamOverProcesses(
+                sim,
+                radio=radio_cfg,
+                radio_path=str(radio_path),
+                seeds=seeds,
+                on_ground_message=script.on_message,
+                robot_config=config.robot,
+            )
+        else:
+            team = TeamInLockstep(
+                sim,
+                radio=radio_cfg,
+                seeds=seeds,
+                on_ground_message=script.on_message,
+                robot_config=config.robot,
+                realtime=config.realtime,
+            )
+        with team:
             try:
                 _run_steps(config, sim, team, script, report, on_progress, progress_period_s)
             except KeyboardInterrupt as exc:
@@ -330,7 +348,7 @@ def run_mission(
 def _run_steps(
     config: RunConfig,
     sim: Simulator,
-    team: TeamInLockstep,
+    team: TeamInLockstep | TeamOverProcesses,
     script: _GroundScript,
     report: RunReport,
     on_progress: Callable[[RunReport], None] | None,
@@ -365,12 +383,9 @@ def _run_steps(
         hostiles = np.array([xy for _, xy in _hostiles(sim)]).reshape(-1, 2)
         for k, rid in enumerate(sim.robot_ids):
             p = report.robots[rid]
-            stats = team.nodes[rid].stats
             p.alive = bool(alive[k])
             p.blocked_steps = int(blocked[k])
-            p.stuck_recoveries = stats.stuck_recoveries
-            p.plan_failures = stats.plan_failures
-            p.deadlocks = stats.deadlocks
+            p.deadlocks, p.stuck_recoveries, p.plan_failures = team.node_counters(rid)
             for points, attr in ((statics, "closest_static_m"), (hostiles, "closest_hostile_m")):
                 if len(points):
                     d = float(np.min(np.hypot(*(points - poses[k][:2]).T)))
@@ -399,7 +414,7 @@ def _hostiles(sim: Simulator) -> list[tuple[int, tuple[float, float]]]:
     ]
 
 
-def _fill_bytes(report: RunReport, team: TeamInLockstep) -> None:
+def _fill_bytes(report: RunReport, team: TeamInLockstep | TeamOverProcesses) -> None:
     for rid, p in report.robots.items():
         p.uplink_bytes = team.uplink_bytes(rid)
 
@@ -520,6 +535,12 @@ def _parser() -> Any:
         help="wall-clock radio delivery (hardware in the loop); the run is NOT repeatable "
         "(default: deterministic lockstep)",
     )
+    p.add_argument(
+        "--robot-processes",
+        action="store_true",
+        help="each robot node in its own process (magic robot --lockstep), the simulator and "
+        "the ground side in this one: the same run as in one process, slower",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress, only the summary")
     return p
 
@@ -582,6 +603,7 @@ def main(argv: list[str] | None = None) -> int:
                 ("duration_s", args.duration),
                 ("seed", args.seed),
                 ("realtime", True if args.realtime else None),
+                ("robot_processes", True if args.robot_processes else None),
             )
             if v is not None
         }

@@ -640,7 +640,11 @@ class Link:
             with self._lock:
                 pub = self._publishers.get(key)
                 if pub is None:
-                    pub = self._session.declare_publisher(key)
+                    # blocking, never dropped: a sensor frame or clock tick lost under load
+                    # would make the node's mission depend on the machine's speed
+                    pub = self._session.declare_publisher(
+                        key, congestion_control=zenoh.CongestionControl.BLOCK
+                    )
                     self._publishers[key] = pub
         pub.put(payload)
 

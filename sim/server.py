@@ -76,6 +76,12 @@ class SimServer:
         self.rejected_commands = 0
         self.stop_event = threading.Event()
         self._ports: dict[int, Any] = {}
+        self.commands_received: dict[int, int] = {}
+        self._commands = threading.Condition()
+        # lockstep composition: a ClockTick after each robot's frames of a step, on the same
+        # key, tells its node that the step's frames are all there (zenoh keeps one key's
+        # order, not the order across keys)
+        self.end_of_step_ticks = False
         self._radio_seen = -1
         self._events_sent = 0
         if link is not None:
@@ -94,16 +100,31 @@ class SimServer:
             except CommandError as err:
                 self.rejected_commands += 1
                 log.warning("refused command: %s", err)
+            with self._commands:
+                self.commands_received[robot_id] = self.commands_received.get(robot_id, 0) + 1
+                self._commands.notify_all()
 
         return handle
 
-    def _publish(self) -> None:
+    def wait_commands(self, robot_id: int, count: int, timeout_s: float) -> bool:
+        """Block until ``count`` commands (accepted or refused) came from ``robot_id``'s node
+        over zenoh (True) or ``timeout_s`` passes (False)."""
+        with self._commands:
+            return self._commands.wait_for(
+                lambda: self.commands_received.get(robot_id, 0) >= count, timeout_s
+            )
+
+    def publish(self) -> None:
+        """Publish what the last step produced: frames, the clock tick, new radio grants,
+        events and (once per mission second) poses."""
         sim, link = self.sim, self.link
         if link is None:
             return
         for rid, port in self._ports.items():
             for frame in sim.driver(rid).take_frames():
                 port.publish(frame)
+            if self.end_of_step_ticks:
+                port.publish(ClockTick(time_s=sim.time_s))
         link.publish(self._clock_key, encode_sensor_frame(ClockTick(time_s=sim.time_s)))
         if sim.radio_updates != self._radio_seen:
             self._radio_seen = sim.radio_updates
@@ -133,7 +154,7 @@ class SimServer:
             if self.lockstep and not sim.wait_ready(0.5):
                 continue
             sim.step()
-            self._publish()
+            self.publish()
             if self.rtf > 0:
                 target = wall0 + (sim.time_s - sim0) / self.rtf
                 delay = target - time.monotonic()

@@ -543,7 +543,7 @@ class Simulator:
         lasered = np.full(n, -1, dtype=np.int64)
         rays_from, rays_to, owners = [], [], []
         head = np.array([*g.head_center_m, 1.0])
-        for rid, cmd in self._laser.items():
+        for rid, cmd in sorted(self._laser.items()):  # by robot: not by arrival order
             k = self.robot_ids.index(rid)
             if not (cmd.on and alive[k] and self.roles[k] == "disruptor"):
                 continue

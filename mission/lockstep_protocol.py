@@ -1,0 +1,102 @@
+"""What a lockstep team's processes say to each other besides sensor frames and the radio,
+and the run's seed streams (``mission.lockstep``; ``magic robot --lockstep``).
+
+Imports neither the simulator nor the robot node, so that a robot host loads only this.
+
+Across processes zenoh keeps the order of one key's publications, not the order across keys:
+each step therefore says how much of the other traffic is due. The ground side tells each
+robot, with :class:`StepGo`, the step's mission time, how many downlink radio packets it has
+put on the air to it so far and the radio grant; the simulator ends each robot's frames of
+the step with a ``ClockTick`` on the robot's sensor key; the robot answers with
+:class:`StepDone`: how many uplink packets and simulator commands it has sent so far. Each
+side waits until that much has arrived before it goes on.
+
+The keys are ``magic/<mission>/gcs/lockstep/{go,done}/<robot id>`` (``keys.gcs``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import msgspec
+import numpy as np
+
+from protocol import keys
+from protocol.radio import RadioGrant
+
+__all__ = [
+    "RunSeeds",
+    "StepDone",
+    "StepGo",
+    "seed_streams",
+    "step_done_key",
+    "step_go_key",
+]
+
+
+class StepGo(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
+    """Ground side -> robot ``robot_id``: step to ``time_s``; ``downlink_packets``: radio
+    packets put on the air to this robot since the start (wait for them); ``grant``: the
+    radio's grant now."""
+
+    time_s: float
+    downlink_packets: int
+    grant: RadioGrant
+
+
+class StepDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
+    """Robot -> ground side: step ``time_s`` answered; totals since the start of the uplink
+    radio packets it put on the air and of the commands it sent the simulator; for the run's
+    report, the radio bytes it sent (metered) and its node's counters."""
+
+    time_s: float
+    uplink_packets: int
+    commands: int
+    uplink_bytes: int = 0
+    deadlocks: int = 0
+    stuck_recoveries: int = 0
+    plan_failures: int = 0
+
+
+def step_go_key(mission: str, robot_id: int) -> str:
+    return keys.gcs(mission, f"lockstep/go/{robot_id}")
+
+
+def step_done_key(mission: str, robot_id: int) -> str:
+    return keys.gcs(mission, f"lockstep/done/{robot_id}")
+
+
+def _draw(ss: np.random.SeedSequence) -> int:
+    return int(ss.generate_state(1, dtype=np.uint32)[0])
+
+
+@dataclass(frozen=True)
+class RunSeeds:
+    """Independent seeds of one run, all derived from its seed (numpy ``SeedSequence``
+    children: the same seed always gives the same streams, distinct streams never overlap)."""
+
+    seed: int
+    simulator: int  # the simulator's sensor noise and slip (with the world's own seed)
+    ground: int  # the ground side's draws (scripted goals)
+    ground_link: int  # loss draws of the ground's radio channels
+    robot_link: int  # loss draws of the robots' radio channels
+
+    def robot(self, robot_id: int) -> int:
+        """Robot ``robot_id``'s node draws (deadlock back-off): by id, so that a robot node
+        in its own process (``magic robot --id N --seed S``) draws the same."""
+        return _draw(np.random.SeedSequence(self.seed, spawn_key=(4, robot_id)))
+
+
+def seed_streams(seed: int, *, simulator_seed: int = 0) -> RunSeeds:
+    """Seeds for every random stream of a run, from ``seed`` (``simulator_seed``:
+    ``SimulatorConfig.seed``, mixed in so that it still matters)."""
+    if seed < 0:
+        raise ValueError(f"seed must be >= 0, got {seed}")
+    sim_ss, ground, ground_link, robot_link = np.random.SeedSequence(seed).spawn(4)
+    return RunSeeds(
+        seed=seed,
+        simulator=_draw(np.random.SeedSequence([_draw(sim_ss), simulator_seed])),
+        ground=_draw(ground),
+        ground_link=_draw(ground_link),
+        robot_link=_draw(robot_link),
+    )
