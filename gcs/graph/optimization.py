@@ -53,6 +53,7 @@ __all__ = [
     "METHODS",
     "ORDERINGS",
     "BatchResult",
+    "BlockMethod",
     "Isam2Config",
     "Isam2Solver",
     "OrderingKind",
@@ -396,6 +397,8 @@ def solve_pose2(
 ) -> Pose2Solution:
     """Maximum-likelihood poses of ``factors`` from ``initial`` (n, 3), the GCS's batch solve.
 
+    ``order`` is the elimination order (default: the exact minimum degree ordering of
+    :mod:`gcs.graph.emd_ordering`, computed once for both runs).
     ``"block_lm"``: Levenberg-Marquardt from ``initial``; if its chi2 fails
     :func:`chi2_test_threshold` and ``restart_from_tree``, again from the spanning-tree
     initialization (:func:`gcs.graph.spanning_tree_init.spanning_tree_from_factors`), keeping the
@@ -403,6 +406,8 @@ def solve_pose2(
     (``config`` gives its ``max_iterations``, ``relative_error_tol`` and ``error_tol``).
     """
     cfg = config or LevenbergMarquardtConfig()
+    if order is None:
+        order, _ = minimum_degree_ordering(factors.n, factors.ij)
     if method == "block_gn":
         gn = gauss_newton_pose2(
             factors,

@@ -57,6 +57,7 @@ from gcs.graph import se2
 from gcs.graph.emd_ordering import minimum_degree_ordering
 from gcs.graph.g2o import G2oError, G2oGraph, component_roots, initial_poses, read_g2o, to_gtsam
 from gcs.graph.optimization import (
+    BlockMethod,
     optimize_batch,
     optimize_pose2,
     pose2_factors_from_g2o,
@@ -226,7 +227,7 @@ def _m3500_timing(g: G2oGraph, repeats: int) -> dict[str, float]:
     start = initial_poses(g, "chained").poses
     fg, values = to_gtsam(g, poses=start)
 
-    def ours(method: str) -> Callable[[], float]:
+    def ours(method: BlockMethod) -> Callable[[], float]:
         def go() -> float:
             factors, keys = pose2_factors_from_g2o(g, start)
             return optimize_pose2(
@@ -236,7 +237,7 @@ def _m3500_timing(g: G2oGraph, repeats: int) -> dict[str, float]:
                 keys,
                 method=method,
                 ordering="emd",
-                initial_poses=start,  # type: ignore[arg-type]
+                initial_poses=start,
             ).chi2
 
         return go
