@@ -206,9 +206,10 @@ def test_isam2_incremental_reaches_batch_optimum(posegraph_dir: Path) -> None:
     assert np.abs(a[:, :2] - b[:, :2]).max() < 0.05
 
 
-def test_pose_graph_solves_with_block_gn() -> None:
+@pytest.mark.parametrize("method", ["block_gn", "block_lm"])
+def test_pose_graph_solves_with_block_methods(method: str) -> None:
     """PoseGraph's graph (robot keys, map anchor, weak anchor of a floating robot) through
-    ``block_gn`` lands on the same estimate as GTSAM's Levenberg-Marquardt."""
+    ``block_gn`` / ``block_lm`` lands on the same estimate as GTSAM's Levenberg-Marquardt."""
     from gcs.graph.pose_graph import PoseGraph, PoseGraphConfig, Provenance
 
     rng = np.random.default_rng(3)
@@ -239,7 +240,7 @@ def test_pose_graph_solves_with_block_gn() -> None:
     )
     reference = graph.copy()
     reference.optimize(method="lm")
-    summary = graph.optimize(method="block_gn")
+    summary = graph.optimize(method=method)  # type: ignore[arg-type]
     assert summary.components == 2
     assert summary.chi2 == pytest.approx(reference.optimize(method="lm").chi2, rel=1e-6)
     for robot in (0, 1, 2):
