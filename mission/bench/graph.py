@@ -8,18 +8,22 @@ Metrics (times are medians of repeats, wall clock, after warm-up):
   ``{g}_nnz_{o}`` (non-zeros of the Cholesky factor), ``{g}_solve_s_{o}`` (linearize, factor,
   back-substitute once at the chained-odometry start, GTSAM multifrontal Cholesky),
   ``{g}_table_total_s_{o}``; ``{g}_block_solve_s_{o}`` the same step on the compiled block
-  Cholesky of ``block_gn`` (:mod:`gcs.graph.pose2_gauss_newton`).
+  Cholesky of the block solvers (:mod:`gcs.graph.pose2_gauss_newton`).
 - ``m3500_chi2``, ``m3500_total_s``: from the loaded graph with chained odometry to the optimum
-  with ``block_gn`` and the EMD ordering; timed are the factor arrays (from the loaded g2o
-  arrays), the ordering, every Gauss-Newton iteration, the result as ``gtsam.Values`` and
-  GTSAM's chi2 of it. ``m3500_iterations``; ``m3500_total_s_colamd`` the same with COLAMD;
+  with ``block_lm`` (the batch path's default: Levenberg-Marquardt on the block Cholesky,
+  :mod:`gcs.graph.pose2_levenberg_marquardt`) and the EMD ordering; timed are the factor
+  arrays (from the loaded g2o arrays), the ordering, every iteration, the result as
+  ``gtsam.Values`` and GTSAM's chi2 of it. ``m3500_iterations``; ``m3500_total_s_colamd`` the
+  same with COLAMD; ``m3500_total_s_block_gn`` plain Gauss-Newton (``block_gn``, EMD);
   ``m3500_total_s_gtsam`` GTSAM's Gauss-Newton (EMD ordering) from the same start, the
   reference; ``m3500_total_cpu_s``, ``m3500_total_cpu_s_gtsam`` their median CPU times.
   ``intel_chi2``, ``intel_total_s``, ``city10k_chi2``, ``city10k_total_s`` likewise
-  (``block_gn``, EMD), ``city10k_total_s_gtsam``.
+  (``block_lm``, EMD), ``city10k_total_s_gtsam``.
 - ``m3500b_chi2_odom_init``, ``m3500b_chi2_tree_init``, ``m3500b_chi2_lago_dogleg``: Dogleg
   from chained odometry, from the spanning-tree initialization (paper 4.6) and from GTSAM's
-  LAGO, in the same run; ``m3500b_tree_init_s``.
+  LAGO, in the same run; ``m3500b_tree_init_s``; ``m3500b_chi2_block_lm_odom``,
+  ``m3500b_block_lm_odom_s``: ``block_lm`` from chained odometry (which ends in a local minimum,
+  fails the chi2 test and restarts from the spanning tree) and its time.
 - ``isam2_ms_per_node_p50``: median iSAM2 update per new node over nodes 4500..5000 of
   city10000, added one node with its edges at a time: ``update``, and every tenth node a read
   of the new node's estimate, from which the next nodes are chained by odometry (an online
@@ -58,6 +62,7 @@ from gcs.graph.emd_ordering import minimum_degree_ordering
 from gcs.graph.g2o import G2oGraph, chained_odometry, read_g2o, to_gtsam
 from gcs.graph.optimization import (
     BatchResult,
+    BlockMethod,
     Isam2Solver,
     chi2,
     compute_ordering,
@@ -121,9 +126,15 @@ def _table_rows(
 
 
 def _solve_from_odometry(
-    g: G2oGraph, ordering: str, repeats: int, *, use_vertices: bool = False, gtsam_gn: bool = False
+    g: G2oGraph,
+    ordering: str,
+    repeats: int,
+    *,
+    use_vertices: bool = False,
+    gtsam_gn: bool = False,
+    method: BlockMethod = "block_lm",
 ) -> tuple[BatchResult, float, float]:
-    """``(result, median wall s, median CPU s)`` of ``block_gn`` (or GTSAM's GN) from the
+    """``(result, median wall s, median CPU s)`` of ``method`` (or GTSAM's GN) from the
     loaded graph; the CPU time (this thread's) is what a busy machine does not inflate."""
     poses = g.vertex_poses if use_vertices else chained_odometry(g)
     fg, values = to_gtsam(g, poses=poses)
@@ -137,7 +148,15 @@ def _solve_from_odometry(
         else:
             factors, keys = pose2_factors_from_g2o(g, poses)
             results.append(
-                optimize_pose2(fg, values, factors, keys, ordering=ordering, initial_poses=poses)  # type: ignore[arg-type]
+                optimize_pose2(
+                    fg,
+                    values,
+                    factors,
+                    keys,
+                    method=method,
+                    ordering=ordering,  # type: ignore[arg-type]
+                    initial_poses=poses,
+                )
             )
         cpu.append(time.thread_time() - c0)
 
@@ -162,8 +181,15 @@ def _m3500b(progress: Callable[[str], None]) -> dict[str, float]:
     )
     tree_s = time.perf_counter() - t0
     _, tree_values = to_gtsam(g, poses=tree)
-    progress("m3500b: dogleg from odometry, tree init, LAGO")
+    progress("m3500b: dogleg from odometry, tree init, LAGO; block_lm from odometry")
+    poses = chained_odometry(g)
+    factors, keys = pose2_factors_from_g2o(g, poses)
+    t0 = time.perf_counter()
+    lm = optimize_pose2(fg, odo, factors, keys, initial_poses=poses)
+    lm_s = time.perf_counter() - t0
     return {
+        "m3500b_chi2_block_lm_odom": lm.chi2 + g.chi2_offset,
+        "m3500b_block_lm_odom_s": lm_s,
         "m3500b_chi2_odom_init": dogleg(odo) + g.chi2_offset,
         "m3500b_chi2_tree_init": dogleg(tree_values) + g.chi2_offset,
         "m3500b_chi2_lago_dogleg": dogleg(gtsam.lago.initialize(fg)) + g.chi2_offset,
@@ -227,7 +253,7 @@ def _isam2(
         values = gtsam.Values()
         pending = 0
     estimate = solver.estimate()
-    batch_opt = optimize_batch(added, estimate, method="block_gn", relative_error_tol=1e-9)
+    batch_opt = optimize_batch(added, estimate, method="block_lm", relative_error_tol=1e-9)
     return times, update_times, cpu_times, chi2(added, estimate) / batch_opt.chi2 - 1.0
 
 
@@ -300,13 +326,16 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     metrics |= _table_rows("intel", intel, orderings, repeats)
     metrics |= _table_rows("city10k", city, tuple(o for o in orderings if o != "natural"), repeats)
 
-    progress("Gauss-Newton from chained odometry")
+    progress("block_lm (and plain block_gn, GTSAM GN) from chained odometry")
     res, metrics["m3500_total_s"], metrics["m3500_total_cpu_s"] = _solve_from_odometry(
         m3500, "emd", 2 * repeats + 1
     )
     metrics["m3500_chi2"] = m3500.chi2(res.values)
     metrics["m3500_iterations"] = res.iterations
     _, metrics["m3500_total_s_colamd"], _ = _solve_from_odometry(m3500, "colamd", 2 * repeats + 1)
+    _, metrics["m3500_total_s_block_gn"], _ = _solve_from_odometry(
+        m3500, "emd", 2 * repeats + 1, method="block_gn"
+    )
     _, metrics["m3500_total_s_gtsam"], metrics["m3500_total_cpu_s_gtsam"] = _solve_from_odometry(
         m3500, "emd", 2 * repeats + 1, gtsam_gn=True
     )
