@@ -5,26 +5,25 @@ run in deterministic lockstep (:mod:`mission.lockstep`):
 
 1. seed 0;
 2. seed 0 again, with a CPU-bound process beside it (the machine loaded);
-3. seed 1;
-4. seed 0 with ``realtime`` (wall-clock delivery), for the speed comparison only.
+3. seed 0 again, each robot node in its own process (``magic run --robot-processes``);
+4. seed 1;
+5. seed 0 with ``realtime`` (wall-clock delivery), for the speed comparison only.
 
 Metrics:
 
 - ``fields_compared``: figures of a run compared (:meth:`mission.run.RunReport.fields`: team
-  summary, every robot's progress and final pose from ground truth, every rule event);
-- ``same_seed_fields_differing``: of those, how many differ between runs 1 and 2, floats
-  compared bit for bit (must be 0);
-- ``other_seed_fields_differing``: how many differ between runs 1 and 3 (must be > 0: the seed
-  matters);
-- ``lockstep_rtf``, ``realtime_rtf``: real-time factors (mission-s per wall second) of runs 1
-  and 4; ``lockstep_rtf_over_free``: their ratio (the cost of determinism; >= 0.8 expected);
-- ``loaded_rtf``: run 2's real-time factor (slower, same result).
+  summary, every robot's progress, node counters, uplink bytes and final pose from ground
+  truth, every rule event);
+- ``same_seed_fields_differing``: of those, how many differ between run 1 and runs 2 and 3
+  (the largest count), floats compared bit for bit (must be 0);
+- ``loaded_fields_differing``, ``processes_fields_differing``: the same, each on its own;
+- ``other_seed_fields_differing``: how many differ between runs 1 and 4 (must be > 0: the
+  seed matters);
+- ``lockstep_rtf``, ``realtime_rtf``: real-time factors (mission-s per wall second, setup
+  excluded) of runs 1 and 5; ``lockstep_rtf_over_free``: their ratio (the cost of
+  determinism; >= 0.8 expected); ``loaded_rtf``, ``processes_rtf``: runs 2 and 3.
 
-Not measured yet: the same mission with the robots in separate processes (``magic sim
---lockstep`` + ``magic robot --id N``); that mode does not give the in-process mission yet
-(see :mod:`mission.lockstep`), so it has no run here.
-
-``--quick``: 20 mission-seconds per run (about 40 s in all); full: 90 mission-seconds.
+``--quick``: 20 mission-seconds per run (about 60 s in all); full: 90 mission-seconds.
 """
 
 from __future__ import annotations
@@ -61,18 +60,27 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     finally:
         busy.kill()
         busy.wait()
+    spread = one(
+        "seed 0, robots in their own processes",
+        RunConfig(duration_s=duration_s, seed=0, robot_processes=True),
+    )
     other = one("seed 1", RunConfig(duration_s=duration_s, seed=1))
     free = one("seed 0, --realtime", RunConfig(duration_s=duration_s, seed=0, realtime=True))
     fields = first.fields()
-    same = fields_differing(fields, loaded.fields())
-    if same:
-        progress(f"same seed, differing: {', '.join(same[:8])}")
+    by_load = fields_differing(fields, loaded.fields())
+    by_processes = fields_differing(fields, spread.fields())
+    for what, names in (("beside a busy process", by_load), ("in processes", by_processes)):
+        if names:
+            progress(f"same seed {what}, differing: {', '.join(names[:8])}")
     return {
         "fields_compared": float(len(fields)),
-        "same_seed_fields_differing": float(len(same)),
+        "same_seed_fields_differing": float(max(len(by_load), len(by_processes))),
+        "loaded_fields_differing": float(len(by_load)),
+        "processes_fields_differing": float(len(by_processes)),
         "other_seed_fields_differing": float(len(fields_differing(fields, other.fields()))),
         "lockstep_rtf": first.rtf,
         "loaded_rtf": loaded.rtf,
+        "processes_rtf": spread.rtf,
         "realtime_rtf": free.rtf,
         "lockstep_rtf_over_free": first.rtf / free.rtf,
     }

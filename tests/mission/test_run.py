@@ -8,6 +8,7 @@ import sys
 import threading
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from mission.cli import main
@@ -89,6 +90,16 @@ def test_same_seed_gives_the_same_mission_bit_for_bit_even_under_load() -> None:
     other = run_mission(_short(seed=1)).fields()
     differing = fields_differing(first, other)
     assert any(name.endswith(".final_x_m") for name in differing), differing
+
+
+def test_robots_in_their_own_processes_give_the_same_mission() -> None:
+    """``magic run --robot-processes``: each node a ``magic robot --lockstep`` process, the
+    same figures bit for bit as in one process (node counters and uplink bytes included)."""
+    config = RunConfig(duration_s=8.0, seed=2)
+    in_process = run_mission(config).fields()
+    spread = run_mission(msgspec.structs.replace(config, robot_processes=True)).fields()
+    assert fields_differing(in_process, spread) == []
+    assert spread["robot0.pose_nodes"] > 0 and spread["robot0.uplink_bytes"] > 0
 
 
 def test_fields_differing_compares_floats_bit_for_bit() -> None:
