@@ -9,7 +9,13 @@ import pytest
 from gcs.graph import se2
 from gcs.graph.g2o import chained_odometry, read_g2o, to_gtsam
 from gcs.graph.optimization import optimize_batch
-from gcs.graph.spanning_tree_init import GlobalAnchor, spanning_tree_initialization
+from gcs.graph.pose2_gauss_newton import Pose2Factors
+from gcs.graph.spanning_tree_init import (
+    GlobalAnchor,
+    component_labels,
+    spanning_tree_from_factors,
+    spanning_tree_initialization,
+)
 
 
 def test_consistent_graph_is_reproduced_from_each_anchor() -> None:
@@ -62,3 +68,27 @@ def test_m3500b_tree_init_beats_odometry_and_lago(posegraph_dir: Path) -> None:
     )
     assert tree.chi2 <= lago.chi2
     assert tree.chi2 < 2.5e4
+
+
+def test_spanning_tree_from_factors_one_tree_a_component() -> None:
+    """Two components: the one with priors grows from its most informative prior, the one
+    without from its smallest variable at its current pose; a lone variable keeps its pose."""
+    step = np.array([1.0, 0.0, 0.5])
+    ij = np.array([[0, 1], [1, 2], [3, 4]])
+    factors = Pose2Factors(
+        n=6,
+        ij=ij,
+        z=np.tile(step, (3, 1)),
+        info=np.tile(np.eye(3) * 100.0, (3, 1, 1)),
+        prior_index=np.array([0, 2]),
+        prior_pose=np.array([[5.0, 5.0, 0.0], [0.0, 0.0, 0.0]]),
+        prior_info=np.array([np.eye(3), np.eye(3) * 1e6]),
+    )
+    assert component_labels(6, ij).tolist() == [0, 0, 0, 1, 1, 2]
+    current = np.arange(18, dtype=float).reshape(6, 3)
+    out = spanning_tree_from_factors(factors, current)
+    np.testing.assert_allclose(out[2], [0.0, 0.0, 0.0])  # the stronger prior wins
+    np.testing.assert_allclose(se2.compose(out[1], step), out[2], atol=1e-12)
+    np.testing.assert_allclose(out[3], current[3])
+    np.testing.assert_allclose(out[4], se2.compose(current[3], step), atol=1e-12)
+    np.testing.assert_allclose(out[5], current[5])
