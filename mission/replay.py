@@ -737,7 +737,7 @@ def _format_summary(summary: dict[str, Any]) -> list[str]:
     if "relations_matched" in summary:
         lines.append(
             f"relations: {summary['relations_matched']} of {summary['relations_total']} fall on "
-            "nodes"
+            "scans of this replay"
         )
         if "relations_trans_err_m" in summary:
             lines.append(

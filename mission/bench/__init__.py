@@ -32,6 +32,7 @@ SUITES: dict[str, str] = {
     "robot": "mission.bench.robot",
     "loops": "mission.bench.loops",
     "compression": "mission.bench.compression",
+    "robustness": "mission.bench.robustness",
     "repeat": "mission.bench.repeat",
 }
 

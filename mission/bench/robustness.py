@@ -1,0 +1,246 @@
+"""``magic bench robustness``: the GCS on logs and graphs it was never tuned on (issue 19).
+
+The suite is composed of parts, each a module with the suite signature
+``run(*, quick, progress) -> dict[str, float]``, owned with the code it measures:
+
+- ``mission.bench.robustness_solver``: the batch solver from every start (``solver_optimum_frac``,
+  ``solver_worse_steps_accepted``, ``m3500_solve_s``, ...);
+- ``mission.bench.robustness_faults``: the ground station under bad input (``gcs_crashes``,
+  ``solver_recoveries``, ...);
+- the replay part, here: every shipped CARMEN log with reference poses replayed through
+  :func:`mission.replay.run_replay`, clean and with each perturbation of
+  :mod:`mission.bench.perturbations`.
+
+A part module that is missing or raises fails that part: its metrics are absent, a progress line
+says why, and ``parts_failed`` counts it (no number is made up for it). A name reported by two
+parts is an error, except ``gcs_crashes``, which is summed (the faults part's plus the replays'
+exceptions).
+
+Replays. The corrected logs (Intel, ACES, Freiburg 079) have no raw odometry: as
+``magic bench loops`` does, seeded noise (:data:`NOISE_SCALE` times the pose-node model, seed
+:data:`SEED`) is added to their odometry and the nodes state that model. The noise is drawn once
+per log on its clean clock (so a clock perturbation changes only the clock the replay sees);
+``turns_*`` scales the heading increments of the clean odometry before the noise (the noise
+comes on top of the bias). The Duke DP-SLAM log has raw odometry but no reference poses, so it
+cannot be scored here and is skipped with that reason. Perturbations (``mission.bench
+.perturbations``): ``turns_0.92``/``turns_1.08`` (gyro scale error), ``clock_frozen`` (all 0),
+``clock_coarse`` (1e4 s steps at 1.13486e9), ``clock_jump`` (+4.29e9 s from a third of the
+log), ``gap`` (a tenth of the scans dropped from the middle).
+
+Metrics of the replay part:
+
+- ``ate_over_odometry_max``: the GCS's ATE over odometry alone's ATE (against the log's poses),
+  the largest over all runs; target <= 0.5.
+- ``perturbed_ate_ratio_max``: a perturbed run's ATE over the same log's clean run's ATE, the
+  largest; target <= 1.2.
+- ``false_closures``: accepted closures off the log's poses by more than 0.5 m or 5 deg, summed
+  over all runs; target 0.
+- ``replay_exceptions``: replays that raised (counted into ``gcs_crashes``); target 0.
+- ``{log}_{run}_ate_m`` per run (``run`` is ``clean`` or the perturbation), and
+  ``{log}_{run}_closures``.
+
+``--quick`` replays prefixes: the first :data:`QUICK_SCANS` scans of each log (Intel 250 of
+910, ACES 220 of 440, Freiburg 079 450 of 4791), enough for their first loops; the replay part
+then takes about 50 s on the 2-core machine. Without ``--quick`` the whole logs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from gcs.replay.carmen_log import CarmenLog, read_carmen_log
+from mission.bench import BenchError
+from mission.bench.perturbations import (
+    coarsen_clock,
+    drop_scans,
+    freeze_clock,
+    jump_clock,
+    scale_turns,
+)
+from mission.replay import (
+    OdometryNoiseConfig,
+    ReplayConfig,
+    ReplayResult,
+    replay_odometry,
+    run_replay,
+)
+
+__all__ = [
+    "LOGS",
+    "NOISE_SCALE",
+    "PARTS",
+    "PERTURBATIONS",
+    "QUICK_SCANS",
+    "SEED",
+    "replay_part",
+    "run",
+]
+
+LASER = Path(__file__).resolve().parents[2] / ".." / "shared" / "datasets" / "laser"
+#: Other parts, in the order they run (module names under ``mission.bench``).
+PARTS: tuple[str, ...] = ("robustness_solver", "robustness_faults")
+#: Logs of the replay part: short name -> file in ``../shared/datasets/laser``.
+LOGS: dict[str, str] = {
+    "intel": "intel-corrected.log.gz",
+    "aces": "aces-corrected.log.gz",
+    "fr079": "freiburg-079-corrected.log.gz",
+    "dpslam_loop5": "dpslam_loop5.log",
+}
+QUICK_SCANS: dict[str, int] = {"intel": 250, "aces": 220, "fr079": 450, "dpslam_loop5": 551}
+NOISE_SCALE = 1.0
+SEED = 1
+#: As in ``magic bench loops``: a budget that does not bind, so results do not depend on load.
+STEP_BUDGET_S = 10.0
+
+#: Perturbations of the odometry (before the noise) and of everything else (after it).
+ODOMETRY_PERTURBATIONS: dict[str, Callable[[CarmenLog], CarmenLog]] = {
+    "turns_0.92": lambda log: scale_turns(log, 0.92),
+    "turns_1.08": lambda log: scale_turns(log, 1.08),
+}
+LOG_PERTURBATIONS: dict[str, Callable[[CarmenLog], CarmenLog]] = {
+    "clock_frozen": freeze_clock,
+    "clock_coarse": coarsen_clock,
+    "clock_jump": lambda log: jump_clock(log, len(log) // 3),
+    "gap": lambda log: drop_scans(log, len(log) // 2, max(len(log) // 10, 1)),
+}
+PERTURBATIONS: tuple[str, ...] = (*ODOMETRY_PERTURBATIONS, *LOG_PERTURBATIONS)
+
+
+def _noisy(log: CarmenLog) -> CarmenLog:
+    """The log with seeded odometry noise drawn on its own clock (module docstring)."""
+    cfg = ReplayConfig(noise=OdometryNoiseConfig(scale=NOISE_SCALE, seed=SEED))
+    odom, _increments, _model = replay_odometry(log, cfg)
+    return dataclasses.replace(log, odometry_in_log=odom)
+
+
+def _same(log: CarmenLog) -> CarmenLog:
+    return log
+
+
+def _before_noise(perturb: Callable[[CarmenLog], CarmenLog], log: CarmenLog) -> CarmenLog:
+    return _noisy(perturb(log))
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(f"{type(exc).__name__}: {exc}".split())
+    return text if len(text) < 160 else text[:157] + "..."
+
+
+def replay_part(
+    *, quick: bool, progress: Callable[[str], None], logs: dict[str, str] | None = None
+) -> dict[str, float]:
+    """The replay metrics (module docstring) over ``logs`` (default :data:`LOGS`)."""
+    config = ReplayConfig(odometry_sigma_scale=NOISE_SCALE, step_budget_s=STEP_BUDGET_S)
+    metrics: dict[str, float] = {}
+    over_odometry: list[float] = []
+    perturbed_ratio: list[float] = []
+    false_closures = 0
+    exceptions = 0
+    for name, file in (logs or LOGS).items():
+        path = LASER / file
+        if not path.is_file():
+            raise BenchError(f"dataset {path} not found (robustness needs ../shared/datasets)")
+        clean = read_carmen_log(path)
+        if quick and QUICK_SCANS.get(name, len(clean)) < len(clean):
+            clean = clean.subset(slice(0, QUICK_SCANS[name]))
+        if not clean.has_timestamps or not _is_corrected(clean):
+            progress(f"replay {name}: skipped: no reference poses (raw odometry only)")
+            continue
+        noisy = _noisy(clean)
+        runs: dict[str, Callable[[], CarmenLog]] = {"clean": functools.partial(_same, noisy)}
+        for pname, fn in ODOMETRY_PERTURBATIONS.items():
+            runs[pname] = functools.partial(_before_noise, fn, clean)
+        for pname, fn in LOG_PERTURBATIONS.items():
+            runs[pname] = functools.partial(fn, noisy)
+        base_ate: float | None = None
+        for rname, make in runs.items():
+            t0 = time.perf_counter()
+            try:
+                result = run_replay(make(), config=config)
+            except Exception as exc:  # a crash is a result of this bench, not its end
+                exceptions += 1
+                progress(f"replay {name} {rname}: EXCEPTION {_one_line(exc)}")
+                continue
+            row = _row(result)
+            if result.ate is None or result.ate_odometry is None:
+                exceptions += 1
+                progress(f"replay {name} {rname}: no ATE (no reference poses)")
+                continue
+            ate = result.ate.rmse_m
+            metrics[f"{name}_{rname}_ate_m"] = ate
+            metrics[f"{name}_{rname}_closures"] = float(result.loop_closures)
+            over_odometry.append(ate / max(result.ate_odometry.rmse_m, 1e-9))
+            false_closures += result.false_closures or 0
+            ratio = ""
+            if rname == "clean":
+                base_ate = ate
+            elif base_ate is not None:
+                perturbed_ratio.append(ate / max(base_ate, 1e-9))
+                ratio = f", {perturbed_ratio[-1]:.2f} x clean"
+            clock = f"; {'; '.join(result.clock)}" if result.clock else ""
+            progress(
+                f"replay {name} {rname}: {row}{ratio}, {time.perf_counter() - t0:.1f} s{clock}"
+            )
+    if not over_odometry:
+        raise BenchError("robustness: no log with reference poses could be replayed")
+    metrics["ate_over_odometry_max"] = max(over_odometry)
+    if perturbed_ratio:
+        metrics["perturbed_ate_ratio_max"] = max(perturbed_ratio)
+    metrics["false_closures"] = float(false_closures)
+    metrics["replay_exceptions"] = float(exceptions)
+    return metrics
+
+
+def _is_corrected(log: CarmenLog) -> bool:
+    # A corrected log's odometry repeats its poses: those poses are the reference the added
+    # noise is measured against. A raw log whose poses equal its odometry has no reference.
+    return bool(len(log) and abs(log.odometry_in_log - log.laser_in_log).max() < 1e-6)
+
+
+def _row(result: ReplayResult) -> str:
+    assert result.ate is not None and result.ate_odometry is not None
+    return (
+        f"{len(result.scans)} nodes, {result.loop_closures} closures "
+        f"({result.false_closures} false), ATE {result.ate.rmse_m:.3f} m "
+        f"(odometry {result.ate_odometry.rmse_m:.3f} m)"
+    )
+
+
+def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    """All parts; see the module docstring."""
+    metrics: dict[str, float] = {}
+    failed = 0
+    for part in PARTS:
+        t0 = time.perf_counter()
+        try:
+            module = importlib.import_module(f"mission.bench.{part}")
+            values = module.run(quick=quick, progress=progress)
+        except Exception as exc:  # a missing or broken part fails alone, clearly
+            failed += 1
+            progress(f"part {part} FAILED, its metrics are missing: {_one_line(exc)}")
+            continue
+        progress(f"part {part}: {len(values)} metrics, {time.perf_counter() - t0:.1f} s")
+        for key, value in values.items():
+            if key in metrics:
+                raise BenchError(f"bench robustness: metric {key!r} reported by two parts")
+            metrics[key] = float(value)
+    t0 = time.perf_counter()
+    replay = replay_part(quick=quick, progress=progress)
+    progress(f"part replay: {len(replay)} metrics, {time.perf_counter() - t0:.1f} s")
+    for key, value in replay.items():
+        if key in metrics:
+            raise BenchError(f"bench robustness: metric {key!r} reported by two parts")
+        metrics[key] = value
+    if "gcs_crashes" in metrics:
+        metrics["gcs_crashes"] += replay["replay_exceptions"]
+    metrics["parts_failed"] = float(failed)
+    for key, value in metrics.items():
+        if not math.isfinite(value):
+            raise BenchError(f"bench robustness: metric {key!r} is not finite: {value}")
+    return metrics
