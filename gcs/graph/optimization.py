@@ -40,9 +40,14 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
+from gcs.graph.block_cholesky import BlockSymbolic, symbolic_factorization
 from gcs.graph.emd_ordering import elimination_degrees, factor_nnz, minimum_degree_ordering
 from gcs.graph.g2o import G2oGraph, component_roots
-from gcs.graph.pose2_gauss_newton import Pose2Factors, gauss_newton_pose2, local_coordinates
+from gcs.graph.pose2_gauss_newton import (
+    Pose2Factors,
+    gauss_newton_pose2,
+    local_coordinates,
+)
 from gcs.graph.pose2_levenberg_marquardt import (
     LevenbergMarquardtConfig,
     levenberg_marquardt_pose2,
@@ -386,6 +391,59 @@ class Pose2Solution:
     runs: tuple[tuple[str, tuple[float, ...]], ...]
 
 
+#: ``block_lm`` checks its progress every this many accepted steps ...
+_STALL_WINDOW = 10
+#: ... and, above the chi2 test, gives up on a start that did not lower the chi2 this much.
+_STALL_FACTOR = 2.0
+
+
+@dataclass
+class _LmRun:
+    poses: FloatArray
+    chi2: float
+    history: list[float]
+    final_lambda: float
+    stop_reason: str
+
+    @property
+    def iterations(self) -> int:
+        return max(len(self.history) - 1, 0)
+
+
+def _levenberg_marquardt_windows(
+    factors: Pose2Factors,
+    sym: BlockSymbolic,
+    cfg: LevenbergMarquardtConfig,
+    run: _LmRun,
+    budget: int,
+    stall_above: float | None,
+) -> _LmRun:
+    """Continue ``run`` by up to ``budget`` accepted steps, ``_STALL_WINDOW`` at a time (each
+    window resumes the last one's ``lambda``, so the path is the uninterrupted one). With
+    ``stall_above``: stop (``"stalled"``) after a window that ended above that chi2 having
+    lowered it by less than ``_STALL_FACTOR``: a start sliding slowly into a local minimum
+    (manhattan_M3500b from chained odometry, a weak-loop ring) is left early for the tree."""
+    while True:
+        window = min(_STALL_WINDOW, max(budget, 0))
+        lam = max(run.final_lambda, cfg.lambda_lower_bound, 1e-300)
+        wcfg = msgspec.structs.replace(cfg, max_iterations=window, lambda_initial=lam)
+        r = levenberg_marquardt_pose2(factors, run.poses, config=wcfg, symbolic=sym)
+        new = r.chi2_history[1:] if run.history else r.chi2_history
+        run = _LmRun(r.poses, r.chi2, run.history + list(new), r.final_lambda, "")
+        budget -= r.iterations
+        if r.stop_reason != "max_iterations":
+            run.stop_reason = r.stop_reason
+            return run
+        if budget <= 0:
+            break
+        if stall_above is not None and r.chi2 > stall_above:
+            if r.chi2_history[0] < _STALL_FACTOR * r.chi2:
+                run.stop_reason = "stalled"
+                return run
+    run.stop_reason = "max_iterations"
+    return run
+
+
 def solve_pose2(
     factors: Pose2Factors,
     initial: FloatArray,
@@ -399,11 +457,18 @@ def solve_pose2(
 
     ``order`` is the elimination order (default: the exact minimum degree ordering of
     :mod:`gcs.graph.emd_ordering`, computed once for both runs).
-    ``"block_lm"``: Levenberg-Marquardt from ``initial``; if its chi2 fails
-    :func:`chi2_test_threshold` and ``restart_from_tree``, again from the spanning-tree
-    initialization (:func:`gcs.graph.spanning_tree_init.spanning_tree_from_factors`), keeping the
-    lower chi2. The result is never worse than ``initial``. ``"block_gn"``: plain Gauss-Newton
-    (``config`` gives its ``max_iterations``, ``relative_error_tol`` and ``error_tol``).
+
+    ``"block_lm"``: Levenberg-Marquardt from ``initial``. With ``restart_from_tree``, when its
+    chi2 fails :func:`chi2_test_threshold` (a local minimum, or a start still sliding slowly
+    towards one: after ``_STALL_WINDOW`` accepted steps that lowered a chi2 above the threshold
+    by less than ``_STALL_FACTOR``, that run is paused), it solves again from the spanning-tree
+    initialization (:func:`gcs.graph.spanning_tree_init.spanning_tree_from_factors`, anchored at
+    the priors); a paused run that is still the lower one is then resumed. Returns the lower
+    chi2. The result is never worse than ``initial``. ``config.max_iterations`` bounds each
+    run's accepted steps (``max_linear_solves`` applies a window of steps at a time).
+
+    ``"block_gn"``: plain Gauss-Newton (``config`` gives its ``max_iterations``,
+    ``relative_error_tol`` and ``error_tol``).
     """
     cfg = config or LevenbergMarquardtConfig()
     if order is None:
@@ -427,17 +492,35 @@ def solve_pose2(
         )
     if method != "block_lm":
         raise ValueError(f"solve_pose2: unknown method {method!r}; expected block_lm or block_gn")
-    lm = levenberg_marquardt_pose2(factors, initial, order=order, config=cfg)
-    best, start = lm, "given"
-    runs = [("given", lm.chi2_history)]
-    if restart_from_tree and lm.chi2 > chi2_test_threshold(factors):
-        tree = spanning_tree_from_factors(factors, lm.poses)
-        again = levenberg_marquardt_pose2(factors, tree, order=order, config=cfg)
-        runs.append(("spanning_tree", again.chi2_history))
-        if again.chi2 < best.chi2:
-            best, start = again, "spanning_tree"
+    threshold = chi2_test_threshold(factors) if restart_from_tree else None
+    sym = symbolic_factorization(factors.n, factors.ij, order)
+
+    def start_run(poses: FloatArray) -> _LmRun:
+        # No history yet: the first window's starts with the start's chi2.
+        return _LmRun(np.asarray(poses), float("inf"), [], cfg.lambda_initial, "")
+
+    given = _levenberg_marquardt_windows(
+        factors, sym, cfg, start_run(initial), cfg.max_iterations, threshold
+    )
+    runs = {"given": given}
+    if threshold is not None and given.chi2 > threshold:
+        tree_start = spanning_tree_from_factors(factors, given.poses)
+        runs["spanning_tree"] = _levenberg_marquardt_windows(
+            factors, sym, cfg, start_run(tree_start), cfg.max_iterations, None
+        )
+        if given.stop_reason == "stalled" and given.chi2 < runs["spanning_tree"].chi2:
+            runs["given"] = _levenberg_marquardt_windows(
+                factors, sym, cfg, given, cfg.max_iterations - given.iterations, None
+            )
+    start = min(runs, key=lambda k: runs[k].chi2)
+    best = runs[start]
     return Pose2Solution(
-        best.poses, best.chi2, best.iterations, best.chi2_history, start, tuple(runs)
+        best.poses,
+        best.chi2,
+        best.iterations,
+        tuple(best.history),
+        start,
+        tuple((k, tuple(r.history)) for k, r in runs.items()),
     )
 
 

@@ -181,10 +181,14 @@ def levenberg_marquardt_pose2(
     *,
     order: IntArray | None = None,
     config: LevenbergMarquardtConfig | None = None,
+    symbolic: BlockSymbolic | None = None,
 ) -> LevenbergMarquardtResult:
     """Maximum-likelihood poses (n, 3) of ``factors`` by Levenberg-Marquardt from ``initial``.
 
-    ``order`` is the elimination order (default natural). Never returns an estimate worse than
+    ``order`` is the elimination order (default natural), or ``symbolic`` a symbolic
+    factorization of ``factors`` from an earlier call (a resumed run: pass the previous
+    ``final_lambda`` as ``lambda_initial`` and the path is the uninterrupted one's). Never
+    returns an estimate worse than
     ``initial``: every accepted step lowers the chi2. A component without a prior (gauge
     freedom) is handled by the damping (its steps have no component in the null space), but it
     can keep ``lambda`` from falling; anchor every component for a fast solve.
@@ -193,8 +197,13 @@ def levenberg_marquardt_pose2(
     f = factors
     poses = _check_poses(f, initial)
     n = f.n
-    order = np.arange(n, dtype=np.int64) if order is None else np.asarray(order, dtype=np.int64)
-    sym = symbolic_factorization(n, f.ij, order)
+    if symbolic is None:
+        order = np.arange(n, dtype=np.int64) if order is None else np.asarray(order, np.int64)
+        sym = symbolic_factorization(n, f.ij, order)
+    elif symbolic.n != n:
+        raise ValueError(f"symbolic factorization of {symbolic.n} variables, factors have {n}")
+    else:
+        sym = symbolic
     diag_slot = sym.colptr[sym.position]
     edge_slot = block_slots(sym, f.ij)
     args = (f.ij, f.z, f.info, f.prior_index, f.prior_pose, f.prior_info)
