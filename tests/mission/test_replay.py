@@ -342,3 +342,169 @@ def test_magic_replay_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     with pytest.raises(SystemExit) as info:
         main(["replay"])
     assert info.value.code == 2
+
+
+# ---------------------------------------------------------------- issue 19: clocks, results first
+
+
+def _flaser_file(log: CarmenLog, path: Path, time_s: np.ndarray | None = None) -> Path:
+    """Write ``log`` as FLASER text (its odometry fields repeat the laser poses)."""
+    t = log.time_s if time_s is None else time_s
+    lines = [
+        f"FLASER {log.ranges_m.shape[1]} "
+        + " ".join(f"{v:.3f}" for v in log.ranges_m[k])
+        + " "
+        + " ".join(repr(float(v)) for v in (*log.laser_in_log[k], *log.odometry_in_log[k]))
+        + f" {float(t[k])!r} synth {float(t[k])!r}"
+        for k in range(len(log))
+    ]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_bad_clocks_replay_as_the_clean_clock() -> None:
+    """A frozen or jumping clock is repaired before anything uses it: the nodes (and their
+    covariances' gyro term), the closures and the ATE are those of the clean clock."""
+    from mission.bench.perturbations import freeze_clock, jump_clock
+
+    log = synthetic_log(laps=0.7)
+    cfg = ReplayConfig(noise=OdometryNoiseConfig(scale=1.0, seed=3))
+    clean = run_replay(log, config=cfg)
+    clean_nodes = replay_messages(log, cfg)
+    assert clean.clock == [] and clean.loop_closures >= 3
+    for bad, kind in ((freeze_clock(log), "frozen"), (jump_clock(log, 40), "jump")):
+        res = run_replay(bad, config=cfg)
+        assert len(res.clock) == 1 and res.clock[0].startswith(f"clock {kind}")
+        assert res.summary()["clock"] == res.clock
+        nodes = replay_messages(bad, cfg)
+        assert [n.scan for n in nodes] == [n.scan for n in clean_nodes]
+        for a, b in zip(nodes, clean_nodes, strict=True):
+            np.testing.assert_allclose(
+                a.pose_node.odom_covariance, b.pose_node.odom_covariance, atol=1e-12
+            )
+            assert a.pose_node.time_s == pytest.approx(b.pose_node.time_s)
+        assert res.loop_closures == clean.loop_closures
+        assert res.ate is not None and clean.ate is not None
+        assert res.ate.rmse_m == pytest.approx(clean.ate.rmse_m, abs=1e-9)
+
+
+def test_outputs_are_written_when_the_relations_clock_does_not_match(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = synthetic_log(laps=0.4)
+    rng = np.random.default_rng(2)
+    stamps = np.sort(rng.uniform(7e5, 7.1e5, 40))
+    text = "\n".join(
+        f"{a!r} {b!r} 1.0 0.0 0 0 0 0.1"
+        for a, b in zip(stamps[:-1].tolist(), stamps[1:].tolist(), strict=True)
+    )
+    rel = parse_relations(text, path="elsewhere.relations")
+    res = run_replay(log, relations=rel, out_dir=tmp_path / "run")
+    assert res.relations is None and len(res.evaluation_errors) == 1
+    assert "elsewhere.relations" in res.evaluation_errors[0]
+    assert len(res.evaluation_errors[0]) < 200
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["evaluation"] == res.evaluation_errors and summary["nodes"] == len(res.scans)
+    for name in ("map.png", "map.pgm", "map.yaml", "poses.txt", "closures.txt"):
+        assert (tmp_path / "run" / name).is_file()
+    # The command: exit 0, the missing evaluation named in one line.
+    from mission.replay import main
+
+    path = _flaser_file(log, tmp_path / "synthetic.log")
+    rel_path = tmp_path / "elsewhere.relations"
+    rel_path.write_text(text + "\n")
+    argv = ["--carmen", str(path), "--relations", str(rel_path), "--quiet"]
+    assert main([*argv, "--out", str(tmp_path / "cli")]) == 0
+    out, err = capsys.readouterr()
+    assert "evaluation missing" in out and (tmp_path / "cli" / "summary.json").is_file()
+    assert [line for line in err.splitlines() if "relations not evaluated" in line]
+
+
+def test_readme_is_refused_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from mission.replay import main
+
+    readme = Path(__file__).resolve().parents[2] / "README.md"
+    assert main(["--carmen", str(readme)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and len(err[0]) < 200
+    assert "README.md" in err[0] and "not a CARMEN log" in err[0]
+
+
+def test_help_names_every_default(capsys: pytest.CaptureFixture[str]) -> None:
+    from mission.replay import main
+
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for option in ("--relations", "--out", "--odom-noise", "--seed", "--scans", "--progress-every"):
+        block = text.split(option, 2)[-1][:200]
+        assert "default" in block, option
+
+
+def test_an_interrupted_replay_saves_what_ran(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import mission.replay as replay_module
+
+    log = synthetic_log(laps=0.5)
+    calls = [0]
+
+    def stop_after_10(done: int, total: int, text: str) -> None:
+        calls[0] += 1
+        if calls[0] == 10:
+            raise KeyboardInterrupt
+
+    res = run_replay(log, out_dir=tmp_path / "int", progress=stop_after_10)
+    assert res.interrupted == "SIGINT" and len(res.scans) == 10
+    assert 0 < res.scans_done < len(log)
+    summary = json.loads((tmp_path / "int" / "summary.json").read_text())
+    assert summary["interrupted"] == "SIGINT" and summary["nodes"] == 10
+    # The command: SIGTERM (as the handler raises it) exits 143 after saving.
+    original = replay_module.iter_replay_messages
+
+    def terminated_after_5(*args: object, **kwargs: object):  # type: ignore[no-untyped-def]
+        for k, node in enumerate(original(*args, **kwargs)):  # type: ignore[arg-type]
+            if k == 5:
+                raise replay_module.ReplayTerminated
+            yield node
+
+    monkeypatch.setattr(replay_module, "iter_replay_messages", terminated_after_5)
+    path = _flaser_file(log, tmp_path / "synthetic.log")
+    out = tmp_path / "cli"
+    assert replay_module.main(["--carmen", str(path), "--quiet", "--out", str(out)]) == 143
+    stdout, err = capsys.readouterr()
+    assert "interrupted by SIGTERM" in stdout and "stopped by SIGTERM" in err
+    assert json.loads((out / "summary.json").read_text())["nodes"] == 5
+
+
+def test_perturbations_of_a_log() -> None:
+    from mission.bench.perturbations import (
+        coarsen_clock,
+        drop_scans,
+        freeze_clock,
+        jump_clock,
+        scale_turns,
+    )
+
+    log = synthetic_log(laps=0.5)
+    same = scale_turns(log, 1.0)
+    np.testing.assert_allclose(relative(same.odometry_in_log, log.odometry_in_log), 0, atol=1e-9)
+    bent = scale_turns(log, 1.08)
+    steps = relative(log.odometry_in_log[:-1], log.odometry_in_log[1:])
+    bent_steps = relative(bent.odometry_in_log[:-1], bent.odometry_in_log[1:])
+    np.testing.assert_allclose(bent_steps[:, :2], steps[:, :2], atol=1e-9)
+    np.testing.assert_allclose(bent_steps[:, 2], 1.08 * steps[:, 2], atol=1e-9)
+    np.testing.assert_array_equal(bent.laser_in_log, log.laser_in_log)  # the reference stays
+    total_turn = np.sum(steps[:, 2])
+    end_err = bent.odometry_in_log[-1, 2] - log.odometry_in_log[-1, 2]
+    assert math.remainder(end_err - 0.08 * total_turn, 2 * math.pi) == pytest.approx(0, abs=1e-9)
+    assert np.all(freeze_clock(log).time_s == 0.0)
+    coarse = coarsen_clock(log)
+    assert np.all(coarse.time_s % 1e4 == 0) and abs(coarse.time_s[0] - 1.13486e9) <= 5e3
+    jumped = jump_clock(log, 7)
+    np.testing.assert_allclose(np.diff(jumped.time_s)[6], 4.29e9 + 0.5, rtol=1e-12)
+    gap = drop_scans(log, 10, 5)
+    assert len(gap) == len(log) - 5 and gap.line_numbers[10] == log.line_numbers[15]
+    assert np.all(log.time_s == synthetic_log(laps=0.5).time_s)  # inputs untouched
+    with pytest.raises(ValueError, match="factor"):
+        scale_turns(log, 0.0)

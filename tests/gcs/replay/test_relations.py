@@ -10,6 +10,7 @@ from gcs.replay.carmen_log import read_carmen_log
 from gcs.replay.relations import (
     Relations,
     RelationsFileError,
+    align_relations,
     estimate_time_offset_s,
     match_relations,
     parse_relations,
@@ -145,3 +146,45 @@ def test_intel_corrected_log_agrees_with_its_relations(laser_dir: Path) -> None:
         bent.append(compose(bent[-1], s))
     worse = relations_error(np.asarray(bent), m)
     assert worse.trans_mean_m > 5 * err.trans_mean_m and worse.rot_mean_deg > 5 * err.rot_mean_deg
+
+
+def test_a_restamped_log_is_aligned_by_geometry() -> None:
+    """A log whose stamps were rewritten (time since its start, each off by up to 50 ms) shares
+    no stamp with its relations: the poses decide the offset, and the relations fall on the
+    scans within half the scan period."""
+    poses = _trajectory(800, seed=3)
+    rng = np.random.default_rng(5)
+    raw = 5000.0 + np.cumsum(rng.uniform(0.15, 0.35, len(poses)))
+    log_times = raw - raw[0] + 0.2 + rng.uniform(-0.05, 0.05, len(poses))
+    pairs = [(i, i + 3) for i in range(0, len(poses) - 3, 4)]
+    rel = parse_relations(_relations_of(poses, raw, pairs), path="restamped.relations")
+    with pytest.raises(ValueError, match="restamped.relations: only .* agree"):
+        estimate_time_offset_s(rel, log_times)
+    a = align_relations(rel, log_times, poses)
+    assert a.method == "geometry" and abs(a.offset_s - (raw[0] - 0.2)) < 0.06
+    assert a.votes >= 0.9 * len(rel) and a.runner_up < 0.2 * a.votes
+    m = match_relations(rel, log_times, time_offset_s=a.offset_s, tolerance_s=a.tolerance_s)
+    assert len(m) >= 0.9 * len(rel)
+    assert relations_error(poses, m).trans_mean_m < 1e-6
+    # Relations of another trajectory fit no offset: one line naming the file.
+    other = parse_relations(
+        _relations_of(_trajectory(800, seed=9), raw, pairs), path="other.relations"
+    )
+    with pytest.raises(ValueError, match="other.relations: no clock offset fits") as info:
+        align_relations(other, log_times, poses)
+    assert len(str(info.value)) < 200 and "\n" not in str(info.value)
+
+
+def test_fr079_relations_match_the_corrected_log(laser_dir: Path) -> None:
+    """The corrected Freiburg 079 log was re-stamped (time since its start; no stamp equals a
+    relation stamp minus one offset): geometry aligns it, and almost all relations match."""
+    log = read_carmen_log(laser_dir / "freiburg-079-corrected.log.gz")
+    rel = read_relations(laser_dir / "fr079.relations")
+    with pytest.raises(ValueError, match="agree on a clock offset"):
+        estimate_time_offset_s(rel, log.time_s)
+    a = align_relations(rel, log.time_s, log.odometry_in_log)
+    assert a.method == "geometry" and abs(a.offset_s - 1211.42) < 0.1
+    m = match_relations(rel, log.time_s, time_offset_s=a.offset_s, tolerance_s=a.tolerance_s)
+    assert len(m) >= 1600 and m.total == 1685
+    err = relations_error(log.base_in_log, m)
+    assert err.trans_mean_m < 0.08 and err.rot_mean_deg < 1.0
