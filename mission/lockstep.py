@@ -21,6 +21,13 @@ noise and slip, the radio channels' loss draws, each robot node's back-off draws
 ground side's own (``seeds.ground``). The same world, team, seed, duration and configuration
 give the same poses, events and messages, bit for bit.
 
+:class:`TeamOverProcesses` is the same team with each robot node in its own process
+(``magic robot --lockstep``; ``magic run --robot-processes``) and gives the same run, bit for
+bit: the per-step counts of :mod:`mission.lockstep_protocol` stand in for the ordering zenoh
+keeps only within one key. Not covered yet: the simulator and the ground side in separate
+processes (``magic sim`` + ``magic gcs``), which needs the ground side to send the step's
+downlink counts and the simulator to wait for them.
+
 ``realtime=True`` (hardware in the loop; ``magic run --realtime``) keeps wall-clock delivery:
 links pumped by their own threads every ``pump_period_s`` wall seconds, messages delivered on
 zenoh's threads as they arrive. It runs no faster (the exchange costs little) and promises no

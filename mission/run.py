@@ -3,7 +3,12 @@
 The simulator, one robot node per robot and a ground-control side run in this process, in
 lockstep with the simulator's mission clock; robots and the ground side talk over two real
 zenoh sessions on loopback through the radio link (rates granted by the simulator's radio
-model, every byte metered). Until task allocation exists, the ground side is a script (the
+model, every byte metered). Mission time is deterministic (:mod:`mission.lockstep`): the same
+world, seed, duration and configuration give the same run, bit for bit, whatever the load;
+``robot_processes`` puts each robot node in its own process and gives the same run again;
+``realtime`` delivers radio traffic on wall-clock threads and promises no repeatability.
+
+Until task allocation exists, the ground side is a script (the
 GCS's estimation runs in ``magic gcs`` and in :mod:`mission.team_mapping`): it sends
 each robot a sequence of goals (``GoToTask``, in that robot's private frame) and follows the
 reports that come back (task status, pose nodes, terrain grids, telemetry).
@@ -644,7 +649,7 @@ def main(argv: list[str] | None = None) -> int:
                     next_s[0] += total_s / 10
                     err.print(
                         f"magic run: {r.mission_s:.0f} / {total_s:g} mission-s, "
-                        f"x{r.rtf:.1f} real time, {len(r.events)} events",
+                        f"x{r.rtf:.1f} real time, {len(r.events)} rule events",
                         markup=False,
                         soft_wrap=True,
                     )

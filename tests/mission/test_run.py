@@ -33,7 +33,7 @@ def test_team_drives_scripted_goals_over_the_radio_link() -> None:
         assert p.distance_m > 10.0
         assert p.pose_nodes >= 3 and p.terrain_grids == p.pose_nodes  # arrived over the link
         assert p.uplink_bytes > 0
-    # most goals are reached (measured: all 16 of 16 for seeds 0-5)
+    # most goals are reached (measured: 16 of 16 for seeds 0, 1 and 3, 15 of 16 for seed 2)
     assert summary["goals_sent"] == 4 * config.goals_per_robot
     assert summary["goals_succeeded"] >= 0.75 * summary["goals_sent"]
     # safety: nothing detonated, nobody entered a hazard's keep-out disk (truth)
