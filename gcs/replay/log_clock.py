@@ -13,7 +13,8 @@ usable clock:
 * **frozen**: one distinct value: every step gets ``default_period_s``.
 * **coarse**: most steps (more than ``max_zero_step_frac``) are exactly 0, i.e. the stamps are
   quantized far coarser than the scan period: every step gets ``default_period_s``, unless the
-  log's span over its scan count gives a plausible period (``min_period_s..max_period_s``).
+  stamps hold at least 10 distinct values (the span is then known to 10%) and the log's span
+  over its scan count gives a plausible period (``min_period_s..max_period_s``).
 * **jump**: a step more than ``jump_factor`` times the median step of the good ones, or more
   than ``max_step_s``: that step gets the median period.
 * **backwards**: a negative step: that step gets the median period.
@@ -141,7 +142,8 @@ def check_clock(
     if distinct == 1 or zero.sum() > max_zero_step_frac * (n - 1):
         span = float(np.nanmax(t) - np.nanmin(t))
         period = span / (n - 1)
-        if distinct == 1 or not (min_period_s <= period <= max_period_s):
+        # A span known to one quantum only says something when it holds many quanta.
+        if distinct < 10 or not (min_period_s <= period <= max_period_s):
             period = default_period_s
             how = f"{period:g} s per scan assumed"
         else:

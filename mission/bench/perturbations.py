@@ -81,10 +81,12 @@ def coarsen_clock(
     step_s: float = COARSE_CLOCK_STEP_S,
     epoch_s: float = COARSE_CLOCK_EPOCH_S,
 ) -> CarmenLog:
-    """``log`` with its clock moved to start at ``epoch_s`` and quantized to ``step_s``.
+    """``log`` with its clock moved near ``epoch_s`` and quantized to ``step_s``.
 
-    The stamps keep their spacing (relative to the first finite one) before quantization, so a
-    log shorter than ``step_s`` ends up with one or two distinct values.
+    The stamps keep their spacing (relative to the first finite one) before quantization; the
+    log is placed so that the middle of its span falls on a quantization boundary, so a log
+    shorter than ``step_s`` still shows two distinct values (as ``%g`` stamps do when the clock
+    rolls over), not one: a coarse clock, not a frozen one.
     """
     if not step_s > 0.0:
         raise ValueError(f"coarsen_clock: step_s must be positive, got {step_s!r}")
@@ -92,7 +94,8 @@ def coarsen_clock(
     finite = np.isfinite(t)
     t0 = float(t[finite][0]) if finite.any() else 0.0
     rel = np.where(finite, t - t0, np.arange(len(t), dtype=np.float64) * 0.1)
-    return _with_time(log, np.round((epoch_s + rel) / step_s) * step_s)
+    start = epoch_s + 0.5 * step_s - 0.5 * float(np.max(rel) - np.min(rel))
+    return _with_time(log, np.round((start + rel) / step_s) * step_s)
 
 
 def jump_clock(
