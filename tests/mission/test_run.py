@@ -169,3 +169,12 @@ def test_run_command_refuses_a_negative_seed_in_one_line(capsys) -> None:
     assert main(["run", "--seed", "-1", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.strip() == "magic run: seed must be >= 0, got -1"
+
+
+def test_realtime_says_it_is_not_repeatable(capsys) -> None:
+    assert main(["run", "--realtime", "--duration", "2", "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "--realtime: radio delivery on wall-clock threads; this run is not repeatable" in (
+        " ".join(captured.err.split())
+    )
+    assert "mode: --realtime, wall-clock delivery (not repeatable)" in captured.out
