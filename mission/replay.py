@@ -822,8 +822,12 @@ def main(argv: list[str] | None = None) -> int:
         result = run_replay(
             log, config=config, relations=relations, out_dir=args.out, progress=progress
         )
-    except KeyboardInterrupt as exc:  # outside the feeding loop: nothing to save
-        print(f"magic replay: {_signal_name(exc)} before any scan ran; nothing saved", file=err)
+    except KeyboardInterrupt as exc:  # outside the feeding loop: run_replay could not save
+        print(
+            f"magic replay: stopped by {_signal_name(exc)} outside the scan loop (building the "
+            "station, evaluating or saving): the outputs may be incomplete",
+            file=err,
+        )
         return 143 if isinstance(exc, ReplayTerminated) else 130
     finally:
         if on_main:
