@@ -18,7 +18,11 @@ optimization); the result is evaluated against
   here, or a log whose laser poses differ from its odometry): the ATE after alignment
   (:mod:`gcs.replay.trajectory_error`), for the GCS estimate and for odometry alone;
 * a relations file (Kuemmerle et al. 2009, :mod:`gcs.replay.relations`): the mean translation
-  and rotation error of the relations whose two timestamps fall on nodes, and how many did.
+  and rotation error of the relations whose two timestamps fall on scans, and how many did.
+  The relations' clock is mapped onto the log's by
+  :func:`~gcs.replay.relations.align_relations` (identical stamps, or failing that the
+  relations that agree with the log's own odometry: the re-stamped Freiburg 079 log); a
+  scan's pose is its node's estimate carried on by the odometry reported since that node.
 
 Odometry. A raw log's odometry (the Duke DP-SLAM log) is used as is; its robot's odometry
 may be worse than ours, so ``odometry_sigma_scale`` multiplies the pose-node model's sigmas
