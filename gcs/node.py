@@ -10,7 +10,9 @@ what it returns on each robot's downlink. Mission time follows the simulator's c
 from __future__ import annotations
 
 import argparse
+import math
 import queue
+import signal
 import sys
 import threading
 from collections.abc import Callable
@@ -32,7 +34,7 @@ from protocol.process_cli import (
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
 
-__all__ = ["GcsProcess", "main"]
+__all__ = ["GcsProcess", "check_endpoint", "main", "summary_line"]
 
 
 class GcsProcess:
@@ -110,7 +112,8 @@ class GcsProcess:
         return (
             f"gcs t={self.clock.now():7.1f}s robots {len(g.robots)} "
             f"linked {len(self.station.frames())} nodes {s.pose_nodes} grids {s.terrain_grids} "
-            f"edges {len(g.edges())} rejected {s.rejected_total}"
+            f"edges {len(g.edges())} rejected {s.rejected_total} "
+            f"solver recoveries {s.solver_recoveries}/{s.solver_faults}"
         )
 
     def stop(self) -> None:
@@ -122,35 +125,195 @@ class GcsProcess:
             self._clock_sub.close()
 
 
+_DESCRIPTION = """\
+Run the ground-control station (GCS) as its own process. It takes every robot's uplink (pose
+nodes, terrain grids, fiducials, detections) over zenoh, builds the only global map (factor
+graph, loop closing, iSAM2) and sends each robot a HazardUpdate (every linked robot's
+map_from_odom and the hazards) every frames_period_s of mission time (GroundStationConfig,
+default 2 s). Bad messages are refused and counted, never fatal; a solver fault is recovered
+(batch re-solve) and counted.
+
+Prints a status line every --progress-s wall seconds and a one-line summary at the end: mission
+time (s), robots seen and linked to map, pose nodes, grids, graph edges, rejected messages,
+solver recoveries/faults and clock anomalies. Exit status: 0 when --duration has passed, 2 on
+bad input (one line on stderr, before anything starts), 130 after SIGINT, 143 after SIGTERM.
+"""
+
+#: Help of the shared link options, with their defaults and units.
+_LINK_HELP = {
+    "mission": "mission name in the zenoh keys (default: %(default)s)",
+    "radio": "radio config YAML (RadioConfig; default: configs/radio/magic2010.yaml)",
+    "connect": "zenoh endpoint to connect to, e.g. tcp/10.0.0.2:7447; repeatable (default: none)",
+    "listen": "zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7448; repeatable "
+    "(default: tcp/127.0.0.1 on an ephemeral port)",
+}
+
+#: zenoh link protocols whose address is ``host:port``.
+_HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_OTHER_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
+
+
+def check_endpoint(endpoint: str) -> None:
+    """Raise ``ValueError`` (one line) unless ``endpoint`` is ``<protocol>/<address>`` with a
+    known zenoh protocol and, for tcp/udp/tls/quic/ws, a ``host:port`` address."""
+    proto, sep, rest = endpoint.partition("/")
+    address = rest.split("?", 1)[0].split("#", 1)[0]
+    if not sep or not address:
+        raise ValueError(
+            f"endpoint {endpoint!r}: expected <protocol>/<address>, e.g. tcp/0.0.0.0:7448"
+        )
+    if proto in _OTHER_PROTOCOLS:
+        return
+    if proto not in _HOST_PORT_PROTOCOLS:
+        known = ", ".join(_HOST_PORT_PROTOCOLS + _OTHER_PROTOCOLS)
+        raise ValueError(f"endpoint {endpoint!r}: unknown protocol {proto!r} (known: {known})")
+    host, colon, port = address.rpartition(":")
+    if not colon or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"endpoint {endpoint!r}: expected {proto}/<host>:<port 0..65535>")
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="magic gcs", description="Run the ground-control station.")
+    p = argparse.ArgumentParser(
+        prog="magic gcs",
+        description=_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     add_link_arguments(p)
-    p.add_argument("--config", type=Path, help="GCS config YAML (GroundStationConfig)")
-    p.add_argument("--clock", choices=("sim", "wall"), default="sim", help="mission time source")
-    p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
-    p.add_argument("--progress-s", type=float, default=5.0, help="wall seconds between reports")
+    for action in p._actions:
+        if action.dest in _LINK_HELP:
+            action.help = _LINK_HELP[action.dest]
+            action.metavar = {"radio": "YAML", "mission": "NAME"}.get(action.dest, "ENDPOINT")
+    p.add_argument(
+        "--config",
+        type=Path,
+        metavar="YAML",
+        help="GCS config YAML (GroundStationConfig: roster, loop closing, bounds on "
+        "covariances and clocks, ...); default: built in",
+    )
+    p.add_argument(
+        "--clock",
+        choices=("sim", "wall"),
+        default="sim",
+        help="mission time source: the simulator's clock ticks, or this host's clock for real "
+        "robots (default: %(default)s)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        metavar="S",
+        help="mission seconds to run (default: until SIGINT or SIGTERM)",
+    )
+    p.add_argument(
+        "--step-s",
+        type=float,
+        metavar="S",
+        default=0.5,
+        help="mission seconds between station steps: loop closing, optimization, frames "
+        "(default: %(default)s)",
+    )
+    p.add_argument(
+        "--budget-s",
+        type=float,
+        metavar="S",
+        default=0.2,
+        help="wall seconds of loop closing per step (default: %(default)s)",
+    )
+    p.add_argument(
+        "--progress-s",
+        type=float,
+        metavar="S",
+        default=5.0,
+        help="wall seconds between status lines (default: %(default)s)",
+    )
     return p
 
 
+def summary_line(proc: GcsProcess, stopped_by: str | None) -> str:
+    """One line: what ran (mission time, robots, nodes, grids, edges, rejections, faults)."""
+    s = proc.station.stats
+    g = proc.station.graph
+    how = f"stopped by {stopped_by}" if stopped_by else "done"
+    clocks = sum(s.clock_anomalies.values())
+    return (
+        f"magic gcs: {how} at t={proc.clock.now():.1f} s: robots {len(g.robots)} "
+        f"(linked {len(proc.station.frames())}), nodes {s.pose_nodes}, grids {s.terrain_grids}, "
+        f"edges {len(g.edges())}, rejected {s.rejected_total}, solver recoveries "
+        f"{s.solver_recoveries}/{s.solver_faults} faults, clock anomalies {clocks}"
+    )
+
+
+def _short(err: BaseException) -> str:
+    """An exception's message on one line, without zenoh's source locations, <= 150 chars."""
+    text = " ".join(str(err).split())
+    text = text.split(" at /", 1)[0]
+    return text if len(text) <= 150 else text[:147] + "..."
+
+
+class _Stopped(BaseException):
+    """SIGTERM before the station runs: unwinds like ^C (``KeyboardInterrupt``) does."""
+
+
 def main(argv: list[str]) -> int:
-    """``magic gcs``: returns the exit status (2 on bad arguments or configuration)."""
+    """``magic gcs``: returns the exit status (see the ``--help`` text)."""
+    on_main = threading.current_thread() is threading.main_thread()
+    previous_term = None
+    if on_main:  # until the station runs, SIGTERM unwinds like ^C: no traceback, status 143
+
+        def _raise(*_: object) -> None:
+            raise _Stopped
+
+        previous_term = signal.signal(signal.SIGTERM, _raise)
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print("magic gcs: stopped by SIGINT before the station started", file=sys.stderr)
+        return 130
+    except _Stopped:
+        print("magic gcs: stopped by SIGTERM before the station started", file=sys.stderr)
+        return 143
+    finally:
+        if previous_term is not None:
+            signal.signal(signal.SIGTERM, previous_term)
+
+
+def _main(argv: list[str]) -> int:
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exit_:
         return int(exit_.code or 0)
     try:
         keys.gcs(args.mission, "state")
+        for endpoint in args.connect + args.listen:
+            check_endpoint(endpoint)
+        for name in ("step_s", "budget_s", "progress_s"):
+            v = getattr(args, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"--{name.replace('_', '-')}: expected seconds > 0, got {v}")
+        if args.duration is not None and not (math.isfinite(args.duration) and args.duration >= 0):
+            raise ValueError(f"--duration: expected mission seconds >= 0, got {args.duration}")
         config = load_config(args.config, GroundStationConfig) if args.config else None
         radio = load_config(args.radio, RadioConfig)
     except (ConfigError, ValueError) as err:
         print(f"magic gcs: {err}", file=sys.stderr)
         return 2
     clock: Any = ManualClock() if args.clock == "sim" else WallClock()
-    link = Link(link_config(radio, args), mission=args.mission, clock=clock)
-    proc = GcsProcess(link, clock, config)
-    print(f"magic gcs: mission {args.mission!r}, waiting for robots", flush=True)
     try:
-        with stop_on_interrupt(proc.stop):
+        link = Link(link_config(radio, args), mission=args.mission, clock=clock)
+    except Exception as err:  # zenoh refuses the endpoints (unresolvable, in use, ...)
+        print(f"magic gcs: cannot open the zenoh link: {_short(err)}", file=sys.stderr)
+        return 2
+    proc = GcsProcess(link, clock, config, step_period_s=args.step_s, budget_s=args.budget_s)
+    print(f"magic gcs: mission {args.mission!r}, waiting for robots", flush=True)
+    stopped_by: list[int] = []
+
+    def on_signal(signum: int) -> None:
+        stopped_by.append(signum)
+        proc.stop()
+
+    try:
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, lambda *_: on_signal(signal.SIGTERM))
+        with stop_on_interrupt(lambda: on_signal(signal.SIGINT)):
             proc.run(
                 duration_s=args.duration,
                 progress=lambda s: print(s, flush=True),
@@ -159,5 +322,6 @@ def main(argv: list[str]) -> int:
     finally:
         proc.close()
         link.close()
-    print(proc.status_line(), flush=True)
-    return 0
+    signame = signal.Signals(stopped_by[0]).name if stopped_by else None
+    print(summary_line(proc, signame), flush=True)
+    return 128 + stopped_by[0] if stopped_by else 0

@@ -208,6 +208,7 @@ def test_loops_close_and_the_operator_can_suggest_accept_and_rewind() -> None:
     auto = gs.graph.edges(Provenance.LOOP_AUTO)
     assert len(auto) >= 3
     for e in auto:
+        assert e.key_b is not None
         true_rel = relative(truth[e.key_a & 0xFFFFFFFF], truth[e.key_b & 0xFFFFFFFF])
         assert np.hypot(*(e.z[:2] - true_rel[:2])) < 0.15
     _, poses = gs.graph.poses(0)
@@ -238,7 +239,8 @@ def test_inter_frame_grids_are_decoded_against_the_previous_nodes_grid() -> None
 
     world = random_world(np.random.default_rng(6), size_m=40.0)
     nodes = nodes_along(odom[:6])
-    grids, msgs = [], []
+    grids: list[tuple[np.ndarray, tuple[int, int]]] = []
+    msgs: list[TerrainGrid] = []
     for i, pose in enumerate(truth[:6]):
         grid, origin = scan_grid(scan_points(world, pose, rng=rng))
         cells = origin_cells_of(origin, 0.1)
