@@ -140,6 +140,7 @@ class LockstepPair:
     robot_link: Link
     gcs: GcsEndpoint
     robot: RobotEndpoint
+    _radio: LockstepRadio | None = None
 
     @classmethod
     def open(
@@ -169,17 +170,15 @@ class LockstepPair:
         return cls(clock, gcs_link, robot_link, gcs, robot)
 
     def step(self, dt_s: float, *, timeout_s: float = 10.0) -> None:
-        """Advance mission time by ``dt_s`` and exchange what both sides send, in lockstep."""
+        """Advance mission time by ``dt_s`` and exchange what both sides send, in lockstep
+        (a one-robot :class:`LockstepRadio`: messages are delivered inside this call, on
+        this thread)."""
         self.clock.advance(dt_s)
-        for src_link, src, dst in (
-            (self.robot_link, self.robot, self.gcs),
-            (self.gcs_link, self.gcs, self.robot),
-        ):
-            src_link.pump()
-            if not dst.wait_packets_in(src.packets_out, timeout_s):
-                raise TimeoutError(
-                    f"{src.packets_out - dst.packets_in} packets not delivered within {timeout_s} s"
-                )
+        if self._radio is None:
+            self._radio = LockstepRadio(
+                self.gcs_link, self.gcs, [self.robot_link], {self.robot.robot_id: self.robot}
+            )
+        self._radio.exchange(timeout_s)
 
     def close(self) -> None:
         self.robot_link.close()
