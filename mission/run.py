@@ -491,13 +491,14 @@ deterministic by default: a run is fixed by its world, seed, duration and config
 running it twice (on a loaded machine too) gives the same poses, events and figures, bit for
 bit. --realtime delivers radio traffic on wall-clock threads instead: not repeatable.
 
-terms: mission-s: simulated seconds; "xN real time": mission-s per wall second; events: the
-simulator's rule events, from ground truth (a robot disabled by a trigger or a hostile, a
-hostile neutralized, a civilian lasered); goals ok/sent: scripted goals reached / given;
-task: the latest task status the robot reported; driven m: distance driven (truth); nodes:
-pose nodes received by the ground side over the radio; uplink B/s: radio bytes the robot sent
-per mission-second; closest to a static OOI / hostile: the team's nearest approach (truth;
-keep-out 2.5 m / 5 m); teammate deadlocks broken: times a robot backed off a teammate.
+terms: mission-s: simulated seconds; "xN real time": mission-s per wall second; events
+(rule events): the simulator's rule events, from ground truth (a robot disabled by a trigger
+or a hostile, a hostile neutralized, a civilian lasered); goals ok/sent: scripted goals
+reached / given; task: the latest task status the robot reported; driven m: distance driven
+(truth); nodes: pose nodes received by the ground side over the radio; uplink B/s: radio
+bytes the robot sent per mission-second; closest to a static OOI / hostile: the team's
+nearest approach (truth; keep-out 2.5 m / 5 m); teammate deadlocks broken: times a robot
+backed off a teammate.
 """
 
 
@@ -507,8 +508,8 @@ def _parser() -> Any:
     d = RunConfig()
     p = argparse.ArgumentParser(
         prog="magic run",
-        description="Simulate a robot team on this machine, end to end: the simulator, one "
-        "robot node per robot and a scripted ground side (sends each robot goals) talking "
+        description="Simulate a robot team on this machine, end to end: the simulator, one\n"
+        "robot node per robot and a scripted ground side (it sends each robot goals), talking\n"
         "over the simulated radio on real zenoh sessions.",
         epilog=_HELP_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -546,9 +547,11 @@ def _parser() -> Any:
         "--robot-processes",
         action="store_true",
         help="each robot node in its own process (magic robot --lockstep), the simulator and "
-        "the ground side in this one: the same run as in one process, slower",
+        "the ground side in this one: the same run as in one process (default: one process)",
     )
-    p.add_argument("--quiet", action="store_true", help="no progress, only the summary")
+    p.add_argument(
+        "--quiet", action="store_true", help="no progress, only the summary (default: progress)"
+    )
     return p
 
 

@@ -157,7 +157,7 @@ def test_run_help_gives_defaults_units_outputs_and_terms(capsys) -> None:
         "(default: 0)",
         "(default: small)",
         "what a run produces: nothing on disk",
-        "events: the simulator's rule events",
+        "events (rule events): the simulator's rule events",
         "130 after ^C and 143 after SIGTERM",
         "--realtime",
         "NOT repeatable",
