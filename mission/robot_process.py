@@ -302,8 +302,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--lockstep",
         action="store_true",
-        help="answer every step of a lockstep simulator, radio pumped per step: the mission of "
-        "one process (magic run --robot-processes); default: as frames come",
+        help="be stepped by the ground side of `magic run --robot-processes` (it starts these "
+        "processes): every step answered, radio pumped per step, the same mission as in one "
+        "process (default: process frames as they come, wall-clock radio)",
     )
     p.add_argument(
         "--seed",
