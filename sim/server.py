@@ -16,9 +16,10 @@ Steps a :class:`~sim.simulator.Simulator` and, over zenoh (``protocol.link``):
 Pacing: ``--rtf R`` runs at R times real time (0: as fast as possible); ``--lockstep``
 advances only when every live robot node has consumed its latest sweep (a remote node
 acknowledges a sweep by sending any command stamped at or after the sweep's ``time_s``),
-which makes the robots' motion repeatable for nodes without radio traffic (the radio and a
-ground side are outside this lockstep: for a mission that repeats bit for bit use ``magic
-run``, with ``--robot-processes`` for nodes in their own processes). ^C (SIGINT) and
+which keeps the world at most a sweep ahead of its nodes; it does not make a run repeat
+exactly (commands between sweeps land at steps that depend on wall-clock timing, and the
+radio and a ground side are outside it): for a mission that repeats bit for bit use ``magic
+run``, with ``--robot-processes`` for nodes in their own processes. ^C (SIGINT) and
 SIGTERM stop the server cleanly: the link is closed, the last status line and the events are
 printed, exit status 130 / 143. Bad commands (NaN/inf, undecodable) are refused, counted
 and logged; the server runs on. Progress goes to stdout every ``--progress-s`` wall seconds.
