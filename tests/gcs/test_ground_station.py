@@ -398,3 +398,19 @@ def test_clock_anomalies_are_reported_once_per_kind_and_times_stay_monotone() ->
     out = gs.step(now_s=1e10 + 3.0)
     assert s.clock_anomalies["backwards"] == 2 and s.clock_anomalies["jump"] == 2
     assert out and out[0][1].time_s == pytest.approx(4.0)
+
+
+def test_a_near_singular_tag_covariance_is_refused_at_the_door() -> None:
+    gs = GroundStation()
+    for r in (0, 1):
+        for msg in nodes_along(straight(5)):
+            gs.handle(r, msg, now_s=0.0)
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    cov = covariance_to_upper(rot @ np.diag([1e-4, 1e-12, 1e-6]) @ rot.T)
+    tag = FiducialObservation(4, 4.0, 0, 7, (1.0, 0.0, 0.0), cov)  # type: ignore[arg-type]
+    assert not gs.handle(1, tag, now_s=0.0)
+    assert "fiducial of node 4 covariance: near singular (condition number" in gs.stats.errors[-1]
+    assert "above 1e+06)" in gs.stats.errors[-1]
+    gs.step(now_s=1.0)
+    assert gs.stats.solver_faults == 0

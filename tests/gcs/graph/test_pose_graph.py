@@ -527,3 +527,34 @@ def test_add_edge_refuses_non_positive_definite_and_numerically_singular_covaria
             g.add_edge(k0[2], k1[2], a_from_b=(1.0, 0.0, 0.0), covariance=cov,
                        provenance=Provenance.LOOP_OPERATOR, time_s=1.0)  # fmt: skip
         assert why in str(info.value) or why == "not positive definite"
+
+
+def test_a_real_indeterminate_system_from_a_near_singular_joining_edge_is_recovered() -> None:
+    """GTSAM's own fault, no injection: an edge of condition 1e8 (allowed here, refused from
+    robots at the GCS's door) is the only link between two robots; iSAM2 (incremental and
+    fresh alike) raises "Indeterminate linear system", the batch solve does not."""
+    g = PoseGraph()
+    for r in (0, 1):
+        for i in range(10):
+            g.add_pose(r, odom_from_base=(0.5 * i, 0.0, 0.0), time_s=float(i),
+                       odometry_covariance=ODO_COV if i else None)  # fmt: skip
+    assert g.optimize_incremental() is None
+    c, s = np.cos(0.7), np.sin(0.7)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    near_singular = rot @ np.diag([1e-4, 1e-12, 1e-6]) @ rot.T
+    g.add_edge(g.last_key(0), pose_key(1, 4), a_from_b=(1.0, 0.0, 0.0), covariance=near_singular,
+               provenance=Provenance.FIDUCIAL, time_s=10.0)  # fmt: skip
+    fault = g.optimize_incremental()
+    assert fault is not None and fault.recovered
+    assert fault.error.startswith("RuntimeError: Indeterminate linear system detected")
+    n_edges = len(g.edges())
+    for i in range(10, 13):  # the mission goes on: every node and edge kept, estimate finite
+        g.add_pose(1, odom_from_base=(0.5 * i, 0.0, 0.0), time_s=float(i),
+                   odometry_covariance=ODO_COV)  # fmt: skip
+        g.optimize_incremental()
+        assert len(g.edges()) == n_edges + i - 9
+    _, p1 = g.poses(1)
+    assert np.all(np.isfinite(p1))
+    # the edge holds: robot 1's node 4 sits 1 m ahead of robot 0's last node
+    np.testing.assert_allclose(se2.between(g.pose(g.last_key(0)), g.pose(pose_key(1, 4))),
+                               (1.0, 0.0, 0.0), atol=1e-6)  # fmt: skip
