@@ -26,7 +26,15 @@ detected, once per kind, summed) of ``clock_anomalies_injected``; ``nodes_lost``
 were not rejected at the door yet are not in the graph: target 0); ``*_ate_m`` (ATE against
 the log's corrected poses of each scenario's final estimate; rejected nodes are left out) and
 ``solver_max_pose_diff_m`` (largest distance between the ``solver`` and ``clean`` final
-estimates: the recovery changes nothing that matters); ``wall_s``.
+estimates); ``wall_s``.
+
+Measured (2-core machine, busy): quick 20 s: ``gcs_crashes`` 0, ``solver_recoveries`` 8 of 8
+faults, 5 of 5 non-physical covariances rejected, 3 of 3 clock anomalies detected, 0 nodes
+lost, ACES ATE 1.020 m clean / 1.020 m with solver faults / 0.760 m with everything;
+``solver_max_pose_diff_m`` 0.016. Full 87 s adds Intel: ATE 0.239 m clean, 0.118 m with solver
+faults, 0.100 m with everything; there the estimates differ by up to 0.91 m because each
+recovery's batch solve converges further than iSAM2's one relinearization per update (the
+loop closer then accepts other closures): the recovered estimate is the better one.
 
 Each ``step`` gets :data:`STEP_BUDGET_S`, a loop-closing budget that does not bind on this
 machine, so the scenarios differ only by their faults. ``--quick`` replays the ACES log (440
