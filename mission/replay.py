@@ -85,6 +85,7 @@ from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
 __all__ = [
     "FALSE_CLOSURE_M",
     "FALSE_CLOSURE_RAD",
+    "OdometryGaps",
     "OdometryNoiseConfig",
     "ReplayConfig",
     "ReplayNode",
@@ -92,6 +93,7 @@ __all__ = [
     "ScanGridConfig",
     "iter_replay_messages",
     "log_clock",
+    "odometry_gaps",
     "replay_messages",
     "replay_odometry",
     "run_replay",
@@ -282,6 +284,62 @@ def replay_odometry(
 
 
 @dataclass(frozen=True)
+class OdometryGaps:
+    """Steps of a log across which scans are missing (:func:`odometry_gaps`): ``steps``
+    (index ``k``: scan ``k`` to ``k + 1``), ``widen`` the zero-mean increments added before
+    each such step's own, and ``lines`` one line saying what was found and done."""
+
+    steps: NDArray[np.int64]
+    widen: dict[int, list[OdometryIncrement]]
+    lines: list[str]
+
+
+def odometry_gaps(log: CarmenLog, config: ReplayConfig, *, factor: float = 8.0) -> OdometryGaps:
+    """Find gaps in a log and widen the covariance of the steps across them.
+
+    A step is a gap when it is more than ``factor`` times the median step in distance: scans
+    were lost, and the one increment that spans them hides the turning between (its model sees
+    only the net turn, while the odometry's heading error grew with every turn). Time is no
+    evidence (a robot standing still makes long steps: the ACES log pauses up to 38 s), nor
+    does a straight line tell the path driven. The unseen turning is estimated from the rest of
+    the log, its turning per metre; what exceeds the step's own ``|dyaw|`` is added to the node
+    covariance as zero-mean increments (turning ``+u/2`` then ``-u/2`` on the spot), so the
+    step's mean is unchanged and its yaw variance grows by ``turn²·u``, as if the robot had been
+    seen turning.
+    """
+    odom = log.odometry_in_log
+    n = len(log)
+    empty = OdometryGaps(np.zeros(0, dtype=np.int64), {}, [])
+    if n < 3:
+        return empty
+    steps = relative(odom[:-1], odom[1:]).reshape(-1, 3)
+    ds = np.hypot(steps[:, 0], steps[:, 1])
+    dyaw = np.abs(steps[:, 2])
+    moving = ds > 1e-6
+    if not moving.any():
+        return empty
+    med_ds = float(np.median(ds[moving]))
+    gap = ds > factor * med_ds
+    if not gap.any():
+        return empty
+    ok = ~gap
+    path_m = float(ds[ok].sum())
+    turn_per_m = float(dyaw[ok].sum()) / path_m if path_m > 0 else 0.0
+    widen: dict[int, list[OdometryIncrement]] = {}
+    for k in np.flatnonzero(gap).tolist():
+        u = max(0.0, turn_per_m * ds[k] - dyaw[k])
+        if u > 0:
+            widen[k] = [OdometryIncrement(0.0, u / 2, 0.0), OdometryIncrement(0.0, -u / 2, 0.0)]
+    idx = np.flatnonzero(gap).astype(np.int64)
+    line = (
+        f"odometry gap: {len(idx)} step(s) from scan {int(idx[0]) + 1} (largest "
+        f"{float(ds[gap].max()):.3g} m, median step {med_ds:.3g} m); yaw covariance widened "
+        f"by the log's turning, {turn_per_m:.2f} rad/m"
+    )
+    return OdometryGaps(idx, widen, [line])
+
+
+@dataclass(frozen=True)
 class ReplayNode:
     """One pose node of the replay: the scan it was made at and the two messages it sends."""
 
@@ -302,6 +360,7 @@ def iter_replay_messages(
     cfg = config or ReplayConfig()
     odom, increments, model = replay_odometry(log, cfg)
     times = _scan_times(log, cfg.period_s)
+    widen = odometry_gaps(log, cfg).widen
     maker = PoseNodeMaker(model)
     gcfg = cfg.grid
     res = gcfg.resolution_m
@@ -309,6 +368,8 @@ def iter_replay_messages(
     points_of: dict[int, FloatArray] = {}  # a scan joins several nodes' grids: convert once
     for k in range(len(log)):
         if k > 0:
+            for extra in widen.get(k - 1, ()):
+                maker.add_increment(extra)
             maker.add_increment(increments[k - 1])
         if not maker.due(odom[k], float(times[k])):
             continue
@@ -347,6 +408,7 @@ class ReplayResult:
     ``(K, 3)``; against the reference, ``closure_err_m`` / ``closure_err_rad`` ``(K,)`` and
     ``false_closures``, those off by more than ``FALSE_CLOSURE_M`` or ``FALSE_CLOSURE_RAD``.
     ``clock`` the clock anomalies found and what was done (one line each, empty: a good clock);
+    ``gaps`` the same for steps across lost scans (:func:`odometry_gaps`);
     ``evaluation_errors`` one line per evaluation that could not be done; ``relations_alignment``
     how the relations' clock was mapped; ``interrupted`` the signal's name when the replay was
     stopped early (``scans_done`` scans were fed).
@@ -373,6 +435,7 @@ class ReplayResult:
     relations_odometry: RelationsError | None = None
     files: dict[str, str] = field(default_factory=dict)
     clock: list[str] = field(default_factory=list)
+    gaps: list[str] = field(default_factory=list)
     evaluation_errors: list[str] = field(default_factory=list)
     relations_alignment: RelationsAlignment | None = None
     interrupted: str | None = None
@@ -395,6 +458,7 @@ class ReplayResult:
             "wall_s": round(self.wall_s, 3),
             "station": self.station_stats,
             "clock": list(self.clock),
+            "gaps": list(self.gaps),
         }
         if self.interrupted is not None:
             out["interrupted"] = self.interrupted
@@ -526,6 +590,7 @@ def run_replay(
         },
         wall_s=time.perf_counter() - t_start,
         clock=clock.lines(),
+        gaps=odometry_gaps(log, cfg).lines,
         interrupted=interrupted,
         scans_done=int(scans[-1]) + 1 if len(scans) else 0,
     )
@@ -750,6 +815,8 @@ def _format_summary(summary: dict[str, Any]) -> list[str]:
                 f"{summary['relations_odometry_trans_err_m']:.3f} m, "
                 f"{summary['relations_odometry_rot_err_deg']:.2f} deg)"
             )
+    for line in summary.get("gaps", []):
+        lines.append(line)
     for line in summary.get("clock", []):
         lines.append(f"clock of the log: {line.removeprefix('clock ')}")
     if summary.get("evaluation", "ok") != "ok":

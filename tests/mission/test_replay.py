@@ -23,6 +23,7 @@ from mission.replay import (
 )
 from protocol.messages import covariance_from_upper
 from protocol.se2 import compose, relative, transform_points
+from robot.odometry.pose_node_maker import PoseNodeMaker
 
 LASER = Path(__file__).resolve().parents[2] / ".." / "shared" / "datasets" / "laser"
 
@@ -508,3 +509,33 @@ def test_perturbations_of_a_log() -> None:
     assert np.all(log.time_s == synthetic_log(laps=0.5).time_s)  # inputs untouched
     with pytest.raises(ValueError, match="factor"):
         scale_turns(log, 0.0)
+
+
+def test_an_odometry_gap_widens_the_yaw_covariance_only_across_it() -> None:
+    from mission.bench.perturbations import drop_scans
+    from mission.replay import odometry_gaps
+
+    log = synthetic_log(laps=0.7)
+    cfg = ReplayConfig()
+    assert odometry_gaps(log, cfg).lines == []
+    gap = drop_scans(log, 30, 20)  # 6 m of a route that turns 90 deg every 9..15 m
+    found = odometry_gaps(gap, cfg)
+    assert found.steps.tolist() == [29] and len(found.lines) == 1
+    assert "odometry gap" in found.lines[0] and len(found.lines[0]) < 200
+    nodes = {n.scan: n.pose_node for n in replay_messages(gap, cfg)}
+    plain = PoseNodeMaker(cfg.nodes)
+    odom, increments, _model = replay_odometry(gap, cfg)
+    for k in range(31):
+        if k > 0:
+            plain.add_increment(increments[k - 1])
+        if plain.due(odom[k], float(k)):
+            node = plain.make(odom[k], float(k))
+    across = nodes[30]
+    np.testing.assert_allclose(across.odom_delta, node.odom_delta, atol=1e-6)
+    cov, cov_plain = (
+        covariance_from_upper(across.odom_covariance),
+        covariance_from_upper(node.odom_covariance),
+    )
+    assert cov[2, 2] > 1.5 * cov_plain[2, 2]
+    # The heading unseen in the gap also spreads where the step ends (sideways), not along it.
+    assert cov[0, 0] == pytest.approx(cov_plain[0, 0], rel=0.05) and cov[1, 1] > cov_plain[1, 1]
