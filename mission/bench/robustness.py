@@ -25,7 +25,8 @@ comes on top of the bias). The Duke DP-SLAM log has raw odometry but no referenc
 cannot be scored here and is skipped with that reason. Perturbations (``mission.bench
 .perturbations``): ``turns_0.92``/``turns_1.08`` (gyro scale error), ``clock_frozen`` (all 0),
 ``clock_coarse`` (1e4 s steps at 1.13486e9), ``clock_jump`` (+4.29e9 s from a third of the
-log), ``gap`` (a tenth of the scans dropped from the middle).
+log), ``gap`` (a tenth of the scans dropped from the middle). What the replay found and did
+about each (a clock anomaly, an odometry gap) is in its progress line.
 
 Metrics of the replay part:
 
@@ -33,6 +34,7 @@ Metrics of the replay part:
   the largest over all runs; target <= 0.5.
 - ``perturbed_ate_ratio_max``: a perturbed run's ATE over the same log's clean run's ATE, the
   largest; target <= 1.2.
+- ``perturbed_ate_ratio_max_{turns,clock,gap}``: the same per kind of perturbation.
 - ``false_closures``: accepted closures off the log's poses by more than 0.5 m or 5 deg, summed
   over all runs; target 0.
 - ``replay_exceptions``: replays that raised (counted into ``gcs_crashes``); target 0.
@@ -140,6 +142,7 @@ def replay_part(
     metrics: dict[str, float] = {}
     over_odometry: list[float] = []
     perturbed_ratio: list[float] = []
+    ratio_by_kind: dict[str, list[float]] = {}
     false_closures = 0
     exceptions = 0
     for name, file in (logs or LOGS).items():
@@ -182,8 +185,10 @@ def replay_part(
                 base_ate = ate
             elif base_ate is not None:
                 perturbed_ratio.append(ate / max(base_ate, 1e-9))
+                ratio_by_kind.setdefault(rname.split("_")[0], []).append(perturbed_ratio[-1])
                 ratio = f", {perturbed_ratio[-1]:.2f} x clean"
-            clock = f"; {'; '.join(result.clock)}" if result.clock else ""
+            notes = [*result.clock, *result.gaps]
+            clock = f"; {'; '.join(notes)}" if notes else ""
             progress(
                 f"replay {name} {rname}: {row}{ratio}, {time.perf_counter() - t0:.1f} s{clock}"
             )
@@ -192,6 +197,8 @@ def replay_part(
     metrics["ate_over_odometry_max"] = max(over_odometry)
     if perturbed_ratio:
         metrics["perturbed_ate_ratio_max"] = max(perturbed_ratio)
+    for kind, ratios in ratio_by_kind.items():
+        metrics[f"perturbed_ate_ratio_max_{kind}"] = max(ratios)
     metrics["false_closures"] = float(false_closures)
     metrics["replay_exceptions"] = float(exceptions)
     return metrics
