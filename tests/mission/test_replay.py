@@ -539,3 +539,27 @@ def test_an_odometry_gap_widens_the_yaw_covariance_only_across_it() -> None:
     assert cov[2, 2] > 1.5 * cov_plain[2, 2]
     # The heading unseen in the gap also spreads where the step ends (sideways), not along it.
     assert cov[0, 0] == pytest.approx(cov_plain[0, 0], rel=0.05) and cov[1, 1] > cov_plain[1, 1]
+
+
+def test_robustness_suite_scores_perturbed_replays_and_fails_missing_parts(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import mission.bench.robustness as robustness
+
+    if not (LASER / robustness.LOGS["fr079"]).is_file():
+        pytest.skip(f"shared laser logs not found at {LASER.resolve()}")
+    monkeypatch.setattr(robustness, "PARTS", ("robustness_no_such_part",))
+    monkeypatch.setattr(robustness, "LOGS", {"fr079": robustness.LOGS["fr079"]})
+    monkeypatch.setattr(robustness, "QUICK_SCANS", {"fr079": 150})
+    lines: list[str] = []
+    metrics = robustness.run(quick=True, progress=lines.append)
+    assert metrics["parts_failed"] == 1 and "gcs_crashes" not in metrics
+    assert any("robustness_no_such_part FAILED" in line for line in lines)
+    assert metrics["replay_exceptions"] == 0
+    runs = [k for k in metrics if k.startswith("fr079_") and k.endswith("_ate_m")]
+    assert len(runs) == 1 + len(robustness.PERTURBATIONS)
+    ratio = max(
+        metrics[f"fr079_{p}_ate_m"] / metrics["fr079_clean_ate_m"] for p in robustness.PERTURBATIONS
+    )
+    assert metrics["perturbed_ate_ratio_max"] == pytest.approx(ratio)
+    assert any("clock frozen" in line for line in lines)
