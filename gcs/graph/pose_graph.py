@@ -46,7 +46,7 @@ from scipy.sparse.csgraph import connected_components
 
 from gcs.graph import se2
 from gcs.graph.dijkstra_projection import Adjacency, ProjectionResult, dijkstra_projection
-from gcs.graph.g2o import G2oGraph, chained_odometry
+from gcs.graph.g2o import G2oGraph, initial_poses
 from gcs.graph.keys import pose_key, split_key
 from gcs.graph.optimization import (
     Isam2Config,
@@ -92,6 +92,11 @@ FloatArray = NDArray[np.floating[Any]]
 _Arrays = tuple[NDArray[np.int64], FloatArray, FloatArray]
 
 
+#: How weakly :meth:`PoseGraph.from_g2o` bridges a gap in a g2o graph's odometry chain.
+GAP_SIGMA_XY_M = 1e3
+GAP_SIGMA_YAW_RAD = math.pi
+
+
 class PoseGraphError(ValueError):
     """Bad input to the pose graph (unknown robot or key, non-finite value, bad covariance)."""
 
@@ -122,7 +127,7 @@ class PoseGraphConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     anchor_sigma_yaw_rad: float = 1e-5
     weak_anchor_sigma_xy_m: float = 10.0
     weak_anchor_sigma_yaw_rad: float = 1.0
-    method: SolveMethod = "lm"
+    method: SolveMethod = "block_lm"
     ordering: OrderingKind = "colamd"
     max_iterations: int = 100
     relative_error_tol: float = 1e-6
@@ -854,27 +859,50 @@ class PoseGraph:
     ) -> PoseGraph:
         """A one-robot pose graph from a g2o graph whose vertices ``0..N-1`` form an odometry
         chain (``i -> i+1`` edges become ``ODOMETRY``, the others ``LOOP_AUTO``). Pose ``i``
-        is stamped ``i * period_s``; the estimate starts from chained odometry."""
+        is stamped ``i * period_s``; the estimate starts from chained odometry.
+
+        A chain with gaps (no ``k-1 -> k`` edge) is crossed by the relative pose of the spanning
+        tree over all edges (:func:`gcs.graph.g2o.initial_poses`): each gap becomes an
+        ``ODOMETRY`` edge stating it with ``GAP_SIGMA_XY_M`` / ``GAP_SIGMA_YAW_RAD``, which keeps
+        the robot's chain whole and carries next to no information (a weight 1e-6 of a
+        metre-sigma edge), so the optimum is the file's.
+        """
         ids = graph.node_ids
         if ids.size and not np.array_equal(ids, np.arange(ids.size)):
             raise PoseGraphError("from_g2o: vertex ids must be 0..N-1")
         cfg = config or PoseGraphConfig(map_robot_id=robot_id)
         out = cls(cfg)
-        odo = chained_odometry(graph)
+        start = initial_poses(graph, "chained").poses
         chain: dict[int, int] = {}
         for m, (i, j) in enumerate(graph.edge_ij.tolist()):
             if abs(i - j) == 1 and min(i, j) not in chain:
                 chain[min(i, j)] = m
         covs = np.linalg.inv(graph.edge_info)
+        # The robot's odometry: each stretch chains its own edges; a gap is crossed by the
+        # start's relative pose (the odometry edges are measured from consecutive odom poses).
+        odo = np.array(start, dtype=float, copy=True)
+        for k in range(1, ids.size):
+            link = chain.get(k - 1)
+            if link is None:
+                step = se2.between(start[k - 1], start[k])
+            elif graph.edge_ij[link, 0] == k - 1:
+                step = graph.edge_z[link]
+            else:
+                step = se2.inverse(graph.edge_z[link])
+            odo[k] = se2.compose(odo[k - 1], step)
+        gap_cov = np.diag([GAP_SIGMA_XY_M**2, GAP_SIGMA_XY_M**2, GAP_SIGMA_YAW_RAD**2])
         for k in range(ids.size):
             if k == 0:
                 out.add_pose(robot_id, odom_from_base=odo[0], time_s=0.0)
                 continue
-            m = chain[k - 1]
-            cov = covs[m]
-            if graph.edge_ij[m, 0] != k - 1:  # stated k -> k-1: express as k-1 -> k
-                ad = se2.adjoint(graph.edge_z[m])
-                cov = ad @ cov @ ad.T
+            m_or_none = chain.get(k - 1)
+            if m_or_none is None:
+                cov = gap_cov
+            else:
+                cov = covs[m_or_none]
+                if graph.edge_ij[m_or_none, 0] != k - 1:  # stated k -> k-1: as k-1 -> k
+                    ad = se2.adjoint(graph.edge_z[m_or_none])
+                    cov = ad @ cov @ ad.T
             out.add_pose(
                 robot_id, odom_from_base=odo[k], time_s=k * period_s, odometry_covariance=cov
             )

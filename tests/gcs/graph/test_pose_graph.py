@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gcs.graph import se2
-from gcs.graph.g2o import read_g2o, write_g2o
+from gcs.graph.g2o import G2oGraph, read_g2o, write_g2o
 from gcs.graph.keys import pose_key
 from gcs.graph.pose_graph import (
     EdgeRecord,
@@ -333,6 +333,28 @@ def test_from_g2o_reaches_optimum_and_exports(posegraph_dir: Path, tmp_path: Pat
     write_g2o(tmp_path / "m.g2o", out)
     back = read_g2o(tmp_path / "m.g2o")
     assert len(back.edge_ij) == len(out.edge_ij)
+
+
+def test_from_g2o_bridges_a_gap_in_the_odometry_chain(posegraph_dir: Path) -> None:
+    """A chain with a gap starts from the spanning tree and keeps the file's optimum."""
+    g = read_g2o(posegraph_dir / "intel.g2o")
+    keep = ~np.all(np.sort(g.edge_ij, axis=1) == [700, 701], axis=1)
+    assert keep.sum() == len(keep) - 1
+    gap = G2oGraph(
+        vertex_ids=g.vertex_ids,
+        vertex_poses=g.vertex_poses,
+        edge_ij=g.edge_ij[keep],
+        edge_z=g.edge_z[keep],
+        edge_info=g.edge_info[keep],
+        chi2_offset=g.chi2_offset,
+    )
+    graph = PoseGraph.from_g2o(gap)
+    assert len(graph.edges(Provenance.ODOMETRY)) == g.vertex_ids.size - 1
+    graph.optimize()
+    out = graph.to_g2o()
+    poses = dict(zip(out.vertex_ids.tolist(), out.vertex_poses, strict=True))
+    # the file's own optimum without the removed edge: at most the full graph's 45.004
+    assert gap.chi2(poses) + gap.chi2_offset == pytest.approx(45.0, abs=0.5)
 
 
 def test_simplify_keeps_solution_and_drops_edges() -> None:
