@@ -587,6 +587,9 @@ def run_replay(
             "terrain_grids": stats.terrain_grids,
             "optimizations": stats.optimizations,
             "rejected": dict(stats.rejected),
+            "solver_faults": stats.solver_faults,
+            "solver_recoveries": stats.solver_recoveries,
+            "clock_anomalies": dict(stats.clock_anomalies),
         },
         wall_s=time.perf_counter() - t_start,
         clock=clock.lines(),
@@ -815,6 +818,12 @@ def _format_summary(summary: dict[str, Any]) -> list[str]:
                 f"{summary['relations_odometry_trans_err_m']:.3f} m, "
                 f"{summary['relations_odometry_rot_err_deg']:.2f} deg)"
             )
+    station = summary.get("station", {})
+    if station.get("solver_faults"):
+        lines.append(
+            f"solver faults: {station['solver_faults']}, recovered "
+            f"{station['solver_recoveries']} (batch re-solve, fresh iSAM2)"
+        )
     for line in summary.get("gaps", []):
         lines.append(line)
     for line in summary.get("clock", []):
