@@ -263,6 +263,7 @@ class PictureBuilder:
         self._graph_mark: tuple[int, int, int] | None = None
         self._closure_count = 0
         self._last_map: OccupancyMap | None = None
+        self._trails: dict[int, tuple[int, FloatArray]] = {}  # robot -> (last key, trail)
         self.map_version = 0
         self.cpu_s = 0.0
         self.rasterize_cpu_s = 0.0
@@ -512,19 +513,31 @@ class PictureBuilder:
     def _trail(
         self, station: GroundStation, rid: int, graph_pic: GraphPicture | None
     ) -> FloatArray:
+        """The robot's last ``trail_nodes`` poses: refreshed from the graph picture when one
+        is built (the posterior moved), else extended by the new nodes only (O(new))."""
         n = self.config.trail_nodes
-        if graph_pic is not None and rid in graph_pic.chains_in_map:
-            return graph_pic.chains_in_map[rid][-n:]
-        # the last n keys of the robot: keys are consecutive pose indices (gcs.graph.keys)
         last = station.graph.last_key(rid)
+        if graph_pic is not None and rid in graph_pic.chains_in_map:
+            trail = graph_pic.chains_in_map[rid][-n:]
+            self._trails[rid] = (last, trail)
+            return trail
+        cached = self._trails.get(rid)
+        if cached is not None and cached[0] == last:
+            return cached[1]
+        # keys of one robot are consecutive pose indices (gcs.graph.keys)
         first = max(last - n + 1, last - _index_of(last))
+        if cached is not None:
+            first = max(first, cached[0] + 1)
         pts = []
         for k in range(first, last + 1):
             try:
                 pts.append(station.graph.pose(k)[:2])
             except Exception:
                 continue
-        return np.asarray(pts, dtype=float).reshape(-1, 2)
+        new = np.asarray(pts, dtype=float).reshape(-1, 2)
+        trail = new if cached is None else np.concatenate([cached[1], new])[-n:]
+        self._trails[rid] = (last, trail)
+        return trail
 
     def _graph_picture(
         self, station: GroundStation, now_s: float, force: bool

@@ -97,7 +97,9 @@ def render_region(
             cv2.drawMarker(rgb, pix(x, y), (0, 200, 200), cv2.MARKER_CROSS, 5, 1)
     for r in picture.robots:
         if len(r.trail_in_map) >= 2:
-            pts = np.array([pix(x, y) for x, y in r.trail_in_map], dtype=np.int32)
+            t = np.asarray(r.trail_in_map, dtype=float)
+            pts = np.rint(np.column_stack([t[:, 0] - x0, y1 - t[:, 1]]) / m_per_px)
+            pts = pts.astype(np.int32)
             cv2.polylines(rgb, [pts], False, (120, 200, 120), 1, cv2.LINE_AA)
         if r.goal_in_map is not None:
             cv2.drawMarker(rgb, pix(*r.goal_in_map[:2]), (0, 120, 255), cv2.MARKER_STAR, 8, 1)

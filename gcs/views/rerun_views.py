@@ -194,9 +194,11 @@ class RerunViews:
     """Draws operator pictures into rerun sinks from a worker thread (module docstring).
 
     ``sinks``: one spec or several (:func:`parse_sink`), e.g. ``["spawn", "save run.rrd"]``.
-    ``threaded=False`` draws inside :meth:`publish` (tests, measurements). ``zoom_px``: side
-    of a SAGE zoom image; ``zoom_period_s``: a zoom slot is redrawn at most this often (mission
-    seconds) unless its event changed. :meth:`close` flushes and ends the worker (bounded).
+    ``threaded=False`` draws inside :meth:`publish` (tests, measurements). ``zoom_px``: side of
+    a SAGE zoom image; ``zoom_period_s``: a zoom slot is redrawn at most this often (mission
+    seconds) unless its event changed. ``radio_flush_s``: the uplink time series are buffered and
+    sent as columns this often (mission seconds; cheaper than a log call per robot per picture).
+    :meth:`close` flushes and ends the worker (bounded).
     """
 
     def __init__(
@@ -210,6 +212,7 @@ class RerunViews:
         zoom_px: int = 192,
         zoom_period_s: float = 10.0,
         retry_s: float = 10.0,
+        radio_flush_s: float = 5.0,
         probe_timeout_s: float = 0.3,
     ) -> None:
         specs = [sinks] if isinstance(sinks, str) else list(sinks)
@@ -234,7 +237,9 @@ class RerunViews:
         self._last_map: OccupancyMap | None = None
         self._slots: list[tuple[int, int, float] | None] = [None] * _TOP_SLOTS
         self._slot_drawn_s = [-math.inf] * _TOP_SLOTS
-        self._robots_seen: set[int] = set()
+        self._radio: dict[str, list[tuple[float, float]]] = {}
+        self._radio_sent_s = -math.inf
+        self.radio_flush_s = radio_flush_s
         self._mailbox: collections.deque[OperatorPicture] = collections.deque()
         self._queue_size = max(1, queue_size)
         self._cv = threading.Condition()
@@ -405,6 +410,7 @@ class RerunViews:
 
     def _flush(self, timeout_s: float) -> None:
         try:
+            self._flush_radio()
             self.rec.flush(timeout_sec=timeout_s)
         except Exception as err:
             self._report("flush", f"flush failed: {type(err).__name__}: {err}")
@@ -485,17 +491,13 @@ class RerunViews:
             rec.log("/world/robots/heading", rr.Arrows3D(origins=xyz, vectors=vec, colors=colors))
         strips = [_xyz(r.trail_in_map, _Z_GRAPH) for r in placed if len(r.trail_in_map) >= 2]
         rec.log("/world/trails", rr.LineStrips3D(strips, colors=(90, 200, 90), radii=0.04))
-        goals = [r for r in placed if r.goal_in_map is not None]
+        goals = np.array(
+            [[r.pose_in_map[:2], r.goal_in_map[:2]] for r in placed if r.goal_in_map is not None],  # type: ignore[index]
+            dtype=np.float64,
+        )
         rec.log(
             "/world/goals",
-            rr.LineStrips3D(
-                [
-                    [[*r.pose_in_map[:2], _Z_MARK], [*r.goal_in_map[:2], _Z_MARK]]  # type: ignore[index]
-                    for r in goals
-                ],
-                colors=(0, 120, 255),
-                radii=0.03,
-            ),
+            rr.LineStrips3D(_segs3(goals, _Z_MARK), colors=(0, 120, 255), radii=0.03),
         )
         if len(p.frontiers_in_map):
             rec.log(
@@ -503,15 +505,29 @@ class RerunViews:
                 rr.Points3D(_xyz(p.frontiers_in_map, _Z_GRAPH), colors=(0, 210, 210), radii=0.15),
             )
         if len(p.trajectory_segments_in_map):
-            segs = [_xyz(s, _Z_GRAPH) for s in p.trajectory_segments_in_map]
+            segs = _segs3(p.trajectory_segments_in_map, _Z_GRAPH)
             rec.log(
                 "/world/trajectory_graph", rr.LineStrips3D(segs, colors=(0, 160, 160), radii=0.03)
             )
-        for rid in {r.robot_id for r in p.robots} - self._robots_seen:
-            self._robots_seen.add(rid)
+        # radio time series: buffered and sent as columns (one call per robot per flush)
+        t = float(p.time_s)
         for r in p.robots:
-            rec.log(f"/dashboard/radio/robot_{r.robot_id}", rr.Scalars([r.uplink_bps]))
-        rec.log("/dashboard/radio/total", rr.Scalars([p.uplink_total_bps]))
+            self._radio.setdefault(f"robot_{r.robot_id}", []).append((t, r.uplink_bps))
+        self._radio.setdefault("total", []).append((t, p.uplink_total_bps))
+        if t - self._radio_sent_s >= self.radio_flush_s:
+            self._flush_radio()
+            self._radio_sent_s = t
+
+    def _flush_radio(self) -> None:
+        for name, samples in self._radio.items():
+            if samples:
+                a = np.asarray(samples, dtype=np.float64)
+                self.rec.send_columns(
+                    f"/dashboard/radio/{name}",
+                    indexes=[rr.TimeColumn("mission", duration=a[:, 0])],
+                    columns=rr.Scalars.columns(scalars=a[:, 1]),
+                )
+        self._radio = {}
 
     def _draw_objects(self, p: OperatorPicture) -> None:
         rec = self.rec
@@ -526,13 +542,9 @@ class RerunViews:
                     labels=[f"{o.object_id} {o.kind_name}" for o in p.objects],
                 ),
             )
-        trig, blast = [], []
-        for _, kind, pos in p.hazards:
-            b = blast_radius_m(kind)
-            if b is None:
-                continue
-            trig.append(_circle(pos, TRIGGER_M))
-            blast.append(_circle(pos, b))
+        danger = [(pos, b) for _, kind, pos in p.hazards if (b := blast_radius_m(kind))]
+        trig = np.array([_circle(pos, TRIGGER_M) for pos, _ in danger]).reshape(-1, 33, 3)
+        blast = np.array([_circle(pos, b) for pos, b in danger]).reshape(-1, 33, 3)
         rec.log("/world/danger/trigger", rr.LineStrips3D(trig, colors=(255, 0, 0), radii=0.05))
         rec.log("/world/danger/blast", rr.LineStrips3D(blast, colors=(255, 140, 0), radii=0.05))
 
@@ -549,14 +561,12 @@ class RerunViews:
             segs = g.segments_in_map.get(kind, np.zeros((0, 2, 2)))
             rec.log(
                 f"/world/graph/{kind}",
-                rr.LineStrips3D(
-                    [_xyz(s, _Z_GRAPH) for s in segs], colors=EDGE_RGB[kind], radii=0.03
-                ),
+                rr.LineStrips3D(_segs3(segs, _Z_GRAPH), colors=EDGE_RGB[kind], radii=0.03),
             )
         rec.log(
             "/world/graph/recent_closures",
             rr.LineStrips3D(
-                [_xyz(s, _Z_GRAPH + 0.02) for s in g.recent_closures_in_map],
+                _segs3(g.recent_closures_in_map, _Z_GRAPH + 0.02),
                 colors=(255, 230, 0),
                 radii=0.08,
             ),
@@ -577,7 +587,9 @@ class RerunViews:
     def _draw_sage(self, p: OperatorPicture) -> None:
         rec = self.rec
         top = p.top_events[:_TOP_SLOTS]
-        boxes = [_square(e.zoom_center_in_map, e.zoom_half_m) for e in top]
+        boxes = np.array([_square(e.zoom_center_in_map, e.zoom_half_m) for e in top]).reshape(
+            -1, 5, 3
+        )
         rec.log(
             "/world/sage/boxes",
             rr.LineStrips3D(
@@ -628,6 +640,12 @@ def _robot_rgb(r: RobotStatus) -> tuple[int, int, int]:
 def _xyz(xy: Any, z: float) -> np.ndarray:
     a = np.asarray(xy, dtype=np.float32).reshape(-1, 2)
     return np.column_stack([a, np.full(len(a), z, dtype=np.float32)])
+
+
+def _segs3(segs: Any, z: float) -> np.ndarray:
+    """``(M, 2, 2)`` segments as ``(M, 2, 3)`` float32 at height ``z`` (rerun's numpy path)."""
+    a = np.asarray(segs, dtype=np.float32).reshape(-1, 2, 2)
+    return np.concatenate([a, np.full((len(a), 2, 1), z, dtype=np.float32)], axis=2)
 
 
 def _circle(center: tuple[float, float], r_m: float, n: int = 32) -> np.ndarray:
