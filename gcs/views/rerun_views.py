@@ -198,6 +198,8 @@ class RerunViews:
     a SAGE zoom image; ``zoom_period_s``: a zoom slot is redrawn at most this often (mission
     seconds) unless its event changed. ``radio_flush_s``: the uplink time series are buffered and
     sent as columns this often (mission seconds; cheaper than a log call per robot per picture).
+    ``slow_period_s``: trails, goals, frontiers and the trajectory graph are redrawn at most this
+    often (with every graph picture otherwise); objects, rings and SAGE boxes only on change.
     :meth:`close` flushes and ends the worker (bounded).
     """
 
@@ -213,6 +215,7 @@ class RerunViews:
         zoom_period_s: float = 10.0,
         retry_s: float = 10.0,
         radio_flush_s: float = 5.0,
+        slow_period_s: float = 5.0,
         probe_timeout_s: float = 0.3,
     ) -> None:
         specs = [sinks] if isinstance(sinks, str) else list(sinks)
@@ -238,6 +241,9 @@ class RerunViews:
         self._slots: list[tuple[int, int, float] | None] = [None] * _TOP_SLOTS
         self._slot_drawn_s = [-math.inf] * _TOP_SLOTS
         self._radio: dict[str, list[tuple[float, float]]] = {}
+        self._marks: dict[str, Any] = {}  # layer -> what was drawn last (skip if unchanged)
+        self._drawn_s: dict[str, float] = {}
+        self.slow_period_s = slow_period_s
         self._radio_sent_s = -math.inf
         self.radio_flush_s = radio_flush_s
         self._mailbox: collections.deque[OperatorPicture] = collections.deque()
@@ -409,9 +415,14 @@ class RerunViews:
             self._report("retry", f"reconnect failed: {type(err).__name__}: {err}")
 
     def _flush(self, timeout_s: float) -> None:
+        """Send what is buffered and end the sinks: a file gets its footer (an index readers
+        use). Skipped for an unreachable viewer, whose ending would wait out rerun's 5 s."""
         try:
             self._flush_radio()
             self.rec.flush(timeout_sec=timeout_s)
+            live = any(s.kind in ("spawn", "connect", "web") for s in self.sinks)
+            if self._live_ok or not live:
+                self.rec.disconnect()
         except Exception as err:
             self._report("flush", f"flush failed: {type(err).__name__}: {err}")
 
@@ -489,6 +500,22 @@ class RerunViews:
             )
             vec = np.column_stack([np.cos(pose[:, 2]), np.sin(pose[:, 2]), np.zeros(len(placed))])
             rec.log("/world/robots/heading", rr.Arrows3D(origins=xyz, vectors=vec, colors=colors))
+        # slow layers (trails, goals, frontiers, trajectory graph): with every graph picture,
+        # else at most every slow_period_s when something changed
+        mark = (
+            tuple((r.robot_id, r.nodes) for r in placed),
+            len(p.frontiers_in_map),
+            len(p.trajectory_segments_in_map),
+        )
+        t = float(p.time_s)
+        if p.graph is None and (
+            mark == self._marks.get("plan")
+            or t - self._drawn_s.get("plan", -math.inf) < self.slow_period_s
+        ):
+            self._log_radio(p)
+            return
+        self._marks["plan"] = mark
+        self._drawn_s["plan"] = t
         strips = [_xyz(r.trail_in_map, _Z_GRAPH) for r in placed if len(r.trail_in_map) >= 2]
         rec.log("/world/trails", rr.LineStrips3D(strips, colors=(90, 200, 90), radii=0.04))
         goals = np.array(
@@ -509,6 +536,9 @@ class RerunViews:
             rec.log(
                 "/world/trajectory_graph", rr.LineStrips3D(segs, colors=(0, 160, 160), radii=0.03)
             )
+        self._log_radio(p)
+
+    def _log_radio(self, p: OperatorPicture) -> None:
         # radio time series: buffered and sent as columns (one call per robot per flush)
         t = float(p.time_s)
         for r in p.robots:
@@ -531,6 +561,10 @@ class RerunViews:
 
     def _draw_objects(self, p: OperatorPicture) -> None:
         rec = self.rec
+        mark = (tuple((o.object_id, o.sightings) for o in p.objects), tuple(p.hazards))
+        if mark == self._marks.get("objects"):
+            return  # unchanged: the viewer keeps showing the latest
+        self._marks["objects"] = mark
         if p.objects:
             xyz = np.array([[*o.position_in_map, _Z_MARK] for o in p.objects])
             rec.log(
@@ -587,25 +621,26 @@ class RerunViews:
     def _draw_sage(self, p: OperatorPicture) -> None:
         rec = self.rec
         top = p.top_events[:_TOP_SLOTS]
-        boxes = np.array([_square(e.zoom_center_in_map, e.zoom_half_m) for e in top]).reshape(
-            -1, 5, 3
-        )
-        rec.log(
-            "/world/sage/boxes",
-            rr.LineStrips3D(
-                boxes,
-                colors=[_SEVERITY_RGB.get(e.severity, (255, 255, 255)) for e in top],
-                radii=0.08,
-                labels=[f"{i + 1}: {e.kind.value}" for i, e in enumerate(top)],
-            ),
-        )
+        top_mark = tuple((e.event_id, e.count, e.severity) for e in top)
+        if top_mark != self._marks.get("sage"):
+            self._marks["sage"] = top_mark
+            boxes = np.array([_square(e.zoom_center_in_map, e.zoom_half_m) for e in top])
+            rec.log(
+                "/world/sage/boxes",
+                rr.LineStrips3D(
+                    boxes.reshape(-1, 5, 3),
+                    colors=[_SEVERITY_RGB.get(e.severity, (255, 255, 255)) for e in top],
+                    radii=0.08,
+                    labels=[f"{i + 1}: {e.kind.value}" for i, e in enumerate(top)],
+                ),
+            )
         for i in range(_TOP_SLOTS):
             e = top[i] if i < len(top) else None
-            mark = None if e is None else (e.event_id, e.count, e.last_s)
+            slot = None if e is None else (e.event_id, e.count, e.last_s)
             stale = p.time_s - self._slot_drawn_s[i] >= self.zoom_period_s
-            if mark == self._slots[i] and not (e is not None and stale):
+            if slot == self._slots[i] and not (e is not None and stale):
                 continue
-            self._slots[i] = mark
+            self._slots[i] = slot
             self._slot_drawn_s[i] = p.time_s
             if e is None:
                 rec.log(f"/sage/slot_{i}", rr.Clear(recursive=True))
