@@ -1,7 +1,14 @@
 """What every ``magic`` process (``sim``, ``robot``, ``gcs``) shares on its command line.
 
 Each process joins the mission over zenoh with the same options (``--mission``, ``--radio``,
-``--connect``, ``--listen``; DESIGN section 4) and stops cleanly on ^C.
+``--connect``, ``--listen``; DESIGN section 4) and stops cleanly on ^C and SIGTERM.
+
+The exit-status contract every ``magic`` command keeps: 0 done, 1 the work itself failed,
+2 bad input (one line on stderr naming what and where, before any long work starts),
+130 stopped by SIGINT, 143 stopped by SIGTERM (``128 + signal``; what ran is summarised and
+everything already written is kept). :func:`raise_on_sigterm` makes SIGTERM raise
+:class:`Terminated`, a ``KeyboardInterrupt``, so that one ``except KeyboardInterrupt`` covers
+both signals and :func:`exit_code_for` tells them apart.
 """
 
 from __future__ import annotations
@@ -23,12 +30,73 @@ if TYPE_CHECKING:
     from protocol.link import Link, LinkConfig, Subscription
 
 __all__ = [
+    "Terminated",
     "add_link_arguments",
+    "exit_code_for",
     "follow_sim_clock",
+    "install_sigterm_handler",
     "link_config",
+    "raise_on_sigterm",
+    "signal_name_for",
     "spin_until",
     "stop_on_interrupt",
+    "stopped_line",
 ]
+
+
+class Terminated(KeyboardInterrupt):
+    """A signal other than ^C (SIGTERM by default) raised where ^C would raise
+    ``KeyboardInterrupt``: every existing ``except KeyboardInterrupt`` stops the same way."""
+
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__(signum)
+        self.signum = int(signum)
+
+
+def _raise_terminated(signum: int, _frame: object) -> None:
+    raise Terminated(signum)
+
+
+def install_sigterm_handler() -> Callable[..., object] | int | None:
+    """From now on SIGTERM raises :class:`Terminated` in the main thread; returns the previous
+    handler (``None`` off the main thread, where nothing changes)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_terminated)
+
+
+@contextlib.contextmanager
+def raise_on_sigterm() -> Iterator[None]:
+    """Within the block SIGTERM raises :class:`Terminated`; the previous handler after."""
+    previous = install_sigterm_handler()
+    try:
+        yield
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def exit_code_for(exc: BaseException) -> int:
+    """The exit status for a stop: 143 for SIGTERM (``128 + signal`` for any
+    :class:`Terminated`), 130 for ^C (a plain ``KeyboardInterrupt``)."""
+    if isinstance(exc, Terminated):
+        return 128 + exc.signum
+    return 128 + signal.SIGINT
+
+
+def signal_name_for(exc: BaseException) -> str:
+    """``"SIGTERM"``, ``"SIGINT"``, ...: the signal that stopped the process."""
+    signum = exc.signum if isinstance(exc, Terminated) else signal.SIGINT
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
+
+
+def stopped_line(command: str, exc: BaseException, detail: str = "") -> str:
+    """``magic bench: stopped by SIGINT (suite loops)``: the one line a stopped command prints."""
+    line = f"magic {command}: stopped by {signal_name_for(exc)}"
+    return f"{line} ({detail})" if detail else line
 
 
 def add_link_arguments(parser: argparse.ArgumentParser) -> None:
@@ -57,18 +125,29 @@ def link_config(radio: RadioConfig, args: argparse.Namespace) -> LinkConfig:
 
 
 @contextlib.contextmanager
-def stop_on_interrupt(stop: Callable[[], None]) -> Iterator[None]:
-    """Within the block, ^C calls ``stop`` (the process winds down and closes its link)
-    instead of raising; the previous handler is restored after. Off the main thread, where
-    signals cannot be handled, nothing changes."""
-    previous = None
+def stop_on_interrupt(stop: Callable[[], None]) -> Iterator[list[int]]:
+    """Within the block, ^C and SIGTERM call ``stop`` (the process winds down and closes its
+    link) instead of raising; yields the list of signals received (exit status ``128 +
+    signal``). SIGTERM is taken only when its handler is the default one or
+    :func:`install_sigterm_handler`'s: a caller that set its own keeps it. The previous
+    handlers are restored after. Off the main thread, where signals cannot be handled,
+    nothing changes."""
+    received: list[int] = []
+
+    def handler(signum: int, _frame: object) -> None:
+        received.append(signum)
+        stop()
+
+    previous: dict[int, Callable[..., object] | int | None] = {}
     if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGINT, lambda *_: stop())
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, handler)
+        if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, _raise_terminated):
+            previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, handler)
     try:
-        yield
+        yield received
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
+        for signum, old in previous.items():
+            signal.signal(signum, old)
 
 
 def follow_sim_clock(link: Link, clock: ManualClock) -> Subscription:

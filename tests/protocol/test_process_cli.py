@@ -1,0 +1,121 @@
+"""SIGTERM and ^C stop every ``magic`` process the same way (protocol.process_cli)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+
+import pytest
+
+from protocol.process_cli import (
+    Terminated,
+    exit_code_for,
+    install_sigterm_handler,
+    raise_on_sigterm,
+    signal_name_for,
+    stop_on_interrupt,
+    stopped_line,
+)
+
+
+def test_terminated_is_a_keyboard_interrupt_carrying_its_signal() -> None:
+    exc = Terminated()
+    assert isinstance(exc, KeyboardInterrupt)
+    assert exc.signum == signal.SIGTERM
+    assert exit_code_for(exc) == 143
+    assert exit_code_for(KeyboardInterrupt()) == 130
+    assert exit_code_for(Terminated(signal.SIGHUP)) == 129
+    assert signal_name_for(exc) == "SIGTERM"
+    assert signal_name_for(KeyboardInterrupt()) == "SIGINT"
+    assert stopped_line("bench", KeyboardInterrupt(), "suite loops") == (
+        "magic bench: stopped by SIGINT (suite loops)"
+    )
+
+
+def test_sigterm_raises_terminated_within_the_block_only() -> None:
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Terminated) as caught, raise_on_sigterm():
+        os.kill(os.getpid(), signal.SIGTERM)
+        threading.Event().wait(5.0)
+    assert caught.value.signum == signal.SIGTERM
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_stop_on_interrupt_takes_sigint_and_sigterm() -> None:
+    stops: list[int] = []
+    with raise_on_sigterm():  # the handler cli.main installs: stop_on_interrupt takes over
+        with stop_on_interrupt(lambda: stops.append(1)) as received:
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(100):
+                if len(received) == 2:
+                    break
+                threading.Event().wait(0.01)
+        assert sorted(received) == sorted([signal.SIGTERM, signal.SIGINT])
+        assert stops == [1, 1]
+        with pytest.raises(Terminated):  # and gives SIGTERM back after
+            os.kill(os.getpid(), signal.SIGTERM)
+            threading.Event().wait(5.0)
+
+
+def test_stop_on_interrupt_leaves_a_callers_own_sigterm_handler() -> None:
+    mine: list[int] = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, _f: mine.append(signum))
+    try:
+        with stop_on_interrupt(lambda: None) as received:
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(100):
+                if mine:
+                    break
+                threading.Event().wait(0.01)
+        assert mine == [signal.SIGTERM]
+        assert received == []
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_off_the_main_thread_nothing_changes() -> None:
+    results: list[object] = []
+    t = threading.Thread(target=lambda: results.append(install_sigterm_handler()))
+    t.start()
+    t.join()
+    assert results == [None]
+
+
+def test_a_process_stopped_by_sigterm_exits_143_without_a_traceback() -> None:
+    code = textwrap.dedent(
+        """
+        import sys, threading
+        from protocol.process_cli import exit_code_for, install_sigterm_handler, stopped_line
+        install_sigterm_handler()
+        try:
+            print("ready", flush=True)
+            threading.Event().wait(30)
+        except KeyboardInterrupt as exc:
+            print(stopped_line("test", exc), file=sys.stderr)
+            sys.exit(exit_code_for(exc))
+        """
+    )
+    for signum, status, name in ((signal.SIGTERM, 143, "SIGTERM"), (signal.SIGINT, 130, "SIGINT")):
+        proc = subprocess.Popen(
+            [sys.executable, "-c", code],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+        )
+        try:
+            assert proc.stdout is not None
+            assert proc.stdout.readline().strip() == "ready"
+            proc.send_signal(signum)
+            _, err = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        assert proc.returncode == status
+        assert err.strip() == f"magic test: stopped by {name}"
