@@ -654,11 +654,16 @@ def _stuck(
         return False
     if not positions or now_s - positions[0][0] < window_s:
         return False
-    recent = [(x, y) for t, x, y in positions if t >= now_s - window_s]
-    if len(recent) < 2:
-        return False
-    a = np.asarray(recent)
-    return float(np.max(np.hypot(a[:, 0] - a[0, 0], a[:, 1] - a[0, 1]))) < min_m
+    start = now_s - window_s
+    x0 = y0 = None
+    for t, x, y in positions:
+        if t < start:
+            continue
+        if x0 is None or y0 is None:
+            x0, y0 = x, y
+        elif math.hypot(x - x0, y - y0) >= min_m:
+            return False  # it moved: stop looking
+    return x0 is not None
 
 
 def _points(a: Any) -> FloatArray:

@@ -72,24 +72,31 @@ def render_region(
         rows, cols = occupancy.shape
         okc = (col >= 0) & (col < cols)
         okr = (row >= 0) & (row < rows)
-        gray = map_gray(occupancy)
-        sub = gray[np.ix_(row[okr], col[okc])]
-        img[np.ix_(np.flatnonzero(okr), np.flatnonzero(okc))] = sub
+        sub = occupancy.values[np.ix_(row[okr], col[okc])]  # only the cells shown
+        img[np.ix_(np.flatnonzero(okr), np.flatnonzero(okc))] = np.where(
+            sub > 0, WALL, np.where(sub == 0, FREE, FOG)
+        ).astype(np.uint8)
     rgb = np.ascontiguousarray(np.repeat(img[:, :, None], 3, axis=2))
 
     def pix(x: float, y: float) -> tuple[int, int]:
         return int(round((x - x0) / m_per_px)), int(round((y1 - y) / m_per_px))
+
+    def inside(x: float, y: float, margin_m: float = 0.0) -> bool:
+        return abs(x - cx) <= half + margin_m and abs(y - cy) <= half + margin_m
 
     def rad(r_m: float) -> int:
         return max(1, int(round(r_m / m_per_px)))
 
     for _, kind, pos in picture.hazards:
         blast = blast_radius_m(kind)
-        if blast is None:
+        if blast is None or not inside(*pos, blast):
             continue
         cv2.circle(rgb, pix(*pos), rad(blast), (255, 140, 0), 1, cv2.LINE_AA)
         cv2.circle(rgb, pix(*pos), rad(TRIGGER_M), (255, 0, 0), 1, cv2.LINE_AA)
+
     for o in picture.objects:
+        if not inside(*o.position_in_map):
+            continue
         color = KIND_RGB.get(o.kind_name, KIND_RGB["unknown"])
         cv2.circle(rgb, pix(*o.position_in_map), 3, color, -1, cv2.LINE_AA)
     if len(picture.frontiers_in_map):

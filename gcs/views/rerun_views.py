@@ -10,7 +10,7 @@ The ONLY module of the project that imports rerun (DESIGN section 2). :class:`Re
   colour, recent closures highlighted), SAGE zoom boxes;
 * ``/soc/thumbnails``: the OOI thumbnails mosaic (JPEG) with classifications;
 * ``/dashboard/table`` (markdown, one row per robot, anomalies marked), ``/dashboard/radio/*``
-  (uplink bit/s time series), ``/alerts`` (text log with severity);
+  (uplink bit/s: the total and one series per robot), ``/alerts`` (text log with severity);
 * ``/sage/log`` (narrated events) and ``/sage/slot_<i>`` (the top four events' zoomed views,
   JPEG, framed in the event's severity colour).
 
@@ -106,7 +106,8 @@ def parse_sink(spec: str) -> SinkSpec:
 @dataclass
 class ViewsStats:
     """What the adapter did: pictures taken / drawn / dropped (the worker lagged), draw
-    failures, sink failures (by kind of sink), wall and thread-CPU seconds of drawing."""
+    failures, sink failures (by kind of sink), wall and thread-CPU seconds of drawing (and
+    thread-CPU seconds by layer)."""
 
     published: int = 0
     drawn: int = 0
@@ -114,6 +115,9 @@ class ViewsStats:
     draw_errors: int = 0
     sink_failures: collections.Counter[str] = field(default_factory=collections.Counter)
     draw_cpu_s: float = 0.0
+    layer_cpu_s: collections.defaultdict[str, float] = field(
+        default_factory=lambda: collections.defaultdict(float)
+    )
     draw_wall_s: float = 0.0
     publish_wall_s: float = 0.0
 
@@ -212,7 +216,7 @@ class RerunViews:
         threaded: bool = True,
         queue_size: int = 2,
         zoom_px: int = 192,
-        zoom_period_s: float = 10.0,
+        zoom_period_s: float = 30.0,
         retry_s: float = 10.0,
         radio_flush_s: float = 5.0,
         slow_period_s: float = 5.0,
@@ -238,9 +242,11 @@ class RerunViews:
         self._next_retry = 0.0
         self._reported: set[str] = set()
         self._last_map: OccupancyMap | None = None
-        self._slots: list[tuple[int, int, float] | None] = [None] * _TOP_SLOTS
+        self._slots: list[int | None] = [None] * _TOP_SLOTS
         self._slot_drawn_s = [-math.inf] * _TOP_SLOTS
-        self._radio: dict[str, list[tuple[float, float]]] = {}
+        self._radio_index: dict[int, int] = {}  # robot id -> its series (after the total)
+        self._radio_rows: list[tuple[float, float, list[float]]] = []
+        self._radio_named = -1
         self._marks: dict[str, Any] = {}  # layer -> what was drawn last (skip if unchanged)
         self._drawn_s: dict[str, float] = {}
         self.slow_period_s = slow_period_s
@@ -445,20 +451,25 @@ class RerunViews:
     # ---- drawing ----------------------------------------------------------------------------
 
     def _draw(self, p: OperatorPicture) -> None:
-        rec = self.rec
-        rec.set_time("mission", duration=float(p.time_s))
+        self.rec.set_time("mission", duration=float(p.time_s))
+        layers: list[tuple[str, Any]] = [("robots", self._draw_robots)]
         if p.map is not None:
-            self._draw_map(p.map)
-        self._draw_robots(p)
-        self._draw_objects(p)
+            layers.insert(0, ("map", lambda _: self._draw_map(p.map)))  # type: ignore[arg-type]
+        layers.append(("objects", self._draw_objects))
         if p.graph is not None:
-            self._draw_graph(p)
-        self._draw_dashboard(p)
-        self._draw_sage(p)
+            layers.append(("graph", self._draw_graph))
+        layers += [("dashboard", self._draw_dashboard), ("sage", self._draw_sage)]
         if p.new_thumbnails:
-            mosaic = thumbnail_mosaic(p.objects)
-            if mosaic is not None:
-                rec.log("/soc/thumbnails", _jpeg(mosaic))
+            layers.append(("thumbnails", self._draw_thumbnails))
+        for name, draw in layers:
+            c0 = time.thread_time()
+            draw(p)
+            self.stats.layer_cpu_s[name] += time.thread_time() - c0  # type: ignore[assignment]
+
+    def _draw_thumbnails(self, p: OperatorPicture) -> None:
+        mosaic = thumbnail_mosaic(p.objects)
+        if mosaic is not None:
+            self.rec.log("/soc/thumbnails", _jpeg(mosaic))
 
     def _draw_map(self, m: OccupancyMap) -> None:
         self._last_map = m
@@ -539,25 +550,38 @@ class RerunViews:
         self._log_radio(p)
 
     def _log_radio(self, p: OperatorPicture) -> None:
-        # radio time series: buffered and sent as columns (one call per robot per flush)
+        """Uplink bit/s of every robot and the total: one multi-series entity, buffered and
+        sent as columns every ``radio_flush_s`` (one call per flush, whatever the team size)."""
         t = float(p.time_s)
         for r in p.robots:
-            self._radio.setdefault(f"robot_{r.robot_id}", []).append((t, r.uplink_bps))
-        self._radio.setdefault("total", []).append((t, p.uplink_total_bps))
+            if r.robot_id not in self._radio_index:
+                self._radio_index[r.robot_id] = len(self._radio_index)
+        row = [math.nan] * len(self._radio_index)
+        for r in p.robots:
+            row[self._radio_index[r.robot_id]] = r.uplink_bps
+        self._radio_rows.append((t, p.uplink_total_bps, row))
         if t - self._radio_sent_s >= self.radio_flush_s:
             self._flush_radio()
             self._radio_sent_s = t
 
     def _flush_radio(self) -> None:
-        for name, samples in self._radio.items():
-            if samples:
-                a = np.asarray(samples, dtype=np.float64)
-                self.rec.send_columns(
-                    f"/dashboard/radio/{name}",
-                    indexes=[rr.TimeColumn("mission", duration=a[:, 0])],
-                    columns=rr.Scalars.columns(scalars=a[:, 1]),
-                )
-        self._radio = {}
+        if not self._radio_rows:
+            return
+        n = len(self._radio_index)
+        if n != self._radio_named:
+            names = ["total"] + [f"robot {rid}" for rid in self._radio_index]
+            self.rec.log("/dashboard/radio", rr.SeriesLines(names=names), static=True)
+            self._radio_named = n
+        values = np.full((len(self._radio_rows), n + 1), np.nan)
+        for i, (_, total, row) in enumerate(self._radio_rows):
+            values[i, 0] = total
+            values[i, 1 : 1 + len(row)] = row
+        self.rec.send_columns(
+            "/dashboard/radio",
+            indexes=[rr.TimeColumn("mission", duration=[r[0] for r in self._radio_rows])],
+            columns=rr.Scalars.columns(scalars=values),
+        )
+        self._radio_rows = []
 
     def _draw_objects(self, p: OperatorPicture) -> None:
         rec = self.rec
@@ -636,9 +660,11 @@ class RerunViews:
             )
         for i in range(_TOP_SLOTS):
             e = top[i] if i < len(top) else None
-            slot = None if e is None else (e.event_id, e.count, e.last_s)
-            stale = p.time_s - self._slot_drawn_s[i] >= self.zoom_period_s
-            if slot == self._slots[i] and not (e is not None and stale):
+            slot = None if e is None else e.event_id
+            age_s = p.time_s - self._slot_drawn_s[i]
+            # a new event is drawn at once; the same one again (merged, or robots moved) only
+            # after zoom_period_s
+            if slot == self._slots[i] and (e is None or age_s < self.zoom_period_s):
                 continue
             self._slots[i] = slot
             self._slot_drawn_s[i] = p.time_s

@@ -145,13 +145,14 @@ def test_saved_recording_holds_map_robots_graph_and_events(tmp_path: Path) -> No
         "/sage/log",
         "/world/sage/boxes",
         "/sage/slot_0",
-        "/dashboard/radio/robot_0",
+        "/dashboard/radio",
     ]:
         assert entity in last, f"{entity} missing from {sorted(last)}"
 
     def column(entity: str, name: str) -> list:  # type: ignore[type-arg]
         """Every row's value of a column, in the recording's order."""
-        return [v for b in last[entity] for v in b.column(name).to_pylist()]  # type: ignore[attr-defined]
+        batches = [b for b in last[entity] if name in b.schema.names]  # type: ignore[attr-defined]
+        return [v for b in batches for v in b.column(name).to_pylist()]  # type: ignore[attr-defined]
 
     assert len(column("/world/robots", "Points3D:positions")[-1]) == 3
     assert column("/world/robots", "Points3D:labels")[-1][0].startswith("0 autonomous neutralize")
@@ -162,6 +163,9 @@ def test_saved_recording_holds_map_robots_graph_and_events(tmp_path: Path) -> No
     narration = [t for row in column("/sage/log", "TextLog:text") for t in row]
     assert any("new object" in t and "static_ooi" in t for t in narration)
     assert any("neutralization started" in t for t in narration)
+    radio = column("/dashboard/radio", "Scalars:scalars")
+    assert len(radio) == 2 and len(radio[-1]) == 1 + 3  # the total, then one per robot
+    assert radio[-1][0] == pytest.approx(sum(radio[-1][1:]))
     table = column("/dashboard/table", "TextDocument:text")[-1][0]
     assert table.count("\n| ") == 3 + 1  # header row + one row per robot
 
