@@ -433,17 +433,28 @@ def train_models(
 
 def codec_command(args: argparse.Namespace) -> int:
     """``magic codec record [--split train|test] [--out NPZ]`` and ``magic codec train
-    [--corpus NPZ] [--out NPZ] [--version N]`` (defaults: the shipped files)."""
+    [--corpus NPZ] [--out NPZ] [--version N]`` (defaults: the shipped files). Every path is
+    checked before the long work starts: a bad one is one line on stderr naming it, status 2.
+    """
     import sys
 
     from compression.model_file import MODEL_FILE, load_model_file, save_model_file
+    from protocol.process_cli import check_input_file, check_output_file, one_line
 
     def say(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
+    action = f"magic codec {args.codec_command}"
     if args.codec_command == "record":
         runs = TRAIN_RUNS if args.split == "train" else TEST_RUNS
         out = Path(args.out) if args.out else CORPUS_DIR / f"terrain_{args.split}.npz"
+        if out.suffix != ".npz":  # numpy would append it: say the name that is written
+            out = out.with_name(out.name + ".npz")
+        try:
+            check_output_file(out, "--out")
+        except ValueError as err:
+            say(one_line(f"{action}: {err}"))
+            return 2
         corpus = record_corpus(runs, progress=say)
         save_corpus(corpus, out)
         say(f"wrote {len(corpus)} grids of {len(corpus.runs)} robot runs to {out}")
@@ -451,13 +462,17 @@ def codec_command(args: argparse.Namespace) -> int:
     corpus_path = Path(args.corpus) if args.corpus else CORPUS_DIR / "terrain_train.npz"
     out = Path(args.out) if args.out else MODEL_FILE
     try:
+        check_input_file(corpus_path, "--corpus")
+        check_output_file(out, "--out")
+        if args.version is not None and not 1 <= args.version <= 255:
+            raise ValueError(f"--version: expected 1..255 (one header byte), got {args.version}")
         corpus = load_corpus(corpus_path)
         version = args.version
         if version is None:
             version = load_model_file(MODEL_FILE).version + 1 if MODEL_FILE.is_file() else 1
         model_file = train_models(corpus, version=version, progress=say)
     except ValueError as err:
-        say(f"magic codec train: {err}")
+        say(one_line(f"{action}: {err}"))
         return 2
     save_model_file(out, model_file)
     say(f"wrote model version {version} ({len(model_file.models)} models) to {out}")

@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import signal
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -32,8 +34,12 @@ if TYPE_CHECKING:
 __all__ = [
     "Terminated",
     "add_link_arguments",
+    "check_input_file",
+    "check_output_dir",
+    "check_output_file",
     "exit_code_for",
     "follow_sim_clock",
+    "one_line",
     "install_sigterm_handler",
     "link_config",
     "raise_on_sigterm",
@@ -99,17 +105,101 @@ def stopped_line(command: str, exc: BaseException, detail: str = "") -> str:
     return f"{line} ({detail})" if detail else line
 
 
+#: Longest error line a command prints (the issue's bound: under 200 characters).
+MAX_ERROR_CHARS = 199
+
+
+def one_line(text: object, limit: int = MAX_ERROR_CHARS) -> str:
+    """``text`` on one line (whitespace runs collapsed), cut to ``limit`` characters."""
+    flat = " ".join(str(text).split())
+    return flat if len(flat) <= limit else flat[: limit - 3] + "..."
+
+
+def _writable_dir(directory: Path) -> bool:
+    """Whether a file can be created in ``directory`` (tried: permissions alone say yes to
+    root on a read-only mount); the probe file is gone on return."""
+    if not os.access(directory, os.W_OK | os.X_OK):
+        return False
+    try:
+        with tempfile.TemporaryFile(dir=directory):
+            return True
+    except OSError:
+        return False
+
+
+def check_input_file(path: str | Path, what: str) -> Path:
+    """``path`` as a readable file, or ValueError naming ``what`` and the path."""
+    p = Path(path)
+    if not p.is_file():
+        problem = "is a directory" if p.is_dir() else "not found"
+        raise ValueError(f"{what} {p}: {problem}")
+    if not os.access(p, os.R_OK):
+        raise ValueError(f"{what} {p}: not readable")
+    return p
+
+
+def check_output_file(path: str | Path, what: str) -> Path:
+    """``path`` as a file this process can write: its directory exists and is writable and
+    the path is not a directory; else ValueError naming ``what`` and the directory. Nothing
+    is created."""
+    p = Path(path)
+    parent = p.parent
+    if p.is_dir():
+        raise ValueError(f"{what} {p}: is a directory")
+    if not parent.is_dir():
+        raise ValueError(f"{what} {p}: directory {parent} does not exist")
+    if not _writable_dir(parent) or (p.exists() and not os.access(p, os.W_OK)):
+        raise ValueError(f"{what} {p}: directory {parent} is not writable")
+    return p
+
+
+def check_output_dir(path: str | Path, what: str) -> Path:
+    """``path`` as a directory this process can fill: it is a writable directory, or the
+    nearest existing ancestor is one (the rest is created when written); else ValueError
+    naming ``what`` and the directory at fault. Nothing is created."""
+    p = Path(path)
+    probe = p
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ValueError(f"{what} {p}: {probe} is not a directory")
+    if not _writable_dir(probe):
+        raise ValueError(f"{what} {p}: directory {probe} is not writable")
+    return p
+
+
 def add_link_arguments(parser: argparse.ArgumentParser) -> None:
     """``--mission``, ``--radio``, ``--connect`` and ``--listen``."""
-    parser.add_argument("--mission", default="default", help="mission name in the zenoh keys")
+    parser.add_argument(
+        "--mission",
+        default="default",
+        help="mission name in the zenoh keys; processes of one mission share it "
+        "(default: %(default)s)",
+    )
     parser.add_argument(
         "--radio",
         type=Path,
         default=CONFIGS_DIR / "radio" / "magic2010.yaml",
-        help="radio config (configs/radio/*.yaml)",
+        metavar="YAML",
+        help="radio model config (default: configs/radio/magic2010.yaml)",
     )
-    parser.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect")
-    parser.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on")
+    parser.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447; repeatable (default: none)",
+    )
+    parser.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447; repeatable "
+        "(default: tcp/127.0.0.1:0, loopback, any free port)",
+    )
 
 
 def link_config(radio: RadioConfig, args: argparse.Namespace) -> LinkConfig:

@@ -9,6 +9,10 @@ It returns metrics by the names its issue gives; ``--quick`` finishes in under 6
 the same process, and timings are medians of repeats. Suites never print: they report
 progress through ``progress`` and return numbers; this runner prints the table and writes
 ``{"suite": ..., "quick": bool, "metrics": {name: number}}`` with ``--json``.
+
+Files a suite writes besides its metrics (maps, plots) go under :func:`output_dir`:
+``$MAGIC_BENCH_DIR/<suite>`` when that environment variable is set, else
+``<system temp dir>/magic-bench/<suite>``.
 """
 
 from __future__ import annotations
@@ -16,13 +20,27 @@ from __future__ import annotations
 import importlib
 import json
 import math
+import os
 import statistics
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
-__all__ = ["SUITES", "BenchError", "median_time_s", "run_suite", "write_json"]
+__all__ = [
+    "BENCH_DIR_ENV",
+    "SUITES",
+    "BenchError",
+    "bench_root",
+    "median_time_s",
+    "output_dir",
+    "run_suite",
+    "write_json",
+]
+
+#: Environment variable naming the directory bench suites write their files under.
+BENCH_DIR_ENV = "MAGIC_BENCH_DIR"
 
 #: Suite name -> module that implements it. A suite appears here when its issue lands.
 SUITES: dict[str, str] = {
@@ -39,6 +57,24 @@ SUITES: dict[str, str] = {
 
 class BenchError(RuntimeError):
     """A suite is unknown or failed to produce its metrics."""
+
+
+def bench_root() -> Path:
+    """Where suites write their files: ``$MAGIC_BENCH_DIR`` if set, else
+    ``<system temp dir>/magic-bench`` (read at each call: tests point it elsewhere)."""
+    configured = os.environ.get(BENCH_DIR_ENV, "").strip()
+    return Path(configured) if configured else Path(tempfile.gettempdir()) / "magic-bench"
+
+
+def output_dir(suite: str) -> Path:
+    """The directory suite (or suite part) ``suite`` writes its files in, created if absent;
+    BenchError naming it when it cannot be."""
+    path = bench_root() / suite
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise BenchError(f"cannot create bench output directory {path}: {err.strerror}") from None
+    return path
 
 
 class Suite(Protocol):

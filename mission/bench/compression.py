@@ -34,15 +34,16 @@ Metrics:
   ``inter_vanished_ref_frac``, reference cells landing in the grid with no occupied cell
   within one cell (walls that left the field of view or were not seen again).
 
-Writes the Fig. 10 plot (bytes per grid by method) to ``OUT_DIR/fig10_bytes_per_grid.png``.
+Writes the Fig. 10 plot (bytes per grid by method) to ``fig10_bytes_per_grid.png`` in
+:func:`mission.bench.output_dir` ``("compression")`` (``$MAGIC_BENCH_DIR`` or the system temp
+dir).
 """
 
 from __future__ import annotations
 
-__all__ = ["OUT_DIR", "run"]
+__all__ = ["run"]
 
 import statistics
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -62,11 +63,10 @@ from compression import (
     read_header,
 )
 from compression.codecs import reference_code_for
-from mission.bench import BenchError
+from mission.bench import BenchError, output_dir
 from mission.codec_training import CORPUS_DIR, CodingCase, Corpus, coding_cases, load_corpus
 from protocol.messages import TerrainGrid, encode_frame
 
-OUT_DIR = Path(tempfile.gettempdir()) / "magic-bench" / "compression"
 PAPER_BYTES = {"zlib": 378.0, "rle_zlib": 300.0, "magic4": 132.0}  # Fig. 10 (rle_zlib: 132/0.44)
 
 
@@ -236,7 +236,7 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     bars = [(c, out[f"bytes_{c}"], PAPER_BYTES.get(c)) for c in ("rle", "zlib", "rle_zlib")]
     bars += [(c, out[f"bytes_{c}"], PAPER_BYTES.get(c)) for c in ("magic4", "magic10")]
     bars += [(intra, out["bytes_best_intra"], None), (inter, out["bytes_best_inter"], None)]
-    figure = OUT_DIR / "fig10_bytes_per_grid.png"
+    figure = output_dir("compression") / "fig10_bytes_per_grid.png"
     _plot(figure, bars)
     progress(f"wrote {figure}")
     headline = [f"bytes_{c}" for c in ("zlib", "rle", "rle_zlib", "magic4")] + [

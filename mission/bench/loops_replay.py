@@ -8,8 +8,8 @@ nodes every 0.5 m or 15 deg, 10 cm scan grids, the GroundStation's loop closing 
   our robot's model: its heading drifts about 21 deg over the 56 m loop (10 rad of turning;
   measured against the closed-loop estimate), where the model's sigma is about 4 deg, so the
   replay states sigmas :data:`DUKE_SIGMA_SCALE` times the model's. Its map is written as an
-  image, ``dpslam_loop5/map.png`` in :data:`OUT_DIR`, with the PGM + YAML, ``summary.json``
-  and ``poses.txt``.
+  image, ``dpslam_loop5/map.png`` in ``mission.bench.output_dir("loops_replay")``, with the
+  PGM + YAML, ``summary.json`` and ``poses.txt``.
 - ``intel_relations_trans_err_m`` / ``intel_relations_rot_err_deg``: mean translation and
   rotation error of Kuemmerle et al.'s relations that fall on nodes, for the corrected Intel
   log with odometry noise added (``NOISE_SCALE`` times the pose-node model, seed ``SEED``).
@@ -26,20 +26,17 @@ the result does not depend on the load); the replays take about 10 s and 15 s of
 
 from __future__ import annotations
 
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 from gcs.replay.carmen_log import read_carmen_log
 from gcs.replay.relations import read_relations
-from mission.bench import BenchError
+from mission.bench import BenchError, output_dir
 from mission.replay import OdometryNoiseConfig, ReplayConfig, ReplayResult, run_replay
 
-__all__ = ["DUKE_SIGMA_SCALE", "NOISE_SCALE", "OUT_DIR", "SEED", "STEP_BUDGET_S", "run"]
+__all__ = ["DUKE_SIGMA_SCALE", "NOISE_SCALE", "SEED", "STEP_BUDGET_S", "run"]
 
 LASER = Path(__file__).resolve().parents[2] / ".." / "shared" / "datasets" / "laser"
-#: Where the maps and summaries of the replays are written.
-OUT_DIR = Path(tempfile.gettempdir()) / "magic-bench" / "loops_replay"
 NOISE_SCALE = 1.0
 SEED = 1
 DUKE_SIGMA_SCALE = 4.0
@@ -71,7 +68,11 @@ def _replay(
             progress(f"replay {name}: {done}/{total} scans, {text}")
 
     result = run_replay(
-        log, config=config, relations=relations, out_dir=OUT_DIR / name, progress=report
+        log,
+        config=config,
+        relations=relations,
+        out_dir=output_dir("loops_replay") / name,
+        progress=report,
     )
     for kind, path in result.files.items():
         progress(f"replay {name}: {kind} written to {path}")

@@ -144,3 +144,25 @@ def test_codec_command(tmp_path: Path) -> None:
     )
     assert load_model_file(out).version == 9
     assert main(["codec", "train", "--corpus", str(tmp_path / "none.npz"), "--out", str(out)]) == 2
+
+
+@pytest.mark.parametrize(
+    ("argv", "named"),
+    [
+        (["codec", "record", "--out", "/nonexistent/dir/c.npz"], "/nonexistent/dir"),
+        (["codec", "train", "--corpus", "/nonexistent/c.npz"], "/nonexistent/c.npz"),
+        (["codec", "train", "--out", "/nonexistent/dir/m.npz"], "/nonexistent/dir"),
+        (["codec", "train", "--version", "256", "--out", "{tmp}/m.npz"], "--version"),
+    ],
+)
+def test_codec_paths_are_checked_before_the_work(
+    argv: list[str], named: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bad path or version: one line naming it, status 2, at once (record would run the
+    simulator for minutes first; nothing is written)."""
+    argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and len(err) < 200
+    assert err.startswith(f"magic codec {argv[1]}: ") and named in err
+    assert list(tmp_path.iterdir()) == []
