@@ -244,6 +244,7 @@ class RerunViews:
         self._last_map: OccupancyMap | None = None
         self._slots: list[int | None] = [None] * _TOP_SLOTS
         self._slot_drawn_s = [-math.inf] * _TOP_SLOTS
+        self._zooms: dict[int, tuple[float, rr.EncodedImage]] = {}  # event -> (drawn s, jpeg)
         self._radio_index: dict[int, int] = {}  # robot id -> its series (after the total)
         self._radio_rows: list[tuple[float, float, list[float]]] = []
         self._radio_named = -1
@@ -671,11 +672,18 @@ class RerunViews:
             if e is None:
                 rec.log(f"/sage/slot_{i}", rr.Clear(recursive=True))
                 continue
-            img = render_region(
-                p, p.map or self._last_map, e.zoom_center_in_map, e.zoom_half_m, px=self.zoom_px
-            )
-            _frame(img, e)
-            rec.log(f"/sage/slot_{i}", _jpeg(img))
+            cached = self._zooms.get(e.event_id)
+            if cached is None or p.time_s - cached[0] >= self.zoom_period_s:
+                # an event moving between slots keeps its image (redrawn every zoom_period_s)
+                img = render_region(
+                    p, p.map or self._last_map, e.zoom_center_in_map, e.zoom_half_m, px=self.zoom_px
+                )
+                _frame(img, e)
+                cached = self._zooms[e.event_id] = (p.time_s, _jpeg(img))
+            rec.log(f"/sage/slot_{i}", cached[1])
+        live = {e.event_id for e in top}
+        for k in [k for k in self._zooms if k not in live]:
+            del self._zooms[k]
 
 
 def _carry_layers(old: OperatorPicture, new: OperatorPicture) -> OperatorPicture:

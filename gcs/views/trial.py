@@ -15,7 +15,9 @@ Measured (CPU seconds, this process): the station's ``handle`` + ``step`` (threa
 views' picture building (``PictureBuilder.cpu_s``, rasterization included when the views asked
 for it) and drawing (``ViewsStats.draw_cpu_s``), and the whole process (``process_time``: rerun's
 own threads included). ``views_cpu_frac`` = (process CPU - station CPU) / process CPU, the
-conservative figure; ``views_cpu_frac_python`` counts only the views' own Python threads.
+conservative figure; ``views_cpu_frac_given_map`` the same when the GCS hands the views the map
+it rasterized anyway (for tasking, exports), so rasterization is not the views' cost;
+``views_cpu_frac_python`` / ``views_cpu_frac_no_raster`` count only the views' Python threads.
 
 Run: ``python -m gcs.views.trial LOG [--robots 14] [--max-nodes 120] [--rrd FILE] [--png F]``.
 """
@@ -67,6 +69,7 @@ class TrialResult:
     views_cpu_frac: float
     views_cpu_frac_python: float
     views_cpu_frac_no_raster: float
+    views_cpu_frac_given_map: float
     rrd_bytes_per_robot_hour: float
     dropped: int
     sink_failures: dict[str, int]
@@ -79,6 +82,7 @@ class TrialResult:
             "views_cpu_frac": self.views_cpu_frac,
             "views_cpu_frac_python": self.views_cpu_frac_python,
             "views_cpu_frac_no_raster": self.views_cpu_frac_no_raster,
+            "views_cpu_frac_given_map": self.views_cpu_frac_given_map,
             "rrd_bytes_per_robot_hour": self.rrd_bytes_per_robot_hour,
         }
 
@@ -237,6 +241,8 @@ def run_trial(
         rrd_bytes=data_len,
         views_cpu_frac=frac,
         views_cpu_frac_python=views_py / (views_py + station_cpu),
+        views_cpu_frac_given_map=(process_cpu - station_cpu - builder.rasterize_cpu_s)
+        / (process_cpu - builder.rasterize_cpu_s),
         views_cpu_frac_no_raster=(views_py - builder.rasterize_cpu_s)
         / (views_py - builder.rasterize_cpu_s + station_cpu),
         rrd_bytes_per_robot_hour=data_len / (robots * hours),
