@@ -25,9 +25,9 @@ expires, or an edge accepted elsewhere lets the graph check reject it). So no ac
 closure lies on a tested cycle that failed, with the graph or with other hypotheses; what
 remains is the paper's caveat, errors that cancel around a cycle ("this seldom occurs").
 
-Hypotheses older than ``expiry_s`` (mission time) without a confirming cycle are dropped (they
-cost search time and, the older, the likelier an erroneous cycle, paper 4.5), as are the
-oldest beyond ``max_hypotheses``.
+Hypotheses older than ``expiry_s`` (on the caller's clock: the loop closer's progress clock, not
+message time) without a confirming cycle are dropped (they cost search time and, the older, the
+likelier an erroneous cycle, paper 4.5), as are the oldest beyond ``max_hypotheses``.
 
 Graph access is through two callables (so the module is pure and testable without a graph):
 ``links(key) -> {other_key: (key_from_other, covariance)}`` for tight paths from ``key``, and

@@ -14,16 +14,24 @@
      become sources again, every ``resweep_stride``-th, so that cross-robot pairs are
      generated once robots are linked. Candidates wait in a priority queue (largest expected
      correction first) and a pair is matched at most once until :meth:`LoopCloser.restart`;
-   * **matching** (:mod:`gcs.loops.correlative_matcher`) within the call's time budget and a
-     token bucket of ``matches_per_s``: the new node's grid is the reference (its table is
-     cached, LRU), the candidate's points the query, the guess the current estimate of
-     ``reference_from_query``. Poorly related pairs get the bounded wide window: each costs
-     ``wide_match_cost`` tokens, at most ``max_wide_per_step`` per call, and must reach a
-     higher ``wide_min_score``. A match reaching ``min_score`` becomes a hypothesis;
+   * **matching** (:mod:`gcs.loops.correlative_matcher`) within the call's wall-time budget
+     and a token bucket of ``matches_per_s`` on the *progress clock* (below): the new node's
+     grid is the reference (its table is cached, LRU), the candidate's points the query, the
+     guess the current estimate of ``reference_from_query``. Poorly related pairs get the
+     bounded wide window: each costs ``wide_match_cost`` tokens, at most
+     ``max_wide_per_step`` per call, and must reach a higher ``wide_min_score``. A match
+     reaching ``min_score`` becomes a hypothesis;
    * **validation** (:mod:`gcs.loops.cycle_validation`): hypotheses are promoted only by a
      consistent cycle and never against one; promoted ones become ``LOOP_AUTO`` edges.
 
    It does not optimize: the caller optimizes after the step.
+
+   **Progress clock.** Message timestamps are not trusted to meter the work: a frozen, coarse,
+   jumping or backwards clock would otherwise stop matching after the first burst, or age
+   every candidate out at once. The match rate, candidate ageing and hypothesis expiry all run
+   on a clock that cannot freeze: ``nominal_s_per_node`` nominal seconds per pose node added
+   to the graph (any robot; nodes are made every so many metres or degrees, so this is
+   distance travelled). ``now_s`` only stamps the edges (for :meth:`LoopCloser.rewind`).
 3. Operator primitives (paper 6.1): :meth:`LoopCloser.suggest` (run the matcher between two
    poses, return pose and score), :meth:`LoopCloser.rewind` (remove automatic closures since
    a time), :meth:`LoopCloser.restart` (forget hypotheses and candidates).
@@ -92,6 +100,10 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     standard deviation exceeds ``max_match_sigma_xy_m`` (an ambiguous, corridor-like view;
     the matcher's outer response surface measures it) constrains too little to be a closure
     and is dropped.
+
+    ``matches_per_s``, ``candidate_max_age_s`` and ``validation.expiry_s`` are in nominal
+    seconds of the progress clock: ``nominal_s_per_node`` per pose node added (module
+    docstring), never message time.
     """
 
     resolution_m: float = 0.1
@@ -109,6 +121,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     wide_match_cost: float = 4.0
     max_queue: int = 5000
     candidate_max_age_s: float = 30.0
+    nominal_s_per_node: float = 1.0
     resweep_stride: int = 3
     table_cache: int = 48
     wide_table_cache: int = 8
@@ -137,6 +150,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
         for name in (
             "matches_per_s",
             "candidate_max_age_s",
+            "nominal_s_per_node",
             "link_sigma_xy_m",
             "link_sigma_yaw_rad",
             "path_sigma_xy_m",
@@ -238,7 +252,8 @@ class LoopCloser:
         self._tried: set[tuple[int, int]] = set()
         self._next_hyp = 0
         self._tokens = float(cfg.max_burst_matches)
-        self._last_now_s: float | None = None
+        self._progress_s = 0.0  # the progress clock (module docstring)
+        self._nodes_seen = 0
         self._mirror: _Mirror | None = None
         self._groups: frozenset[frozenset[int]] | None = None
         self._links: dict[int, dict[int, tuple[FloatArray, FloatArray]]] = {}
@@ -291,6 +306,11 @@ class LoopCloser:
     def queued_candidates(self) -> int:
         return len(self._queue)
 
+    @property
+    def progress_s(self) -> float:
+        """The progress clock (nominal seconds: ``nominal_s_per_node`` per node added)."""
+        return self._progress_s
+
     # ---- the step --------------------------------------------------------------------------
 
     def step(self, *, now_s: float, budget_s: float) -> LoopClosingReport:
@@ -298,8 +318,11 @@ class LoopCloser:
         cycle validation; promoted hypotheses are added to the graph (``LOOP_AUTO``, stamped
         ``now_s``). Does not optimize.
 
-        The budget bounds candidate generation and matching (checked between items, so one
-        match may overrun it); validation runs every call, its cost bounded by its own caps
+        ``now_s`` only stamps edges: how many matches run, which candidates age out and which
+        hypotheses expire depend on the progress clock (nodes added), so a frozen, coarse,
+        jumping or backwards ``now_s`` changes none of it. The budget bounds candidate
+        generation and matching (checked between items, so one match may overrun it);
+        validation runs every call, its cost bounded by its own caps
         (:class:`~gcs.loops.cycle_validation.CycleValidationConfig`)."""
         if not math.isfinite(now_s):
             raise ValueError(f"step: now_s must be finite, got {now_s}")
@@ -309,17 +332,12 @@ class LoopCloser:
         t0 = time.perf_counter()
         deadline = t0 + budget_s
         report = LoopClosingReport()
-        if self._last_now_s is not None:
-            elapsed = max(0.0, now_s - self._last_now_s)
-            self._tokens = min(
-                float(cfg.max_burst_matches), self._tokens + cfg.matches_per_s * elapsed
-            )
-        self._last_now_s = now_s
         mirror = self._sync()
+        progress_s = self._advance(len(mirror.keys))
         self._resweep_on_merge()
         # candidate generation (cheap: bounded projections) for the waiting sources
         while self._sources and time.perf_counter() < deadline:
-            self._generate(self._sources.pop(0), mirror, now_s)
+            self._generate(self._sources.pop(0), mirror, progress_s)
         report.budget_exhausted = bool(self._sources)
         # matching, highest priority first
         wide_left = cfg.max_wide_per_step
@@ -330,7 +348,7 @@ class LoopCloser:
                 break
             item = heapq.heappop(self._queue)
             _, _, created_s, cand = item
-            if now_s - created_s > cfg.candidate_max_age_s:
+            if progress_s - created_s > cfg.candidate_max_age_s:
                 self.stats.stale_candidates += 1
                 continue
             cost = cfg.wide_match_cost if cand.wide else 1.0
@@ -339,7 +357,7 @@ class LoopCloser:
                 continue
             wide_left -= cand.wide
             self._tokens -= cost
-            hyp = self._match(cand, now_s)
+            hyp = self._match(cand, progress_s)
             report.matches += 1
             if hyp is not None:
                 self._validator.add(hyp)
@@ -348,7 +366,7 @@ class LoopCloser:
             heapq.heappush(self._queue, item)
         # validation and promotion
         result = self._validator.validate(
-            now_s=now_s, links=self._links_of, path=self._path, revision=mirror.revision
+            now_s=progress_s, links=self._links_of, path=self._path, revision=mirror.revision
         )
         report.validation = result
         for h in result.accepted:
@@ -422,9 +440,12 @@ class LoopCloser:
 
     def propose(self, key_a: int, key_b: int, result: MatchResult, *, time_s: float) -> int:
         """Add a match (e.g. an operator's :meth:`suggest`) as a hypothesis: it becomes an
-        edge only through cycle validation, like the automatic ones. Returns its id."""
+        edge only through cycle validation, like the automatic ones. Returns its id.
+        ``time_s`` is kept for the caller's records; the hypothesis ages on the progress
+        clock like the automatic ones."""
         for k in (key_a, key_b):
             self.graph.pose(k)  # raises naming an unknown pose
+        self._advance(len(self.graph.nodes()))
         self._next_hyp += 1
         self._validator.add(
             Hypothesis(
@@ -434,9 +455,10 @@ class LoopCloser:
                 a_from_b=np.asarray(result.a_from_b, dtype=np.float64),
                 covariance=self._edge_covariance(result),
                 score=result.normalized_score,
-                time_s=time_s,
+                time_s=self._progress_s,
             )
         )
+        del time_s
         self.stats.hypotheses += 1
         return self._next_hyp
 
@@ -461,6 +483,19 @@ class LoopCloser:
         self._groups = None
 
     # ---- internals -------------------------------------------------------------------------
+
+    def _advance(self, n_nodes: int) -> float:
+        """Move the progress clock to ``n_nodes`` nodes (never back) and refill the tokens."""
+        cfg = self.config
+        added = n_nodes - self._nodes_seen
+        if added > 0:  # nodes are never removed; a smaller count adds nothing
+            self._nodes_seen = n_nodes
+            elapsed = added * cfg.nominal_s_per_node
+            self._progress_s += elapsed
+            self._tokens = min(
+                float(cfg.max_burst_matches), self._tokens + cfg.matches_per_s * elapsed
+            )
+        return self._progress_s
 
     def _sync(self) -> _Mirror:
         """Arrays of the graph's relative edges; rebuilt when they changed."""
@@ -530,7 +565,7 @@ class LoopCloser:
             max_trace=max_trace,
         )
 
-    def _generate(self, key: int, mirror: _Mirror, now_s: float) -> None:
+    def _generate(self, key: int, mirror: _Mirror, progress_s: float) -> None:
         if key not in self._scans or key not in mirror.index:
             return
         c = self.config.candidates
@@ -558,7 +593,7 @@ class LoopCloser:
             self._tried.add(pair)
             self.stats.candidates += 1
             self._seq += 1
-            heapq.heappush(self._queue, (-cand.priority, self._seq, now_s, cand))
+            heapq.heappush(self._queue, (-cand.priority, self._seq, progress_s, cand))
         while len(self._queue) > self.config.max_queue:
             # drop the lowest priority (largest key): rebuild without it
             worst = max(self._queue)
@@ -616,7 +651,7 @@ class LoopCloser:
         )
         return cov + floor  # type: ignore[no-any-return]
 
-    def _match(self, cand: Candidate, now_s: float) -> Hypothesis | None:
+    def _match(self, cand: Candidate, progress_s: float) -> Hypothesis | None:
         cfg = self.config
         a, b = cand.reference_key, cand.query_key
         if a not in self._scans or b not in self._scans:
@@ -645,7 +680,7 @@ class LoopCloser:
             a_from_b=result.a_from_b,
             covariance=cov,
             score=result.normalized_score,
-            time_s=now_s,
+            time_s=progress_s,
         )
 
     def _links_of(self, key: int) -> dict[int, tuple[FloatArray, FloatArray]]:

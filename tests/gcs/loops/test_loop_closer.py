@@ -124,33 +124,96 @@ def test_aliased_corridors_a_confident_false_match_is_rejected() -> None:
     assert not [e for e in graph.edges(Provenance.LOOP_AUTO) if (e.key_a, e.key_b) in pairs]
 
 
-def test_budget_and_match_rate_bound_the_work() -> None:
-    rng = np.random.default_rng(5)
+def _route_run(
+    seed: int = 5, laps: int = 1
+) -> tuple[np.ndarray, list[np.ndarray], list[np.ndarray]]:
+    """One robot of the team routes, ``laps`` times: noisy odometry, its covariances and the
+    scans."""
+    rng = np.random.default_rng(seed)
     world = city_world(rng)
-    route = team_routes()[0]
+    lap = team_routes()[0]
+    route = np.concatenate([lap] + [lap[1:]] * (laps - 1))
     odom, covs = noisy_odometry(route, rng)
+    return odom, covs, [scan_of(world, p, rng) for p in route]
+
+
+def _route_graph(seed: int = 5) -> tuple[PoseGraph, list[int], list[np.ndarray]]:
+    """The graph of :func:`_route_run` (nodes only, no scans yet), its keys and the scans."""
+    odom, covs, scans = _route_run(seed)
     graph = PoseGraph()
-    closer = LoopCloser(graph, LoopCloserConfig(matches_per_s=5.0, max_burst_matches=5))
-    for t in range(len(route)):
-        key = graph.add_pose(
+    keys = [
+        graph.add_pose(
             0,
             odom_from_base=odom[t],
             time_s=float(t),
             odometry_covariance=None if t == 0 else covs[t - 1],
         )
-        closer.add_scan(key, scan_of(world, route[t], rng))
-    report = closer.step(now_s=float(len(route)), budget_s=0.0)
+        for t in range(len(odom))
+    ]
+    return graph, keys, scans
+
+
+def test_budget_and_match_rate_bound_the_work() -> None:
+    graph, keys, scans = _route_graph()
+    cfg = LoopCloserConfig(matches_per_s=5.0, max_burst_matches=5)
+    closer = LoopCloser(graph, cfg)
+    for k, pts in zip(keys, scans, strict=True):
+        closer.add_scan(k, pts)
+    report = closer.step(now_s=float(len(keys)), budget_s=0.0)
     assert report.matches == 0 and report.budget_exhausted  # no time: nothing done
 
     def cost() -> float:  # tokens spent: a wide match costs wide_match_cost
         st = closer.stats
         return st.matches + (closer.config.wide_match_cost - 1) * st.wide_matches
 
-    report = closer.step(now_s=float(len(route)), budget_s=5.0)
+    report = closer.step(now_s=float(len(keys)), budget_s=5.0)
     assert report.matches > 0 and cost() <= 5.0  # the burst
     assert report.budget_exhausted and report.queued > 0  # candidates wait for tokens
-    report = closer.step(now_s=float(len(route)) + 1.0, budget_s=5.0)
-    assert report.matches > 0 and cost() <= 10.0  # 5 tokens per second of mission time
+    # message time moving on adds no tokens: only progress (nodes added) does
+    report = closer.step(now_s=float(len(keys)) + 100.0, budget_s=5.0)
+    assert report.matches == 0 and report.budget_exhausted
+    graph.add_pose(
+        0, odom_from_base=graph.pose(keys[-1]), time_s=0.0, odometry_covariance=np.eye(3)
+    )
+    report = closer.step(now_s=0.0, budget_s=5.0)  # one node: 5 tokens, even at t = 0
+    assert report.matches > 0 and cost() <= 10.0
+    assert closer.progress_s == pytest.approx((len(keys) + 1) * cfg.nominal_s_per_node)
+
+
+@pytest.mark.parametrize("clock", ["frozen", "coarse", "jumping", "backwards"])
+def test_bad_clocks_change_nothing(clock: str) -> None:
+    """The same nodes and scans, stepped after every node with a good clock and a bad one:
+    the same matches, hypotheses and closures (issue 19 item 3)."""
+
+    odom, covs, scans = _route_run(seed=7, laps=2)
+
+    def run(times: list[float]) -> tuple[int, int, int, list[tuple[int, int]]]:
+        graph = PoseGraph()
+        closer = LoopCloser(graph, LoopCloserConfig(max_burst_matches=8, matches_per_s=2.0))
+        for t in range(len(odom)):  # nodes and scans as they come, a step after each
+            key = graph.add_pose(
+                0,
+                odom_from_base=odom[t],
+                time_s=times[t],
+                odometry_covariance=None if t == 0 else covs[t - 1],
+            )
+            closer.add_scan(key, scans[t])
+            closer.step(now_s=times[t], budget_s=30.0)
+        autos = sorted((e.key_a, e.key_b) for e in graph.edges(Provenance.LOOP_AUTO))
+        return closer.stats.matches, closer.stats.hypotheses, closer.stats.accepted, autos
+
+    n = len(odom)
+    good = [float(i) for i in range(n)]
+    bad = {
+        "frozen": [5.0] * n,
+        "coarse": [float(60 * (i // 40)) for i in range(n)],
+        "jumping": [float(i + (1e4 if i % 17 == 0 else 0)) for i in range(n)],
+        "backwards": [float(n - i) for i in range(n)],
+    }[clock]
+    want = run(good)
+    got = run(bad)
+    assert want[0] >= 20 and want[2] > 0  # the run matches and closes loops at all
+    assert got == want
 
 
 def test_rewind_restart_and_suggest(team: TeamResult) -> None:
