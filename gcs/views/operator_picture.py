@@ -166,7 +166,7 @@ class RobotStatus:
     last_message_s: float
     last_message_age_s: float
     active_s: float  # mission seconds since its first message
-    uplink_bps: float
+    uplink_bps: float  # nan when the GCS gives no message sizes
     nodes: int
     stuck: bool
     deadlock: bool
@@ -240,6 +240,7 @@ class _RobotWatch:
         default_factory=collections.deque
     )
     detections: dict[int, int] = field(default_factory=dict)  # detection id -> object id
+    metered: bool = False  # observe() was given message sizes
 
 
 class PictureBuilder:
@@ -303,6 +304,7 @@ class PictureBuilder:
         w.last_s = max(w.last_s, now_s)
         if nbytes > 0:
             w.bytes_window.append((now_s, nbytes))
+            w.metered = True
         if isinstance(msg, Telemetry):
             w.telemetry = msg
             x, y = float(msg.pose_in_odom[0]), float(msg.pose_in_odom[1])
@@ -440,8 +442,9 @@ class PictureBuilder:
             while w.bytes_window and w.bytes_window[0][0] < cutoff:
                 w.bytes_window.popleft()
             span = min(cfg.rate_window_s, max(now_s - w.first_s, 1e-9))
-            bps = 8.0 * sum(b for _, b in w.bytes_window) / span
-            total_bps += bps
+            # nan when the caller never gave sizes: no rate, rather than a false "silent radio"
+            bps = 8.0 * sum(b for _, b in w.bytes_window) / span if w.metered else math.nan
+            total_bps += 0.0 if math.isnan(bps) else bps
             pose = None
             linked = False
             nodes = 0

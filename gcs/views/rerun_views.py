@@ -778,7 +778,7 @@ def _dashboard_markdown(p: OperatorPicture) -> str:
             r.mode,
             r.task,
             f"{r.last_message_age_s:.0f} s",
-            f"{r.uplink_bps:.0f} bit/s",
+            "?" if math.isnan(r.uplink_bps) else f"{r.uplink_bps:.0f} bit/s",
             bat,
             str(r.nodes),
             "yes" if r.linked else "no",

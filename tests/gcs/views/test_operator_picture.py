@@ -100,6 +100,20 @@ def test_rows_status_stuck_objects_and_thumbnails() -> None:
     assert mosaic is not None and mosaic.shape == (96 + 14, 96, 3)
 
 
+def test_unmetered_messages_give_no_rate_and_no_rate_alert() -> None:
+    station = GroundStation()
+    b = PictureBuilder()
+    for t in range(0, 60, 2):
+        tele = Telemetry(
+            float(t), (0.0, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), 0.9, AutonomyMode.IDLE, 0
+        )
+        b.observe(3, tele, now_s=float(t))  # no nbytes: the GCS does not meter
+    p = b.build(station, 60.0)
+    (r,) = p.robots
+    assert np.isnan(r.uplink_bps) and p.uplink_total_bps == 0.0
+    assert p.new_alerts == []
+
+
 def test_planner_view_is_checked() -> None:
     station = GroundStation()
     b = PictureBuilder()
