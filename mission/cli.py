@@ -1,5 +1,11 @@
 """The ``magic`` command: one entry point for every process of the system.
 
+Exit statuses, the same for every subcommand (:mod:`protocol.process_cli`): 0 done, 1 the
+work failed, 2 bad input (one line on stderr naming what and where, before any long work),
+130 stopped by SIGINT, 143 stopped by SIGTERM. :func:`main` makes SIGTERM raise like ^C for
+every subcommand and is the last line of defence: a stop that escapes a subcommand ends
+with one line (``magic X: stopped by SIGINT``), never a traceback.
+
 Subcommands that are not built yet say so on stderr and exit with status 2; none prints
 made-up output.
 """
@@ -7,7 +13,10 @@ made-up output.
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
+import time
 from collections.abc import Sequence
 
 __all__ = ["main"]
@@ -18,44 +27,130 @@ _NOT_BUILT = {
     "report": "mission reports against ground truth (metrics)",
 }
 
+#: Subcommands with their own parser (``magic X --help`` is theirs): what each produces.
+_OWN_PARSERS = {
+    "sim": "the simulator server (world, robots, sensors, rules, radio) over zenoh: progress "
+    "and a summary line",
+    "robot": "one robot node, fed by a simulator (or hardware) over zenoh: a summary line",
+    "gcs": "the ground-control station (pose graph, loop closing, maps) over zenoh: status "
+    "lines and a summary line",
+    "replay": "replay a CARMEN laser log through the GCS and evaluate it (--carmen FILE): "
+    "the evaluation, and the map and summary files in --out",
+}
+
+_EXIT_STATUSES = (
+    "exit status: 0 done, 1 the work failed, 2 bad input (one line on stderr naming it, "
+    "before any long work), 130 stopped by SIGINT (^C), 143 stopped by SIGTERM; a stopped "
+    "command summarises what ran and keeps what it already wrote."
+)
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Help as wide as the terminal (100 columns when piped): option texts keep their
+    defaults and units on one line where they fit."""
+
+    def __init__(self, prog: str) -> None:
+        width = os.get_terminal_size().columns if sys.stdout.isatty() else 100
+        super().__init__(prog, width=max(width, 60), max_help_position=28)
+
 
 def _build_parser() -> argparse.ArgumentParser:
-    from mission.bench import SUITES  # names only: the suites import when they run
+    from mission.bench import BENCH_DIR_ENV, SUITES, bench_root
 
     parser = argparse.ArgumentParser(
         prog="magic",
-        description="magic-recon: supervise a team of autonomous ground robots (MAGIC 2010).",
+        description="magic-recon: supervise a team of autonomous ground robots (MAGIC 2010).\n"
+        "`magic COMMAND --help` says what each command takes, produces and where.",
+        epilog=_EXIT_STATUSES,
+        formatter_class=_HelpFormatter,
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    bench = sub.add_parser("bench", help="run a benchmark suite and print its metrics")
-    bench.add_argument("suite", help=f"one of: {', '.join(sorted(SUITES))}")
-    bench.add_argument("--quick", action="store_true", help="short run (under 60 s)")
-    bench.add_argument("--json", metavar="FILE", help="also write the metrics as JSON to FILE")
+    bench = sub.add_parser(
+        "bench",
+        help="run a benchmark suite: its metrics as a table on stdout (and --json FILE)",
+        description="Run benchmark suite SUITE and print its metrics as a table on stdout "
+        "(progress on stderr). Maps and plots a suite draws go to "
+        f"${BENCH_DIR_ENV}/SUITE (now: {bench_root()}/SUITE; default: the system temp "
+        "dir's magic-bench/SUITE).",
+        epilog=_EXIT_STATUSES,
+        formatter_class=_HelpFormatter,
+    )
+    bench.add_argument("suite", metavar="SUITE", help=f"one of: {', '.join(sorted(SUITES))}")
+    bench.add_argument(
+        "--quick",
+        action="store_true",
+        help="short run, under 60 s wall time, every metric still measured "
+        "(default: the full run, minutes)",
+    )
+    bench.add_argument(
+        "--json",
+        metavar="FILE",
+        help="also write {suite, quick, metrics} as JSON to FILE; its directory must exist "
+        "and is checked before the suite runs (default: no file)",
+    )
 
     run = sub.add_parser(  # its own parser: mission/run.py
         "run", help="simulate a robot team on this machine, end to end", add_help=False
     )
     run.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
 
-    codec = sub.add_parser("codec", help="terrain-grid codecs: record a corpus, train the models")
-    codec_sub = codec.add_subparsers(dest="codec_command", metavar="ACTION", required=True)
-    record = codec_sub.add_parser("record", help="record grids from simulator runs (a corpus)")
-    record.add_argument("--split", choices=("train", "test"), default="train")
-    record.add_argument("--out", metavar="NPZ", help="corpus file (default: the shipped one)")
-    train = codec_sub.add_parser("train", help="train the models and write the model file")
-    train.add_argument("--corpus", metavar="NPZ", help="training corpus (default: shipped)")
-    train.add_argument("--out", metavar="NPZ", help="model file (default: the shipped one)")
-    train.add_argument("--version", type=int, help="model version (default: shipped + 1)")
-
-    for name, what in (
-        ("sim", "the simulator server: world, robots, sensors, rules, radio over zenoh"),
-        ("robot", "one robot node, fed by a simulator (or hardware) over zenoh"),
-        ("gcs", "the ground-control station: pose graph, loop closing, maps, over zenoh"),
-        ("replay", "replay a CARMEN laser log through the GCS and evaluate it (--carmen FILE)"),
-    ):
+    for name, what in _OWN_PARSERS.items():
         p = sub.add_parser(name, help=what, add_help=False)
         p.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+
+    codec = sub.add_parser(
+        "codec",
+        help="terrain-grid codecs: record a corpus, train the models (.npz files)",
+        description="Terrain-grid codecs (paper 4.3.4): record a corpus of grids from "
+        "simulator runs, train the context models from it.",
+        epilog=_EXIT_STATUSES,
+        formatter_class=_HelpFormatter,
+    )
+    codec_sub = codec.add_subparsers(dest="codec_command", metavar="ACTION", required=True)
+    record = codec_sub.add_parser(
+        "record",
+        help="record grids from simulator runs: a corpus .npz",
+        description="Run the simulator worlds of the split with their whole teams (minutes) "
+        "and write every pose node's terrain grid to a corpus .npz; progress on stderr.",
+        formatter_class=_HelpFormatter,
+    )
+    record.add_argument(
+        "--split",
+        choices=("train", "test"),
+        default="train",
+        help="which worlds to run (default: %(default)s)",
+    )
+    record.add_argument(
+        "--out",
+        metavar="NPZ",
+        help="corpus file to write, checked first (default: the shipped "
+        "compression/corpus/terrain_SPLIT.npz)",
+    )
+    train = codec_sub.add_parser(
+        "train",
+        help="train the models from a corpus: the model file .npz",
+        description="Train the codec context models from a corpus and write the model file; "
+        "progress on stderr.",
+        formatter_class=_HelpFormatter,
+    )
+    train.add_argument(
+        "--corpus",
+        metavar="NPZ",
+        help="training corpus, checked first (default: the shipped "
+        "compression/corpus/terrain_train.npz)",
+    )
+    train.add_argument(
+        "--out",
+        metavar="NPZ",
+        help="model file to write, checked first (default: the shipped model file)",
+    )
+    train.add_argument(
+        "--version",
+        type=int,
+        metavar="N",
+        help="model version 1..255 in every stream header (default: the shipped one + 1)",
+    )
 
     for name, what in _NOT_BUILT.items():
         p = sub.add_parser(name, help=f"{what} [not built yet]", add_help=True)
@@ -63,39 +158,84 @@ def _build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _cmd_bench(args: argparse.Namespace) -> int:
+def _console(*, stderr: bool = False):  # type: ignore[no-untyped-def]
+    """A rich console that does not wrap mid-phrase when piped (a terminal keeps its width)."""
     from rich.console import Console
+
+    stream = sys.stderr if stderr else sys.stdout
+    if stream.isatty():
+        return Console(stderr=stderr, highlight=False, log_path=False)
+    return Console(stderr=stderr, highlight=False, width=160, soft_wrap=True)
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
     from rich.table import Table
 
-    from mission.bench import BenchError, run_suite, write_json
+    from mission.bench import BENCH_DIR_ENV, SUITES, BenchError, bench_root, run_suite, write_json
+    from protocol.process_cli import (
+        check_output_dir,
+        check_output_file,
+        exit_code_for,
+        one_line,
+        stopped_line,
+    )
 
-    err = Console(stderr=True)
-    out = Console()
+    err = _console(stderr=True)
+    out = _console()
+
+    def fail(problem: object) -> int:
+        err.print(one_line(f"magic bench: {problem}"), style="red", markup=False)
+        return 2
+
+    # everything the suite's end needs, checked before it starts (a suite runs for minutes)
+    if args.suite not in SUITES:
+        known = ", ".join(sorted(SUITES))
+        return fail(f"unknown benchmark suite {args.suite!r}; known suites: {known}")
+    try:
+        if args.json:
+            check_output_file(args.json, "--json")
+        check_output_dir(bench_root(), f"${BENCH_DIR_ENV}")
+    except ValueError as exc:
+        return fail(exc)
+
+    start = time.monotonic()
+    last = [""]
     try:
         with err.status(f"bench {args.suite}...") as status:
 
             def progress(msg: str) -> None:
+                last[0] = msg
                 status.update(f"bench {args.suite}: {msg}")
-                err.log(msg)
+                if err.is_terminal:
+                    err.log(msg, markup=False)
+                else:  # piped: plain timestamped lines, never padded or wrapped
+                    err.print(f"{time.strftime('%H:%M:%S')} {msg}", markup=False)
 
             metrics = run_suite(args.suite, quick=args.quick, progress=progress)
     except BenchError as exc:
-        err.print(f"magic bench: {exc}", style="red", markup=False, highlight=False)
-        return 2
+        return fail(exc)
+    except KeyboardInterrupt as exc:
+        took = f"suite {args.suite} stopped after {time.monotonic() - start:.0f} s"
+        detail = f"{took}; last: {last[0]}" if last[0] else took
+        err.print(one_line(stopped_line("bench", exc, detail)), markup=False)
+        return exit_code_for(exc)
     table = Table(title=f"bench {args.suite}" + (" (quick)" if args.quick else ""))
-    table.add_column("metric")
-    table.add_column("value", justify="right")
+    table.add_column("metric", no_wrap=True)
+    table.add_column("value", justify="right", no_wrap=True)
     for key, value in metrics.items():
         table.add_row(key, f"{value:.6g}")
     out.print(table)
     if args.json:
-        write_json(args.json, suite=args.suite, quick=args.quick, metrics=metrics)
-        err.print(f"wrote {args.json}", markup=False, highlight=False)
+        try:
+            write_json(args.json, suite=args.suite, quick=args.quick, metrics=metrics)
+        except OSError as exc:  # the directory went away while the suite ran
+            err.print(one_line(f"magic bench: cannot write {args.json}: {exc.strerror}"))
+            return 1
+        err.print(f"wrote {args.json}", markup=False)
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+def _dispatch(argv: list[str]) -> int:
     if argv and argv[0] in ("sim", "robot", "gcs", "replay", "run"):  # their own parsers
         if argv[0] == "run":
             from mission.run import main as run_main
@@ -132,6 +272,46 @@ def main(argv: Sequence[str] | None = None) -> int:
     what = _NOT_BUILT[args.command]
     print(f"magic {args.command}: not built yet; it arrives with {what}.", file=sys.stderr)
     return 2
+
+
+def _stop_children() -> None:
+    """Terminate the multiprocessing children a stopped command leaves (they would outlive
+    it on SIGTERM, which reaches the parent only)."""
+    mp = sys.modules.get("multiprocessing")
+    if mp is None:
+        return
+    for child in mp.active_children():
+        child.terminate()
+    for child in mp.active_children():
+        child.join(5.0)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``magic COMMAND ...``: returns the exit status (module doc)."""
+    from protocol.process_cli import exit_code_for, install_sigterm_handler, stopped_line
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = argv[0] if argv and not argv[0].startswith("-") else "?"
+    previous_term = install_sigterm_handler()
+    previous_int = signal.getsignal(signal.SIGINT) if previous_term is not None else None
+    try:
+        return _dispatch(argv)
+    except KeyboardInterrupt as exc:  # ^C or SIGTERM (Terminated) that escaped the command
+        if previous_term is not None:  # a second signal does not cut the last line short
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        _stop_children()
+        print(stopped_line(command, exc), file=sys.stderr, flush=True)
+        return exit_code_for(exc)
+    except BrokenPipeError:  # ``magic ... | head``: the reader left; no traceback
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
+    finally:
+        if previous_term is not None:
+            signal.signal(signal.SIGTERM, previous_term)
+            if previous_int is not None:
+                signal.signal(signal.SIGINT, previous_int)
 
 
 if __name__ == "__main__":

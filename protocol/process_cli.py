@@ -110,9 +110,13 @@ MAX_ERROR_CHARS = 199
 
 
 def one_line(text: object, limit: int = MAX_ERROR_CHARS) -> str:
-    """``text`` on one line (whitespace runs collapsed), cut to ``limit`` characters."""
+    """``text`` on one line (whitespace runs collapsed), at most ``limit`` characters: a
+    longer one loses its middle (the command's name and the problem, at the end, stay)."""
     flat = " ".join(str(text).split())
-    return flat if len(flat) <= limit else flat[: limit - 3] + "..."
+    if len(flat) <= limit:
+        return flat
+    head = (limit - 5) // 2
+    return f"{flat[:head]} ... {flat[len(flat) - (limit - 5 - head) :]}"
 
 
 def _writable_dir(directory: Path) -> bool:

@@ -1,14 +1,24 @@
-"""The ``magic`` command: unbuilt subcommands say so on stderr and exit 2; bench checks suites."""
+"""The ``magic`` command: unbuilt subcommands say so on stderr and exit 2; bench checks suites
+and paths before it runs; SIGINT/SIGTERM end any command in one line with 130/143; the help
+states defaults and what each command produces."""
 
 from __future__ import annotations
 
+import json
+import os
+import re
+import selectors
+import signal
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
+from typing import IO
 
 import pytest
 
-from mission.bench import SUITES
+from mission.bench import SUITES, bench_root, output_dir
 from mission.cli import main
 
 UNBUILT = ["console", "report"]
@@ -96,3 +106,202 @@ def test_process_commands_refuse_bad_arguments(
 ) -> None:
     assert main(argv) == 2
     assert message in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ stops, checks, help (issue 20)
+
+MAGIC = str(Path(sys.executable).parent / "magic")
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _start(argv: list[str], env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [MAGIC, *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        env=env,
+    )
+
+
+def _wait_for_line(stream: IO[str], wanted: str, timeout_s: float) -> list[str]:
+    """Lines read from ``stream`` up to the first containing ``wanted`` (AssertionError
+    with what was read if it does not come within ``timeout_s``)."""
+    deadline = time.monotonic() + timeout_s
+    seen: list[str] = []
+    with selectors.DefaultSelector() as sel:
+        sel.register(stream, selectors.EVENT_READ)
+        while time.monotonic() < deadline:
+            if not sel.select(timeout=max(deadline - time.monotonic(), 0.0)):
+                break
+            line = stream.readline()
+            if not line:
+                break
+            seen.append(line)
+            if wanted in line:
+                return seen
+    raise AssertionError(f"no line with {wanted!r} within {timeout_s} s; read: {seen}")
+
+
+def _stop(proc: subprocess.Popen[str], signum: int) -> tuple[str, str]:
+    try:
+        proc.send_signal(signum)
+        return proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.parametrize(
+    ("json_arg", "named"),
+    [
+        ("/nonexistent/dir/x.json", "directory /nonexistent/dir does not exist"),
+        ("{tmp}", "is a directory"),
+    ],
+)
+def test_bench_json_path_is_checked_before_the_suite(
+    json_arg: str, named: str, tmp_path: Path
+) -> None:
+    """The whole graph suite would run for a minute first: it fails at once, in one line."""
+    json_arg = json_arg.replace("{tmp}", str(tmp_path))
+    t0 = time.monotonic()
+    proc = subprocess.run(
+        [MAGIC, "bench", "graph", "--quick", "--json", json_arg],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        cwd=REPO,
+    )
+    assert proc.returncode == 2
+    assert time.monotonic() - t0 < 15  # interpreter start and imports only
+    assert proc.stdout == ""
+    assert proc.stderr.count("\n") == 1 and len(proc.stderr) < 200
+    assert proc.stderr.startswith(f"magic bench: --json {json_arg}: ") and named in proc.stderr
+
+
+def test_bench_refuses_an_unwritable_bench_dir(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    env = dict(os.environ, MAGIC_BENCH_DIR=str(blocker / "sub"))
+    proc = subprocess.run(
+        [MAGIC, "bench", "graph", "--quick"],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        cwd=REPO,
+        env=env,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and len(proc.stderr.strip()) < 200
+    assert proc.stderr.startswith("magic bench: $MAGIC_BENCH_DIR ")
+    assert proc.stderr.strip().endswith(f"{blocker} is not a directory")
+
+
+@pytest.mark.parametrize(("signum", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_signal_stops_a_bench_suite_in_one_line(signum: int, status: int) -> None:
+    proc = _start(["bench", "loops", "--quick"])
+    assert proc.stderr is not None
+    _wait_for_line(proc.stderr, "loops matcher", timeout_s=60)
+    out, err = _stop(proc, signum)
+    name = signal.Signals(signum).name
+    assert proc.returncode == status, err
+    assert "Traceback" not in err and "Error" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"magic bench: stopped by {name} (suite loops stopped after ")
+    assert len(last) < 200
+    assert out == ""  # no table of metrics that were not measured
+
+
+def test_sigterm_escaping_a_command_ends_in_one_line_not_a_traceback(tmp_path: Path) -> None:
+    """``magic codec record`` has no stop handling of its own: main's last line of defence
+    ends it (status 143) and nothing is half-written."""
+    out_file = tmp_path / "corpus.npz"
+    proc = _start(["codec", "record", "--split", "test", "--out", str(out_file)])
+    assert proc.stderr is not None
+    _wait_for_line(proc.stderr, "recording ", timeout_s=60)
+    _, err = _stop(proc, signal.SIGTERM)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1] == "magic codec: stopped by SIGTERM"
+    assert not out_file.exists()
+
+
+def _option_helps(help_text: str) -> dict[str, str]:
+    """Option -> its help text (argparse's layout: an option line, continuation lines)."""
+    helps: dict[str, str] = {}
+    current = None
+    for line in help_text.splitlines():
+        m = re.match(r"^  (-[-\w]+(?:, --[-\w]+)?)(?: [A-Z_{}\[\],|.]+)?(?:\s{2,}(.*))?$", line)
+        if m:
+            current = m.group(1)
+            helps[current] = m.group(2) or ""
+        elif current and line.startswith("    "):
+            helps[current] += " " + line.strip()
+        else:
+            current = None
+    return helps
+
+
+@pytest.mark.parametrize(
+    "argv", [["bench", "--help"], ["codec", "record", "--help"], ["codec", "train", "--help"]]
+)
+def test_help_states_every_default_and_what_is_produced(
+    argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 0
+    text = capsys.readouterr().out
+    helps = _option_helps(text)
+    options = [o for o in helps if o != "-h, --help"]
+    assert options, text
+    for option in options:
+        assert "default" in helps[option], f"{argv}: {option} states no default: {helps[option]}"
+    flat = " ".join(text.split())
+    if argv[0] == "bench":
+        assert "under 60 s" in flat and "MAGIC_BENCH_DIR" in flat and "stdout" in flat
+        assert "130" in flat and "143" in flat
+    else:
+        assert ".npz" in flat and "stderr" in flat
+
+
+def test_top_level_help_says_what_each_command_produces(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    flat = " ".join(capsys.readouterr().out.split())
+    for words in ("table on stdout", "summary line", ".npz", "--out", "143 stopped by SIGTERM"):
+        assert words in flat
+
+
+def test_a_bench_run_writes_nothing_to_the_system_temp_dir(tmp_path: Path) -> None:
+    """With MAGIC_BENCH_DIR set, a suite's plot goes there; a private TMPDIR stays empty."""
+    system_tmp = tmp_path / "system-tmp"
+    bench_dir = tmp_path / "bench"
+    system_tmp.mkdir()
+    env = dict(os.environ, MAGIC_BENCH_DIR=str(bench_dir), TMPDIR=str(system_tmp))
+    proc = subprocess.run(
+        [MAGIC, "bench", "compression", "--quick", "--json", str(tmp_path / "m.json")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=REPO,
+        env=env,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (bench_dir / "compression" / "fig10_bytes_per_grid.png").stat().st_size > 1000
+    assert json.loads((tmp_path / "m.json").read_text())["suite"] == "compression"
+    assert sorted(p.name for p in system_tmp.rglob("*")) == []
+
+
+def test_bench_output_dir_follows_the_environment(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("MAGIC_BENCH_DIR", str(tmp_path / "b"))
+    assert output_dir("loops_replay") == tmp_path / "b" / "loops_replay"
+    assert (tmp_path / "b" / "loops_replay").is_dir()
+    monkeypatch.delenv("MAGIC_BENCH_DIR")
+    assert bench_root() == Path(tempfile.gettempdir()) / "magic-bench"

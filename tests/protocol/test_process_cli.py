@@ -8,13 +8,18 @@ import subprocess
 import sys
 import textwrap
 import threading
+from pathlib import Path
 
 import pytest
 
 from protocol.process_cli import (
     Terminated,
+    check_input_file,
+    check_output_dir,
+    check_output_file,
     exit_code_for,
     install_sigterm_handler,
+    one_line,
     raise_on_sigterm,
     signal_name_for,
     stop_on_interrupt,
@@ -119,3 +124,28 @@ def test_a_process_stopped_by_sigterm_exits_143_without_a_traceback() -> None:
                 proc.wait()
         assert proc.returncode == status
         assert err.strip() == f"magic test: stopped by {name}"
+
+
+def test_one_line_keeps_both_ends_under_the_limit() -> None:
+    assert one_line("a\n  b\tc") == "a b c"
+    long = "magic bench: " + "/x" * 200 + " is not a directory"
+    short = one_line(long)
+    assert len(short) == 199
+    assert short.startswith("magic bench: /x") and short.endswith("is not a directory")
+
+
+def test_path_checks_name_the_directory_at_fault(tmp_path: Path) -> None:
+    assert check_output_file(tmp_path / "a.json", "--json") == tmp_path / "a.json"
+    with pytest.raises(ValueError, match="directory /nonexistent/dir does not exist"):
+        check_output_file("/nonexistent/dir/x.json", "--json")
+    with pytest.raises(ValueError, match="is a directory"):
+        check_output_file(tmp_path, "--json")
+    assert check_output_dir(tmp_path / "new" / "deeper", "--out") == tmp_path / "new" / "deeper"
+    assert not (tmp_path / "new").exists()  # nothing created
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(ValueError, match=f"{tmp_path / 'f'} is not a directory"):
+        check_output_dir(tmp_path / "f" / "sub", "--out")
+    with pytest.raises(ValueError, match="--corpus .*: not found"):
+        check_input_file(tmp_path / "none.npz", "--corpus")
+    assert check_input_file(tmp_path / "f", "--corpus") == tmp_path / "f"
+    assert list(tmp_path.iterdir()) == [tmp_path / "f"]  # the write probe left nothing
