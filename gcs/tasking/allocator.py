@@ -1,0 +1,805 @@
+"""Task allocation: the GCS's planners composed (paper 5.1).
+
+:meth:`TaskAllocator.plan` takes a :class:`TaskingState` (what the GCS knows: the rasterized
+global map, robot poses in ``map`` and ``map_from_odom``, when each robot was last heard, roles,
+task reports, hazards, the pose-graph trajectories) and returns ``(robot_id, task message)``
+pairs for the GCS node to send. The allocator holds only planning memory (tasks issued, failed
+goals, lock bookkeeping); it does no IO. Each call, in order of urgency:
+
+1. bookkeeping: robots silent longer than ``silent_after_s`` or lost (``lost_after_s``, or
+   flagged) are not counted on: nothing is sent to them (a robot out of radio contact keeps
+   its last task) and their goals, OOIs and hostile views go to others; task reports close
+   tasks (succeeded, failed, rejected, canceled; a goal not reached within its timeout fails);
+2. safety: a robot inside a keep-out disc (a static OOI's trigger radius, a hostile's blast
+   radius, plus margins) drives to the nearest safe cell;
+3. hostiles (:mod:`~gcs.tasking.hostile_planner`): two sensor robots keep each in view until
+   the 30 s lock holds;
+4. disruptors (:mod:`~gcs.tasking.disruptor_planner`, 5.1.2): each live static OOI gets the
+   nearest free disruptor by highway, then a :class:`~protocol.messages.NeutralizeTask` once
+   it is there and approved (``auto`` approval is counted in :attr:`TaskingStats`); idle
+   disruptors spread over the highway;
+5. exploration (:mod:`~gcs.tasking.exploration_planner`, 5.1.1) for the other sensor robots:
+   a new goal when the last was reached, failed or its frontier is gone; a robot never gets
+   back a goal it failed; no frontier left: ``explored`` and the sensor robots park.
+
+Goals leave in each robot's private frame (``waypoints_in_odom = odom_from_map * waypoints_in_map``,
+paper 4.1).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import time
+from dataclasses import dataclass, field
+
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from gcs.mapping.rasterization import OccupancyMap
+from gcs.tasking.disruptor_planner import DisruptorConfig, dispatch_disruptor, spread_positions
+from gcs.tasking.exploration_planner import ExplorationConfig, Explorer, plan_exploration
+from gcs.tasking.frontiers import Frontiers, find_frontiers
+from gcs.tasking.hostile_planner import HostileConfig, HostileLock, evasion_goal, view_positions
+from gcs.tasking.information_gain import information_gain
+from gcs.tasking.planning_grid import PlanningGrid, coarsen
+from gcs.tasking.trajectory_graph import (
+    TrajectoryGraph,
+    TrajectoryGraphConfig,
+    build_trajectory_graph,
+)
+from protocol.messages import (
+    GoToTask,
+    Hazard,
+    IdleTask,
+    NeutralizeTask,
+    ObjectKind,
+    TaskState,
+    TaskStatus,
+)
+from protocol.se2 import inverse, transform_points
+
+__all__ = [
+    "Assignment",
+    "Role",
+    "RobotInfo",
+    "TaskAllocator",
+    "TaskingConfig",
+    "TaskingEvent",
+    "TaskingState",
+    "TaskingStats",
+]
+
+TaskMessage = GoToTask | NeutralizeTask | IdleTask
+_TERMINAL = (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.REJECTED, TaskState.CANCELED)
+
+
+class Role(enum.Enum):
+    SENSOR = "sensor"
+    DISRUPTOR = "disruptor"
+
+
+class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Everything task allocation runs with (metres, seconds).
+
+    ``planning_resolution_m``: cell of the coarse planning grid; ``robot_radius_m``: clearance
+    from obstacles; ``snap_m``: how far from its own cell a robot's start cell may be;
+    ``silent_after_s`` / ``lost_after_s``: radio silence before a robot is not counted on /
+    written off; ``goal_timeout_base_s`` + path length / ``assumed_speed_m_s``: time to reach a
+    goal before it counts as failed; ``frontier_gone_m``: a goal whose frontier has no cell
+    this close is abandoned; ``goal_failures_global``: robots that must fail a goal before no
+    robot gets it; ``keepout_margin_m``: added to trigger and blast radii for every robot;
+    ``first_task_id``: ids of the allocator's tasks count up from here."""
+
+    planning_resolution_m: float = 0.3
+    robot_radius_m: float = 0.35
+    snap_m: float = 1.5
+    silent_after_s: float = 10.0
+    lost_after_s: float = 60.0
+    goal_timeout_base_s: float = 30.0
+    assumed_speed_m_s: float = 0.3
+    frontier_gone_m: float = 1.5
+    goal_failures_global: int = 3
+    keepout_margin_m: float = 1.0
+    first_task_id: int = 1_000_000
+    exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
+    highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
+    disruptor: DisruptorConfig = msgspec.field(default_factory=DisruptorConfig)
+    hostile: HostileConfig = msgspec.field(default_factory=HostileConfig)
+
+    def __post_init__(self) -> None:
+        for name in (
+            "planning_resolution_m",
+            "snap_m",
+            "silent_after_s",
+            "lost_after_s",
+            "goal_timeout_base_s",
+            "assumed_speed_m_s",
+            "frontier_gone_m",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"tasking {name} must be finite and > 0, got {v}")
+        if not (math.isfinite(self.robot_radius_m) and self.robot_radius_m >= 0):
+            raise ValueError(f"tasking robot_radius_m must be >= 0, got {self.robot_radius_m}")
+        if self.lost_after_s < self.silent_after_s:
+            raise ValueError("tasking lost_after_s must be >= silent_after_s")
+        if self.goal_failures_global < 1:
+            raise ValueError("tasking goal_failures_global must be >= 1")
+
+
+@dataclass
+class RobotInfo:
+    """One robot as the GCS sees it. ``pose_in_map`` / ``map_from_odom`` ``(x_m, y_m, yaw_rad)``
+    (None until its trajectory is anchored in ``map``); ``status``: its latest task report;
+    ``operator_controlled``: an operator's task overrides the planners (paper 5.1.3);
+    ``lost``: written off by the GCS (e.g. the rules disabled it)."""
+
+    robot_id: int
+    role: Role
+    pose_in_map: tuple[float, float, float] | None
+    map_from_odom: tuple[float, float, float] | None
+    last_heard_s: float
+    status: TaskStatus | None = None
+    operator_controlled: bool = False
+    lost: bool = False
+
+
+def _empty_ids() -> NDArray[np.int64]:
+    return np.zeros(0, dtype=np.int64)
+
+
+@dataclass
+class TaskingState:
+    """What the GCS node fills for :meth:`TaskAllocator.plan`.
+
+    ``occupancy``: the rasterized global map (its origin and resolution inside);
+    ``hazards``: every known hazard in ``map`` (ids stable); ``trajectory_*``: the pose graph's
+    nodes at their current posterior (robot id, key increasing along each trajectory, x/y in
+    map: ``GroundStation.poses_in_map`` with each key's robot); ``hostile_seen_s``:
+    ``hazard_id -> robot_id -> last time that robot detected that hostile``;
+    ``approved_hazard_ids``: neutralizations an operator approved; ``neutralized_hazard_ids``:
+    hazards known neutralized (the allocator also tracks the ones it completed)."""
+
+    occupancy: OccupancyMap
+    robots: list[RobotInfo]
+    hazards: list[Hazard] = field(default_factory=list)
+    trajectory_robot_ids: NDArray[np.int64] = field(default_factory=_empty_ids)
+    trajectory_keys: NDArray[np.int64] = field(default_factory=_empty_ids)
+    trajectory_xy_in_map: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    hostile_seen_s: dict[int, dict[int, float]] = field(default_factory=dict)
+    approved_hazard_ids: frozenset[int] = frozenset()
+    neutralized_hazard_ids: frozenset[int] = frozenset()
+
+
+@dataclass
+class Assignment:
+    """A task the allocator issued. ``purpose``: ``explore``, ``park``, ``evade``,
+    ``hostile_view``, ``neutralize_go``, ``neutralize``, ``spread``."""
+
+    task_id: int
+    purpose: str
+    issued_s: float
+    goal_in_map: tuple[float, float] | None = None
+    hazard_id: int | None = None
+    timeout_s: float = math.inf
+
+
+@dataclass(frozen=True)
+class TaskingEvent:
+    """Something the allocator decided or noticed, for the journal and the operator."""
+
+    time_s: float
+    kind: str
+    robot_id: int | None
+    text: str
+    hazard_id: int | None = None
+
+
+@dataclass
+class TaskingStats:
+    plans: int = 0
+    tasks_issued: int = 0
+    goals_reached: int = 0
+    goals_failed: int = 0
+    reassigned: int = 0
+    approvals_auto: int = 0
+    approvals_operator: int = 0
+    neutralized: int = 0
+    hostiles_locked: int = 0
+    explored: bool = False
+    last_plan_wall_s: float = 0.0
+
+
+@dataclass
+class _Ctx:
+    now_s: float
+    state: TaskingState
+    grid: PlanningGrid
+    highway: TrajectoryGraph
+    blocked: NDArray[np.bool_]
+    robots: dict[int, RobotInfo]
+    available: dict[int, RobotInfo]
+    cells: dict[int, tuple[int, int]]
+    static_live: list[Hazard]
+    hostiles_live: list[Hazard]
+    out: list[tuple[int, TaskMessage]] = field(default_factory=list)
+
+
+class TaskAllocator:
+    """The planners' memory and composition (see the module docstring). Not thread-safe: the
+    GCS node calls :meth:`plan` from its step."""
+
+    def __init__(self, config: TaskingConfig | None = None) -> None:
+        self.config = config or TaskingConfig()
+        self.assignments: dict[int, Assignment] = {}
+        self.stats = TaskingStats()
+        self.events: list[TaskingEvent] = []
+        self.pending_approvals: set[int] = set()
+        self.neutralized: set[int] = set()
+        self.frontiers: Frontiers | None = None
+        self.grid: PlanningGrid | None = None
+        self.highway: TrajectoryGraph | None = None
+        self._next_id = self.config.first_task_id
+        self._failed_goals: dict[int, list[tuple[float, float]]] = {}
+        self._goal_failures: list[tuple[tuple[float, float], int]] = []
+        self._dispatch_excluded: dict[int, set[int]] = {}  # hazard -> robots that failed it
+        self._silent: set[int] = set()
+        self._lost: set[int] = set()
+        self._lock = HostileLock(self.config.hostile)
+        self._hostile_at: dict[int, tuple[float, float]] = {}
+        self._spread_at_s = -math.inf
+        self._spread_key: tuple[int, ...] = ()
+
+    # ---- the step ---------------------------------------------------------------------------
+
+    def plan(self, state: TaskingState, now_s: float) -> list[tuple[int, TaskMessage]]:
+        """Tasks to send now (see the module docstring); :attr:`events` says why."""
+        t0 = time.perf_counter()
+        self.events = []
+        self.stats.plans += 1
+        ctx = self._context(state, now_s)
+        self._bookkeeping(ctx)
+        self._evade(ctx)
+        self._hostiles(ctx)
+        self._disruptors(ctx)
+        self._explore(ctx)
+        self.stats.last_plan_wall_s = time.perf_counter() - t0
+        return ctx.out
+
+    # ---- helpers ----------------------------------------------------------------------------
+
+    def _event(
+        self, ctx: _Ctx, kind: str, robot: int | None, text: str, hazard: int | None = None
+    ) -> None:
+        self.events.append(TaskingEvent(ctx.now_s, kind, robot, text, hazard))
+
+    def _new_id(self) -> int:
+        tid = self._next_id
+        self._next_id += 1
+        self.stats.tasks_issued += 1
+        return tid
+
+    def _position(self, r: RobotInfo) -> tuple[float, float]:
+        assert r.pose_in_map is not None
+        return (float(r.pose_in_map[0]), float(r.pose_in_map[1]))
+
+    def _goto(
+        self,
+        ctx: _Ctx,
+        r: RobotInfo,
+        waypoints_in_map: NDArray[np.float64],
+        purpose: str,
+        hazard_id: int | None = None,
+    ) -> None:
+        assert r.map_from_odom is not None
+        wps = np.asarray(waypoints_in_map, dtype=np.float64).reshape(-1, 2)
+        odom_from_map = inverse(np.asarray(r.map_from_odom, dtype=np.float64))
+        in_odom = transform_points(odom_from_map, wps)
+        tid = self._new_id()
+        legs = np.vstack([np.asarray(self._position(r)), wps])
+        length = float(np.hypot(*np.diff(legs, axis=0).T).sum())
+        timeout = self.config.goal_timeout_base_s + length / self.config.assumed_speed_m_s
+        goal = (float(wps[-1, 0]), float(wps[-1, 1]))
+        self.assignments[r.robot_id] = Assignment(tid, purpose, ctx.now_s, goal, hazard_id, timeout)
+        ctx.out.append(
+            (r.robot_id, GoToTask(tid, ctx.now_s, [(float(x), float(y)) for x, y in in_odom]))
+        )
+
+    def _idle(self, ctx: _Ctx, r: RobotInfo, purpose: str) -> None:
+        tid = self._new_id()
+        self.assignments[r.robot_id] = Assignment(tid, purpose, ctx.now_s)
+        ctx.out.append((r.robot_id, IdleTask(tid, ctx.now_s)))
+
+    def _neutralize(self, ctx: _Ctx, r: RobotInfo, hazard: Hazard) -> None:
+        assert r.map_from_odom is not None
+        cfg = self.config.disruptor
+        target = np.asarray(hazard.position_in_map, dtype=np.float64)
+        odom_from_map = inverse(np.asarray(r.map_from_odom, dtype=np.float64))
+        t_odom = transform_points(odom_from_map, target)
+        standoff = math.dist(self._position(r), hazard.position_in_map)
+        standoff = max(standoff, cfg.trigger_radius_m + cfg.standoff_margin_m)
+        tid = self._new_id()
+        timeout = self.config.goal_timeout_base_s + cfg.hold_s
+        self.assignments[r.robot_id] = Assignment(
+            tid, "neutralize", ctx.now_s, hazard.position_in_map, hazard.hazard_id, timeout
+        )
+        ctx.out.append(
+            (
+                r.robot_id,
+                NeutralizeTask(
+                    tid, ctx.now_s, (float(t_odom[0]), float(t_odom[1])), standoff, True
+                ),
+            )
+        )
+
+    # ---- 0: the picture ---------------------------------------------------------------------
+
+    def _context(self, state: TaskingState, now_s: float) -> _Ctx:
+        cfg = self.config
+        done = self.neutralized | set(state.neutralized_hazard_ids)
+        locked = {h for h, s in self._lock.states.items() if s.locked}
+        static_live = [
+            h for h in state.hazards if h.kind == ObjectKind.STATIC_OOI and h.hazard_id not in done
+        ]
+        hostiles_live = [
+            h
+            for h in state.hazards
+            if h.kind in (ObjectKind.HOSTILE, ObjectKind.MOBILE_OOI)
+            and h.hazard_id not in done
+            and h.hazard_id not in locked
+        ]
+        discs = [
+            (
+                *h.position_in_map,
+                max(h.radius_m, cfg.disruptor.trigger_radius_m) + cfg.keepout_margin_m,
+            )
+            for h in static_live
+        ] + [
+            (*h.position_in_map, max(h.radius_m, cfg.hostile.blast_radius_m) + cfg.keepout_margin_m)
+            for h in hostiles_live
+        ]
+        grid = coarsen(
+            state.occupancy,
+            resolution_m=cfg.planning_resolution_m,
+            robot_radius_m=cfg.robot_radius_m,
+            keepout_in_map=np.asarray(discs, dtype=np.float64).reshape(-1, 3),
+        )
+        highway = build_trajectory_graph(
+            state.trajectory_robot_ids,
+            state.trajectory_keys,
+            state.trajectory_xy_in_map,
+            cfg.highway,
+        )
+        blocked = np.zeros(highway.size, dtype=bool)
+        for x, y, radius in discs:
+            blocked |= (
+                np.hypot(highway.nodes_in_map[:, 0] - x, highway.nodes_in_map[:, 1] - y) < radius
+            )
+        self.grid, self.highway = grid, highway
+        robots = {r.robot_id: r for r in state.robots}
+        return _Ctx(
+            now_s, state, grid, highway, blocked, robots, {}, {}, static_live, hostiles_live
+        )
+
+    # ---- 1: bookkeeping ---------------------------------------------------------------------
+
+    def _bookkeeping(self, ctx: _Ctx) -> None:
+        cfg = self.config
+        for rid, r in ctx.robots.items():
+            quiet_s = ctx.now_s - r.last_heard_s
+            lost = r.lost or quiet_s > cfg.lost_after_s
+            silent = quiet_s > cfg.silent_after_s
+            if lost and rid not in self._lost:
+                self._lost.add(rid)
+                self._event(ctx, "robot_lost", rid, f"robot {rid} lost: its tasks go to others")
+            elif silent and not lost and rid not in self._silent:
+                self._event(
+                    ctx, "robot_silent", rid, f"robot {rid} silent {quiet_s:.0f} s: not counted on"
+                )
+            if (silent or lost) and rid in self.assignments:
+                self.assignments[rid].purpose += (
+                    ":released" if ":released" not in self.assignments[rid].purpose else ""
+                )
+            if not silent and not lost and (rid in self._silent or rid in self._lost):
+                self._event(ctx, "robot_back", rid, f"robot {rid} heard again: re-planned")
+                self.assignments.pop(rid, None)
+                self._lost.discard(rid)
+            if silent:
+                self._silent.add(rid)
+            else:
+                self._silent.discard(rid)
+            if r.operator_controlled:
+                self.assignments.pop(rid, None)
+                continue
+            if silent or lost or r.pose_in_map is None or r.map_from_odom is None:
+                continue
+            pos = r.pose_in_map
+            if not all(math.isfinite(v) for v in (*pos, *r.map_from_odom)):
+                self._event(
+                    ctx, "bad_input", rid, f"robot {rid}: non-finite pose or frame, skipped"
+                )
+                continue
+            ctx.available[rid] = r
+            cell = ctx.grid.snap(pos[:2], cfg.snap_m)
+            if cell is not None:
+                ctx.cells[rid] = cell
+            self._close_task(ctx, r)
+
+    def _close_task(self, ctx: _Ctx, r: RobotInfo) -> None:
+        a = self.assignments.get(r.robot_id)
+        if a is None:
+            return
+        st = r.status
+        finished = st is not None and st.task_id == a.task_id and st.state in _TERMINAL
+        timed_out = not finished and ctx.now_s - a.issued_s > a.timeout_s
+        if not (finished or timed_out):
+            return
+        ok = finished and st is not None and st.state == TaskState.SUCCEEDED
+        why = (
+            "timed out"
+            if timed_out
+            else (
+                st.detail if st is not None and st.detail else (st.state.name.lower() if st else "")
+            )
+        )
+        purpose = a.purpose.split(":")[0]
+        if ok:
+            self.stats.goals_reached += 1
+            if purpose == "neutralize_go":
+                self.assignments[r.robot_id] = Assignment(
+                    a.task_id, "neutralize_wait", ctx.now_s, a.goal_in_map, a.hazard_id
+                )
+                return
+            if purpose == "neutralize" and a.hazard_id is not None:
+                self.neutralized.add(a.hazard_id)
+                self.stats.neutralized += 1
+                self._event(
+                    ctx, "neutralized", r.robot_id, f"hazard {a.hazard_id} neutralized", a.hazard_id
+                )
+        else:
+            self.stats.goals_failed += 1
+            self._event(
+                ctx,
+                "task_failed",
+                r.robot_id,
+                f"task {a.task_id} ({purpose}) failed: {why}",
+                a.hazard_id,
+            )
+            if purpose == "explore" and a.goal_in_map is not None:
+                self._failed_goals.setdefault(r.robot_id, []).append(a.goal_in_map)
+                self._goal_failures.append((a.goal_in_map, r.robot_id))
+            if purpose in ("neutralize_go", "neutralize") and a.hazard_id is not None:
+                self._dispatch_excluded.setdefault(a.hazard_id, set()).add(r.robot_id)
+        if purpose in ("park", "spread") and ok:
+            # a parked or spread robot stays where it is; keep the record (not re-sent)
+            a.timeout_s = math.inf
+            a.purpose = purpose + ":done"
+            return
+        self.assignments.pop(r.robot_id, None)
+
+    def _purpose(self, rid: int) -> str | None:
+        a = self.assignments.get(rid)
+        return None if a is None else a.purpose
+
+    # ---- 2: safety ----------------------------------------------------------------------------
+
+    def _evade(self, ctx: _Ctx) -> None:
+        cfg = self.config
+        discs = [(h, max(h.radius_m, cfg.disruptor.trigger_radius_m)) for h in ctx.static_live]
+        discs += [(h, max(h.radius_m, cfg.hostile.blast_radius_m)) for h in ctx.hostiles_live]
+        for rid, r in ctx.available.items():
+            pos = self._position(r)
+            for h, radius in discs:
+                if math.dist(pos, h.position_in_map) < radius:
+                    if self._purpose(rid) == "evade":
+                        break
+                    goal = evasion_goal(
+                        ctx.grid, pos, radius + 2 * cfg.keepout_margin_m + cfg.snap_m
+                    )
+                    if goal is None:
+                        self._event(
+                            ctx,
+                            "no_evasion",
+                            rid,
+                            f"robot {rid} inside hazard {h.hazard_id} with no way out",
+                            h.hazard_id,
+                        )
+                        break
+                    self._event(
+                        ctx,
+                        "evade",
+                        rid,
+                        f"robot {rid} leaves the keep-out of hazard {h.hazard_id}",
+                        h.hazard_id,
+                    )
+                    self._goto(ctx, r, np.asarray([goal]), "evade", h.hazard_id)
+                    break
+
+    # ---- 3: hostiles ----------------------------------------------------------------------------
+
+    def _hostiles(self, ctx: _Ctx) -> None:
+        cfg = self.config.hostile
+        for h in [
+            h for h in ctx.state.hazards if h.kind in (ObjectKind.HOSTILE, ObjectKind.MOBILE_OOI)
+        ]:
+            hid = h.hazard_id
+            if hid in self.neutralized or hid in ctx.state.neutralized_hazard_ids:
+                continue
+            st = self._lock.update(hid, ctx.state.hostile_seen_s.get(hid, {}), ctx.now_s)
+            if st.locked:
+                if hid not in self.neutralized:
+                    self.neutralized.add(hid)
+                    self.stats.hostiles_locked += 1
+                    self._event(
+                        ctx,
+                        "hostile_locked",
+                        None,
+                        f"hostile {hid} held in view {cfg.lock_s:.0f} s",
+                        hid,
+                    )
+                for rid, a in list(self.assignments.items()):
+                    if a.purpose == "hostile_view" and a.hazard_id == hid:
+                        del self.assignments[rid]
+                continue
+            viewers = [
+                rid
+                for rid, a in self.assignments.items()
+                if a.purpose == "hostile_view" and a.hazard_id == hid and rid in ctx.available
+            ]
+            moved = math.dist(self._hostile_at.get(hid, h.position_in_map), h.position_in_map)
+            if len(viewers) >= cfg.viewers and moved < cfg.replan_move_m:
+                continue
+            pool = {
+                rid: self._position(r)
+                for rid, r in ctx.available.items()
+                if r.role == Role.SENSOR
+                and (rid in viewers or self._purpose(rid) not in ("hostile_view", "evade"))
+            }
+            views = view_positions(ctx.grid, h.position_in_map, pool, cfg)
+            self._hostile_at[hid] = h.position_in_map
+            for rid, p in views.items():
+                cur = self.assignments.get(rid)
+                if (
+                    cur is not None
+                    and cur.purpose == "hostile_view"
+                    and cur.goal_in_map is not None
+                    and math.dist(cur.goal_in_map, p) < 0.5
+                ):
+                    continue
+                self._event(ctx, "hostile_view", rid, f"robot {rid} to watch hostile {hid}", hid)
+                self._goto(ctx, ctx.available[rid], np.asarray([p]), "hostile_view", hid)
+
+    # ---- 4: disruptors -------------------------------------------------------------------------
+
+    def _disruptors(self, ctx: _Ctx) -> None:
+        cfg = self.config.disruptor
+        mine = {rid: r for rid, r in ctx.available.items() if r.role == Role.DISRUPTOR}
+        live = {h.hazard_id: h for h in ctx.static_live}
+        # approvals for disruptors at their pose
+        for rid, r in mine.items():
+            a = self.assignments.get(rid)
+            if a is None or a.purpose != "neutralize_wait" or a.hazard_id is None:
+                continue
+            h = live.get(a.hazard_id)
+            if h is None:
+                self.assignments.pop(rid, None)
+                continue
+            if cfg.approval == "auto":
+                self.stats.approvals_auto += 1
+                self._event(
+                    ctx,
+                    "approved",
+                    rid,
+                    f"neutralization of {h.hazard_id} auto-approved",
+                    h.hazard_id,
+                )
+            elif h.hazard_id in ctx.state.approved_hazard_ids:
+                self.stats.approvals_operator += 1
+                self._event(
+                    ctx,
+                    "approved",
+                    rid,
+                    f"operator approved neutralization of {h.hazard_id}",
+                    h.hazard_id,
+                )
+            else:
+                if h.hazard_id not in self.pending_approvals:
+                    self._event(
+                        ctx,
+                        "awaiting_approval",
+                        rid,
+                        f"neutralization of {h.hazard_id} awaits the operator",
+                        h.hazard_id,
+                    )
+                self.pending_approvals.add(h.hazard_id)
+                continue
+            self.pending_approvals.discard(h.hazard_id)
+            self._neutralize(ctx, r, h)
+        # who handles which OOI (assignments of silent/lost disruptors are released)
+        handled = {
+            a.hazard_id
+            for rid, a in self.assignments.items()
+            if rid in mine and a.purpose in ("neutralize_go", "neutralize_wait", "neutralize")
+        }
+        for rid, a in list(self.assignments.items()):
+            if (
+                a.purpose.startswith("neutralize")
+                and a.purpose.endswith(":released")
+                and a.hazard_id in live
+                and a.hazard_id not in handled
+            ):
+                self.stats.reassigned += 1
+                self._event(
+                    ctx,
+                    "reassigned",
+                    rid,
+                    f"hazard {a.hazard_id}: its disruptor {rid} is out of contact",
+                    a.hazard_id,
+                )
+                a.purpose = a.purpose.replace(":released", ":dropped")
+        static_xy = np.asarray(
+            [h.position_in_map for h in ctx.static_live], dtype=np.float64
+        ).reshape(-1, 2)
+        for hid in sorted(live):
+            if hid in handled:
+                continue
+            free = {
+                rid: self._position(r)
+                for rid, r in mine.items()
+                if self._purpose(rid)
+                not in ("neutralize_go", "neutralize_wait", "neutralize", "evade")
+                and rid not in self._dispatch_excluded.get(hid, set())
+            }
+            d = dispatch_disruptor(
+                ctx.grid,
+                ctx.highway,
+                hid,
+                live[hid].position_in_map,
+                static_xy,
+                free,
+                ctx.blocked,
+                cfg,
+            )
+            if d is None:
+                continue
+            self._event(
+                ctx,
+                "dispatch",
+                d.robot_id,
+                f"disruptor {d.robot_id} to hazard {hid} ({d.distance_m:.0f} m of highway)",
+                hid,
+            )
+            self._goto(ctx, mine[d.robot_id], d.waypoints_in_map, "neutralize_go", hid)
+            handled.add(hid)
+        self._spread(ctx, mine)
+
+    def _spread(self, ctx: _Ctx, mine: dict[int, RobotInfo]) -> None:
+        cfg = self.config.disruptor
+        idle = sorted(
+            rid
+            for rid in mine
+            if (self._purpose(rid) or "spread").split(":")[0] in ("spread", "park")
+        )
+        if not idle or ctx.highway.size == 0:
+            return
+        key = tuple(idle)
+        if key == self._spread_key and ctx.now_s - self._spread_at_s < cfg.spread_period_s:
+            return
+        self._spread_key, self._spread_at_s = key, ctx.now_s
+        pos = np.asarray([self._position(mine[r]) for r in idle])
+        access = ctx.highway.nearest(pos, ctx.blocked)
+        if (access < 0).all():
+            return
+        # the explored highway reachable by these disruptors
+        dist, _ = ctx.highway.distances(access[access >= 0], ctx.blocked)
+        region: NDArray[np.bool_] = np.asarray(np.isfinite(dist).any(axis=0), dtype=bool)
+        centres = spread_positions(
+            ctx.highway, len(idle), region=region, blocked=ctx.blocked, config=cfg
+        )
+        if centres.size == 0:
+            return
+        d_all, pred_all = ctx.highway.distances(np.where(access >= 0, access, 0), ctx.blocked)
+        cost = np.where(access[:, None] >= 0, d_all[:, centres], np.inf)
+        cost = np.where(np.isfinite(cost), cost, 1e12)
+        rows, cols = linear_sum_assignment(cost)
+        for i, j in zip(rows, cols, strict=True):
+            rid = idle[i]
+            if cost[i, j] >= 1e12:
+                continue
+            target = ctx.highway.nodes_in_map[centres[j]]
+            a = self.assignments.get(rid)
+            if (
+                a is not None
+                and a.goal_in_map is not None
+                and math.dist(a.goal_in_map, target) < cfg.spread_tolerance_m
+            ):
+                continue
+            if math.dist(self._position(mine[rid]), target) < cfg.spread_tolerance_m:
+                continue
+            path = ctx.highway.path(pred_all[i], int(centres[j]))
+            self._event(
+                ctx, "spread", rid, f"idle disruptor {rid} to highway waypoint {int(centres[j])}"
+            )
+            self._goto(ctx, mine[rid], ctx.highway.nodes_in_map[path], "spread")
+
+    # ---- 5: exploration -----------------------------------------------------------------------
+
+    def _explore(self, ctx: _Ctx) -> None:
+        cfg = self.config
+        sensors = {rid: r for rid, r in ctx.available.items() if r.role == Role.SENSOR}
+        frontiers = find_frontiers(
+            ctx.grid,
+            [ctx.cells[r] for r in sensors if r in ctx.cells],
+            goal_spacing_m=cfg.exploration.goal_separation_m / 3.0,
+        )
+        self.frontiers = frontiers
+        waiting: list[Explorer] = []
+        claimed: list[tuple[float, float]] = []
+        global_bad = self._globally_failed()
+        for rid, r in sensors.items():
+            a = self.assignments.get(rid)
+            purpose = None if a is None else a.purpose
+            if purpose in ("evade", "hostile_view"):
+                continue
+            if purpose == "explore" and a is not None and a.goal_in_map is not None:
+                if frontiers.near(a.goal_in_map, ctx.grid, cfg.frontier_gone_m):
+                    claimed.append(a.goal_in_map)
+                    continue
+                self._event(
+                    ctx, "frontier_gone", rid, f"robot {rid}: the frontier at its goal is explored"
+                )
+            if rid not in ctx.cells:
+                self._event(
+                    ctx, "no_start", rid, f"robot {rid}: no traversable cell within {cfg.snap_m} m"
+                )
+                continue
+            bl = self._failed_goals.get(rid, []) + global_bad
+            waiting.append(
+                Explorer(
+                    rid,
+                    ctx.cells[rid],
+                    self._position(r),
+                    np.asarray(bl, dtype=np.float64).reshape(-1, 2),
+                )
+            )
+        if not waiting:
+            return
+        gains = information_gain(
+            ctx.grid, frontiers.goal_cells, sensor_range_m=cfg.exploration.sensor_range_m
+        )
+        plan = plan_exploration(
+            ctx.grid,
+            frontiers,
+            gains,
+            waiting,
+            claimed_in_map=np.asarray(claimed, dtype=np.float64).reshape(-1, 2),
+            highway=ctx.highway,
+            config=cfg.exploration,
+        )
+        if plan.explored and not claimed:
+            if not self.stats.explored:
+                self._event(
+                    ctx, "explored", None, "no reachable frontier left: the area is explored"
+                )
+            self.stats.explored = True
+        elif not plan.explored:
+            self.stats.explored = False
+        for rid, g in plan.goals.items():
+            self._goto(ctx, sensors[rid], g.waypoints_in_map, "explore")
+        for rid in plan.unassigned:
+            if (self._purpose(rid) or "").split(":")[0] != "park":
+                self._event(ctx, "park", rid, f"robot {rid}: no frontier goal, parked")
+                self._idle(ctx, sensors[rid], "park")
+
+    def _globally_failed(self) -> list[tuple[float, float]]:
+        cfg = self.config
+        out = []
+        r = cfg.exploration.blacklist_radius_m
+        for goal, _ in self._goal_failures:
+            robots = {rid for g, rid in self._goal_failures if math.dist(g, goal) <= r}
+            if len(robots) >= cfg.goal_failures_global:
+                out.append(goal)
+        return out

@@ -1,0 +1,201 @@
+"""Disruptor task allocation (paper 5.1.2).
+
+"The disruptor planner fulfills two planning goals: 1) immediately tasking an available
+disruptor robot to the neutralization region of each newly found static OOI and 2) positioning
+idle disruptor robots evenly throughout the environment to minimize response time ... Unlike
+sensor robots, disruptor robots *only* travel on the 'highway'."
+
+* :func:`neutralization_nodes`: highway waypoints from which the OOI can be lasered: farther
+  than its trigger radius plus a margin (from it and from every other live static OOI), within
+  ``laser_range_m``, with line of sight over the planning grid.
+* :func:`dispatch_disruptor`: the free disruptor with the shortest highway route to any such
+  waypoint, and the route (highway waypoints only, never the grid: a shorter path through
+  unexplored ground is not allowed).
+* :func:`spread_positions`: ``k`` highway waypoints minimising the mean highway distance from
+  the explored highway to the nearest of them (k-medoids, Lloyd iterations on graph distances,
+  seeded by farthest-point k-centre). On a straight road two disruptors settle at 1/4 and 3/4.
+* ``approval``: the rules want an operator's approval before a neutralization; ``auto``
+  approves at once (an unattended run; the allocator counts each approval), ``operator`` waits
+  for one.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import msgspec
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gcs.tasking.planning_grid import PlanningGrid, line_of_sight, simplify_path
+from gcs.tasking.trajectory_graph import TrajectoryGraph
+
+__all__ = [
+    "DisruptorConfig",
+    "Dispatch",
+    "dispatch_disruptor",
+    "neutralization_nodes",
+    "spread_positions",
+]
+
+
+class DisruptorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Metres, seconds. ``hold_s``: the laser hold the rules require (15 s)."""
+
+    trigger_radius_m: float = 2.5
+    standoff_margin_m: float = 1.0
+    laser_range_m: float = 10.0
+    hold_s: float = 15.0
+    approval: Literal["auto", "operator"] = "auto"
+    spread_iterations: int = 12
+    spread_candidates: int = 24
+    spread_tolerance_m: float = 3.0
+    spread_period_s: float = 20.0
+    path_tolerance_m: float = 0.3
+
+    def __post_init__(self) -> None:
+        for name in ("trigger_radius_m", "laser_range_m", "hold_s", "path_tolerance_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"disruptor {name} must be finite and > 0, got {v}")
+        if not self.laser_range_m > self.trigger_radius_m + self.standoff_margin_m:
+            raise ValueError(
+                f"disruptor laser_range_m {self.laser_range_m} must exceed trigger_radius_m + "
+                f"standoff_margin_m ({self.trigger_radius_m + self.standoff_margin_m})"
+            )
+        if self.spread_iterations < 1 or self.spread_candidates < 1:
+            raise ValueError("disruptor spread_iterations and spread_candidates must be >= 1")
+
+
+@dataclass(frozen=True)
+class Dispatch:
+    """Send ``robot_id`` along ``waypoints_in_map`` (highway waypoints, ending at the
+    neutralization pose ``pose_in_map``) for hazard ``hazard_id``."""
+
+    robot_id: int
+    hazard_id: int
+    pose_in_map: tuple[float, float]
+    waypoints_in_map: NDArray[np.float64]
+    distance_m: float
+
+
+def neutralization_nodes(
+    grid: PlanningGrid,
+    highway: TrajectoryGraph,
+    ooi_in_map: ArrayLike,
+    static_oois_in_map: ArrayLike,
+    config: DisruptorConfig,
+) -> NDArray[np.int64]:
+    """Highway waypoints to laser the OOI at ``ooi_in_map`` from (see the module docstring);
+    ``static_oois_in_map`` ``(K, 2)`` are every live static OOI (including this one)."""
+    if highway.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    ooi = np.asarray(ooi_in_map, dtype=np.float64).reshape(2)
+    nodes = highway.nodes_in_map
+    d = np.hypot(*(nodes - ooi).T)
+    safe = config.trigger_radius_m + config.standoff_margin_m
+    ok = (d >= safe) & (d <= config.laser_range_m)
+    others = np.asarray(static_oois_in_map, dtype=np.float64).reshape(-1, 2)
+    for o in others:
+        ok &= np.hypot(*(nodes - o).T) >= safe
+    cand = np.flatnonzero(ok)
+    vis = [i for i in cand if line_of_sight(grid, nodes[i], ooi)]
+    return np.asarray(vis, dtype=np.int64)
+
+
+def dispatch_disruptor(
+    grid: PlanningGrid,
+    highway: TrajectoryGraph,
+    hazard_id: int,
+    ooi_in_map: ArrayLike,
+    static_oois_in_map: ArrayLike,
+    free_disruptors: dict[int, tuple[float, float]],
+    blocked: NDArray[np.bool_] | None,
+    config: DisruptorConfig,
+) -> Dispatch | None:
+    """The nearest (by highway) free disruptor and its route to a neutralization pose of the
+    OOI, or None (no disruptor on the highway, no pose with line of sight yet)."""
+    if not free_disruptors or highway.size == 0:
+        return None
+    cand = neutralization_nodes(grid, highway, ooi_in_map, static_oois_in_map, config)
+    if blocked is not None:
+        cand = cand[~blocked[cand]]
+    if cand.size == 0:
+        return None
+    ids = sorted(free_disruptors)
+    pos = np.asarray([free_disruptors[r] for r in ids], dtype=np.float64).reshape(-1, 2)
+    access = highway.nearest(pos, blocked)
+    have = access >= 0
+    if not have.any():
+        return None
+    d, pred = highway.distances(access[have], blocked)
+    entry = np.hypot(*(highway.nodes_in_map[access[have]] - pos[have]).T)
+    cost = entry[:, None] + d[:, cand]
+    if not np.isfinite(cost).any():
+        return None
+    i, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    robot = [r for r, h in zip(ids, have, strict=True) if h][i]
+    target = int(cand[j])
+    path = highway.path(pred[i], target)
+    wps = simplify_path(highway.nodes_in_map[path], config.path_tolerance_m)
+    p = highway.nodes_in_map[target]
+    return Dispatch(robot, hazard_id, (float(p[0]), float(p[1])), wps, float(cost[i, j]))
+
+
+def spread_positions(
+    highway: TrajectoryGraph,
+    k: int,
+    *,
+    region: NDArray[np.bool_] | None = None,
+    blocked: NDArray[np.bool_] | None = None,
+    config: DisruptorConfig | None = None,
+) -> NDArray[np.int64]:
+    """``k`` highway waypoints spread over ``region`` (default: all waypoints not
+    ``blocked``) to minimise the mean highway distance to the nearest (k-medoids)."""
+    cfg = config or DisruptorConfig()
+    if k <= 0 or highway.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    mask = np.ones(highway.size, dtype=bool) if region is None else region.copy()
+    if blocked is not None:
+        mask &= ~blocked
+    members = np.flatnonzero(mask)
+    if members.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    k = min(k, int(members.size))
+    nodes = highway.nodes_in_map
+    # farthest-point seeding, from the member nearest the members' centroid
+    first = members[int(np.argmin(np.hypot(*(nodes[members] - nodes[members].mean(0)).T)))]
+    centres = [int(first)]
+    d, _ = highway.distances([first], blocked)
+    nearest = d[0, members]
+    for _ in range(1, k):
+        finite = np.where(np.isfinite(nearest), nearest, -1.0)
+        nxt = int(members[int(np.argmax(finite))])
+        if nxt in centres:
+            break
+        centres.append(nxt)
+        dn, _ = highway.distances([nxt], blocked)
+        nearest = np.minimum(nearest, dn[0, members])
+    for _ in range(cfg.spread_iterations):
+        dc, _ = highway.distances(centres, blocked)
+        owner = np.argmin(dc[:, members], axis=0)
+        new = []
+        for c in range(len(centres)):
+            mine = members[owner == c]
+            if mine.size == 0:
+                new.append(centres[c])
+                continue
+            step = max(1, int(math.ceil(mine.size / cfg.spread_candidates)))
+            # candidates: every step-th member in order of distance from the current centre
+            by_d = mine[np.argsort(dc[c, mine], kind="stable")]
+            cands = np.unique(np.r_[by_d[::step], centres[c]])
+            dd, _ = highway.distances(cands, blocked)
+            sub = dd[:, mine]
+            total = np.where(np.isfinite(sub), sub, 1e9).sum(axis=1)
+            new.append(int(cands[int(np.argmin(total))]))
+        if new == centres:
+            break
+        centres = new
+    return np.asarray(centres, dtype=np.int64)

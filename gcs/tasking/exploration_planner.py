@@ -1,0 +1,272 @@
+"""Exploration task allocation: greedy frontier goals for the sensor robots (paper 5.1.1).
+
+"The planner greedily assigns each robot a goal on the frontier based on both the expected
+amount of information to be gained by traveling to a location and the cost to acquire that
+information ... at first we only search up to a set distance away, e.g. 20 m, for potential
+goals ... when a robot explores all the frontier in its vicinity it must search further",
+through the trajectory graph.
+
+The utility of goal ``g`` for robot ``r`` is ``gain_m2(g) - distance_weight_m2_per_m *
+distance_m(r, g)``; goals with less than ``min_gain_m2`` to see are not worth a trip. Greedy
+assignment: the best (robot, goal) pair over every robot still waiting is taken first, then
+goals within ``goal_separation_m`` of it are withdrawn (two robots would see the same ground),
+and so on. Phase 1 uses grid travel distances bounded by ``near_radius_m``; robots left without
+a goal then search the whole map through the highway: enter it at the waypoint nearest the
+robot, leave at the one nearest the goal (:class:`~gcs.tasking.trajectory_graph.TrajectoryGraph`),
+or, if the highway does not reach, by an unbounded grid search (``far_grid_fallback``).
+
+Failure memory: each robot carries goals it failed to reach (``blacklist_in_map``); candidates
+within ``blacklist_radius_m`` of one are never offered to that robot again. Goals claimed by
+robots already under way are withdrawn like assigned ones. No reachable frontier worth a trip
+at all: the plan says ``explored``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+
+from gcs.tasking.frontiers import Frontiers
+from gcs.tasking.grid_dijkstra import GridDistances, grid_distances
+from gcs.tasking.planning_grid import PlanningGrid, simplify_path
+from gcs.tasking.trajectory_graph import TrajectoryGraph
+
+__all__ = [
+    "ExplorationConfig",
+    "ExplorationGoal",
+    "ExplorationPlan",
+    "Explorer",
+    "plan_exploration",
+]
+
+
+class ExplorationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Metres, square metres; see the module docstring."""
+
+    near_radius_m: float = 20.0
+    sensor_range_m: float = 8.0
+    distance_weight_m2_per_m: float = 2.0
+    min_gain_m2: float = 2.0
+    goal_separation_m: float = 6.0
+    blacklist_radius_m: float = 2.0
+    path_tolerance_m: float = 0.5
+    far_grid_fallback: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("near_radius_m", "sensor_range_m", "path_tolerance_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"exploration {name} must be finite and > 0, got {v}")
+        for name in (
+            "distance_weight_m2_per_m",
+            "min_gain_m2",
+            "goal_separation_m",
+            "blacklist_radius_m",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"exploration {name} must be finite and >= 0, got {v}")
+
+
+@dataclass(frozen=True)
+class Explorer:
+    """A sensor robot waiting for a goal: its start ``cell`` on the traversable grid, its
+    position, and the goals it failed to reach (``(K, 2)`` in map)."""
+
+    robot_id: int
+    cell: tuple[int, int]
+    position_in_map: tuple[float, float]
+    blacklist_in_map: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+
+
+@dataclass(frozen=True)
+class ExplorationGoal:
+    """``waypoints_in_map`` ``(K, 2)`` end at ``goal_in_map``; ``via_highway``: a far goal."""
+
+    robot_id: int
+    goal_in_map: tuple[float, float]
+    waypoints_in_map: NDArray[np.float64]
+    distance_m: float
+    gain_m2: float
+    via_highway: bool
+
+
+@dataclass(frozen=True)
+class ExplorationPlan:
+    goals: dict[int, ExplorationGoal]
+    explored: bool
+    unassigned: list[int]
+
+
+def _suppress(
+    util: NDArray[np.float64], goals: NDArray[np.float64], at: NDArray[np.float64], r: float
+) -> None:
+    if r <= 0 or len(goals) == 0:
+        return
+    near = np.hypot(goals[:, 0] - at[0], goals[:, 1] - at[1]) < r
+    util[:, near] = -np.inf
+
+
+def _blacklisted(ex: Explorer, goals: NDArray[np.float64], r: float) -> NDArray[np.bool_]:
+    bl = np.asarray(ex.blacklist_in_map, dtype=np.float64).reshape(-1, 2)
+    if len(bl) == 0 or len(goals) == 0:
+        return np.zeros(len(goals), dtype=bool)
+    d = np.hypot(goals[:, None, 0] - bl[None, :, 0], goals[:, None, 1] - bl[None, :, 1])
+    out: NDArray[np.bool_] = np.asarray((d <= r).any(axis=1), dtype=bool)
+    return out
+
+
+def _greedy(
+    util: NDArray[np.float64], goals: NDArray[np.float64], sep: float
+) -> list[tuple[int, int]]:
+    out = []
+    util = util.copy()
+    while util.size and np.isfinite(util).any():
+        i, j = np.unravel_index(int(np.argmax(util)), util.shape)
+        if not np.isfinite(util[i, j]):
+            break
+        out.append((int(i), int(j)))
+        util[i, :] = -np.inf
+        util[:, j] = -np.inf
+        _suppress(util, goals, goals[j], sep)
+    return out
+
+
+def _grid_waypoints(
+    grid: PlanningGrid,
+    dist: GridDistances,
+    goal_cell: tuple[int, int],
+    goal: NDArray[np.float64],
+    tol: float,
+) -> NDArray[np.float64]:
+    cells = dist.path_cells(goal_cell)
+    pts = simplify_path(grid.centers_of(cells), tol) if len(cells) else np.zeros((0, 2))
+    pts = pts[1:] if len(pts) > 1 else pts[:0]  # the robot is at the first
+    if len(pts):
+        pts[-1] = goal
+        return pts
+    return goal.reshape(1, 2).copy()
+
+
+def plan_exploration(
+    grid: PlanningGrid,
+    frontiers: Frontiers,
+    gains_m2: NDArray[np.float64],
+    explorers: list[Explorer],
+    *,
+    claimed_in_map: NDArray[np.float64] | None = None,
+    highway: TrajectoryGraph | None = None,
+    config: ExplorationConfig | None = None,
+) -> ExplorationPlan:
+    """Goals for ``explorers`` over the candidate goals of ``frontiers`` (with ``gains_m2``
+    ``(K,)`` from :func:`~gcs.tasking.information_gain.information_gain`)."""
+    cfg = config or ExplorationConfig()
+    goals = frontiers.goals_in_map
+    gains = np.asarray(gains_m2, dtype=np.float64).reshape(-1)
+    if len(gains) != len(goals):
+        raise ValueError(f"gains_m2 has {len(gains)} entries for {len(goals)} candidate goals")
+    worth = gains >= cfg.min_gain_m2
+    ids = [e.robot_id for e in explorers]
+    if not worth.any():
+        return ExplorationPlan({}, True, ids)
+    cand = np.flatnonzero(worth)
+    goals_c = goals[cand]
+    cells_c = frontiers.goal_cells[cand]
+    gains_c = gains[cand]
+    claimed = (
+        np.zeros((0, 2)) if claimed_in_map is None else np.asarray(claimed_in_map).reshape(-1, 2)
+    )
+    base = np.zeros(len(cand))
+    for c in claimed:
+        _suppress(base[None, :], goals_c, c, cfg.goal_separation_m)  # marks -inf in base
+    out: dict[int, ExplorationGoal] = {}
+    if not explorers:
+        return ExplorationPlan(out, False, [])
+
+    # phase 1: bounded grid search around each robot
+    near = [
+        grid_distances(
+            grid.traversable, e.cell, resolution_m=grid.resolution_m, limit_m=cfg.near_radius_m
+        )
+        for e in explorers
+    ]
+    util = np.full((len(explorers), len(cand)), -np.inf)
+    for i, (e, d) in enumerate(zip(explorers, near, strict=True)):
+        dist = d.distance_m[cells_c[:, 0], cells_c[:, 1]]
+        u = gains_c - cfg.distance_weight_m2_per_m * dist + base
+        u[_blacklisted(e, goals_c, cfg.blacklist_radius_m)] = -np.inf
+        util[i] = u
+    for i, j in _greedy(util, goals_c, cfg.goal_separation_m):
+        e = explorers[i]
+        goal = goals_c[j]
+        cell = (int(cells_c[j, 0]), int(cells_c[j, 1]))
+        wps = _grid_waypoints(grid, near[i], cell, goal, cfg.path_tolerance_m)
+        out[e.robot_id] = ExplorationGoal(
+            e.robot_id,
+            (float(goal[0]), float(goal[1])),
+            wps,
+            float(near[i].distance_m[cell]),
+            float(gains_c[j]),
+            False,
+        )
+    for gid in out.values():
+        _suppress(base[None, :], goals_c, np.asarray(gid.goal_in_map), cfg.goal_separation_m)
+
+    # phase 2: far goals through the highway (or an unbounded grid search)
+    rest = [i for i, e in enumerate(explorers) if e.robot_id not in out]
+    if rest:
+        util = np.full((len(rest), len(cand)), -np.inf)
+        plans: dict[tuple[int, int], tuple[NDArray[np.float64], float, bool]] = {}
+        goal_node = highway.nearest(goals_c) if highway is not None and highway.size else None
+        far_grid: dict[int, GridDistances] = {}
+        for row, i in enumerate(rest):
+            e = explorers[i]
+            pos = np.asarray(e.position_in_map, dtype=np.float64)
+            cost = np.full(len(cand), np.inf)
+            via = np.zeros(len(cand), dtype=bool)
+            if goal_node is not None and highway is not None:
+                rn = int(highway.nearest(pos)[0])
+                if rn >= 0:
+                    hd, _ = highway.distances([rn])
+                    ok = goal_node >= 0
+                    gn = goal_node[ok]
+                    cost[ok] = (
+                        math.hypot(*(highway.nodes_in_map[rn] - pos))
+                        + hd[0, gn]
+                        + np.hypot(*(highway.nodes_in_map[gn] - goals_c[ok]).T)
+                    )
+                    via[ok] = np.isfinite(cost[ok])
+            if cfg.far_grid_fallback and not np.isfinite(cost).any():
+                fd = grid_distances(grid.traversable, e.cell, resolution_m=grid.resolution_m)
+                far_grid[i] = fd
+                cost = fd.distance_m[cells_c[:, 0], cells_c[:, 1]]
+                via[:] = False
+            u = gains_c - cfg.distance_weight_m2_per_m * cost + base
+            u[_blacklisted(e, goals_c, cfg.blacklist_radius_m)] = -np.inf
+            util[row] = u
+            for jj in np.flatnonzero(np.isfinite(u)).tolist():
+                plans[(row, jj)] = (pos, float(cost[jj]), bool(via[jj]))
+        for row, j in _greedy(util, goals_c, cfg.goal_separation_m):
+            i = rest[row]
+            e = explorers[i]
+            goal = goals_c[j]
+            pos, cost_m, via_hw = plans[(row, j)]
+            if via_hw and highway is not None and goal_node is not None:
+                rn = int(highway.nearest(pos)[0])
+                _, pred = highway.distances([rn])
+                nodes = highway.path(pred[0], int(goal_node[j]))
+                pts = simplify_path(
+                    np.vstack([highway.nodes_in_map[nodes], goal]), cfg.path_tolerance_m
+                )
+                wps = pts
+            else:
+                cell = (int(cells_c[j, 0]), int(cells_c[j, 1]))
+                wps = _grid_waypoints(grid, far_grid[i], cell, goal, cfg.path_tolerance_m)
+            out[e.robot_id] = ExplorationGoal(
+                e.robot_id, (float(goal[0]), float(goal[1])), wps, cost_m, float(gains_c[j]), via_hw
+            )
+    return ExplorationPlan(out, False, [e.robot_id for e in explorers if e.robot_id not in out])

@@ -1,0 +1,152 @@
+"""Mobile OOI (hostile) lock and blast-radius keep-out (MAGIC rules; paper 2 and 5.1.3).
+
+A mobile OOI is neutralized when two sensor robots keep it in view for ``lock_s`` (30 s)
+without a break, while no robot enters its blast radius (5 m). The paper's operators
+coordinated this by hand (5.1.3); here it is a planner:
+
+* :func:`view_positions`: for the ``viewers`` robots nearest the OOI, traversable cells in the
+  ring ``[blast_radius_m + margin_m, view_range_m]`` around it with line of sight, the first
+  robot's nearest, each following one at least ``min_bearing_sep_rad`` around the OOI from
+  those taken (two views from one side are one view if it turns a corner).
+* :class:`HostileLock`: bookkeeping of the lock: who saw the OOI when (the GCS's detections),
+  since when two robots have kept it in view with no gap above ``view_gap_s``, and whether the
+  lock has held ``lock_s``.
+* :func:`evasion_goal`: a robot inside a keep-out disc drives to the nearest traversable cell
+  (the planning grid already excludes the discs).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import msgspec
+import numpy as np
+from numpy.typing import ArrayLike
+
+from gcs.tasking.planning_grid import PlanningGrid, line_of_sight
+
+__all__ = ["HostileConfig", "HostileLock", "LockState", "evasion_goal", "view_positions"]
+
+
+class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """Metres, seconds, radians; see the module docstring."""
+
+    blast_radius_m: float = 5.0
+    margin_m: float = 1.0
+    view_range_m: float = 12.0
+    lock_s: float = 30.0
+    view_gap_s: float = 1.5
+    viewers: int = 2
+    min_bearing_sep_rad: float = 0.6
+    replan_move_m: float = 2.0
+
+    def __post_init__(self) -> None:
+        for name in ("blast_radius_m", "view_range_m", "lock_s", "view_gap_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"hostile {name} must be finite and > 0, got {v}")
+        if not self.view_range_m > self.blast_radius_m + self.margin_m:
+            raise ValueError(
+                f"hostile view_range_m {self.view_range_m} must exceed blast_radius_m + margin_m"
+            )
+        if self.viewers < 1:
+            raise ValueError(f"hostile viewers must be >= 1, got {self.viewers}")
+
+
+def view_positions(
+    grid: PlanningGrid,
+    hostile_in_map: ArrayLike,
+    robots_in_map: dict[int, tuple[float, float]],
+    config: HostileConfig,
+) -> dict[int, tuple[float, float]]:
+    """``robot_id -> view position`` for up to ``viewers`` of ``robots_in_map`` (the nearest
+    first); robots with no admissible cell are left out."""
+    h = np.asarray(hostile_in_map, dtype=np.float64).reshape(2)
+    if not robots_in_map:
+        return {}
+    res = grid.resolution_m
+    (r, c) = grid.cells_of(h)[0]
+    k = int(math.ceil(config.view_range_m / res))
+    rows, cols = grid.shape
+    r0, r1 = max(0, r - k), min(rows, r + k + 1)
+    c0, c1 = max(0, c - k), min(cols, c + k + 1)
+    if r0 >= r1 or c0 >= c1:
+        return {}
+    rr, cc = np.nonzero(grid.traversable[r0:r1, c0:c1])
+    cells = np.stack([rr + r0, cc + c0], axis=1)
+    pts = grid.centers_of(cells)
+    d = np.hypot(*(pts - h).T)
+    ok = (d >= config.blast_radius_m + config.margin_m) & (d <= config.view_range_m)
+    pts = pts[ok]
+    if len(pts) == 0:
+        return {}
+    order = sorted(robots_in_map, key=lambda rid: math.dist(robots_in_map[rid], h))
+    out: dict[int, tuple[float, float]] = {}
+    bearings: list[float] = []
+    for rid in order:
+        if len(out) >= config.viewers:
+            break
+        p = np.asarray(robots_in_map[rid], dtype=np.float64)
+        dist = np.hypot(*(pts - p).T)
+        bearing = np.arctan2(pts[:, 1] - h[1], pts[:, 0] - h[0])
+        for b in bearings:
+            sep = np.abs((bearing - b + np.pi) % (2 * np.pi) - np.pi)
+            dist = np.where(sep >= config.min_bearing_sep_rad, dist, np.inf)
+        for j in np.argsort(dist):
+            if not np.isfinite(dist[j]):
+                break
+            if line_of_sight(grid, pts[j], h):
+                out[rid] = (float(pts[j, 0]), float(pts[j, 1]))
+                bearings.append(float(bearing[j]))
+                break
+    return out
+
+
+def evasion_goal(
+    grid: PlanningGrid, position_in_map: ArrayLike, search_m: float
+) -> tuple[float, float] | None:
+    """The nearest traversable cell centre within ``search_m`` (None if none)."""
+    cell = grid.snap(position_in_map, search_m)
+    if cell is None:
+        return None
+    p = grid.centers_of([cell])[0]
+    return (float(p[0]), float(p[1]))
+
+
+@dataclass
+class LockState:
+    """``since_s``: start of the current unbroken two-robot view (None: not in view);
+    ``locked``: the lock held ``lock_s``; ``locked_at_s`` when."""
+
+    since_s: float | None = None
+    locked: bool = False
+    locked_at_s: float | None = None
+    breaks: int = 0
+
+
+@dataclass
+class HostileLock:
+    """Lock bookkeeping per hostile (state across planning steps; see the module docstring)."""
+
+    config: HostileConfig = field(default_factory=HostileConfig)
+    states: dict[int, LockState] = field(default_factory=dict)
+
+    def update(self, hazard_id: int, last_seen_s: dict[int, float], now_s: float) -> LockState:
+        """Fold in ``robot_id -> last time it saw the hostile``; returns the hostile's state."""
+        st = self.states.setdefault(hazard_id, LockState())
+        if st.locked:
+            return st
+        seeing = [t for t in last_seen_s.values() if now_s - t <= self.config.view_gap_s]
+        need = min(2, self.config.viewers)
+        if len(seeing) >= need:
+            if st.since_s is None:
+                # the view began when the last of the two robots started seeing it: now
+                st.since_s = now_s
+            if now_s - st.since_s >= self.config.lock_s:
+                st.locked = True
+                st.locked_at_s = now_s
+        elif st.since_s is not None:
+            st.since_s = None
+            st.breaks += 1
+        return st
