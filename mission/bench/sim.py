@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import resource
+import signal
 import statistics
 import time
 from collections.abc import Callable
@@ -78,6 +79,9 @@ def _rtf(robots: int | None, sim_s: float, chunk_s: float) -> tuple[float, float
 
 
 def _child(robots: int, sim_s: float, chunk_s: float, conn) -> None:  # type: ignore[no-untyped-def]
+    # ^C at a terminal reaches the whole process group: the parent stops this child (no
+    # second traceback from here); SIGTERM (parent's terminate()) ends it at once.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         conn.send(("ok", _rtf(robots, sim_s, chunk_s)))
     except Exception as err:  # noqa: BLE001 - reported to the parent
@@ -94,6 +98,9 @@ def _rtf_in_child(robots: int, sim_s: float, chunk_s: float) -> tuple[float, flo
     child.close()
     try:
         status, value = parent.recv()
+    except BaseException:  # a stop (^C, SIGTERM) or a broken pipe: the child goes too
+        proc.terminate()
+        raise
     finally:
         proc.join(60)
     if status != "ok":

@@ -305,3 +305,29 @@ def test_bench_output_dir_follows_the_environment(
     assert (tmp_path / "b" / "loops_replay").is_dir()
     monkeypatch.delenv("MAGIC_BENCH_DIR")
     assert bench_root() == Path(tempfile.gettempdir()) / "magic-bench"
+
+
+def test_sigterm_stops_a_suites_child_processes_too() -> None:
+    """``magic bench sim`` runs its 64-robot part in a child: SIGTERM (which reaches the
+    parent only) ends both, in one line with status 143."""
+    proc = _start(["bench", "sim", "--quick"])
+    assert proc.stderr is not None
+    _wait_for_line(proc.stderr, "in a child process", timeout_s=120)
+    children: list[str] = []
+    deadline = time.monotonic() + 30
+    while not children and time.monotonic() < deadline:  # the child is being spawned
+        listing = subprocess.run(
+            ["pgrep", "-P", str(proc.pid)], capture_output=True, text=True, timeout=10
+        )
+        children = listing.stdout.split()
+        if not children:
+            time.sleep(0.1)
+    assert children, "the 64-robot child never started"
+    _, err = _stop(proc, signal.SIGTERM)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith("magic bench: stopped by SIGTERM (suite sim")
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and any(Path(f"/proc/{c}").exists() for c in children):
+        time.sleep(0.1)
+    assert not [c for c in children if Path(f"/proc/{c}").exists()]
