@@ -21,6 +21,7 @@ import multiprocessing as mp
 import resource
 import signal
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -80,8 +81,10 @@ def _rtf(robots: int | None, sim_s: float, chunk_s: float) -> tuple[float, float
 
 def _child(robots: int, sim_s: float, chunk_s: float, conn) -> None:  # type: ignore[no-untyped-def]
     # ^C at a terminal reaches the whole process group: the parent stops this child (no
-    # second traceback from here); SIGTERM (parent's terminate()) ends it at once.
+    # second traceback from here). The parent's terminate() (SIGTERM) exits through
+    # SystemExit so that the scene's temporary directory is removed, not left in /tmp.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     try:
         conn.send(("ok", _rtf(robots, sim_s, chunk_s)))
     except Exception as err:  # noqa: BLE001 - reported to the parent

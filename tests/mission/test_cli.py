@@ -307,10 +307,13 @@ def test_bench_output_dir_follows_the_environment(
     assert bench_root() == Path(tempfile.gettempdir()) / "magic-bench"
 
 
-def test_sigterm_stops_a_suites_child_processes_too() -> None:
+def test_sigterm_stops_a_suites_child_processes_too(tmp_path: Path) -> None:
     """``magic bench sim`` runs its 64-robot part in a child: SIGTERM (which reaches the
-    parent only) ends both, in one line with status 143."""
-    proc = _start(["bench", "sim", "--quick"])
+    parent only) ends both, in one line with status 143, and neither leaves its scene's
+    temporary files behind (a private TMPDIR stays empty)."""
+    system_tmp = tmp_path / "system-tmp"
+    system_tmp.mkdir()
+    proc = _start(["bench", "sim", "--quick"], env=dict(os.environ, TMPDIR=str(system_tmp)))
     assert proc.stderr is not None
     _wait_for_line(proc.stderr, "in a child process", timeout_s=120)
     children: list[str] = []
@@ -323,6 +326,9 @@ def test_sigterm_stops_a_suites_child_processes_too() -> None:
         if not children:
             time.sleep(0.1)
     assert children, "the 64-robot child never started"
+    while not any(system_tmp.iterdir()) and time.monotonic() < deadline:
+        time.sleep(0.1)  # the child builds its scene (files under TMPDIR)
+    assert any(system_tmp.iterdir()), "the child wrote no scene files"
     _, err = _stop(proc, signal.SIGTERM)
     assert proc.returncode == 143, err
     assert "Traceback" not in err
@@ -331,3 +337,4 @@ def test_sigterm_stops_a_suites_child_processes_too() -> None:
     while time.monotonic() < deadline and any(Path(f"/proc/{c}").exists() for c in children):
         time.sleep(0.1)
     assert not [c for c in children if Path(f"/proc/{c}").exists()]
+    assert sorted(p.name for p in system_tmp.iterdir()) == []
