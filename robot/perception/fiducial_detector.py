@@ -196,7 +196,6 @@ def estimate_teammates(
     lay = cfg.layout
     dets = detect_tags(rgb) if detections is None else list(detections)
     k_mat = intrinsics.matrix()
-    dist = np.zeros(5)
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
     base_from_cam = base_from_camera(pan_rad, tilt_rad, cfg.camera_in_base_m)
     groups: dict[int, list[TagDetection]] = {}
