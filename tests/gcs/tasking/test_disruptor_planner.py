@@ -1,0 +1,90 @@
+"""Disruptor dispatch over the highway only, neutralization poses, idle spread."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gcs.tasking.disruptor_planner import (
+    DisruptorConfig,
+    dispatch_disruptor,
+    neutralization_nodes,
+    spread_positions,
+)
+from gcs.tasking.planning_grid import coarsen, line_of_sight
+from gcs.tasking.trajectory_graph import build_trajectory_graph
+from tests.gcs.tasking.maps import FREE, OCCUPIED, RES, blank, box, occupancy
+
+CFG = DisruptorConfig()
+
+
+def _poly(*corners: tuple[float, float], step: float = 0.5) -> np.ndarray:
+    out = []
+    for a, b in zip(corners[:-1], corners[1:], strict=True):
+        n = max(1, int(math.hypot(b[0] - a[0], b[1] - a[1]) / step))
+        t = np.linspace(0, 1, n, endpoint=False)[:, None]
+        out.append(np.asarray(a) + t * (np.asarray(b) - np.asarray(a)))
+    out.append(np.asarray([corners[-1]], dtype=float))
+    return np.vstack(out)
+
+
+def _highway(xy: np.ndarray):  # type: ignore[no-untyped-def]
+    return build_trajectory_graph(np.ones(len(xy)), np.arange(len(xy)), xy)
+
+
+def test_disruptor_takes_the_highway_not_the_shorter_unexplored_way() -> None:
+    v = blank(30, 30, FREE)  # all seen and free: the straight line would be shorter
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    hw = _highway(_poly((1, 1), (21, 1), (21, 13), (15, 13)))
+    ooi = (10.0, 14.0)
+    d = dispatch_disruptor(g, hw, 7, ooi, [ooi], {5: (1.0, 1.0)}, None, CFG)
+    assert d is not None and d.robot_id == 5 and d.hazard_id == 7
+    wps = d.waypoints_in_map
+    # through the corner at (21, 1): the road, not the diagonal
+    assert np.min(np.hypot(wps[:, 0] - 21, wps[:, 1] - 1)) < 1.5
+    # every waypoint is a highway waypoint
+    for p in wps:
+        assert np.min(np.hypot(*(hw.nodes_in_map - p).T)) < 1e-9
+    dist = math.dist(d.pose_in_map, ooi)
+    assert CFG.trigger_radius_m + CFG.standoff_margin_m <= dist <= CFG.laser_range_m
+    assert d.distance_m > math.dist((1, 1), d.pose_in_map) + 5.0
+
+
+def test_neutralization_pose_needs_line_of_sight_and_keeps_out_of_triggers() -> None:
+    v = blank(30, 10, FREE)
+    box(v, 12, 0, 12.5, 10, OCCUPIED)  # a wall between the west road and the OOI
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    hw = _highway(_poly((1, 5), (11, 5)))
+    assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], CFG).size == 0
+    hw = _highway(_poly((13, 5), (29, 5)))
+    nodes = neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0), (26.0, 5.0)], CFG)
+    assert nodes.size > 0
+    for i in nodes:
+        p = hw.nodes_in_map[i]
+        assert math.dist(p, (16, 5)) >= 3.5 and math.dist(p, (26, 5)) >= 3.5
+        assert line_of_sight(g, p, (16.0, 5.0))
+
+
+def test_nearest_free_disruptor_by_highway_distance() -> None:
+    g = coarsen(occupancy(blank(40, 10, FREE)), resolution_m=RES, robot_radius_m=0.3)
+    hw = _highway(_poly((1, 5), (39, 5)))
+    ooi = (20.0, 8.0)
+    d = dispatch_disruptor(g, hw, 1, ooi, [ooi], {1: (2.0, 5.0), 2: (30.0, 5.0)}, None, CFG)
+    assert d is not None and d.robot_id == 2
+
+
+def test_two_idle_disruptors_spread_to_quarters_of_a_line() -> None:
+    hw = _highway(_poly((0, 0), (40, 0)))
+    centres = spread_positions(hw, 2, config=CFG)
+    xs = sorted(hw.nodes_in_map[centres, 0])
+    assert xs[0] == pytest.approx(10.0, abs=2.0)
+    assert xs[1] == pytest.approx(30.0, abs=2.0)
+    one = spread_positions(hw, 1, config=CFG)
+    assert hw.nodes_in_map[one[0], 0] == pytest.approx(20.0, abs=2.0)
+
+
+def test_bad_config_is_named() -> None:
+    with pytest.raises(ValueError, match="laser_range_m"):
+        DisruptorConfig(laser_range_m=3.0)

@@ -1,0 +1,99 @@
+"""Greedy frontier assignment: near goals, far goals through the highway, failure memory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gcs.tasking.exploration_planner import ExplorationConfig, Explorer, plan_exploration
+from gcs.tasking.frontiers import find_frontiers
+from gcs.tasking.information_gain import information_gain
+from gcs.tasking.planning_grid import coarsen
+from gcs.tasking.trajectory_graph import build_trajectory_graph
+from tests.gcs.tasking.maps import FREE, OCCUPIED, RES, blank, box, occupancy
+
+CFG = ExplorationConfig()
+
+
+def corridor(x0: float = 5.0, x1: float = 35.0):  # type: ignore[no-untyped-def]
+    """A corridor y in [1, 5] from x0 to x1, open at both ends into the unknown."""
+    v = blank(40, 6)
+    box(v, x0, 0.5, x1, 1.0, OCCUPIED)
+    box(v, x0, 5.0, x1, 5.5, OCCUPIED)
+    box(v, x0, 1.0, x1, 5.0, FREE)
+    return coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+
+
+def _plan(grid, robots, **kw):  # type: ignore[no-untyped-def]
+    explorers = [
+        Explorer(i, grid.snap(p, 1.0), p, *kw.pop(f"bl{i}", ())) for i, p in robots.items()
+    ]
+    f = find_frontiers(grid, [e.cell for e in explorers])
+    gains = information_gain(grid, f.goal_cells, sensor_range_m=CFG.sensor_range_m)
+    return plan_exploration(grid, f, gains, explorers, config=kw.pop("config", CFG), **kw)
+
+
+def test_two_robots_two_frontiers_each_gets_the_nearer() -> None:
+    g = corridor()
+    plan = _plan(g, {1: (15.0, 3.0), 2: (25.0, 3.0)})
+    assert not plan.explored and plan.unassigned == []
+    assert plan.goals[1].goal_in_map[0] < 6.0  # the west end
+    assert plan.goals[2].goal_in_map[0] > 34.0  # the east end
+    for goal in plan.goals.values():
+        assert not goal.via_highway
+        assert np.allclose(goal.waypoints_in_map[-1], goal.goal_in_map)
+        # the travel distance is a path length along the corridor
+        assert goal.distance_m == pytest.approx(10.0, abs=1.5)
+
+
+def test_a_single_frontier_goes_to_the_nearer_robot_and_the_other_waits() -> None:
+    v = blank(40, 6)  # closed at the west, open at the east
+    box(v, 0.0, 0.5, 35.0, 5.5, OCCUPIED)
+    box(v, 0.5, 1.0, 35.0, 5.0, FREE)
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    plan = _plan(g, {1: (20.0, 3.0), 2: (30.0, 3.0)})
+    assert set(plan.goals) == {2} and plan.unassigned == [1]
+    assert plan.goals[2].goal_in_map[0] > 34.0
+
+
+def test_failed_goals_are_not_offered_again() -> None:
+    g = corridor()
+    first = _plan(g, {1: (15.0, 3.0)}).goals[1].goal_in_map
+    assert first[0] < 6.0
+    again = _plan(g, {1: (15.0, 3.0)}, bl1=(np.asarray([first]),)).goals[1].goal_in_map
+    assert np.hypot(again[0] - first[0], again[1] - first[1]) > CFG.blacklist_radius_m
+    # both ends failed: no goal, but the map is not explored
+    east = again
+    plan = _plan(g, {1: (15.0, 3.0)}, bl1=(np.asarray([first, east]),))
+    for gl in plan.goals.values():
+        for bad in (first, east):
+            assert np.hypot(gl.goal_in_map[0] - bad[0], gl.goal_in_map[1] - bad[1]) > 2.0
+
+
+def test_no_frontier_means_explored() -> None:
+    v = blank(12, 12)
+    box(v, 0, 0, 12, 12, OCCUPIED)
+    box(v, 0.5, 0.5, 11.5, 11.5, FREE)
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    plan = _plan(g, {1: (6.0, 6.0)})
+    assert plan.explored and plan.goals == {} and plan.unassigned == [1]
+
+
+def test_far_goals_route_through_the_highway() -> None:
+    # a long corridor: the only frontier is 60 m east, beyond the 20 m search
+    v = blank(70, 6)
+    box(v, 0.0, 0.5, 65.0, 5.5, OCCUPIED)
+    box(v, 0.5, 1.0, 65.0, 5.0, FREE)
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    xs = np.arange(1.0, 62.0, 0.5)
+    driven = np.stack([xs, np.full_like(xs, 3.0)], axis=1)
+    hw = build_trajectory_graph(np.ones(len(xs)), np.arange(len(xs)), driven)
+    plan = _plan(g, {1: (2.0, 3.0)}, highway=hw)
+    goal = plan.goals[1]
+    assert goal.via_highway
+    assert goal.goal_in_map[0] > 64.0
+    assert goal.distance_m == pytest.approx(63.0, abs=3.0)
+    assert np.allclose(goal.waypoints_in_map[-1], goal.goal_in_map)
+    # without a highway the planner falls back to a full grid search and finds the same end
+    plan = _plan(g, {1: (2.0, 3.0)})
+    assert plan.goals[1].goal_in_map[0] > 64.0 and not plan.goals[1].via_highway
