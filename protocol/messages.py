@@ -77,6 +77,7 @@ __all__ = [
     "covariance_from_upper",
     "covariance_to_upper",
     "TerrainGrid",
+    "ThumbnailRequest",
     "UplinkFrame",
     "UplinkMessage",
     "decode_frame",
@@ -260,7 +261,8 @@ class Detection(_Message, tag=4, frozen=True):
 
 
 class DetectionImage(_Message, tag=5, frozen=True):
-    """A camera image sent on demand, e.g. for an operator to confirm a detection (paper 6.1).
+    """A camera image sent on demand, e.g. for an operator to confirm a detection (paper 6.1):
+    a robot sends one only to answer a :class:`ThumbnailRequest`, never unasked.
 
     ``detection_id`` is 0 for an image not tied to a detection. ``camera_pan_rad``: camera
     heading in ``base``. ``encoding``: ``"jpeg"`` or ``"png"``.
@@ -432,6 +434,17 @@ class ParameterUpdate(_Message, tag=33, frozen=True):
     value: bool | int | float | str
 
 
+class ThumbnailRequest(_Message, tag=34, frozen=True):
+    """Ask the robot for a :class:`DetectionImage` of its detection ``detection_id`` (paper
+    6.1: the operator confirms a detection from a small image). The robot crops the image its
+    colour test used around the object and answers within ``max_bytes`` (0: its default) on
+    the lowest-priority reliable uplink stream (``detection_image``)."""
+
+    request_id: int
+    detection_id: int
+    max_bytes: int = 0
+
+
 TaskMessage = GoToTask | NeutralizeTask | PauseTask | ResumeTask | RelayTask | IdleTask | TeleopTask
 UplinkMessage = (
     Ack
@@ -443,7 +456,7 @@ UplinkMessage = (
     | Telemetry
     | TaskStatus
 )
-DownlinkMessage = Ack | TaskMessage | HazardUpdate | ParameterUpdate
+DownlinkMessage = Ack | TaskMessage | HazardUpdate | ParameterUpdate | ThumbnailRequest
 
 
 # ----------------------------------------------------------------------------- streams
@@ -507,6 +520,7 @@ STREAMS: dict[Direction, dict[str, StreamSpec]] = {
             _spec("task", 1, _DOWN, 1, _R, *TaskMessage.__args__),
             _spec("hazard_update", 2, _DOWN, 2, _LR, HazardUpdate),
             _spec("parameter_update", 3, _DOWN, 3, _R, ParameterUpdate),
+            _spec("thumbnail_request", 4, _DOWN, 4, _R, ThumbnailRequest),
         )
     },
 }

@@ -41,6 +41,7 @@ from protocol.messages import (
     Telemetry,
     TeleopTask,
     TerrainGrid,
+    ThumbnailRequest,
     UplinkFrame,
     UplinkMessage,
     decode_frame,
@@ -176,6 +177,9 @@ parameter_updates = st.builds(
     name=texts,
     value=st.one_of(st.booleans(), ints, f64, texts),
 )
+thumbnail_requests = st.builds(
+    ThumbnailRequest, request_id=ints, detection_id=ints, max_bytes=st.integers(0, 65535)
+)
 
 UPLINK: dict[type, st.SearchStrategy[Any]] = {
     Ack: acks,
@@ -198,6 +202,7 @@ DOWNLINK: dict[type, st.SearchStrategy[Any]] = {
     TeleopTask: teleop_tasks,
     HazardUpdate: hazard_updates,
     ParameterUpdate: parameter_updates,
+    ThumbnailRequest: thumbnail_requests,
 }
 CASES = [(UP, t) for t in UPLINK] + [(DOWN, t) for t in DOWNLINK]
 STRATEGIES = {UP: UPLINK, DOWN: DOWNLINK}
@@ -311,6 +316,7 @@ def _sample(direction: Direction, cls: type) -> Any:
         GoToTask: GoToTask(1, 0.0, [(1.0, 2.0)]),
         NeutralizeTask: NeutralizeTask(1, 0.0, (1, 2), 3.0, False),
         PauseTask: PauseTask(1, 0.0),
+        ThumbnailRequest: ThumbnailRequest(1, 7),
         ResumeTask: ResumeTask(1, 0.0),
         RelayTask: RelayTask(1, 0.0, (1, 2)),
         IdleTask: IdleTask(1, 0.0),
