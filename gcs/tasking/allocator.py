@@ -430,8 +430,8 @@ class TaskAllocator:
 
     def _close_task(self, ctx: _Ctx, r: RobotInfo) -> None:
         a = self.assignments.get(r.robot_id)
-        if a is None:
-            return
+        if a is None or a.purpose == "neutralize_wait" or a.purpose.endswith(":done"):
+            return  # no task in flight: its report was already folded in
         st = r.status
         finished = st is not None and st.task_id == a.task_id and st.state in _TERMINAL
         timed_out = not finished and ctx.now_s - a.issued_s > a.timeout_s

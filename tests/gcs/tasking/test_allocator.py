@@ -1,0 +1,269 @@
+"""The composed allocator on constructed missions: frames, parking, failures, lost robots,
+disruptor dispatch and approval, idle spread, hostiles."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from gcs.tasking.allocator import (
+    RobotInfo,
+    Role,
+    TaskAllocator,
+    TaskingConfig,
+    TaskingState,
+)
+from gcs.tasking.disruptor_planner import DisruptorConfig
+from protocol.messages import (
+    GoToTask,
+    Hazard,
+    IdleTask,
+    NeutralizeTask,
+    ObjectKind,
+    TaskState,
+    TaskStatus,
+)
+from protocol.se2 import transform_points
+from tests.gcs.tasking.maps import FREE, OCCUPIED, blank, box, occupancy, room
+
+
+def robot(
+    rid: int,
+    xy: tuple[float, float],
+    role: Role = Role.SENSOR,
+    frame: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    heard: float = 0.0,
+) -> RobotInfo:
+    return RobotInfo(rid, role, (xy[0], xy[1], 0.0), frame, heard)
+
+
+def corridor(open_west: bool = True) -> np.ndarray:
+    v = blank(40, 6)
+    box(v, 5.0 if open_west else 0.0, 0.5, 35.0, 5.5, OCCUPIED)
+    box(v, 5.0 if open_west else 0.5, 1.0, 35.0, 5.0, FREE)
+    return v
+
+
+def goals_in_map(out: list, robots: dict[int, RobotInfo]) -> dict[int, np.ndarray]:  # type: ignore[type-arg]
+    res = {}
+    for rid, msg in out:
+        if isinstance(msg, GoToTask):
+            frame = robots[rid].map_from_odom
+            assert frame is not None
+            res[rid] = transform_points(frame, np.asarray(msg.waypoints_in_odom, dtype=float))
+    return res
+
+
+def report(r: RobotInfo, msg: object, state: TaskState, t: float, detail: str = "") -> None:
+    r.status = TaskStatus(msg.task_id, state, t, detail)  # type: ignore[attr-defined]
+
+
+def test_single_frontier_goal_leaves_in_the_robots_odom_frame() -> None:
+    v = blank(20, 12)
+    room(v, 0, 0, 12, 12)
+    box(v, 11.5, 5, 12, 7, FREE)  # the only door, east
+    r = robot(1, (6.0, 6.0), frame=(5.0, -3.0, 0.7))
+    alloc = TaskAllocator()
+    out = alloc.plan(TaskingState(occupancy(v), [r]), now_s=1.0)
+    assert len(out) == 1 and out[0][0] == 1 and isinstance(out[0][1], GoToTask)
+    msg = out[0][1]
+    assert msg.task_id == alloc.config.first_task_id and msg.issued_time_s == 1.0
+    wps = goals_in_map(out, {1: r})[1]
+    goal = alloc.assignments[1].goal_in_map
+    assert goal is not None
+    assert np.allclose(wps[-1], goal, atol=1e-3)
+    assert goal[0] > 11.0 and abs(goal[1] - 6.0) < 1.2  # at the door, in map
+    # the raw odom numbers are not the map ones (the frame is not the identity)
+    assert not np.allclose(msg.waypoints_in_odom[-1], goal, atol=1.0)
+    # nothing new while the robot is on its way
+    assert alloc.plan(TaskingState(occupancy(v), [r]), now_s=2.0) == []
+
+
+def test_no_frontier_says_explored_and_parks_the_robots_once() -> None:
+    v = blank(12, 12)
+    room(v, 0, 0, 12, 12)
+    rs = [robot(1, (4.0, 4.0)), robot(2, (8.0, 8.0))]
+    alloc = TaskAllocator()
+    out = alloc.plan(TaskingState(occupancy(v), rs), now_s=0.0)
+    assert sorted(rid for rid, m in out if isinstance(m, IdleTask)) == [1, 2]
+    assert alloc.stats.explored
+    assert [e.kind for e in alloc.events].count("explored") == 1
+    assert alloc.plan(TaskingState(occupancy(v), rs), now_s=1.0) == []
+
+
+def test_a_goal_that_keeps_failing_is_not_given_again() -> None:
+    occ = occupancy(corridor())
+    r = robot(1, (15.0, 3.0))
+    alloc = TaskAllocator()
+    failed: list[tuple[float, float]] = []
+    t = 0.0
+    kinds: list[str] = []
+    for _ in range(8):
+        out = alloc.plan(TaskingState(occ, [r]), now_s=t)
+        kinds += [e.kind for e in alloc.events if "blocked" in e.text]
+        assert len(out) == 1
+        msg = out[0][1]
+        if isinstance(msg, IdleTask):
+            break
+        goal = alloc.assignments[1].goal_in_map
+        assert goal is not None
+        for bad in failed:
+            assert math.dist(goal, bad) > alloc.config.exploration.blacklist_radius_m
+        failed.append(goal)
+        t += 1.0
+        report(r, msg, TaskState.FAILED, t, "blocked")
+    assert len(failed) >= 2  # both ends were tried
+    assert {round(g[0]) < 20 for g in failed} == {True, False}
+    assert alloc.stats.goals_failed == len(failed)
+    assert kinds == ["task_failed"] * len(failed)
+
+
+def test_a_silent_robots_goal_goes_to_another() -> None:
+    occ = occupancy(corridor(open_west=False))  # one frontier, east
+    r1, r2 = robot(1, (20.0, 3.0)), robot(2, (30.0, 3.0))
+    alloc = TaskAllocator()
+    out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=0.0)
+    kinds = {rid: type(m) for rid, m in out}
+    assert kinds == {2: GoToTask, 1: IdleTask}  # the nearer goes, the other waits
+    east = alloc.assignments[2].goal_in_map
+    # robot 2 goes quiet; robot 1 is still heard
+    r1.last_heard_s = 20.0
+    out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=20.0)
+    assert [rid for rid, _ in out] == [1]  # nothing is sent to the silent robot
+    g1 = alloc.assignments[1].goal_in_map
+    assert g1 is not None and east is not None and math.dist(g1, east) < 3.0
+    assert any(e.kind == "robot_silent" and e.robot_id == 2 for e in alloc.events)
+    assert alloc.assignments[2].purpose.endswith(":released")  # it keeps its last task
+
+
+def _dispatch_world() -> tuple[TaskingState, RobotInfo, RobotInfo]:
+    v = blank(30, 30, FREE)
+    xs = np.arange(1.0, 21.0, 0.5)
+    road = np.vstack(
+        [
+            np.stack([xs, np.ones_like(xs)], 1),
+            np.stack([np.full(24, 21.0), np.arange(1, 13, 0.5)], 1),
+        ]
+    )
+    d1 = robot(11, (1.0, 1.0), Role.DISRUPTOR, frame=(-2.0, 4.0, -0.5))
+    d2 = robot(12, (2.0, 1.0), Role.DISRUPTOR)
+    state = TaskingState(
+        occupancy(v),
+        [d1, d2],
+        hazards=[Hazard(3, ObjectKind.STATIC_OOI, (14.0, 10.0), 2.5)],
+        trajectory_robot_ids=np.ones(len(road), dtype=np.int64),
+        trajectory_keys=np.arange(len(road)),
+        trajectory_xy_in_map=road,
+    )
+    return state, d1, d2
+
+
+def test_disruptor_dispatch_then_auto_approved_neutralization() -> None:
+    state, d1, d2 = _dispatch_world()
+    alloc = TaskAllocator()
+    out = alloc.plan(state, now_s=0.0)
+    sent = dict(out)
+    who = alloc.assignments
+    go = [rid for rid, a in who.items() if a.purpose == "neutralize_go"]
+    assert len(go) == 1
+    rid = go[0]
+    assert isinstance(sent[rid], GoToTask)
+    r = d1 if rid == 11 else d2
+    # arrive
+    report(r, sent[rid], TaskState.SUCCEEDED, 5.0)
+    r.pose_in_map = (*alloc.assignments[rid].goal_in_map, 0.0)  # type: ignore[misc]
+    r.last_heard_s = d1.last_heard_s = d2.last_heard_s = 5.0
+    out = alloc.plan(state, now_s=5.0)
+    neut = [m for i, m in out if i == rid and isinstance(m, NeutralizeTask)]
+    assert len(neut) == 1 and neut[0].approved
+    assert alloc.stats.approvals_auto == 1
+    target_map = transform_points(r.map_from_odom, np.asarray(neut[0].target_in_odom, float))  # type: ignore[arg-type]
+    assert np.allclose(target_map, (14.0, 10.0), atol=1e-3)
+    assert neut[0].standoff_m >= 3.5
+    report(r, neut[0], TaskState.SUCCEEDED, 21.0)
+    r.last_heard_s = d1.last_heard_s = d2.last_heard_s = 21.0
+    alloc.plan(state, now_s=21.0)
+    assert 3 in alloc.neutralized and alloc.stats.neutralized == 1
+
+
+def test_operator_approval_is_waited_for_and_counted() -> None:
+    state, d1, d2 = _dispatch_world()
+    cfg = TaskingConfig(disruptor=DisruptorConfig(approval="operator"))
+    alloc = TaskAllocator(cfg)
+    sent = dict(alloc.plan(state, now_s=0.0))
+    rid = next(r for r, a in alloc.assignments.items() if a.purpose == "neutralize_go")
+    r = d1 if rid == 11 else d2
+    report(r, sent[rid], TaskState.SUCCEEDED, 5.0)
+    d1.last_heard_s = d2.last_heard_s = 5.0
+    out = alloc.plan(state, now_s=5.0)
+    assert not any(isinstance(m, NeutralizeTask) for _, m in out)
+    assert alloc.pending_approvals == {3}
+    state.approved_hazard_ids = frozenset({3})
+    d1.last_heard_s = d2.last_heard_s = 6.0
+    out = alloc.plan(state, now_s=6.0)
+    assert [type(m) for i, m in out if i == rid] == [NeutralizeTask]
+    assert alloc.stats.approvals_operator == 1 and alloc.stats.approvals_auto == 0
+
+
+def test_a_lost_disruptors_ooi_goes_to_the_other() -> None:
+    state, d1, d2 = _dispatch_world()
+    alloc = TaskAllocator()
+    alloc.plan(state, now_s=0.0)
+    first = next(r for r, a in alloc.assignments.items() if a.purpose == "neutralize_go")
+    other = d2 if first == 11 else d1
+    (d1 if first == 11 else d2).lost = True
+    other.last_heard_s = 1.0
+    out = alloc.plan(state, now_s=1.0)
+    assert [rid for rid, m in out if isinstance(m, GoToTask)] == [other.robot_id]
+    assert alloc.assignments[other.robot_id].purpose == "neutralize_go"
+    assert alloc.stats.reassigned == 1
+    assert any(e.kind == "robot_lost" for e in alloc.events)
+
+
+def test_idle_disruptors_spread_over_the_highway() -> None:
+    v = blank(45, 6, FREE)
+    xs = np.arange(0.5, 41.0, 0.5)
+    road = np.stack([xs, np.full_like(xs, 3.0)], 1)
+    ds = [robot(21, (0.5, 3.0), Role.DISRUPTOR), robot(22, (1.5, 3.0), Role.DISRUPTOR)]
+    state = TaskingState(
+        occupancy(v),
+        ds,
+        trajectory_robot_ids=np.ones(len(xs), dtype=np.int64),
+        trajectory_keys=np.arange(len(xs)),
+        trajectory_xy_in_map=road,
+    )
+    alloc = TaskAllocator()
+    out = alloc.plan(state, now_s=0.0)
+    ends = sorted(
+        float(wps[-1, 0]) for wps in goals_in_map(out, {d.robot_id: d for d in ds}).values()
+    )
+    assert len(ends) == 2
+    assert ends[0] == pytest.approx(10.5, abs=2.5) and ends[1] == pytest.approx(30.5, abs=2.5)
+
+
+def test_hostile_gets_two_watchers_and_robots_keep_out_of_its_blast() -> None:
+    v = blank(40, 40, FREE)
+    rs = [robot(1, (20.0, 23.0)), robot(2, (20.0, 35.0)), robot(3, (5.0, 20.0))]
+    hostile = Hazard(8, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    alloc = TaskAllocator()
+    out = alloc.plan(TaskingState(occupancy(v), rs, hazards=[hostile]), now_s=0.0)
+    goals = goals_in_map(out, {r.robot_id: r for r in rs})
+    # robot 1 stands 3 m from it: it leaves the blast radius first
+    assert alloc.assignments[1].purpose == "evade"
+    assert math.dist(goals[1][-1], (20, 20)) >= 5.0
+    watchers = [rid for rid, a in alloc.assignments.items() if a.purpose == "hostile_view"]
+    assert sorted(watchers) == [2, 3]
+    for rid in watchers:
+        assert 6.0 <= math.dist(goals[rid][-1], (20, 20)) <= 12.0
+    # two robots keep it in view 30 s: locked, watchers released
+    t = 0.0
+    while t <= 31.0:
+        t += 1.0
+        for r in rs:
+            r.last_heard_s = t
+        seen = {hostile.hazard_id: {2: t, 3: t}}
+        alloc.plan(TaskingState(occupancy(v), rs, hazards=[hostile], hostile_seen_s=seen), now_s=t)
+    assert alloc.stats.hostiles_locked == 1 and 8 in alloc.neutralized
+    assert all(a.purpose != "hostile_view" for a in alloc.assignments.values())
