@@ -196,7 +196,7 @@ def plan_exploration(
     ]
     util = np.full((len(explorers), len(cand)), -np.inf)
     for i, (e, d) in enumerate(zip(explorers, near, strict=True)):
-        dist = d.distance_m[cells_c[:, 0], cells_c[:, 1]]
+        dist = d.at(cells_c)
         u = gains_c - cfg.distance_weight_m2_per_m * dist + base
         u[_blacklisted(e, goals_c, cfg.blacklist_radius_m)] = -np.inf
         util[i] = u
@@ -209,7 +209,7 @@ def plan_exploration(
             e.robot_id,
             (float(goal[0]), float(goal[1])),
             wps,
-            float(near[i].distance_m[cell]),
+            float(near[i].at(np.asarray([cell]))[0]),
             float(gains_c[j]),
             False,
         )
@@ -243,7 +243,7 @@ def plan_exploration(
             if cfg.far_grid_fallback and not np.isfinite(cost).any():
                 fd = grid_distances(grid.traversable, e.cell, resolution_m=grid.resolution_m)
                 far_grid[i] = fd
-                cost = fd.distance_m[cells_c[:, 0], cells_c[:, 1]]
+                cost = fd.at(cells_c)
                 via[:] = False
             u = gains_c - cfg.distance_weight_m2_per_m * cost + base
             u[_blacklisted(e, goals_c, cfg.blacklist_radius_m)] = -np.inf

@@ -26,27 +26,38 @@ _DC = np.array([0, 0, -1, 1, -1, 1, -1, 1], dtype=np.int64)
 
 @dataclass(frozen=True)
 class GridDistances:
-    """``distance_m`` ``(rows, cols)``: travel distance from ``start`` (``inf`` beyond the limit
-    or unreachable); ``parent`` flat index of each settled cell's predecessor (-1 at the start
-    and for unsettled cells)."""
+    """Travel distances from ``start`` over the window of the grid the search could reach:
+    ``distance_m`` ``(h, w)`` covers rows ``offset[0]..`` and columns ``offset[1]..`` (``inf``
+    beyond the limit or unreachable); ``parent`` the window-flat index of each settled cell's
+    predecessor (-1 at the start and for unsettled cells). Use :meth:`at` and
+    :meth:`path_cells` with full-grid cells."""
 
     start: tuple[int, int]
+    offset: tuple[int, int]
     distance_m: NDArray[np.float64]
     parent: NDArray[np.int32]
 
+    def at(self, cells: NDArray[np.int64]) -> NDArray[np.float64]:
+        """``(N,)`` distances of full-grid ``cells`` ``(N, 2)`` (``inf`` outside the window)."""
+        rc = np.asarray(cells, dtype=np.int64).reshape(-1, 2) - np.asarray(self.offset)
+        h, w = self.distance_m.shape
+        ok = (rc[:, 0] >= 0) & (rc[:, 0] < h) & (rc[:, 1] >= 0) & (rc[:, 1] < w)
+        out = np.full(len(rc), np.inf)
+        out[ok] = self.distance_m[rc[ok, 0], rc[ok, 1]]
+        return out
+
     def path_cells(self, goal: tuple[int, int]) -> NDArray[np.int64]:
-        """``(K, 2)`` cells from ``start`` to ``goal`` (empty if ``goal`` was not reached)."""
-        rows, cols = self.distance_m.shape
-        r, c = goal
-        if not (0 <= r < rows and 0 <= c < cols) or not math.isfinite(self.distance_m[r, c]):
+        """``(K, 2)`` full-grid cells from ``start`` to ``goal`` (empty if not reached)."""
+        if not math.isfinite(float(self.at(np.asarray([goal]))[0])):
             return np.zeros((0, 2), dtype=np.int64)
+        h, w = self.distance_m.shape
         out = []
-        u = r * cols + c
+        u = (goal[0] - self.offset[0]) * w + (goal[1] - self.offset[1])
         while u >= 0:
             out.append(u)
             u = int(self.parent[u])
         flat = np.asarray(out[::-1], dtype=np.int64)
-        return np.stack([flat // cols, flat % cols], axis=1)
+        return np.stack([flat // w + self.offset[0], flat % w + self.offset[1]], axis=1)
 
 
 @nb.njit(cache=True, nogil=True)
@@ -154,7 +165,15 @@ def grid_distances(
         raise ValueError(f"start {start} is outside the grid of shape {grid.shape}")
     if not (resolution_m > 0 and limit_m >= 0):
         raise ValueError(f"need resolution_m > 0 and limit_m >= 0, got {resolution_m}, {limit_m}")
+    rows, cols = grid.shape
+    r0, r1, c0, c1 = 0, rows, 0, cols
+    if math.isfinite(limit_m):
+        # nothing beyond limit_m can be settled: search only that window (the cost of a plan
+        # then follows the searched disc, not the map)
+        k = int(math.ceil(limit_m / resolution_m)) + 1
+        r0, r1, c0, c1 = max(0, r - k), min(rows, r + k + 1), max(0, c - k), min(cols, c + k + 1)
+    win = np.ascontiguousarray(grid[r0:r1, c0:c1])
     dist, parent = _bounded_dijkstra(
-        grid, float(resolution_m), r * grid.shape[1] + c, float(limit_m), _DR, _DC
+        win, float(resolution_m), (r - r0) * win.shape[1] + (c - c0), float(limit_m), _DR, _DC
     )
-    return GridDistances((r, c), dist, parent)
+    return GridDistances((r, c), (r0, c0), dist, parent)

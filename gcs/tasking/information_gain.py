@@ -2,12 +2,12 @@
 
 "The expected information gain is calculated by casting out rays from a candidate goal to
 estimate a robot's sensor coverage of new terrain at the goal location." From the goal's cell
-centre, ``rays`` rays (evenly spread over 360 degrees) walk at quarter-cell steps out to
+centre, ``rays`` rays (evenly spread over 360 degrees) walk at half-cell steps out to
 ``sensor_range_m``; a ray stops at the first occupied cell (the sensor cannot see through it) or
 at the grid's edge, and every distinct unknown cell it crosses counts once. The gain is that
 count times the cell area (m^2). Cells beyond the grid's edge are unknown too (the map grows)
 and count up to ``sensor_range_m``. ``rays`` 0 picks enough rays that neighbouring rays are at
-most half a cell apart at full range, so no cell in open view is skipped.
+most one cell apart at full range (an estimate: a cell a ray only grazes may be missed).
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ __all__ = ["information_gain", "rays_for"]
 
 
 def rays_for(sensor_range_m: float, resolution_m: float) -> int:
-    """Rays needed so neighbours are <= half a cell apart at ``sensor_range_m``."""
-    return max(8, int(math.ceil(2.0 * math.pi * sensor_range_m / (0.5 * resolution_m))))
+    """Rays needed so neighbours are <= one cell apart at ``sensor_range_m``."""
+    return max(8, int(math.ceil(2.0 * math.pi * sensor_range_m / resolution_m)))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -36,7 +36,7 @@ def _gain(values, goal_cells, range_cells, rays, unknown, occupied):  # type: ig
     w = 2 * k + 1
     stamp = np.zeros((w, w), dtype=np.int32)
     out = np.zeros(len(goal_cells), dtype=np.int64)
-    steps = int(range_cells * 4.0)
+    steps = int(range_cells * 2.0)
     for g in range(len(goal_cells)):
         gr = goal_cells[g, 0]
         gc = goal_cells[g, 1]
@@ -46,8 +46,8 @@ def _gain(values, goal_cells, range_cells, rays, unknown, occupied):  # type: ig
         c0 = gc + 0.5
         for a in range(rays):
             ang = 2.0 * math.pi * a / rays
-            dr = math.sin(ang) * 0.25
-            dc = math.cos(ang) * 0.25
+            dr = math.sin(ang) * 0.5
+            dc = math.cos(ang) * 0.5
             for s in range(1, steps + 1):
                 r = int(math.floor(r0 + dr * s))
                 c = int(math.floor(c0 + dc * s))

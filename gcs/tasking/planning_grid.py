@@ -101,7 +101,8 @@ def coarsen(
     fine = np.asarray(occupancy.values)
     if fine.ndim != 2:
         raise ValueError(f"occupancy.values must be 2-D, got shape {fine.shape}")
-    f = max(1, int(round(resolution_m / occupancy.resolution_m)))
+    # round half up (0.3 / 0.2 is 1.4999...: 2, not 1)
+    f = max(1, int(math.floor(resolution_m / occupancy.resolution_m + 0.5 + 1e-9)))
     res = occupancy.resolution_m * f
     rows = -(-fine.shape[0] // f)
     cols = -(-fine.shape[1] // f)

@@ -38,17 +38,23 @@ def test_matches_scipy_with_and_without_limit(seed: int) -> None:
     passable[12, 17] = True
     g = _graph(passable, 0.5)
     ref = dijkstra(g, indices=12 * 40 + 17).reshape(30, 40)
+    cells = np.argwhere(np.ones((30, 40), dtype=bool))
     got = grid_distances(passable, (12, 17), resolution_m=0.5)
-    assert np.allclose(np.nan_to_num(got.distance_m, posinf=-1), np.nan_to_num(ref, posinf=-1))
+    full = got.at(cells).reshape(30, 40)
+    assert np.allclose(np.nan_to_num(full, posinf=-1), np.nan_to_num(ref, posinf=-1))
     lim = dijkstra(g, indices=12 * 40 + 17, limit=6.0).reshape(30, 40)
     got = grid_distances(passable, (12, 17), resolution_m=0.5, limit_m=6.0)
-    assert np.allclose(np.nan_to_num(got.distance_m, posinf=-1), np.nan_to_num(lim, posinf=-1))
+    assert got.distance_m.shape == (26, 27)  # only the window the limit allows is searched
+    within = got.at(cells).reshape(30, 40)
+    assert np.allclose(np.nan_to_num(within, posinf=-1), np.nan_to_num(lim, posinf=-1))
     # the path is a chain of neighbours whose length is the distance
-    goal = tuple(int(v) for v in np.argwhere(np.isfinite(got.distance_m))[-1])
-    path = got.path_cells(goal)  # type: ignore[arg-type]
-    steps = np.hypot(*np.diff(path, axis=0).T) * 0.5
-    assert path[0].tolist() == [12, 17] and path[-1].tolist() == list(goal)
-    assert steps.sum() == pytest.approx(got.distance_m[goal])
+    for dist in (full, within):
+        goal = tuple(int(v) for v in np.argwhere(np.isfinite(dist))[-1])
+        res = got if dist is within else grid_distances(passable, (12, 17), resolution_m=0.5)
+        path = res.path_cells(goal)  # type: ignore[arg-type]
+        steps = np.hypot(*np.diff(path, axis=0).T) * 0.5
+        assert path[0].tolist() == [12, 17] and path[-1].tolist() == list(goal)
+        assert steps.sum() == pytest.approx(dist[goal])
 
 
 def test_bad_start_is_named() -> None:
