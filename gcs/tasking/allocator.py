@@ -28,6 +28,7 @@ paper 4.1).
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 import time
@@ -247,6 +248,7 @@ class TaskAllocator:
         self._goal_failures: list[tuple[tuple[float, float], int]] = []
         self._dispatch_excluded: dict[int, set[int]] = {}  # hazard -> robots that failed it
         self._silent: set[int] = set()
+        self._no_start: set[int] = set()
         self._lost: set[int] = set()
         self._lock = HostileLock(self.config.hostile)
         self._hostile_at: dict[int, tuple[float, float]] = {}
@@ -340,6 +342,19 @@ class TaskAllocator:
     def _context(self, state: TaskingState, now_s: float) -> _Ctx:
         cfg = self.config
         done = self.neutralized | set(state.neutralized_hazard_ids)
+        bad = [h for h in state.hazards if not np.isfinite(h.position_in_map).all()]
+        for h in bad:
+            self.events.append(
+                TaskingEvent(
+                    now_s,
+                    "bad_input",
+                    None,
+                    f"hazard {h.hazard_id}: non-finite position, ignored",
+                    h.hazard_id,
+                )
+            )
+        if bad:
+            state = dataclasses.replace(state, hazards=[h for h in state.hazards if h not in bad])
         locked = {h for h, s in self._lock.states.items() if s.locked}
         static_live = [
             h for h in state.hazards if h.kind == ObjectKind.STATIC_OOI and h.hazard_id not in done
@@ -473,6 +488,9 @@ class TaskAllocator:
                 self._goal_failures.append((a.goal_in_map, r.robot_id))
             if purpose in ("neutralize_go", "neutralize") and a.hazard_id is not None:
                 self._dispatch_excluded.setdefault(a.hazard_id, set()).add(r.robot_id)
+        if purpose == "hostile_view" and ok:
+            a.timeout_s = math.inf  # at its view position: it holds there
+            return
         if purpose in ("park", "spread") and ok:
             # a parked or spread robot stays where it is; keep the record (not re-sent)
             a.timeout_s = math.inf
@@ -492,6 +510,20 @@ class TaskAllocator:
         discs += [(h, max(h.radius_m, cfg.hostile.blast_radius_m)) for h in ctx.hostiles_live]
         for rid, r in ctx.available.items():
             pos = self._position(r)
+            a = self.assignments.get(rid)
+            if a is not None and a.goal_in_map is not None and a.purpose != "evade":
+                for h, radius in discs:
+                    if math.dist(a.goal_in_map, h.position_in_map) < radius:
+                        # a hostile moved onto the goal (or an OOI was found there): re-plan
+                        self._event(
+                            ctx,
+                            "goal_in_keepout",
+                            rid,
+                            f"robot {rid}: its goal is inside hazard {h.hazard_id}'s keep-out",
+                            h.hazard_id,
+                        )
+                        del self.assignments[rid]
+                        break
             for h, radius in discs:
                 if math.dist(pos, h.position_in_map) < radius:
                     if self._purpose(rid) == "evade":
@@ -752,10 +784,17 @@ class TaskAllocator:
                     ctx, "frontier_gone", rid, f"robot {rid}: the frontier at its goal is explored"
                 )
             if rid not in ctx.cells:
-                self._event(
-                    ctx, "no_start", rid, f"robot {rid}: no traversable cell within {cfg.snap_m} m"
-                )
+                if rid not in self._no_start:
+                    self._no_start.add(rid)
+                    self._event(
+                        ctx,
+                        "no_start",
+                        rid,
+                        f"robot {rid}: no traversable map cell within {cfg.snap_m} m (no map "
+                        "around it yet?): not planned for",
+                    )
                 continue
+            self._no_start.discard(rid)
             bl = self._failed_goals.get(rid, []) + global_bad
             waiting.append(
                 Explorer(
@@ -777,6 +816,7 @@ class TaskAllocator:
             waiting,
             claimed_in_map=np.asarray(claimed, dtype=np.float64).reshape(-1, 2),
             highway=ctx.highway,
+            highway_blocked=ctx.blocked,
             config=cfg.exploration,
         )
         if plan.explored and not claimed:

@@ -160,10 +160,12 @@ def plan_exploration(
     *,
     claimed_in_map: NDArray[np.float64] | None = None,
     highway: TrajectoryGraph | None = None,
+    highway_blocked: NDArray[np.bool_] | None = None,
     config: ExplorationConfig | None = None,
 ) -> ExplorationPlan:
     """Goals for ``explorers`` over the candidate goals of ``frontiers`` (with ``gains_m2``
-    ``(K,)`` from :func:`~gcs.tasking.information_gain.information_gain`)."""
+    ``(K,)`` from :func:`~gcs.tasking.information_gain.information_gain`); far routes avoid
+    ``highway_blocked`` waypoints (inside keep-out discs)."""
     cfg = config or ExplorationConfig()
     goals = frontiers.goals_in_map
     gains = np.asarray(gains_m2, dtype=np.float64).reshape(-1)
@@ -221,7 +223,11 @@ def plan_exploration(
     if rest:
         util = np.full((len(rest), len(cand)), -np.inf)
         plans: dict[tuple[int, int], tuple[NDArray[np.float64], float, bool]] = {}
-        goal_node = highway.nearest(goals_c) if highway is not None and highway.size else None
+        goal_node = (
+            highway.nearest(goals_c, highway_blocked)
+            if highway is not None and highway.size
+            else None
+        )
         far_grid: dict[int, GridDistances] = {}
         for row, i in enumerate(rest):
             e = explorers[i]
@@ -229,9 +235,9 @@ def plan_exploration(
             cost = np.full(len(cand), np.inf)
             via = np.zeros(len(cand), dtype=bool)
             if goal_node is not None and highway is not None:
-                rn = int(highway.nearest(pos)[0])
+                rn = int(highway.nearest(pos, highway_blocked)[0])
                 if rn >= 0:
-                    hd, _ = highway.distances([rn])
+                    hd, _ = highway.distances([rn], highway_blocked)
                     ok = goal_node >= 0
                     gn = goal_node[ok]
                     cost[ok] = (
@@ -256,8 +262,8 @@ def plan_exploration(
             goal = goals_c[j]
             pos, cost_m, via_hw = plans[(row, j)]
             if via_hw and highway is not None and goal_node is not None:
-                rn = int(highway.nearest(pos)[0])
-                _, pred = highway.distances([rn])
+                rn = int(highway.nearest(pos, highway_blocked)[0])
+                _, pred = highway.distances([rn], highway_blocked)
                 nodes = highway.path(pred[0], int(goal_node[j]))
                 pts = simplify_path(
                     np.vstack([highway.nodes_in_map[nodes], goal]), cfg.path_tolerance_m

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from gcs.mapping.rasterization import OccupancyMap
 from gcs.tasking.allocator import (
     RobotInfo,
     Role,
@@ -267,3 +268,67 @@ def test_hostile_gets_two_watchers_and_robots_keep_out_of_its_blast() -> None:
         alloc.plan(TaskingState(occupancy(v), rs, hazards=[hostile], hostile_seen_s=seen), now_s=t)
     assert alloc.stats.hostiles_locked == 1 and 8 in alloc.neutralized
     assert all(a.purpose != "hostile_view" for a in alloc.assignments.values())
+
+
+def test_an_empty_map_is_not_explored_and_bad_input_is_named() -> None:
+    empty = OccupancyMap(np.zeros((0, 0), dtype=np.int8), (0.0, 0.0), 0.1)
+    r = robot(1, (0.0, 0.0))
+    nan_hazard = Hazard(4, ObjectKind.STATIC_OOI, (float("nan"), 1.0), 2.5)
+    alloc = TaskAllocator()
+    assert alloc.plan(TaskingState(empty, [r], hazards=[nan_hazard]), now_s=0.0) == []
+    assert not alloc.stats.explored
+    kinds = [e.kind for e in alloc.events]
+    assert "no_start" in kinds and "bad_input" in kinds and "explored" not in kinds
+    assert any("hazard 4" in e.text for e in alloc.events)
+    # the next plan does not repeat the no_start notice
+    alloc.plan(TaskingState(empty, [r]), now_s=1.0)
+    assert "no_start" not in [e.kind for e in alloc.events]
+
+
+def test_a_hostile_moving_onto_a_goal_forces_a_new_one() -> None:
+    occ = occupancy(corridor())
+    r = robot(1, (15.0, 3.0))
+    alloc = TaskAllocator()
+    alloc.plan(TaskingState(occ, [r]), now_s=0.0)
+    goal = alloc.assignments[1].goal_in_map
+    assert goal is not None
+    hostile = Hazard(2, ObjectKind.HOSTILE, goal, 5.0)
+    out = alloc.plan(TaskingState(occ, [r], hazards=[hostile]), now_s=1.0)
+    assert any(e.kind == "goal_in_keepout" for e in alloc.events)
+    new = alloc.assignments[1].goal_in_map
+    assert [rid for rid, _ in out] == [1] and new is not None
+    assert math.dist(new, goal) > 6.0
+
+
+def test_operator_controlled_robots_are_left_alone_and_silent_ones_come_back() -> None:
+    occ = occupancy(corridor())
+    r1, r2 = robot(1, (15.0, 3.0)), robot(2, (25.0, 3.0))
+    r2.operator_controlled = True
+    alloc = TaskAllocator()
+    out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=0.0)
+    assert [rid for rid, _ in out] == [1]
+    r2.operator_controlled = False
+    out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=15.0)  # both silent for 15 s
+    assert out == [] and {e.kind for e in alloc.events} == {"robot_silent"}
+    r1.last_heard_s = r2.last_heard_s = 16.0
+    out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=16.0)
+    assert sorted(rid for rid, _ in out) == [1, 2]
+    assert sorted(e.robot_id for e in alloc.events if e.kind == "robot_back") == [1, 2]  # type: ignore[type-var]
+
+
+def test_a_goal_whose_frontier_is_gone_is_replaced() -> None:
+    v = corridor()
+    r = robot(1, (15.0, 3.0))
+    alloc = TaskAllocator()
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)
+    goal = alloc.assignments[1].goal_in_map
+    assert goal is not None and goal[0] < 6.0
+    # another robot mapped the west end: it is a closed wall now
+    box(v, 0.0, 0.5, 5.0, 5.5, FREE)
+    box(v, 0.0, 0.5, 0.5, 5.5, OCCUPIED)
+    box(v, 0.0, 0.5, 5.0, 1.0, OCCUPIED)
+    box(v, 0.0, 5.0, 5.0, 5.5, OCCUPIED)
+    out = alloc.plan(TaskingState(occupancy(v), [r]), now_s=1.0)
+    assert [e.kind for e in alloc.events] == ["frontier_gone"]
+    new = alloc.assignments[1].goal_in_map
+    assert len(out) == 1 and new is not None and new[0] > 34.0
