@@ -28,8 +28,10 @@ paper 4.1).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import enum
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -74,6 +76,7 @@ __all__ = [
 ]
 
 TaskMessage = GoToTask | NeutralizeTask | IdleTask
+log = logging.getLogger(__name__)
 _TERMINAL = (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.REJECTED, TaskState.CANCELED)
 
 
@@ -211,6 +214,7 @@ class TaskingStats:
     neutralized: int = 0
     hostiles_locked: int = 0
     explored: bool = False
+    internal_errors: int = 0
     last_plan_wall_s: float = 0.0
 
 
@@ -258,18 +262,34 @@ class TaskAllocator:
     # ---- the step ---------------------------------------------------------------------------
 
     def plan(self, state: TaskingState, now_s: float) -> list[tuple[int, TaskMessage]]:
-        """Tasks to send now (see the module docstring); :attr:`events` says why."""
+        """Tasks to send now (see the module docstring); :attr:`events` says why.
+
+        Never raises: an internal failure is logged, counted (``stats.internal_errors``) and
+        reported as an ``internal_error`` event, the planning memory is rolled back to before
+        the call (no task is recorded that was not returned) and nothing is sent."""
         t0 = time.perf_counter()
         self.events = []
         self.stats.plans += 1
-        ctx = self._context(state, now_s)
-        self._bookkeeping(ctx)
-        self._evade(ctx)
-        self._hostiles(ctx)
-        self._disruptors(ctx)
-        self._explore(ctx)
+        saved = copy.deepcopy(
+            (self.assignments, self.pending_approvals, self.neutralized, self._lock.states)
+        )
+        try:
+            ctx = self._context(state, now_s)
+            self._bookkeeping(ctx)
+            self._evade(ctx)
+            self._hostiles(ctx)
+            self._disruptors(ctx)
+            self._explore(ctx)
+            out = ctx.out
+        except Exception as err:
+            self.assignments, self.pending_approvals, self.neutralized, self._lock.states = saved
+            self.stats.internal_errors += 1
+            text = f"planning failed: {type(err).__name__}: {err}"
+            self.events.append(TaskingEvent(float(now_s), "internal_error", None, text))
+            log.exception("internal error in TaskAllocator.plan at t=%s (nothing sent)", now_s)
+            out = []
         self.stats.last_plan_wall_s = time.perf_counter() - t0
-        return ctx.out
+        return out
 
     # ---- helpers ----------------------------------------------------------------------------
 

@@ -332,3 +332,19 @@ def test_a_goal_whose_frontier_is_gone_is_replaced() -> None:
     assert [e.kind for e in alloc.events] == ["frontier_gone"]
     new = alloc.assignments[1].goal_in_map
     assert len(out) == 1 and new is not None and new[0] > 34.0
+
+
+def test_a_planning_failure_sends_nothing_and_keeps_the_memory() -> None:
+    v = corridor()
+    r = robot(1, (15.0, 3.0))
+    alloc = TaskAllocator()
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)
+    before = dict(alloc.assignments)
+    # a map whose values are not 2-D: coarsening refuses it, the allocator goes on
+    broken = OccupancyMap(np.zeros(5, dtype=np.int8), (0.0, 0.0), 0.25)  # type: ignore[arg-type]
+    assert alloc.plan(TaskingState(broken, [r]), now_s=1.0) == []
+    assert alloc.stats.internal_errors == 1
+    assert [e.kind for e in alloc.events] == ["internal_error"]
+    assert "2-D" in alloc.events[0].text
+    assert alloc.assignments.keys() == before.keys()
+    assert alloc.plan(TaskingState(occupancy(v), [r]), now_s=2.0) == []  # still on its way
