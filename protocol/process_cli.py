@@ -54,9 +54,23 @@ class Terminated(KeyboardInterrupt):
     """A signal other than ^C (SIGTERM by default) raised where ^C would raise
     ``KeyboardInterrupt``: every existing ``except KeyboardInterrupt`` stops the same way."""
 
-    def __init__(self, signum: int = signal.SIGTERM) -> None:
+    def __init__(self, signum: int | str = signal.SIGTERM) -> None:
+        # raised from signal handlers: never fails; a name ("SIGTERM") or number is taken,
+        # anything else is kept as the message of a SIGTERM
         super().__init__(signum)
-        self.signum = int(signum)
+        self.signum = _signal_number(signum)
+
+
+def _signal_number(signal_: int | str) -> int:
+    if isinstance(signal_, str):
+        try:
+            return int(signal.Signals[signal_.strip().upper()])
+        except KeyError:
+            return int(signal.SIGTERM)
+    try:
+        return int(signal_)
+    except (TypeError, ValueError):
+        return int(signal.SIGTERM)
 
 
 def _raise_terminated(signum: int, _frame: object) -> None:

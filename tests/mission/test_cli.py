@@ -196,7 +196,7 @@ def test_bench_refuses_an_unwritable_bench_dir(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and len(proc.stderr.strip()) < 200
     assert proc.stderr.startswith("magic bench: $MAGIC_BENCH_DIR ")
-    assert proc.stderr.strip().endswith(f"{blocker} is not a directory")
+    assert proc.stderr.strip().endswith("/file is not a directory")  # long paths lose a middle
 
 
 @pytest.mark.parametrize(("signum", "status"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])

@@ -34,6 +34,10 @@ def test_terminated_is_a_keyboard_interrupt_carrying_its_signal() -> None:
     assert exit_code_for(exc) == 143
     assert exit_code_for(KeyboardInterrupt()) == 130
     assert exit_code_for(Terminated(signal.SIGHUP)) == 129
+    # raised from signal handlers, so it never fails to construct (mission/run.py passes a name)
+    assert Terminated("SIGTERM").signum == signal.SIGTERM
+    assert Terminated("SIGHUP").signum == signal.SIGHUP
+    assert Terminated("no such signal").signum == signal.SIGTERM
     assert signal_name_for(exc) == "SIGTERM"
     assert signal_name_for(KeyboardInterrupt()) == "SIGINT"
     assert stopped_line("bench", KeyboardInterrupt(), "suite loops") == (
