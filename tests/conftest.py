@@ -4,6 +4,9 @@
 (:func:`mission.bench.output_dir`); for the whole session that is a directory pytest made
 (session scope, so module-scoped fixtures that run a suite are covered too). Subprocesses
 inherit it through the environment.
+
+Hypothesis keeps its example database and constants cache in ``./.hypothesis`` (the
+checkout) unless told otherwise: for the session it is a pytest temporary directory too.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from hypothesis.configuration import set_hypothesis_home_dir
 
 from mission.bench import BENCH_DIR_ENV
 
@@ -30,3 +34,15 @@ def bench_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
             os.environ.pop(BENCH_DIR_ENV, None)
         else:
             os.environ[BENCH_DIR_ENV] = previous
+
+
+@pytest.fixture(scope="session", autouse=True)
+def hypothesis_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """Hypothesis's storage (example database, constants cache) for the session: a pytest
+    temporary directory, not ``.hypothesis/`` in the checkout."""
+    path = tmp_path_factory.mktemp("hypothesis")
+    set_hypothesis_home_dir(path)
+    try:
+        yield path
+    finally:
+        set_hypothesis_home_dir(None)
