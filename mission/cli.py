@@ -17,7 +17,8 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 __all__ = ["main"]
 
@@ -177,6 +178,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         check_output_file,
         exit_code_for,
         one_line,
+        signals_received,
+        stop_cause,
+        stop_exception,
         stopped_line,
     )
 
@@ -199,6 +203,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return fail(exc)
 
     start = time.monotonic()
+    stops_before = len(signals_received())
     last = [""]
     try:
         with err.status(f"bench {args.suite}...") as status:
@@ -212,13 +217,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                     err.print(f"{time.strftime('%H:%M:%S')} {msg}", markup=False)
 
             metrics = run_suite(args.suite, quick=args.quick, progress=progress)
+        if len(signals_received()) > stops_before:  # the stop was swallowed by C code
+            raise stop_exception(signals_received()[stops_before])
     except BenchError as exc:
         return fail(exc)
-    except KeyboardInterrupt as exc:
+    except (KeyboardInterrupt, Exception) as exc:
+        stop = stop_cause(exc)  # a stop, or an error C code made of one
+        if stop is None:
+            raise
         took = f"suite {args.suite} stopped after {time.monotonic() - start:.0f} s"
         detail = f"{took}; last: {last[0]}" if last[0] else took
-        err.print(one_line(stopped_line("bench", exc, detail)), markup=False)
-        return exit_code_for(exc)
+        err.print(one_line(stopped_line("bench", stop, detail)), markup=False)
+        return exit_code_for(stop)
     table = Table(title=f"bench {args.suite}" + (" (quick)" if args.quick else ""))
     table.add_column("metric", no_wrap=True)
     table.add_column("value", justify="right", no_wrap=True)
@@ -286,32 +296,53 @@ def _stop_children() -> None:
         child.join(5.0)
 
 
+def _quiet_stops(hook: Callable[[Any], object]) -> Callable[[Any], object]:
+    """``sys.unraisablehook`` that drops a stop raised where C code swallows it (a ctypes
+    callback: numba compiling); the stop is on record (``signals_received``) and the
+    command acts on it. Everything else goes to ``hook``."""
+
+    def quiet(unraisable: Any) -> object:
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            return None
+        return hook(unraisable)
+
+    return quiet
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """``magic COMMAND ...``: returns the exit status (module doc)."""
-    from protocol.process_cli import exit_code_for, install_sigterm_handler, stopped_line
+    from protocol.process_cli import (
+        exit_code_for,
+        install_stop_handlers,
+        stop_cause,
+        stopped_line,
+    )
 
     argv = list(sys.argv[1:] if argv is None else argv)
     command = argv[0] if argv and not argv[0].startswith("-") else "?"
-    previous_term = install_sigterm_handler()
-    previous_int = signal.getsignal(signal.SIGINT) if previous_term is not None else None
+    previous = install_stop_handlers()
+    previous_hook = sys.unraisablehook
+    sys.unraisablehook = _quiet_stops(previous_hook)
     try:
         return _dispatch(argv)
-    except KeyboardInterrupt as exc:  # ^C or SIGTERM (Terminated) that escaped the command
-        if previous_term is not None:  # a second signal does not cut the last line short
-            signal.signal(signal.SIGINT, signal.SIG_IGN)
-            signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        _stop_children()
-        print(stopped_line(command, exc), file=sys.stderr, flush=True)
-        return exit_code_for(exc)
     except BrokenPipeError:  # ``magic ... | head``: the reader left; no traceback
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
+    except (KeyboardInterrupt, Exception) as exc:  # ^C or SIGTERM (Terminated) escaping
+        stop = stop_cause(exc)  # (or an error C code made of one: numba's SystemError)
+        if stop is None:
+            raise
+        for sig in previous:  # a second signal does not cut the last line short
+            signal.signal(sig, signal.SIG_IGN)
+        _stop_children()
+        print(stopped_line(command, stop), file=sys.stderr, flush=True)
+        return exit_code_for(stop)
     finally:
-        if previous_term is not None:
-            signal.signal(signal.SIGTERM, previous_term)
-            if previous_int is not None:
-                signal.signal(signal.SIGINT, previous_int)
+        sys.unraisablehook = previous_hook
+        for sig, handler in previous.items():
+            if handler is not None:
+                signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

@@ -41,10 +41,14 @@ __all__ = [
     "follow_sim_clock",
     "one_line",
     "install_sigterm_handler",
+    "install_stop_handlers",
     "link_config",
     "raise_on_sigterm",
     "signal_name_for",
+    "signals_received",
     "spin_until",
+    "stop_cause",
+    "stop_exception",
     "stop_on_interrupt",
     "stopped_line",
 ]
@@ -73,8 +77,54 @@ def _signal_number(signal_: int | str) -> int:
         return int(signal.SIGTERM)
 
 
+#: Every stop signal :func:`install_stop_handlers`' handlers took, oldest first.
+_RECEIVED: list[int] = []
+
+
 def _raise_terminated(signum: int, _frame: object) -> None:
-    raise Terminated(signum)
+    _RECEIVED.append(signum)
+    raise stop_exception(signum)
+
+
+def stop_exception(signum: int) -> KeyboardInterrupt:
+    """What a stop signal raises: ``KeyboardInterrupt`` for SIGINT, else :class:`Terminated`."""
+    return KeyboardInterrupt() if signum == signal.SIGINT else Terminated(signum)
+
+
+def install_stop_handlers() -> dict[int, Callable[..., object] | int | None]:
+    """From now on SIGINT raises ``KeyboardInterrupt`` and SIGTERM :class:`Terminated` in the
+    main thread, and both are recorded (:func:`signals_received`); returns the previous
+    handlers by signal (empty off the main thread, where nothing changes). A signal the
+    process was started ignoring (``nohup``, a background job) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {
+        sig: signal.signal(sig, _raise_terminated)
+        for sig in (signal.SIGINT, signal.SIGTERM)
+        if signal.getsignal(sig) is not signal.SIG_IGN  # nohup, background jobs: kept
+    }
+
+
+def stop_cause(exc: BaseException) -> KeyboardInterrupt | None:
+    """The stop (``KeyboardInterrupt``, :class:`Terminated`) behind ``exc``, if any: C code a
+    stop interrupted may wrap it (numba's dispatcher raises ``SystemError`` from it)."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        if isinstance(current, KeyboardInterrupt):
+            return current
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return None
+
+
+def signals_received() -> tuple[int, ...]:
+    """The stop signals the handlers of :func:`install_stop_handlers` (and
+    :func:`install_sigterm_handler`) took, oldest first. An exception raised from a signal
+    handler while C code calls back into Python (a ctypes callback: numba compiling, for one)
+    is swallowed there; a command that ends normally can look here to see it was told to stop.
+    """
+    return tuple(_RECEIVED)
 
 
 def install_sigterm_handler() -> Callable[..., object] | int | None:

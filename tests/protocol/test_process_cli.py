@@ -19,9 +19,13 @@ from protocol.process_cli import (
     check_output_file,
     exit_code_for,
     install_sigterm_handler,
+    install_stop_handlers,
     one_line,
     raise_on_sigterm,
     signal_name_for,
+    signals_received,
+    stop_cause,
+    stop_exception,
     stop_on_interrupt,
     stopped_line,
 )
@@ -153,3 +157,53 @@ def test_path_checks_name_the_directory_at_fault(tmp_path: Path) -> None:
         check_input_file(tmp_path / "none.npz", "--corpus")
     assert check_input_file(tmp_path / "f", "--corpus") == tmp_path / "f"
     assert list(tmp_path.iterdir()) == [tmp_path / "f"]  # the write probe left nothing
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+def test_a_stop_swallowed_by_c_code_is_still_on_record() -> None:
+    """CPython drops an exception raised in a ctypes callback (numba compiling calls back
+    like this): the raise is lost, the record of the signal is not."""
+    import ctypes
+
+    def callback() -> None:
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(1000):  # the handler runs between these bytecodes, inside C's call
+            pass
+
+    c_callback = ctypes.CFUNCTYPE(None)(callback)
+    previous = install_stop_handlers()
+    try:
+        before = len(signals_received())
+        c_callback()  # the Terminated raised inside is printed and ignored, not propagated
+        assert signals_received()[before:] == (signal.SIGTERM,)
+        assert isinstance(stop_exception(signal.SIGTERM), Terminated)
+        assert type(stop_exception(signal.SIGINT)) is KeyboardInterrupt
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def test_install_stop_handlers_keeps_an_ignored_signal_ignored() -> None:
+    previous_int = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        previous = install_stop_handlers()
+        assert set(previous) == {signal.SIGTERM}
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        signal.signal(signal.SIGTERM, previous[signal.SIGTERM])
+    finally:
+        signal.signal(signal.SIGINT, previous_int)
+
+
+def test_stop_cause_finds_a_stop_wrapped_by_c_code() -> None:
+    def wrapped() -> None:
+        try:
+            raise Terminated()
+        except KeyboardInterrupt as exc:  # what numba's dispatcher does with it
+            raise SystemError("dispatcher returned a result with an exception set") from exc
+
+    with pytest.raises(SystemError) as caught:
+        wrapped()
+    stop = stop_cause(caught.value)
+    assert isinstance(stop, Terminated) and exit_code_for(stop) == 143
+    assert stop_cause(ValueError("plain")) is None
+    assert type(stop_cause(KeyboardInterrupt())) is KeyboardInterrupt
