@@ -103,7 +103,7 @@ def _targets(
     world: World, scene: Scene
 ) -> list[tuple[str, int, tuple[float, float], float, float, float]]:
     """``(label, body, xy, radius, height, ground z)`` of objects, people and distractors."""
-    out = []
+    out: list[tuple[str, int, tuple[float, float], float, float, float]] = []
     for o in world.oois:
         out.append((o.kind, scene.ooi_body[o.ooi_id], o.xy_m, o.radius_m, o.height_m, o.ground_z_m))
     for h, b in zip(world.humans, scene.human_body, strict=True):
