@@ -6,7 +6,8 @@ taken under varied lighting (:func:`train_thresholds`: inner quantiles of the cl
 widened by a margin), plus a range of the chroma angle ``atan2(Cb - 128, Cr - 128)``
 (``hue_deg``): white light of any strength scales Y, Cr - 128 and Cb - 128 alike, so the angle
 separates orange static OOIs from red hostiles where the boxes overlap (measured: 8 of 21
-hostiles called static OOIs with boxes alone, 0 with the angle). :func:`classify_candidate` projects a candidate cylinder into the image
+hostiles called static OOIs with boxes alone, 0 with the angle).
+:func:`classify_candidate` projects a candidate cylinder into the image
 chosen by the image memory, takes the pixels inside its outline and names the class whose box
 holds the largest fraction of them (at least ``min_fraction``), else ``other``.
 
