@@ -1,0 +1,193 @@
+"""Learned thresholds on shape features (paper 5.2.1, third step) and their versioned file.
+
+"Appropriate thresholds on the values of these four features (length, breadth, radius,
+circumference) were then learned from a training dataset. Since we did not have access to
+exact samples of all the objects that we needed to detect, the thresholds were then manually
+enlarged." (paper 5.2.1)
+
+A class (``cylinder``: a static OOI or toxic vat by shape; ``person``: a civilian or hostile)
+is accepted when every feature lies in its ``[lo, hi]`` interval; a NaN feature is never
+accepted. :func:`learn_box` learns the intervals from labelled feature vectors: quantiles of
+the positives, enlarged by a margin; the quantile and margin are chosen on the training set
+for the best F1 score (recall first on ties), in place of the paper's manual enlargement.
+
+The file (``shape_thresholds_v1.json``) holds ``format`` (:data:`FORMAT`), ``version``
+(:data:`FORMAT_VERSION`), ``feature_names`` (must equal
+:data:`robot.perception.shape_features.FEATURE_NAMES`), per class ``lo``/``hi`` lists, and
+free-form ``provenance`` (worlds trained on, scores). A corrupt, truncated, other-version or
+other-feature file raises :class:`ThresholdFileError` naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robot.perception.shape_features import FEATURE_NAMES
+
+__all__ = [
+    "DEFAULT_THRESHOLDS_PATH",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "ClassBox",
+    "ShapeThresholds",
+    "ThresholdFileError",
+    "learn_box",
+    "load_thresholds",
+    "save_thresholds",
+]
+
+FORMAT = "magic-recon/shape-thresholds"
+FORMAT_VERSION = 1
+DEFAULT_THRESHOLDS_PATH = Path(__file__).with_name("shape_thresholds_v1.json")
+CLASSES = ("cylinder", "person")
+
+
+class ThresholdFileError(ValueError):
+    """The thresholds file cannot be used; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class ClassBox:
+    """Accept a feature vector when ``lo <= f <= hi`` for every feature."""
+
+    lo: NDArray[np.float64]
+    hi: NDArray[np.float64]
+
+    def accepts(self, features: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """``(n, F) -> (n,)`` or ``(F,) -> ()``; NaN features are rejected."""
+        f = np.asarray(features, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            return np.all((f >= self.lo) & (f <= self.hi), axis=-1)  # type: ignore[no-any-return]
+
+
+@dataclass(frozen=True)
+class ShapeThresholds:
+    feature_names: tuple[str, ...]
+    boxes: dict[str, ClassBox]
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def accepts(self, cls: str, features: NDArray[np.float64]) -> NDArray[np.bool_]:
+        if cls not in self.boxes:
+            raise KeyError(f"no thresholds for class {cls!r} (have {sorted(self.boxes)})")
+        return self.boxes[cls].accepts(features)
+
+
+def learn_box(
+    positives: NDArray[np.float64],
+    negatives: NDArray[np.float64],
+    *,
+    quantiles: tuple[float, ...] = (0.0, 0.01, 0.02, 0.05),
+    margins: tuple[float, ...] = (0.0, 0.1, 0.25, 0.5),
+    min_margin: NDArray[np.float64] | None = None,
+) -> tuple[ClassBox, dict[str, float]]:
+    """Learn ``[lo, hi]`` per feature from positive and negative feature rows ``(n, F)``.
+
+    For each quantile ``q`` and margin ``m``: ``lo = Q(q) - m * spread - min_margin``,
+    ``hi = Q(1 - q) + m * spread + min_margin`` with ``spread = Q(1 - q) - Q(q)``; the pair
+    with the best F1 on the given rows wins (ties: higher recall, then larger box). Rows with
+    NaN are left out of the quantiles. Returns the box and its training scores."""
+    pos = np.asarray(positives, dtype=np.float64)
+    neg = np.asarray(negatives, dtype=np.float64).reshape(-1, pos.shape[1])
+    pos_ok = pos[np.isfinite(pos).all(axis=1)]
+    if len(pos_ok) < 3:
+        raise ValueError(f"learn_box: need at least 3 finite positive rows, got {len(pos_ok)}")
+    extra = np.zeros(pos.shape[1]) if min_margin is None else np.asarray(min_margin, float)
+    best: tuple[tuple[float, float, float], ClassBox, dict[str, float]] | None = None
+    for q in quantiles:
+        qlo = np.quantile(pos_ok, q, axis=0)
+        qhi = np.quantile(pos_ok, 1.0 - q, axis=0)
+        spread = qhi - qlo
+        for m in margins:
+            box = ClassBox(qlo - m * spread - extra, qhi + m * spread + extra)
+            tp = int(box.accepts(pos).sum())
+            fp = int(box.accepts(neg).sum()) if len(neg) else 0
+            recall = tp / len(pos)
+            precision = tp / max(tp + fp, 1)
+            f1 = 2 * precision * recall / max(precision + recall, 1e-12)
+            key = (round(f1, 6), round(recall, 6), m - q)
+            if best is None or key > best[0]:
+                scores = {"recall": recall, "precision": precision, "f1": f1, "q": q, "m": m}
+                best = (key, box, scores)
+    assert best is not None
+    return best[1], best[2]
+
+
+def save_thresholds(path: str | Path, thresholds: ShapeThresholds) -> None:
+    """Write the versioned JSON file (see the module docstring)."""
+    doc = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "feature_names": list(thresholds.feature_names),
+        "classes": {
+            name: {"lo": [float(v) for v in box.lo], "hi": [float(v) for v in box.hi]}
+            for name, box in thresholds.boxes.items()
+        },
+        "provenance": thresholds.provenance,
+    }
+    Path(path).write_text(json.dumps(doc, indent=1, allow_nan=False) + "\n")
+
+
+def _num(v: Any, where: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        # JSON has no infinity: open-ended bounds are stored as +-1e9
+        raise ThresholdFileError(f"{where}: expected a finite number, got {v!r}")
+    return float(v)
+
+
+def load_thresholds(
+    path: str | Path = DEFAULT_THRESHOLDS_PATH,
+    *,
+    feature_names: tuple[str, ...] = FEATURE_NAMES,
+) -> ShapeThresholds:
+    """Read and check a thresholds file; any problem raises :class:`ThresholdFileError`."""
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise ThresholdFileError(f"{p}: no such thresholds file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ThresholdFileError(f"{p}: not a readable JSON thresholds file: {err}") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise ThresholdFileError(f"{p}: not a shape thresholds file (format != {FORMAT!r})")
+    if doc.get("version") != FORMAT_VERSION:
+        raise ThresholdFileError(
+            f"{p}: thresholds file version {doc.get('version')!r}, this code reads "
+            f"version {FORMAT_VERSION}"
+        )
+    names = doc.get("feature_names")
+    if not isinstance(names, list) or tuple(names) != tuple(feature_names):
+        raise ThresholdFileError(
+            f"{p}: feature_names {names!r} do not match the detector's {list(feature_names)}"
+        )
+    classes = doc.get("classes")
+    if not isinstance(classes, dict) or not classes:
+        raise ThresholdFileError(f"{p}: 'classes' must be a non-empty object")
+    boxes: dict[str, ClassBox] = {}
+    for name, spec in classes.items():
+        if not isinstance(spec, dict):
+            raise ThresholdFileError(f"{p}: classes.{name} must be an object with lo and hi")
+        bounds = []
+        for key in ("lo", "hi"):
+            vals = spec.get(key)
+            if not isinstance(vals, list) or len(vals) != len(feature_names):
+                raise ThresholdFileError(
+                    f"{p}: classes.{name}.{key} must be a list of {len(feature_names)} numbers"
+                )
+            bounds.append(
+                np.array([_num(v, f"{p}: classes.{name}.{key}[{i}]") for i, v in enumerate(vals)])
+            )
+        if np.any(bounds[0] > bounds[1]):
+            i = int(np.argmax(bounds[0] > bounds[1]))
+            raise ThresholdFileError(
+                f"{p}: classes.{name}: lo > hi for feature {feature_names[i]!r}"
+            )
+        boxes[str(name)] = ClassBox(bounds[0], bounds[1])
+    prov = doc.get("provenance", {})
+    return ShapeThresholds(tuple(names), boxes, prov if isinstance(prov, dict) else {})
