@@ -179,7 +179,10 @@ def _load(path: Path) -> dict[str, Any]:
 def _sweeps(d: dict[str, Any]) -> list[tuple[NDArray[np.float64], int]]:
     ends = np.cumsum(d["counts"])
     starts = ends - d["counts"]
-    return [(d["points"][s:e].astype(np.float64), i) for i, (s, e) in enumerate(zip(starts, ends))]
+    return [
+        (d["points"][s:e].astype(np.float64), i)
+        for i, (s, e) in enumerate(zip(starts, ends, strict=True))
+    ]
 
 
 def label_segments(

@@ -15,7 +15,8 @@ Contract of :func:`segment_sweep`:
   ground_model`, paper 5.3) on a square grid of ``resolution_m`` cells about the sensor;
   points less than ``min_height_m`` above it are ground;
 * cells: the highest above-ground point of each cell is the cell's height (its *top*);
-* objects: cells at most ``join_reach_cells`` apart whose tops differ by at most ``join_height_m`` (a wall 2.5 m
+* objects: cells at most ``join_reach_cells`` apart whose tops differ by at most
+  ``join_height_m`` (a wall 2.5 m
   tall beside a 0.8 m cylinder stays apart even when they touch).
 
 Every point at least ``min_height_m`` above the ground, objects' and higher ones alike, is
