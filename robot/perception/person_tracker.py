@@ -130,8 +130,8 @@ class PersonTracker:
             d = z - t.x[:2]
             m2 = np.einsum("ni,ij,nj->n", d, s_inv, d)
             eu = np.hypot(d[:, 0], d[:, 1])
-            for j in np.flatnonzero((m2 <= cfg.gate_sigma**2) & (eu <= cfg.gate_max_m)):
-                pairs.append((float(m2[j]), i, int(j)))
+            for jj in np.flatnonzero((m2 <= cfg.gate_sigma**2) & (eu <= cfg.gate_max_m)).tolist():
+                pairs.append((float(m2[jj]), i, int(jj)))
         pairs.sort()
         used_t: set[int] = set()
         used_z: set[int] = set()
