@@ -244,10 +244,13 @@ class Detection(_Message, tag=4, frozen=True):
 
     ``position_in_base`` (m) with ``position_covariance`` ``(xx, xy, yy)`` in m²;
     ``radius_m`` and ``height_m`` from the cylinder fit; ``confidence`` in [0, 1].
+    ``velocity_in_base`` (m/s) is a tracked object's velocity over the ground, expressed in
+    the axes of node ``node_index``'s ``base`` (zero for static objects and untracked ones):
+    a hostile walking towards the robot has a velocity pointing at the origin.
     """
 
     _F32 = ("radius_m", "height_m", "confidence")
-    _F32_TUPLES = ("position_in_base", "position_covariance")
+    _F32_TUPLES = ("position_in_base", "position_covariance", "velocity_in_base")
 
     detection_id: int
     node_index: int
@@ -258,6 +261,7 @@ class Detection(_Message, tag=4, frozen=True):
     radius_m: float
     height_m: float
     confidence: float
+    velocity_in_base: F2 = (0.0, 0.0)
 
 
 class DetectionImage(_Message, tag=5, frozen=True):

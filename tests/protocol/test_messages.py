@@ -50,6 +50,8 @@ from protocol.messages import (
 )
 from protocol.wire import PROTOCOL_VERSION, ProtocolError, f32
 
+V = PROTOCOL_VERSION
+
 UP, DOWN = Direction.UP, Direction.DOWN
 FUZZ = settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -269,7 +271,9 @@ def test_f32_fields_travel_as_msgpack_float32() -> None:
     msg = TerrainGrid(7, 0.1, b"\x01")
     wire = encode_frame(9, msg)
     # [version, seq, [tag, node, resolution, data]]
-    expected = b"\x93\x01\x09\x94\x02\x07\xca" + struct.pack(">f", 0.1) + b"\xc4\x01\x01"
+    expected = (
+        bytes([0x93, V, 0x09]) + b"\x94\x02\x07\xca" + struct.pack(">f", 0.1) + b"\xc4\x01\x01"
+    )
     assert wire == expected
 
 
@@ -385,8 +389,8 @@ def test_random_bytes_give_only_protocol_error(data: bytes, direction: Direction
 @FUZZ
 @given(tail=st.binary(max_size=200), direction=st.sampled_from(Direction))
 def test_random_message_bodies_give_only_protocol_error(tail: bytes, direction: Direction) -> None:
-    # A valid frame header ([1, 1, ...]) so the fuzz reaches the message decoders.
-    _only_protocol_error(b"\x93\x01\x01" + tail, direction)
+    # A valid frame header ([V, 1, ...]) so the fuzz reaches the message decoders.
+    _only_protocol_error(bytes([0x93, V, 0x01]) + tail, direction)
 
 
 all_messages = st.one_of(*[STRATEGIES[d][t].map(lambda m, d=d: (d, m)) for d, t in CASES])
@@ -464,52 +468,52 @@ HAZARDS = [32, 1.0, [[1, 4, [0.0, 0.0], 5.0], [2, 1, [1.0, 1.0], 2.0]], [[3, [0.
 @pytest.mark.parametrize(
     ("frame", "direction", "expected"),
     [
-        ([1, 3, [2, "5", *GRID[2:]]], UP, "TerrainGrid.node_index: expected int, got str"),
-        ([1, 3, [*GRID[:2], "0.1", b""]], UP, "TerrainGrid.resolution_m: expected float, got str"),
-        ([1, 3, [*GRID[:3], "data"]], UP, "TerrainGrid.data: expected bytes, got str"),
+        ([V, 3, [2, "5", *GRID[2:]]], UP, "TerrainGrid.node_index: expected int, got str"),
+        ([V, 3, [*GRID[:2], "0.1", b""]], UP, "TerrainGrid.resolution_m: expected float, got str"),
+        ([V, 3, [*GRID[:3], "data"]], UP, "TerrainGrid.data: expected bytes, got str"),
         (
-            [1, 3, [32, 1.0, [[1, 4, [0.0, 0.0], "5"]], []]],
+            [V, 3, [32, 1.0, [[1, 4, [0.0, 0.0], "5"]], []]],
             DOWN,
             "HazardUpdate.hazards[0].radius_m: expected float, got str",
         ),
         (
-            [1, 3, [*HAZARDS[:3], [[3, [0.0, 0.0, 0.0]], [4, [0.0, "x", 0.0]]]]],
+            [V, 3, [*HAZARDS[:3], [[3, [0.0, 0.0, 0.0]], [4, [0.0, "x", 0.0]]]]],
             DOWN,
             "HazardUpdate.frames[1].map_from_odom[1]: expected float, got str",
         ),
         (
-            [1, 3, [32, 1.0, [[1, 4, [0.0, 0.0], 5.0], [2, 77, [1.0, 1.0], 2.0]], []]],
+            [V, 3, [32, 1.0, [[1, 4, [0.0, 0.0], 5.0], [2, 77, [1.0, 1.0], 2.0]], []]],
             DOWN,
             "HazardUpdate.hazards[1].kind: invalid enum value 77",
         ),
         (
-            [1, 3, [16, 1, 0.0, [[0.0, 1.0], [0.0, "1"]], 0.0]],
+            [V, 3, [16, 1, 0.0, [[0.0, 1.0], [0.0, "1"]], 0.0]],
             DOWN,
             "GoToTask.waypoints_in_odom[1][1]: expected float, got str",
         ),
-        ([1, 3, [0, [[1, "5", b""]]]], DOWN, "Ack.entries[0].through: expected int, got str"),
+        ([V, 3, [0, [[1, "5", b""]]]], DOWN, "Ack.entries[0].through: expected int, got str"),
         (
-            [1, 3, [33, "planner.clearance_m", [1]]],
+            [V, 3, [33, "planner.clearance_m", [1]]],
             DOWN,
             "ParameterUpdate.value: expected bool | int | float | str, got array",
         ),
-        ([1, 3, [7, 1, 9, 0.0, ""]], UP, "TaskStatus.state: invalid enum value 9"),
-        ([1, 3, [7, 1, 1, 0.0, 5]], UP, "TaskStatus.detail: expected str, got int"),
+        ([V, 3, [7, 1, 9, 0.0, ""]], UP, "TaskStatus.state: invalid enum value 9"),
+        ([V, 3, [7, 1, 1, 0.0, 5]], UP, "TaskStatus.detail: expected str, got int"),
         (
-            [1, 3, [17, 1, 0.0, [1.0, 2.0], 1.0, 1]],
+            [V, 3, [17, 1, 0.0, [1.0, 2.0], 1.0, 1]],
             DOWN,
             "NeutralizeTask.approved: expected bool, got int",
         ),  # noqa: E501
-        ([1, "3", [0, []]], UP, "UplinkFrame.seq: expected int, got str"),
-        ([2, 3, [0, []]], UP, "uplink frame: protocol version 2, expected 1"),
-        ([0, 3, [99, "junk"]], DOWN, "downlink frame: protocol version 0, expected 1"),
-        (["1", 3, [0, []]], UP, "uplink frame: protocol version '1', expected 1"),
-        ([1, -1, [0, []]], UP, "uplink frame: negative sequence number"),
-        ([1, 3, [99, []]], UP, "uplink frame: unknown message type tag 99"),
-        ([1, 3, [16, 1, 0.0, [], 0.0]], UP, "uplink frame: unknown message type tag 16"),
-        ([1, 3, [2, 5, "rle"]], DOWN, "downlink frame: unknown message type tag 2"),
-        ([1, 3, "hello"], UP, "uplink frame: message is not a tagged array"),
-        ([1, 3], UP, "uplink frame: expected [version, seq, message]"),
+        ([V, "3", [0, []]], UP, "UplinkFrame.seq: expected int, got str"),
+        ([99, 3, [0, []]], UP, f"uplink frame: protocol version 99, expected {V}"),
+        ([0, 3, [99, "junk"]], DOWN, f"downlink frame: protocol version 0, expected {V}"),
+        (["1", 3, [0, []]], UP, f"uplink frame: protocol version '1', expected {V}"),
+        ([V, -1, [0, []]], UP, "uplink frame: negative sequence number"),
+        ([V, 3, [99, []]], UP, "uplink frame: unknown message type tag 99"),
+        ([V, 3, [16, 1, 0.0, [], 0.0]], UP, "uplink frame: unknown message type tag 16"),
+        ([V, 3, [2, 5, "rle"]], DOWN, "downlink frame: unknown message type tag 2"),
+        ([V, 3, "hello"], UP, "uplink frame: message is not a tagged array"),
+        ([V, 3], UP, "uplink frame: expected [version, seq, message]"),
     ],
 )
 def test_errors_name_the_field(frame: list[Any], direction: Direction, expected: str) -> None:
@@ -527,7 +531,7 @@ def test_malformed_msgpack_is_reported_as_such() -> None:
 
 def test_float64_beyond_float32_range_decodes_to_infinity() -> None:
     # An f32 field sent as float64 (another encoder) is rounded like any value: 1e300 -> inf.
-    wire = _raw(1, 3, [4, 1, 2, 0.0, 1, [0.0, 0.0], [0.0, 0.0, 0.0], -1e300, 1.0, 0.5])
+    wire = _raw(V, 3, [4, 1, 2, 0.0, 1, [0.0, 0.0], [0.0, 0.0, 0.0], -1e300, 1.0, 0.5])
     msg = decode_frame(wire, UP).msg
     assert msg.radius_m == -math.inf and msg.height_m == 1.0
     assert Hazard(1, ObjectKind.HOSTILE, (1e39, 0.0), 3.5e38).radius_m == math.inf

@@ -28,7 +28,7 @@ from protocol.sensors import (
     encode_command,
     encode_sensor_frame,
 )
-from protocol.wire import MAX_ARRAY_BYTES, ProtocolError, enc_hook
+from protocol.wire import MAX_ARRAY_BYTES, PROTOCOL_VERSION, ProtocolError, enc_hook
 
 FUZZ = settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 ENC = msgspec.msgpack.Encoder(enc_hook=enc_hook)
@@ -183,7 +183,7 @@ def _case_id(value: Any) -> str | None:
     return value.split(": ", 1)[-1] if isinstance(value, str) else "case"
 
 
-def _sensor(frame: list[Any], version: int = 1) -> bytes:
+def _sensor(frame: list[Any], version: int = PROTOCOL_VERSION) -> bytes:
     return ENC.encode([version, frame])
 
 
@@ -225,18 +225,27 @@ F32_0 = np.zeros(0, np.float32)
             _sensor([4, 0.0, [0.0, 0.0], [0.0, 0.0, 9.81]]),
             "sensor frame: ImuSample.angular_velocity_rad_s: expected array of length 3, got 2",
         ),
-        (_sensor([5, 1.0], version=2), "sensor frame: protocol version 2, expected 1"),
-        (_sensor([16, 1.0, 0.0, 0.0]), "sensor frame: Invalid value 16"),
-        (ENC.encode([1, [1, 1.0, True, 0.0, 0.0]]), "robot command: Invalid value 1"),
         (
-            ENC.encode([1, [17, 1.0, 1, 0.0, 0.0]]),
+            _sensor([5, 1.0], version=99),
+            f"sensor frame: protocol version 99, expected {PROTOCOL_VERSION}",
+        ),
+        (_sensor([16, 1.0, 0.0, 0.0]), "sensor frame: Invalid value 16"),
+        (
+            ENC.encode([PROTOCOL_VERSION, [1, 1.0, True, 0.0, 0.0]]),
+            "robot command: Invalid value 1",
+        ),
+        (
+            ENC.encode([PROTOCOL_VERSION, [17, 1.0, 1, 0.0, 0.0]]),
             "robot command: LaserPointerCommand.on: expected bool, got int",
         ),
         (
-            ENC.encode([1, [18, 3, 1.0, "320", 240]]),
+            ENC.encode([PROTOCOL_VERSION, [18, 3, 1.0, "320", 240]]),
             "robot command: ImageRequest.width_px: expected int, got str",
         ),
-        (ENC.encode([0, [16, 1.0, 0.0, 0.0]]), "robot command: protocol version 0, expected 1"),
+        (
+            ENC.encode([0, [16, 1.0, 0.0, 0.0]]),
+            f"robot command: protocol version 0, expected {PROTOCOL_VERSION}",
+        ),
     ],
     ids=_case_id,
 )
