@@ -28,13 +28,12 @@ and logged; the server runs on. Progress goes to stdout every ``--progress-s`` w
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -42,12 +41,18 @@ import msgspec
 
 from protocol import keys
 from protocol.config import ConfigError, config_path, load_config
-from protocol.process_cli import add_link_arguments, link_config
+from protocol.process_cli import (
+    add_link_arguments,
+    exit_code_for,
+    link_config,
+    signal_name_for,
+    stop_on_interrupt,
+)
 from protocol.radio import RadioConfig
 from protocol.sensors import ClockTick, RobotCommand, encode_sensor_frame
 from sim.simulator import CommandError, Simulator, SimulatorConfig, load_world_config
 
-__all__ = ["SimServer", "main", "stop_on_signals"]
+__all__ = ["SimServer", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -239,9 +244,12 @@ def main(argv: list[str]) -> int:
     except ValueError as err:
         print(f"magic sim: {args.world}: {err}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("magic sim: stopped by SIGINT before the simulation started", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as stop:
+        print(
+            f"magic sim: stopped by {signal_name_for(stop)} before the simulation started",
+            file=sys.stderr,
+        )
+        return exit_code_for(stop)
     link = None
     if not args.no_zenoh:
         from protocol.link import Link
@@ -267,7 +275,7 @@ def main(argv: list[str]) -> int:
         progress_period_s=args.progress_s,
     )
     try:
-        with stop_on_signals(server.stop) as stopped_by:
+        with stop_on_interrupt(server.stop) as stopped_by:
             server.run(args.duration)
     finally:
         server.close()
@@ -281,28 +289,6 @@ def main(argv: list[str]) -> int:
         print(f"magic sim: stopped by {name} at t={sim.time_s:.2f} s", file=out, flush=True)
         return 128 + stopped_by[0]
     return 0
-
-
-@contextlib.contextmanager
-def stop_on_signals(stop: Callable[[], None]) -> Iterator[list[int]]:
-    """Within the block, SIGINT and SIGTERM call ``stop`` (the process winds down, closes its
-    link and reports) instead of raising or killing; yields the list of signals received
-    (exit status ``128 + signal``). Off the main thread nothing changes."""
-    got: list[int] = []
-    previous: dict[int, Any] = {}
-
-    def handler(signum: int, _frame: object) -> None:
-        got.append(signum)
-        stop()
-
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, handler)
-    try:
-        yield got
-    finally:
-        for signum, old in previous.items():
-            signal.signal(signum, old)
 
 
 if __name__ == "__main__":  # pragma: no cover
