@@ -66,6 +66,7 @@ import msgspec
 import numpy as np
 
 from compression import CodecError, GridReference, decode_grid, read_header
+from gcs.graph.keys import robot_of
 from gcs.graph.pose_graph import (
     MAX_COVARIANCE_CONDITION,
     PoseGraph,
@@ -106,7 +107,10 @@ _REFERENCE_MEMORY = 8
 
 #: Dangerous objects and the keep-out radius robots must respect (paper section 2: trigger
 #: radius 2.5 m for static OOIs and hostiles, plus a margin the robot adds itself).
-HAZARD_KINDS = {ObjectKind.STATIC_OOI: 2.5, ObjectKind.HOSTILE: 5.0}
+HAZARD_KINDS = {ObjectKind.STATIC_OOI: 2.5, ObjectKind.HOSTILE: 5.0, ObjectKind.MOBILE_OOI: 5.0}
+
+#: Hazards that move: their position is the latest sighting, not the mean of the sightings.
+MOVING_KINDS = (ObjectKind.HOSTILE, ObjectKind.MOBILE_OOI)
 
 
 class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -119,6 +123,8 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     ``max_grid_resolution_m`` / ``min_grid_resolution_m``: accepted grid cell sizes.
     ``gap_covariance_scale``: inflation of the odometry covariance across a bridged gap.
     ``hazard_merge_m``: detections of one kind closer than this are the same hazard.
+    ``hostile_merge_m``: a sighting of a moving kind (hostile, mobile OOI) this close to the
+    latest position of one already known is the same object (it walks between sightings).
     ``max_sigma_xy_m`` / ``max_sigma_yaw_rad``: largest standard deviation (m, rad) an input
     covariance may state (module docstring, "Physical covariances").
     ``max_covariance_condition``: largest condition number of an input covariance.
@@ -142,6 +148,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     max_grid_resolution_m: float = 1.0
     gap_covariance_scale: float = 4.0
     hazard_merge_m: float = 1.5
+    hostile_merge_m: float = 4.0
     error_log_size: int = 100
     max_sigma_xy_m: float = 1000.0
     max_sigma_yaw_rad: float = 2.0 * math.pi
@@ -154,6 +161,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
             "frames_period_s",
             "gap_covariance_scale",
             "hazard_merge_m",
+            "hostile_merge_m",
             "loop_budget_s",
             "max_sigma_xy_m",
             "max_sigma_yaw_rad",
@@ -281,6 +289,7 @@ class _Track:
     undecodable: set[int] = field(default_factory=set)
     telemetry: Telemetry | None = None
     last_status: TaskStatus | None = None
+    last_heard_s: float | None = None  # station time of the latest message, accepted or not
 
 
 class _Rejected(Exception):
@@ -344,6 +353,9 @@ class GroundStation:
         self.last_loop_report: LoopClosingReport | None = None
         self.hazards: list[Hazard] = []
         self._sightings: list[int] = []  # per hazard, detections merged into it
+        # moving hazards: hazard id -> robot id -> mission time of that robot's latest sighting
+        self._hostile_seen: dict[int, dict[int, float]] = {}
+        self._handle_now_s = 0.0
         self._tracks: dict[int, _Track] = {}
         self._dirty = False
         self._last_frames_s: dict[int, float] = {}
@@ -363,6 +375,10 @@ class GroundStation:
             if self.config.robots and robot_id not in self.config.robots:
                 raise _Rejected("unknown_robot", f"robot {robot_id} is not on the roster")
             track = self._tracks.setdefault(robot_id, _Track())
+            if math.isfinite(now_s):
+                heard = track.last_heard_s
+                track.last_heard_s = now_s if heard is None else max(heard, float(now_s))
+                self._handle_now_s = float(now_s)
             if isinstance(msg, PoseNode):
                 self._on_pose_node(robot_id, track, msg)
             elif isinstance(msg, TerrainGrid):
@@ -716,6 +732,9 @@ class GroundStation:
         if radius is None:
             return
         xy = transform_points(self.graph.pose(key), p[None, :])[0]
+        if msg.kind in MOVING_KINDS:
+            self._on_moving_sighting(robot_id, msg, xy, radius)
+            return
         for i, h in enumerate(self.hazards):
             if h.kind == msg.kind and math.dist(h.position_in_map, xy) < self.config.hazard_merge_m:
                 # the same object seen again: its position is the mean of the sightings
@@ -729,6 +748,100 @@ class GroundStation:
             Hazard(len(self.hazards) + 1, msg.kind, (float(xy[0]), float(xy[1])), radius)
         )
         self._sightings.append(1)
+
+    def _on_moving_sighting(
+        self, robot_id: int, msg: Detection, xy: np.ndarray, radius: float
+    ) -> None:
+        """A hostile or mobile OOI seen: the known one of that kind nearest to ``xy`` (within
+        ``hostile_merge_m``) moves there, else a new hazard; the robot's sighting time is kept
+        (the allocator's 30 s lock needs who saw what when)."""
+        seen_s = float(msg.time_s) if math.isfinite(msg.time_s) else self._handle_now_s
+        best, best_d = None, self.config.hostile_merge_m
+        for i, h in enumerate(self.hazards):
+            d = math.dist(h.position_in_map, xy)
+            if h.kind == msg.kind and d < best_d:
+                best, best_d = i, d
+        if best is None:
+            hazard = Hazard(len(self.hazards) + 1, msg.kind, (float(xy[0]), float(xy[1])), radius)
+            self.hazards.append(hazard)
+            self._sightings.append(1)
+        else:
+            h = self.hazards[best]
+            self._sightings[best] += 1
+            hazard = Hazard(h.hazard_id, h.kind, (float(xy[0]), float(xy[1])), h.radius_m)
+            self.hazards[best] = hazard
+        seen = self._hostile_seen.setdefault(hazard.hazard_id, {})
+        seen[robot_id] = max(seen.get(robot_id, -math.inf), seen_s)
+
+    # ---- what the task allocator reads ------------------------------------------------------
+
+    @property
+    def robot_ids(self) -> list[int]:
+        """Every robot the station has heard from (sorted)."""
+        return sorted(self._tracks)
+
+    def last_status(self, robot_id: int) -> TaskStatus | None:
+        """The robot's latest :class:`TaskStatus` (None before any)."""
+        track = self._tracks.get(robot_id)
+        return None if track is None else track.last_status
+
+    def last_heard_s(self, robot_id: int) -> float | None:
+        """Station mission time of the robot's latest message (any, accepted or refused: the
+        radio reached it); None if never heard."""
+        track = self._tracks.get(robot_id)
+        return None if track is None else track.last_heard_s
+
+    def telemetry(self, robot_id: int) -> Telemetry | None:
+        """The robot's latest :class:`Telemetry` (None before any)."""
+        track = self._tracks.get(robot_id)
+        return None if track is None else track.telemetry
+
+    def hostile_sightings(self) -> dict[int, dict[int, float]]:
+        """``hazard_id -> robot_id -> mission time`` of each robot's latest sighting of each
+        moving hazard (hostile, mobile OOI); its position is the latest sighting's (a copy)."""
+        return {h: dict(by_robot) for h, by_robot in self._hostile_seen.items()}
+
+    def robot_of_key(self, key: int) -> int:
+        """The robot a graph key belongs to."""
+        return robot_of(key)
+
+    def linked(self, robot_id: int) -> bool:
+        """Whether the robot's trajectory is linked to ``map`` (so it has a ``map_from_odom``)."""
+        if robot_id not in self.graph.robots:
+            return False
+        comp = self.graph.components()
+        return comp[self.graph.last_key(robot_id)] in self.graph.anchored_components()
+
+    def pose_in_map(self, robot_id: int) -> tuple[float, float, float] | None:
+        """The robot's latest pose ``map_from_base``: its latest telemetry pose (newer than its
+        latest pose node) carried into ``map`` by its ``map_from_odom``; None unless linked."""
+        if not self.linked(robot_id):
+            return None
+        map_from_odom = self.graph.map_from_odom(robot_id)
+        track = self._tracks[robot_id]
+        if track.telemetry is not None and np.all(np.isfinite(track.telemetry.pose_in_odom)):
+            p = np.asarray(
+                compose(map_from_odom, np.asarray(track.telemetry.pose_in_odom, dtype=float))
+            )
+        else:
+            p = np.asarray(self.graph.pose(self.graph.last_key(robot_id)))
+        return (float(p[0]), float(p[1]), float(p[2]))
+
+    def trajectories(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(robot_ids (N,), keys (N,), xy_in_map (N, 2))`` of every pose of every robot
+        linked to ``map``, at the current posterior, keys increasing along each trajectory
+        (the trajectory graph's input, paper 5.1.1 Fig. 12)."""
+        ids, keys, xys = [], [], []
+        for r in self.graph.robots:
+            if not self.linked(r):
+                continue
+            k, p = self.graph.poses(r)
+            ids.append(np.full(len(k), r, dtype=np.int64))
+            keys.append(k)
+            xys.append(p[:, :2])
+        if not ids:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2))
+        return np.concatenate(ids), np.concatenate(keys), np.concatenate(xys)
 
     # ---- output ----------------------------------------------------------------------------
 

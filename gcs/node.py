@@ -1,10 +1,13 @@
 """``magic gcs``: the ground-control station as its own process (DESIGN section 4, paper 4.1).
 
-A thin shell around :class:`~gcs.ground_station.GroundStation`: uplink messages arrive on the
-link's thread and are queued; the node's loop hands them to the station, runs
-:meth:`~gcs.ground_station.GroundStation.step` every ``step_period_s`` (mission time) and sends
-what it returns on each robot's downlink. Mission time follows the simulator's clock ticks
-(``--clock sim``, the default) or the host's clock (``--clock wall``) on real robots.
+A thin shell around :class:`~gcs.mission_control.MissionControl` (the
+:class:`~gcs.ground_station.GroundStation` and the task allocator): uplink messages arrive on
+the link's thread and are queued; the node's loop hands them to the station, runs
+:meth:`~gcs.mission_control.MissionControl.step` every ``step_period_s`` (mission time: loop
+closing, iSAM2, frames and hazards, and a plan every ``plan_period_s``) and sends what it
+returns on each robot's downlink (tasks in each robot's private frame). Mission time follows
+the simulator's clock ticks (``--clock sim``, the default) or the host's clock (``--clock
+wall``) on real robots.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from gcs.ground_station import GroundStation, GroundStationConfig
+from gcs.mission_control import MissionControl, MissionControlConfig
 from protocol import keys
 from protocol.clock import ManualClock, WallClock
 from protocol.config import ConfigError, load_config
@@ -38,7 +42,9 @@ __all__ = ["GcsProcess", "check_endpoint", "main", "summary_line"]
 
 
 class GcsProcess:
-    """A :class:`GroundStation` wired to the robots' radios over ``link``."""
+    """A :class:`GroundStation` and its planners (:class:`MissionControl`) wired to the robots'
+    radios over ``link``. ``mission``: the planners' configuration (default: sensor robots
+    only, planning every 2 s; ``MissionControlConfig(enabled=False)``: estimation only)."""
 
     def __init__(
         self,
@@ -48,10 +54,12 @@ class GcsProcess:
         *,
         step_period_s: float = 0.5,
         budget_s: float = 0.2,
+        mission: MissionControlConfig | None = None,
     ) -> None:
         self.link = link
         self.clock = clock
-        self.station = GroundStation(config)
+        self.control = MissionControl(GroundStation(config), mission)
+        self.station = self.control.station
         self.step_period_s = step_period_s
         self.budget_s = budget_s
         self.refused = 0
@@ -74,7 +82,7 @@ class GcsProcess:
             item = None
         now = self.clock.now()
         while item is not None:
-            self.station.handle(item[0], item[1], now_s=now)
+            self.control.handle(item[0], item[1], now_s=now)
             n += 1
             try:
                 item = self._inbox.get_nowait()
@@ -82,7 +90,7 @@ class GcsProcess:
                 item = None
         if now - self._last_step_s >= self.step_period_s:
             self._last_step_s = now
-            for robot_id, msg in self.station.step(now_s=now, budget_s=self.budget_s):
+            for robot_id, msg in self.control.step(now_s=now, budget_s=self.budget_s):
                 try:
                     self.radio.send(robot_id, msg)
                 except LinkBackpressure:
@@ -113,7 +121,9 @@ class GcsProcess:
             f"gcs t={self.clock.now():7.1f}s robots {len(g.robots)} "
             f"linked {len(self.station.frames())} nodes {s.pose_nodes} grids {s.terrain_grids} "
             f"edges {len(g.edges())} rejected {s.rejected_total} "
-            f"solver recoveries {s.solver_recoveries}/{s.solver_faults}"
+            f"solver recoveries {s.solver_recoveries}/{s.solver_faults} "
+            f"tasks {sum(self.control.tasks_sent.values())}"
+            + (" explored" if self.control.explored else "")
         )
 
     def stop(self) -> None:
@@ -219,6 +229,26 @@ def _parser() -> argparse.ArgumentParser:
         help="wall seconds of loop closing per step (default: %(default)s)",
     )
     p.add_argument(
+        "--disruptors",
+        metavar="IDS",
+        default="",
+        help="comma-separated ids of the team's disruptors; every other robot is a sensor "
+        "robot (default: none)",
+    )
+    p.add_argument(
+        "--plan-s",
+        type=float,
+        metavar="S",
+        default=2.0,
+        help="mission seconds between task allocations (default: %(default)s)",
+    )
+    p.add_argument(
+        "--no-tasking",
+        action="store_true",
+        help="estimation only: no task allocation, robots get no tasks from this GCS "
+        "(default: the planners task every robot)",
+    )
+    p.add_argument(
         "--progress-s",
         type=float,
         metavar="S",
@@ -240,6 +270,18 @@ def summary_line(proc: GcsProcess, stopped_by: str | None) -> str:
         f"edges {len(g.edges())}, rejected {s.rejected_total}, solver recoveries "
         f"{s.solver_recoveries}/{s.solver_faults} faults, clock anomalies {clocks}"
     )
+
+
+def _robot_ids(text: str, option: str) -> tuple[int, ...]:
+    """``"3,4"`` -> ``(3, 4)``; ValueError naming the option and the bad item."""
+    ids = []
+    for item in (t.strip() for t in text.split(",")):
+        if not item:
+            continue
+        if not item.isdigit():
+            raise ValueError(f"{option}: expected robot ids >= 0 separated by commas, got {item!r}")
+        ids.append(int(item))
+    return tuple(ids)
 
 
 def _short(err: BaseException) -> str:
@@ -285,13 +327,18 @@ def _main(argv: list[str]) -> int:
         keys.gcs(args.mission, "state")
         for endpoint in args.connect + args.listen:
             check_endpoint(endpoint)
-        for name in ("step_s", "budget_s", "progress_s"):
+        for name in ("step_s", "budget_s", "progress_s", "plan_s"):
             v = getattr(args, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"--{name.replace('_', '-')}: expected seconds > 0, got {v}")
         if args.duration is not None and not (math.isfinite(args.duration) and args.duration >= 0):
             raise ValueError(f"--duration: expected mission seconds >= 0, got {args.duration}")
         config = load_config(args.config, GroundStationConfig) if args.config else None
+        mission = MissionControlConfig(
+            plan_period_s=args.plan_s,
+            disruptors=_robot_ids(args.disruptors, "--disruptors"),
+            enabled=not args.no_tasking,
+        )
         radio = load_config(args.radio, RadioConfig)
     except (ConfigError, ValueError) as err:
         print(f"magic gcs: {err}", file=sys.stderr)
@@ -302,7 +349,9 @@ def _main(argv: list[str]) -> int:
     except Exception as err:  # zenoh refuses the endpoints (unresolvable, in use, ...)
         print(f"magic gcs: cannot open the zenoh link: {_short(err)}", file=sys.stderr)
         return 2
-    proc = GcsProcess(link, clock, config, step_period_s=args.step_s, budget_s=args.budget_s)
+    proc = GcsProcess(
+        link, clock, config, step_period_s=args.step_s, budget_s=args.budget_s, mission=mission
+    )
     print(f"magic gcs: mission {args.mission!r}, waiting for robots", flush=True)
     stopped_by: list[int] = []
 

@@ -177,6 +177,19 @@ class TeamInLockstep:
         assert self.robot_link is not None
         return self.robot_link.meter.total_bytes(robot_id=robot_id, direction=Direction.UP)
 
+    def link_bytes(self) -> dict[tuple[int, str, str], int]:
+        """Radio bytes so far by ``(robot_id, "up" | "down", stream)``: what each end put on
+        the air (the robots' meter for the uplink, the ground's for the downlink)."""
+        from protocol.messages import Direction
+
+        out: dict[tuple[int, str, str], int] = {}
+        links = [self.ground_link] + ([self.robot_link] if self.robot_link is not None else [])
+        for link in links:
+            for (rid, direction, stream), c in link.meter.snapshot().items():
+                d = "up" if direction == Direction.UP else "down"
+                out[(rid, d, stream)] = out.get((rid, d, stream), 0) + c.bytes
+        return out
+
     def close(self) -> None:
         """Close both links (idempotent); the simulator is the caller's."""
         if self.robot_link is not None:
@@ -326,6 +339,20 @@ class TeamOverProcesses:
         """Radio bytes robot ``robot_id`` sent (metered in its process, told each step)."""
         done = self._done.get(robot_id)
         return 0 if done is None else done.uplink_bytes
+
+    def link_bytes(self) -> dict[tuple[int, str, str], int]:
+        """Radio bytes so far by ``(robot_id, "up" | "down", stream)``: the downlink by stream
+        (metered here), each robot's uplink in one ``"all"`` stream (metered in its process,
+        told each step)."""
+        from protocol.messages import Direction
+
+        out: dict[tuple[int, str, str], int] = {}
+        for (rid, direction, stream), c in self.ground_link.meter.snapshot().items():
+            d = "up" if direction == Direction.UP else "down"
+            out[(rid, d, stream)] = out.get((rid, d, stream), 0) + c.bytes
+        for rid in self.sim.robot_ids:
+            out[(rid, "up", "all")] = self.uplink_bytes(rid)
+        return out
 
     def node_counters(self, robot_id: int) -> tuple[int, int, int]:
         """Robot ``robot_id``'s node's deadlocks, stuck recoveries and plan failures."""

@@ -1,24 +1,25 @@
-"""``magic run``: a whole team on one machine, on the embedded default (no server to start).
+"""``magic run``: the MAGIC mission on one machine, on the embedded default (no server to start).
 
-The simulator, one robot node per robot and a ground-control side run in this process, in
-lockstep with the simulator's mission clock; robots and the ground side talk over two real
-zenoh sessions on loopback through the radio link (rates granted by the simulator's radio
-model, every byte metered). Mission time is deterministic (:mod:`mission.lockstep`): the same
-world, seed, duration and configuration give the same run, bit for bit, whatever the load;
-``robot_processes`` puts each robot node in its own process and gives the same run again;
-``realtime`` delivers radio traffic on wall-clock threads and promises no repeatability.
+The simulator, one robot node per robot and the ground-control station run in this process
+(:mod:`mission.assembly`), in lockstep with the simulator's mission clock; robots and the GCS
+talk over two real zenoh sessions on loopback through the radio link (rates granted by the
+simulator's radio model, every byte metered). The GCS is the real one
+(:class:`~gcs.mission_control.MissionControl`: the :class:`~gcs.ground_station.GroundStation`
+with loop closing, iSAM2, rasterization, hazards and ``map_from_odom``, and the task allocator
+of paper 5.1): it learns only what the robots send over the radio, and its planners task the
+sensor robots to explore and the disruptors to neutralize the static OOIs the robots detect.
+The team (sensor robots and disruptors) comes from the world's configuration. Mission time is
+deterministic (:mod:`mission.lockstep`): the same world, seed, duration and configuration
+give the same run, bit for bit, whatever the load; ``robot_processes`` puts each robot node
+in its own process and gives the same run again; ``realtime`` delivers radio traffic on
+wall-clock threads and promises no repeatability.
 
-Until task allocation exists, the ground side is a script (the
-GCS's estimation runs in ``magic gcs`` and in :mod:`mission.team_mapping`): it sends
-each robot a sequence of goals (``GoToTask``, in that robot's private frame) and follows the
-reports that come back (task status, pose nodes, terrain grids, telemetry).
-
-Goals are drawn (seeded) from the ground truth's reachable area, away from walls and objects
-of interest: this composition root is allowed to read ground truth (DESIGN section 2); robots
-never see it. As the GCS would once they are found, the ground side also sends every robot the
-hazards (static OOIs, toxic vats, hostiles where they are now) with each robot's
-``map_from_odom``, every ``hazard_period_s``; the robots keep out of them on their own. The
-report counts, from the truth, how close each robot came to each kind of hazard.
+``scripted`` (``magic run --scripted``) replaces the GCS by the old script: goals drawn
+(seeded) from the ground truth's reachable area, away from walls and objects of interest, and
+every hazard sent where the truth has it, every ``hazard_period_s``. That mode reads the truth
+to drive the robots (this composition root may, DESIGN section 2) and is kept for comparisons
+only. Either way the report counts, from the truth, how close each robot came to each kind of
+hazard; robots never see the truth.
 """
 
 from __future__ import annotations
@@ -34,8 +35,12 @@ import cv2
 import msgspec
 import numpy as np
 
+from gcs.graph.pose_graph import Provenance
+from gcs.ground_station import GroundStationConfig
+from gcs.mission_control import MissionControlConfig
+from mission.assembly import Assembly, GroundSide, assemble
 from mission.config import config_path, load_config
-from mission.lockstep import TeamInLockstep, TeamOverProcesses, seed_streams
+from mission.lockstep import seed_streams
 from protocol.messages import (
     GoToTask,
     Hazard,
@@ -65,13 +70,20 @@ __all__ = [
 
 
 class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    """A run (``magic run --config YAML``): which world, how long, and the scripted goals.
-    ``world`` and ``radio`` name a YAML file: a path, a path under ``configs/``, or a config
-    name (``small``: ``configs/world/small.yaml``)."""
+    """A run (``magic run --config YAML``): which world, how long, the GCS and its planners
+    (``gcs``, ``mission``; the GCS steps every ``gcs_step_period_s`` mission seconds), or with
+    ``scripted`` the goal script (``goals_per_robot`` ... ``hazard_period_s``). ``world`` and
+    ``radio`` name a YAML file: a path, a path under ``configs/``, or a config name
+    (``small``: ``configs/world/small.yaml``)."""
 
     world: str = "world/small.yaml"
     radio: str = "radio/magic2010.yaml"
     duration_s: float = 180.0
+    scripted: bool = False  # goals drawn from the truth instead of the GCS (comparisons only)
+    gcs_step_period_s: float = 1.0
+    gcs_budget_s: float = 0.2  # wall seconds of loop closing per GCS step, --realtime only
+    gcs: GroundStationConfig = GroundStationConfig()
+    mission: MissionControlConfig = MissionControlConfig()
     goals_per_robot: int = 4
     goal_min_m: float = 6.0
     goal_max_m: float = 18.0
@@ -94,6 +106,8 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
             raise ValueError("realtime and robot_processes cannot be combined (yet)")
         if self.goals_per_robot < 0:
             raise ValueError(f"goals_per_robot must be >= 0, got {self.goals_per_robot}")
+        if not (math.isfinite(self.gcs_step_period_s) and self.gcs_step_period_s > 0):
+            raise ValueError(f"gcs_step_period_s must be > 0, got {self.gcs_step_period_s}")
 
 
 @dataclass
@@ -132,6 +146,9 @@ class RunReport:
     realtime: bool = False
     interrupted: BaseException | None = None
     setup_s: float = 0.0  # wall seconds to build the world and bring the team up
+    scripted: bool = False
+    gcs: dict[str, float] = field(default_factory=dict)  # the GCS's own figures (no truth)
+    tasking_events: list[str] = field(default_factory=list)  # the planners' journal
 
     @property
     def rtf(self) -> float:
@@ -152,6 +169,9 @@ class RunReport:
                     out[f"robot{rid}.{name}"] = value if isinstance(value, str) else float(value)
         for k, event in enumerate(self.events):
             out[f"event{k}"] = event
+        out.update(self.gcs)
+        for k, event in enumerate(self.tasking_events):
+            out[f"tasking{k}"] = event
         return out
 
     def summary(self) -> dict[str, float]:
@@ -232,7 +252,10 @@ class _GroundScript:
         progress: dict[int, RobotProgress],
         rng: np.random.Generator,
     ) -> None:
+        self.sim = sim
         self.progress = progress
+        self.hazard_period_s = config.hazard_period_s
+        self._next_hazards_s = 0.0
         self.goals_in_odom: dict[int, np.ndarray] = {}
         chosen: list[np.ndarray] = []
         for k, rid in enumerate(sim.robot_ids):
@@ -282,6 +305,19 @@ class _GroundScript:
         elif isinstance(msg, Telemetry):
             p.mode = msg.mode.name.lower()
 
+    def turn(self, now_s: float) -> list[tuple[int, Any]]:
+        """The script's turn in a step: hazards to every robot when due, the next goals."""
+        out: list[tuple[int, Any]] = []
+        if self.hazard_period_s > 0 and now_s >= self._next_hazards_s:
+            update = self.hazards(self.sim)
+            out.extend((rid, update) for rid in self.sim.robot_ids)
+            self._next_hazards_s = now_s + self.hazard_period_s
+        for rid in self.sim.robot_ids:
+            task = self.next_goal(rid, now_s)
+            if task is not None:
+                out.append((rid, task))
+        return out
+
     def next_goal(self, robot_id: int, now_s: float) -> GoToTask | None:
         if robot_id in self.active:
             return None
@@ -296,14 +332,42 @@ class _GroundScript:
         return task
 
 
+class _ProgressTap:
+    """Follows the uplink the GCS took (task reports, nodes, grids, telemetry) for the
+    progress table; counts the GCS's tasks to each robot and how they ended."""
+
+    def __init__(self, progress: dict[int, RobotProgress]) -> None:
+        self.progress = progress
+
+    def __call__(self, robot_id: int, msg: Any, accepted: bool) -> None:
+        p = self.progress.get(robot_id)
+        if p is None:
+            return
+        if isinstance(msg, TaskStatus):
+            p.last_state = msg.state.name.lower() + (f" ({msg.detail})" if msg.detail else "")
+            if msg.state is TaskState.SUCCEEDED:
+                p.goals_succeeded += 1
+            elif msg.state in (TaskState.FAILED, TaskState.REJECTED):
+                p.goals_failed += 1
+        elif isinstance(msg, PoseNode):
+            p.pose_nodes += 1
+        elif isinstance(msg, TerrainGrid):
+            p.terrain_grids += 1
+        elif isinstance(msg, Telemetry):
+            p.mode = msg.mode.name.lower()
+
+
 def run_mission(
     config: RunConfig,
     *,
     on_progress: Callable[[RunReport], None] | None = None,
     progress_period_s: float = 0.5,
+    on_step: Callable[[Assembly], None] | None = None,
 ) -> RunReport:
     """Run the team for ``config.duration_s`` mission-seconds; returns what happened.
 
+    The GCS and its planners on the ground side (``config.scripted``: the truth-drawn goal
+    script instead). ``on_step(assembly)`` is called after every step (recorders, tests).
     Deterministic unless ``config.realtime`` (see :mod:`mission.lockstep`). ^C or SIGTERM
     (any ``KeyboardInterrupt``) ends the run early: links are closed and the report so far is
     returned with ``interrupted`` set to the exception; an interrupt before the team is up
@@ -313,77 +377,63 @@ def run_mission(
     radio_path = config_path(config.radio, "radio")
     radio_cfg = load_config(radio_path, RadioConfig)
     seeds = seed_streams(config.seed, simulator_seed=config.simulator.seed)
-    sim_cfg = msgspec.structs.replace(config.simulator, seed=seeds.simulator)
     t_setup = time.perf_counter()
-    with Simulator(world_cfg, config=sim_cfg) as sim:
-        report = RunReport(0.0, 0.0, realtime=config.realtime)
-        for rid in sim.robot_ids:
-            report.robots[rid] = RobotProgress(rid)
-        script = _GroundScript(sim, config, report.robots, np.random.default_rng(seeds.ground))
-        team: TeamInLockstep | TeamOverProcesses
-        if config.robot_processes:
-            team = TeamOverProcesses(
-                sim,
-                radio=radio_cfg,
-                radio_path=str(radio_path),
-                seeds=seeds,
-                on_ground_message=script.on_message,
-                robot_config=config.robot,
-            )
-        else:
-            team = TeamInLockstep(
-                sim,
-                radio=radio_cfg,
-                seeds=seeds,
-                on_ground_message=script.on_message,
-                robot_config=config.robot,
-                realtime=config.realtime,
-            )
-        with team:
-            report.setup_s = time.perf_counter() - t_setup
-            t_wall = time.perf_counter()
-            try:
-                _run_steps(config, sim, team, script, report, on_progress, progress_period_s)
-            except KeyboardInterrupt as exc:
-                report.interrupted = exc
-            _fill_bytes(report, team)
-            _fill_poses(report, sim)
-            report.wall_s = time.perf_counter() - t_wall
-            return report
+    report = RunReport(0.0, 0.0, realtime=config.realtime, scripted=config.scripted)
+    for rid in range(world_cfg.robots.sensors + world_cfg.robots.disruptors):
+        report.robots[rid] = RobotProgress(rid)
+
+    def scripts(sim: Simulator) -> list[GroundSide]:
+        rng = np.random.default_rng(seeds.ground)
+        return [_GroundScript(sim, config, report.robots, rng)]
+
+    with assemble(
+        world_cfg,
+        seeds=seeds,
+        radio=radio_cfg,
+        radio_path=str(radio_path),
+        simulator=config.simulator,
+        robot=config.robot,
+        gcs=config.gcs,
+        mission=config.mission,
+        with_gcs=not config.scripted,
+        scripts=scripts if config.scripted else None,
+        taps=[_ProgressTap(report.robots)],
+        gcs_step_period_s=config.gcs_step_period_s,
+        gcs_budget_s=config.gcs_budget_s,
+        robot_processes=config.robot_processes,
+        realtime=config.realtime,
+    ) as asm:
+        report.setup_s = time.perf_counter() - t_setup
+        t_wall = time.perf_counter()
+        try:
+            _run_steps(config, asm, report, on_progress, progress_period_s, on_step)
+        except KeyboardInterrupt as exc:
+            report.interrupted = exc
+        _fill_bytes(report, asm)
+        _fill_poses(report, asm.sim)
+        _fill_gcs(report, asm)
+        report.wall_s = time.perf_counter() - t_wall
+        return report
 
 
 def _run_steps(
     config: RunConfig,
-    sim: Simulator,
-    team: TeamInLockstep | TeamOverProcesses,
-    script: _GroundScript,
+    asm: Assembly,
     report: RunReport,
     on_progress: Callable[[RunReport], None] | None,
     progress_period_s: float,
+    on_step: Callable[[Assembly], None] | None,
 ) -> None:
+    sim = asm.sim
     t_wall = time.perf_counter()
     last_pose = {rid: sim.robot_poses()[k][:2].copy() for k, rid in enumerate(sim.robot_ids)}
     last_report = time.perf_counter()
-    next_hazards_s = [0.0]
     statics = np.array(
         [o.xy_m for o in sim.truth.oois if o.kind in ("static_ooi", "toxic_vat")]
     ).reshape(-1, 2)
-
-    def ground_turn() -> None:
-        """The ground side's turn in a step: hazards when due, the next goals."""
-        if config.hazard_period_s > 0 and sim.time_s >= next_hazards_s[0]:
-            update = script.hazards(sim)
-            for rid in sim.robot_ids:
-                team.ground.send(rid, update)
-            next_hazards_s[0] = sim.time_s + config.hazard_period_s
-        for rid in sim.robot_ids:
-            task = script.next_goal(rid, sim.time_s)
-            if task is not None:
-                team.ground.send(rid, task)
-
     n_steps = int(round(config.duration_s / sim.config.step_s))
     for _ in range(n_steps):
-        team.step(ground_turn)
+        asm.step()
         alive = sim.alive()
         poses = sim.robot_poses()
         blocked = sim.bodies.state.blocked_steps
@@ -392,7 +442,7 @@ def _run_steps(
             p = report.robots[rid]
             p.alive = bool(alive[k])
             p.blocked_steps = int(blocked[k])
-            p.deadlocks, p.stuck_recoveries, p.plan_failures = team.node_counters(rid)
+            p.deadlocks, p.stuck_recoveries, p.plan_failures = asm.team.node_counters(rid)
             for points, attr in ((statics, "closest_static_m"), (hostiles, "closest_hostile_m")):
                 if len(points):
                     d = float(np.min(np.hypot(*(points - poses[k][:2]).T)))
@@ -402,8 +452,11 @@ def _run_steps(
         for event in sim.events[len(report.events) :]:
             report.events.append(str(event))
         report.mission_s = sim.time_s
+        if on_step is not None:
+            on_step(asm)
         if on_progress is not None and time.perf_counter() - last_report >= progress_period_s:
-            _fill_bytes(report, team)
+            _fill_bytes(report, asm)
+            _fill_gcs(report, asm)
             report.wall_s = time.perf_counter() - t_wall
             on_progress(report)
             last_report = time.perf_counter()
@@ -421,9 +474,33 @@ def _hostiles(sim: Simulator) -> list[tuple[int, tuple[float, float]]]:
     ]
 
 
-def _fill_bytes(report: RunReport, team: TeamInLockstep | TeamOverProcesses) -> None:
+def _fill_bytes(report: RunReport, asm: Assembly) -> None:
     for rid, p in report.robots.items():
-        p.uplink_bytes = team.uplink_bytes(rid)
+        p.uplink_bytes = asm.team.uplink_bytes(rid)
+        if asm.gcs is not None:  # a script counts its own goals
+            p.goals_sent = asm.gcs.control.tasks_sent[rid]
+
+
+def _fill_gcs(report: RunReport, asm: Assembly) -> None:
+    """The GCS's own figures (its estimate, its planners), none from the truth."""
+    if asm.gcs is None:
+        return
+    st = asm.gcs.station
+    control = asm.gcs.control
+    closures = st.graph.edges(Provenance.LOOP_AUTO)
+    report.gcs = {
+        "gcs_pose_nodes": float(st.stats.pose_nodes),
+        "gcs_grids": float(st.stats.terrain_grids),
+        "gcs_rejected": float(st.stats.rejected_total),
+        "gcs_linked": float(len(st.frames())),
+        "gcs_closures": float(len(closures)),
+        "gcs_hazards": float(len(st.hazards)),
+        "tasks_sent": float(sum(control.tasks_sent.values())),
+        "tasking_events": float(len(control.journal)),
+        "plans": float(control.allocator.stats.plans),
+        "explored": float(control.explored),
+    }
+    report.tasking_events = [f"{e.time_s:.1f} s {e.kind}: {e.text}" for e in control.journal]
 
 
 def _fill_poses(report: RunReport, sim: Simulator) -> None:
@@ -446,6 +523,17 @@ def _footer(report: RunReport) -> list[str]:
     if near:
         lines.append(f"closest to a {', '.join(near)} (truth)")
     lines.append(f"teammate deadlocks broken: {summary['deadlocks']:.0f}")
+    if report.gcs:
+        g = report.gcs
+        lines.append(
+            f"gcs: {g['gcs_pose_nodes']:.0f} pose nodes, {g['gcs_linked']:.0f} robots linked, "
+            f"{g['gcs_closures']:.0f} loop closures, {g['gcs_hazards']:.0f} hazards known, "
+            f"{g['tasks_sent']:.0f} tasks sent" + (", area explored" if g["explored"] else "")
+        )
+        if report.tasking_events:
+            lines.append(f"planner: {report.tasking_events[-1]}"[:150])
+    elif report.scripted:
+        lines.append("ground side: --scripted (goals and hazards from the truth)")
     lines.append(
         "mode: --realtime, wall-clock delivery (not repeatable)"
         if report.realtime
@@ -465,7 +553,8 @@ def format_progress(report: RunReport, duration_s: float | None = None) -> Any:
     table = Table(
         title=f"magic run: {report.mission_s:.1f}{of} mission-s, x{report.rtf:.1f} real time"
     )
-    for col in ("robot", "mode", "goals ok/sent", "task", "driven m", "nodes", "uplink B/s"):
+    goals = "goals ok/sent" if report.scripted else "tasks ok/sent"
+    for col in ("robot", "mode", goals, "task", "driven m", "nodes", "uplink B/s"):
         table.add_column(col, justify="right" if col not in ("mode", "task") else "left")
     for rid, p in sorted(report.robots.items()):
         bps = p.uplink_bytes / max(report.mission_s, 1e-9)
@@ -493,12 +582,15 @@ bit. --realtime delivers radio traffic on wall-clock threads instead: not repeat
 
 terms: mission-s: simulated seconds; "xN real time": mission-s per wall second; events
 (rule events): the simulator's rule events, from ground truth (a robot disabled by a trigger
-or a hostile, a hostile neutralized, a civilian lasered); goals ok/sent: scripted goals
-reached / given; task: the latest task status the robot reported; driven m: distance driven
+or a hostile, a hostile neutralized, a civilian lasered); tasks ok/sent: tasks the GCS's
+planners sent the robot / reports of one succeeded (--scripted: goals ok/sent, scripted goals
+reached / given); task: the latest task status the robot reported; driven m: distance driven
 (truth); nodes: pose nodes received by the ground side over the radio; uplink B/s: radio
 bytes the robot sent per mission-second; closest to a static OOI / hostile: the team's
 nearest approach (truth; keep-out 2.5 m / 5 m); teammate deadlocks broken: times a robot
-backed off a teammate.
+backed off a teammate; gcs: the station's pose nodes, robots linked to its map, automatic
+loop closures, hazards known (from robot detections only) and tasks sent; planner: its
+latest decision.
 """
 
 
@@ -508,9 +600,10 @@ def _parser() -> Any:
     d = RunConfig()
     p = argparse.ArgumentParser(
         prog="magic run",
-        description="Simulate a robot team on this machine, end to end: the simulator, one\n"
-        "robot node per robot and a scripted ground side (it sends each robot goals), talking\n"
-        "over the simulated radio on real zenoh sessions.",
+        description="Run the MAGIC mission on this machine, end to end: the simulator, one\n"
+        "robot node per robot and the ground-control station (global map, loop closing, task\n"
+        "allocation: it explores and neutralizes what the robots detect), talking over the\n"
+        "simulated radio on real zenoh sessions. The team comes from the world's config.",
         epilog=_HELP_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -548,6 +641,12 @@ def _parser() -> Any:
         action="store_true",
         help="each robot node in its own process (magic robot --lockstep), the simulator and "
         "the ground side in this one: the same run as in one process (default: one process)",
+    )
+    p.add_argument(
+        "--scripted",
+        action="store_true",
+        help="no GCS: a script sends goals and hazards drawn from the ground truth "
+        "(comparisons only; default: the GCS and its planners drive the robots)",
     )
     p.add_argument(
         "--quiet", action="store_true", help="no progress, only the summary (default: progress)"
@@ -614,6 +713,7 @@ def main(argv: list[str] | None = None) -> int:
                 ("seed", args.seed),
                 ("realtime", True if args.realtime else None),
                 ("robot_processes", True if args.robot_processes else None),
+                ("scripted", True if args.scripted else None),
             )
             if v is not None
         }

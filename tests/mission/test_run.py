@@ -20,8 +20,8 @@ pytestmark = pytest.mark.slow
 
 
 def test_team_drives_scripted_goals_over_the_radio_link() -> None:
-    """The README's main job as configured by default (4 robots, 4 goals each, 180 s)."""
-    config = RunConfig()
+    """``magic run --scripted`` (4 robots, 4 goals each, 180 s): the comparison mode."""
+    config = RunConfig(scripted=True)
     report = run_mission(config)
     assert report.mission_s == pytest.approx(config.duration_s)
     assert len(report.robots) == 4

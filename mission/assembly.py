@@ -1,0 +1,292 @@
+"""The one composition of a team: simulator, robot nodes, radio and a ground side (DESIGN 2, 4).
+
+``magic run`` (:mod:`mission.run`), the team-mapping trial (:mod:`mission.team_mapping`) and
+the benchmarks build their team here instead of wiring it themselves:
+
+* :func:`assemble` opens the simulator on a world, brings up one robot node per robot (in this
+  process, :class:`~mission.lockstep.TeamInLockstep`, or each in its own,
+  :class:`~mission.lockstep.TeamOverProcesses`) and the radio between them and a ground side,
+  and returns an :class:`Assembly` to step;
+* :class:`GcsGround` is the real ground-control station on the ground side: a
+  :class:`~gcs.mission_control.MissionControl` (the :class:`~gcs.ground_station.GroundStation`
+  and the task allocator), fed only by what the robots send over the radio. Its inbox is
+  handled at the start of each ground turn in arrival order (canonical in lockstep), it steps
+  every ``gcs_step_period_s`` mission seconds, and in lockstep the loop closer gets no wall
+  budget (its match rate in mission time binds), so the run stays deterministic;
+* a *script* (any object with ``on_message(robot_id, msg)`` and ``turn(now_s)`` returning
+  ``(robot_id, message)`` pairs) can ride beside the GCS or replace it (``magic run
+  --scripted``, the team-mapping trial's shared waypoints).
+
+Roles come from the world's roster (sensor robots, then disruptors, paper 2). Robots start in
+a staging area laid out in a known formation (``RobotsConfig``: a grid at ``spacing_m``), as in
+MAGIC, where the operators knew where they had put each robot; the GCS gets that deployment
+plan, with the placement uncertainty ``hint_sigma_*`` (and a seeded error of that size), as
+start hints (:meth:`~gcs.ground_station.GroundStation.add_start_hint`), which links every
+robot's private frame to ``map`` (robot ``map_robot``'s private frame) from the first pose
+node on. That plan is the only thing the GCS learns that the robots did not send; the truth
+(:attr:`Simulator.truth`) stays with the scoring.
+"""
+
+from __future__ import annotations
+
+import math
+import queue
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import msgspec
+import numpy as np
+
+from gcs.ground_station import GroundStation, GroundStationConfig
+from gcs.mission_control import MissionControl, MissionControlConfig
+from gcs.tasking.allocator import Role
+from mission.lockstep import RunSeeds, TeamInLockstep, TeamOverProcesses
+from protocol.radio import RadioConfig
+from protocol.se2 import compose, relative
+from robot.node import RobotNodeConfig
+from sim.simulator import Simulator, SimulatorConfig
+from sim.world_generator import World, WorldConfig
+
+__all__ = [
+    "Assembly",
+    "GcsGround",
+    "GroundSide",
+    "assemble",
+    "roles_of",
+    "staging_plan",
+]
+
+Downlink = list[tuple[int, Any]]
+
+
+class GroundSide(Protocol):
+    """What sits at the GCS end of the radio: takes the uplink, returns each step's downlink."""
+
+    def on_message(self, robot_id: int, msg: Any) -> None: ...
+
+    def turn(self, now_s: float) -> Downlink: ...
+
+
+def roles_of(sim: Simulator) -> dict[int, Role]:
+    """Each robot's role from the world's roster (sensor robots, then disruptors)."""
+    return {
+        rid: Role.DISRUPTOR if role == "disruptor" else Role.SENSOR
+        for rid, role in zip(sim.robot_ids, sim.roles, strict=True)
+    }
+
+
+def staging_plan(world: World) -> dict[int, np.ndarray]:
+    """Where the deployment plan puts each robot (``world_from_base`` at the start): the start
+    zone's grid (see the module docstring)."""
+    return {r.robot_id: np.asarray(r.pose_m, dtype=float) for r in world.robots}
+
+
+class GcsGround:
+    """The GCS on the ground side of a team (module docstring).
+
+    ``taps``: callables ``(robot_id, message, accepted)`` told of every uplink message after the
+    station took it (progress tables, scoring, a script beside the GCS). ``lockstep``: no
+    wall-clock budget for loop closing (deterministic); otherwise ``budget_s`` wall seconds.
+    """
+
+    def __init__(
+        self,
+        control: MissionControl,
+        *,
+        lockstep: bool,
+        step_period_s: float = 1.0,
+        budget_s: float = 0.2,
+        taps: list[Callable[[int, Any, bool], None]] | None = None,
+    ) -> None:
+        if not (math.isfinite(step_period_s) and step_period_s > 0):
+            raise ValueError(f"gcs step_period_s: expected seconds > 0, got {step_period_s}")
+        self.control = control
+        self.station = control.station
+        self.lockstep = lockstep
+        self.step_period_s = step_period_s
+        self.budget_s = budget_s
+        self.taps = list(taps or [])
+        self.messages = 0
+        self._inbox: queue.SimpleQueue[tuple[int, Any]] = queue.SimpleQueue()
+        self._last_step_s = -math.inf
+
+    def on_message(self, robot_id: int, msg: Any) -> None:
+        """The radio's delivery (any thread): queued for the next turn."""
+        self._inbox.put((robot_id, msg))
+
+    def drain(self, now_s: float) -> int:
+        """Hand the queued uplink to the station (arrival order); returns how many."""
+        n = 0
+        while True:
+            try:
+                rid, msg = self._inbox.get_nowait()
+            except queue.Empty:
+                return n
+            accepted = self.control.handle(rid, msg, now_s=now_s)
+            for tap in self.taps:
+                tap(rid, msg, accepted)
+            n += 1
+            self.messages += 1
+
+    def turn(self, now_s: float) -> Downlink:
+        """The inbox, then (when due) the station's step and a plan: the downlink."""
+        self.drain(now_s)
+        if now_s - self._last_step_s < self.step_period_s:
+            return []
+        self._last_step_s = now_s
+        budget = math.inf if self.lockstep else self.budget_s
+        return self.control.step(now_s=now_s, budget_s=budget)
+
+
+@dataclass
+class Assembly:
+    """A team brought up by :func:`assemble`: step it, read it, close it (or use ``with``)."""
+
+    sim: Simulator
+    team: TeamInLockstep | TeamOverProcesses
+    grounds: list[GroundSide]
+    roles: dict[int, Role]
+    gcs: GcsGround | None = None
+    downlink_sent: dict[int, int] = field(default_factory=dict)
+
+    def step(self) -> None:
+        """One simulator step with the robots' answers, every ground side's turn (its
+        downlink sent at once), and the radio exchange."""
+        self.team.step(self._ground_turn)
+
+    def _ground_turn(self) -> None:
+        now = self.sim.time_s
+        for ground in self.grounds:
+            for rid, msg in ground.turn(now):
+                self.team.ground.send(rid, msg)
+                self.downlink_sent[rid] = self.downlink_sent.get(rid, 0) + 1
+
+    def link_bytes(self) -> dict[tuple[int, str, str], int]:
+        """Radio bytes so far by ``(robot_id, direction, stream)`` (``up``/``down``)."""
+        return self.team.link_bytes()
+
+    def close(self) -> None:
+        self.team.close()
+
+
+def _gcs_config(
+    base: GroundStationConfig, robot_ids: list[int], map_robot: int
+) -> GroundStationConfig:
+    cfg = msgspec.structs.replace(base, robots=tuple(robot_ids))
+    return msgspec.structs.replace(
+        cfg, graph=msgspec.structs.replace(cfg.graph, map_robot_id=map_robot)
+    )
+
+
+def give_start_hints(
+    station: GroundStation,
+    sim: Simulator,
+    *,
+    sigma_xy_m: float,
+    sigma_yaw_rad: float,
+    rng: np.random.Generator,
+) -> None:
+    """The deployment plan as start hints (module docstring): each robot's planned start
+    relative to the map robot's, with a seeded placement error of the stated size."""
+    plan = staging_plan(sim.world)
+    map_robot = station.config.graph.map_robot_id
+    origin = plan[map_robot]
+    for rid in sim.robot_ids:
+        if rid == map_robot:
+            continue
+        error = rng.normal(0.0, [sigma_xy_m, sigma_xy_m, sigma_yaw_rad])
+        station.add_start_hint(
+            rid,
+            map_from_odom=compose(relative(origin, plan[rid]), error),
+            sigma_xy_m=sigma_xy_m,
+            sigma_yaw_rad=sigma_yaw_rad,
+        )
+
+
+@contextmanager
+def assemble(
+    world: WorldConfig | World,
+    *,
+    seeds: RunSeeds,
+    radio: RadioConfig,
+    radio_path: str | None = None,
+    simulator: SimulatorConfig | None = None,
+    robot: RobotNodeConfig | None = None,
+    gcs: GroundStationConfig | None = None,
+    mission: MissionControlConfig | None = None,
+    with_gcs: bool = True,
+    scripts: Callable[[Simulator], list[GroundSide]] | None = None,
+    taps: list[Callable[[int, Any, bool], None]] | None = None,
+    gcs_step_period_s: float = 1.0,
+    gcs_budget_s: float = 0.2,
+    hint_sigma_xy_m: float = 0.3,
+    hint_sigma_yaw_rad: float = 0.05,
+    robot_processes: bool = False,
+    realtime: bool = False,
+) -> Iterator[Assembly]:
+    """Bring a team up (module docstring); closes everything on exit (links, processes, the
+    simulator). ``with_gcs``: the real GCS on the ground side (roles as disruptors from the
+    world's roster added to ``mission``); ``scripts(sim)``: further ground sides (after the
+    GCS in each turn). ``radio_path``: the radio file robot processes load (needed with
+    ``robot_processes``). Deterministic unless ``realtime`` (see :mod:`mission.lockstep`)."""
+    sim_cfg = msgspec.structs.replace(simulator or SimulatorConfig(), seed=seeds.simulator)
+    with Simulator(world, config=sim_cfg) as sim:
+        roles = roles_of(sim)
+        grounds: list[GroundSide] = []
+        gcs_ground: GcsGround | None = None
+        if with_gcs:
+            ids = list(sim.robot_ids)
+            station = GroundStation(_gcs_config(gcs or GroundStationConfig(), ids, ids[0]))
+            give_start_hints(
+                station,
+                sim,
+                sigma_xy_m=hint_sigma_xy_m,
+                sigma_yaw_rad=hint_sigma_yaw_rad,
+                rng=np.random.default_rng(seeds.ground),
+            )
+            disruptors = tuple(r for r, role in roles.items() if role is Role.DISRUPTOR)
+            mc = msgspec.structs.replace(mission or MissionControlConfig(), disruptors=disruptors)
+            gcs_ground = GcsGround(
+                MissionControl(station, mc),
+                lockstep=not realtime,
+                step_period_s=gcs_step_period_s,
+                budget_s=gcs_budget_s,
+                taps=taps,
+            )
+            grounds.append(gcs_ground)
+        if scripts is not None:
+            grounds.extend(scripts(sim))
+        if not grounds:
+            raise ValueError("a team needs a ground side: the GCS, a script or both")
+
+        def on_message(robot_id: int, msg: Any) -> None:
+            for g in grounds:
+                g.on_message(robot_id, msg)
+
+        team: TeamInLockstep | TeamOverProcesses
+        if robot_processes:
+            if realtime:
+                raise ValueError("realtime and robot_processes cannot be combined (yet)")
+            if radio_path is None:
+                raise ValueError("robot_processes needs radio_path (the robots load it)")
+            team = TeamOverProcesses(
+                sim,
+                radio=radio,
+                radio_path=radio_path,
+                seeds=seeds,
+                on_ground_message=on_message,
+                robot_config=robot,
+            )
+        else:
+            team = TeamInLockstep(
+                sim,
+                radio=radio,
+                seeds=seeds,
+                on_ground_message=on_message,
+                robot_config=robot,
+                realtime=realtime,
+            )
+        with team:
+            yield Assembly(sim, team, grounds, roles, gcs_ground)
