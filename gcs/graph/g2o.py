@@ -127,8 +127,8 @@ def _vertex_id(token: str, lineno: int, tag: str) -> int:
         vid = int(token)
     except ValueError:
         raise G2oError(f"g2o line {lineno}: {tag}: vertex id {token!r} is not an integer") from None
-    if vid < 0:
-        raise G2oError(f"g2o line {lineno}: {tag}: vertex id {vid} is negative")
+    if not 0 <= vid < 2**63:
+        raise G2oError(f"g2o line {lineno}: {tag}: vertex id {vid} is outside 0 .. 2^63-1")
     return vid
 
 
@@ -203,6 +203,8 @@ def parse_g2o(text: str, *, merge_repeated: bool = True) -> G2oGraph:
                 f"g2o line {lineno}: unsupported record {tag!r} "
                 "(expected VERTEX_SE2, EDGE_SE2 or FIX)"
             )
+    if not vids and not eij:
+        raise G2oError("g2o text has no VERTEX_SE2 or EDGE_SE2 record")
     graph = G2oGraph(
         vertex_ids=np.array(vids, dtype=np.int64),
         vertex_poses=np.array(vposes, dtype=float).reshape(-1, 3),
