@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from robot.perception.lidar_detector import LidarDetector
+from robot.perception.lidar_detector import LidarDetector, LidarDetectorConfig
 from robot.perception.shape_classifier import (
     DEFAULT_THRESHOLDS_PATH,
     ShapeThresholds,
@@ -48,6 +48,11 @@ __all__ = ["evaluate", "label_segments", "main", "record", "train"]
 
 LIDAR_IN_BASE_M = (0.2, 0.0, 0.52)
 VISIBLE_RANGE_M = 8.0
+# recall first: a missed object is lost, a false candidate still meets the colour test
+# and multi-sweep confirmation (paper 5.2.1: thresholds "manually enlarged")
+MAX_CYLINDER_OVERHEAD = 0.3
+MIN_RECALL = {"cylinder": 0.97, "person": 0.9}
+LIDAR_HALF_FOV_DEG = 130.0  # 270 deg scanner, less a few beams at the edge
 MATCH_M = 0.5
 
 
@@ -162,6 +167,7 @@ def record(
             ooi_info=ooi_info,
             human_xy=np.array(human_xy).reshape(len(meta), -1, 2),
             visible=np.array(visible).reshape(len(meta), -1),
+            human_kind=np.array([2 if h.kind == "hostile" else 1 for h in world.humans]),
         )
         print(
             f"world {seed}: {len(robots)} robots, {len(meta)} sweeps, "
@@ -232,9 +238,21 @@ def train(files: list[Path], out: Path) -> dict[str, Any]:
     boxes = {}
     scores: dict[str, Any] = {}
     # a little room beyond what the training worlds showed (paper: "manually enlarged")
-    margin = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.0])
+    margin = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.0, 0.05, 0.05])
     for name, cls in (("cylinder", 1), ("person", 2)):
-        box, sc = learn_box(f[lab == cls], f[lab != cls], min_margin=margin)
+        box, sc = learn_box(
+            f[lab == cls],
+            f[lab != cls],
+            quantiles=(0.0, 0.01, 0.02),
+            margins=(0.0, 0.1),
+            min_margin=margin,
+            min_recall=MIN_RECALL[name],
+        )
+        if name == "cylinder":
+            # a prior, not learnt: nothing covers a free-standing cylinder; a few training
+            # objects stood beside a tree or under a person's reach and would let trunks in
+            i = FEATURE_NAMES.index("overhead_frac")
+            box.hi[i] = min(box.hi[i], MAX_CYLINDER_OVERHEAD)
         boxes[name] = box
         scores[name] = {
             **sc,
@@ -250,45 +268,160 @@ def train(files: list[Path], out: Path) -> dict[str, Any]:
     return prov
 
 
-def evaluate(files: list[Path], thresholds: Path) -> dict[str, float]:
-    """Detector on held-out recordings: per-sweep and per-pose recall of visible OOIs within
-    8 m, precision against any cylinder object, position error p95, CPU ms per sweep p95."""
-    det = LidarDetector(thresholds=thresholds)
-    seen = hit = 0
-    pose_seen: dict[tuple[str, int, int], bool] = {}
-    cands = good = 0
+def _human_kinds(path: Path, d: dict[str, Any]) -> NDArray[np.int64]:
+    """1 civilian / 2 hostile per recorded person (older recordings: from the world seed)."""
+    if "human_kind" in d:
+        return np.asarray(d["human_kind"], dtype=np.int64)
+    from sim.world_generator import WorldConfig, generate_world
+
+    seed = int(path.stem.split("_")[-1])
+    world = generate_world(WorldConfig(seed=seed))
+    return np.array([2 if h.kind == "hostile" else 1 for h in world.humans], dtype=np.int64)
+
+
+def _in_fov(d: dict[str, Any], sweep: int) -> NDArray[np.bool_]:
+    """Objects inside the LIDAR's field of view (270 deg: the 90 deg behind is blind; a
+    driving robot sees an object ahead before it passes, a robot parked facing away never)."""
+    rel = d["ooi_xy"].reshape(-1, 2) - d["meta"][sweep, 2:4]
+    bearing = np.arctan2(rel[:, 1], rel[:, 0]) - d["meta"][sweep, 4]
+    return np.abs(np.angle(np.exp(1j * bearing))) <= math.radians(LIDAR_HALF_FOV_DEG)  # type: ignore[no-any-return]
+
+
+def evaluate(
+    files: list[Path],
+    thresholds: Path | ShapeThresholds,
+    *,
+    report_s: float = 5.0,
+    detector_config: LidarDetectorConfig | None = None,
+) -> dict[str, float]:
+    """The detector on held-out recordings, one robot pose at a time (its sweeps in order,
+    the detector reset between poses, as a robot arriving there).
+
+    * ``static_ooi_recall`` / ``toxic_vat_recall``: of the objects in line of sight within
+      8 m and inside the scanner's field of view, the fraction with a *confirmed*
+      candidate within ``MATCH_M`` no later than ``report_s`` after the first sweep that
+      saw them in range (``*_any`` also counts unconfirmed candidates;
+      ``ooi_recall_per_sweep`` per single sweep);
+    * ``shape_precision_per_sweep``: candidates of one sweep within 1 m of a true OOI or vat;
+      ``shape_precision_confirmed``: the same over confirmed objects (one per object id, at
+      its last position): what the colour test receives;
+    * ``pos_err_p95_m``: confirmed objects' error against the nearest true object;
+    * ``hostile_track_recall``: hostiles within 10 m in at least 3 sweeps of a pose that
+      were covered by a confirmed person track within 1 m; ``hostile_velocity_err_p50_m_s``
+      (and people in general, ``person_velocity_err_p50_m_s``) of those tracks against the
+      truth's displacement between sweeps;
+    * ``ms_per_sweep_p50/p95``: CPU time of :meth:`LidarDetector.process` (one core)."""
+    th = thresholds if isinstance(thresholds, ShapeThresholds) else load_thresholds(thresholds)
+    det = LidarDetector(detector_config, thresholds=th)
+    # warm the compiled kernels up (never timed)
+    warm = np.random.default_rng(0).uniform(-5, 5, (500, 3))
+    det.process(np.abs(warm), np.zeros(2), 0.0)
+    det.reset()
+    per_sweep_seen = per_sweep_hit = 0
+    found = {1: [0, 0, 0], 2: [0, 0, 0]}  # kind: [objects, confirmed in time, any in time]
+    sweep_cands = sweep_good = 0
+    conf_objs = conf_good = 0
     errs: list[float] = []
     cpu_ms: list[float] = []
-    for p in files:
-        d = _load(p)
-        for pts, i in _sweeps(d):
-            det.tracker.tracks.clear()
-            det.tracker.time_s = None
-            t0 = time.process_time()
-            out = det.process(pts, d["meta"][i, 2:4], float(d["meta"][i, 1]))
-            cpu_ms.append((time.process_time() - t0) * 1e3)
-            cxy = np.array([c.position_in_odom for c in out.cylinders]).reshape(-1, 2)
-            for j in np.flatnonzero(d["visible"][i]):
-                dist = np.hypot(*(cxy - d["ooi_xy"][j]).T) if len(cxy) else np.array([np.inf])
-                ok = bool(dist.min() <= MATCH_M)
-                seen += 1
-                hit += ok
-                key = (p.name, int(d["meta"][i, 0]), int(j))
-                pose_seen[key] = pose_seen.get(key, False) or ok
-            for c in cxy:
-                cands += 1
-                dist = np.hypot(*(d["ooi_xy"] - c).T) if len(d["ooi_xy"]) else np.array([np.inf])
-                if dist.min() <= MATCH_M:
-                    good += 1
-                    errs.append(float(dist.min()))
+    host_seen = host_hit = 0
+    vel_err: dict[int, list[float]] = {1: [], 2: []}
+    for path in files:
+        d = _load(path)
+        kinds_h = _human_kinds(path, d)
+        sweeps = _sweeps(d)
+        robots = d["meta"][:, 0].astype(int)
+        for r in np.unique(robots):
+            idx = [i for _, i in sweeps if robots[i] == r]
+            idx.sort(key=lambda i: float(d["meta"][i, 1]))
+            det.reset()
+            first_seen: dict[int, float] = {}
+            ok_conf: dict[int, bool] = {}
+            ok_any: dict[int, bool] = {}
+            last_conf: dict[int, NDArray[np.float64]] = {}
+            near_h: dict[int, int] = {}
+            hit_h: dict[int, bool] = {}
+            prev_t, prev_h = None, None
+            for i in idx:
+                pts = sweeps[i][0]
+                t = float(d["meta"][i, 1])
+                sensor = d["meta"][i, 2:4]
+                t0 = time.process_time()
+                out = det.process(pts, sensor, t)
+                cpu_ms.append((time.process_time() - t0) * 1e3)
+                cxy = np.array([c.position_in_odom for c in out.cylinders]).reshape(-1, 2)
+                conf = np.array([c.confirmed for c in out.cylinders], dtype=bool)
+                for c in out.cylinders:
+                    if c.confirmed:
+                        last_conf[c.object_id] = np.asarray(c.position_in_odom)
+                for j in np.flatnonzero(d["visible"][i] & _in_fov(d, i)).tolist():
+                    first_seen.setdefault(j, t)
+                    dist = np.hypot(*(cxy - d["ooi_xy"][j]).T) if len(cxy) else np.zeros(0)
+                    per_sweep_seen += 1
+                    per_sweep_hit += bool((dist <= MATCH_M).any())
+                for j, t_first in first_seen.items():
+                    if t - t_first > report_s + 1e-6:
+                        continue
+                    dist = np.hypot(*(cxy - d["ooi_xy"][j]).T) if len(cxy) else np.zeros(0)
+                    ok_any[j] = ok_any.get(j, False) or bool((dist <= MATCH_M).any())
+                    ok_conf[j] = ok_conf.get(j, False) or bool(((dist <= MATCH_M) & conf).any())
+                for cc in cxy:
+                    sweep_cands += 1
+                    dd = np.hypot(*(d["ooi_xy"] - cc).T) if len(d["ooi_xy"]) else np.array([9.0])
+                    sweep_good += bool(dd.min() <= 1.0)
+                # people
+                hxy = d["human_xy"][i]
+                tracks = out.people
+                txy = np.array([tr.position_m for tr in tracks]).reshape(-1, 2)
+                for h in range(len(hxy)):
+                    if math.hypot(*(hxy[h] - sensor)) > 10.0:
+                        continue
+                    near_h[h] = near_h.get(h, 0) + 1
+                    if len(txy) == 0:
+                        continue
+                    dist = np.hypot(*(txy - hxy[h]).T)
+                    k = int(np.argmin(dist))
+                    if dist[k] > 1.0:
+                        continue
+                    hit_h[h] = True
+                    if prev_h is not None and prev_t is not None and t > prev_t:
+                        v_true = (hxy[h] - prev_h[h]) / (t - prev_t)
+                        v_err = float(np.hypot(*(tracks[k].velocity_m_s - v_true)))
+                        vel_err[int(kinds_h[h]) if h < len(kinds_h) else 1].append(v_err)
+                prev_t, prev_h = t, hxy
+            for j in first_seen:
+                kind = int(d["ooi_info"][j, 2])
+                found[kind][0] += 1
+                found[kind][1] += ok_conf.get(j, False)
+                found[kind][2] += ok_any.get(j, False)
+            for xy in last_conf.values():
+                conf_objs += 1
+                dd = np.hypot(*(d["ooi_xy"] - xy).T) if len(d["ooi_xy"]) else np.array([9.0])
+                if dd.min() <= 1.0:
+                    conf_good += 1
+                    errs.append(float(dd.min()))
+            for h, n in near_h.items():
+                if n >= 3 and h < len(kinds_h) and kinds_h[h] == 2:
+                    host_seen += 1
+                    host_hit += hit_h.get(h, False)
+    all_v = vel_err[1] + vel_err[2]
     return {
         "sweeps": float(len(cpu_ms)),
-        "visible_ooi_sweeps": float(seen),
-        "ooi_recall_per_sweep": hit / max(seen, 1),
-        "ooi_recall_per_pose": sum(pose_seen.values()) / max(len(pose_seen), 1),
-        "cylinder_candidates": float(cands),
-        "shape_precision": good / max(cands, 1),
+        "static_oois": float(found[1][0]),
+        "static_ooi_recall": found[1][1] / max(found[1][0], 1),
+        "static_ooi_recall_any": found[1][2] / max(found[1][0], 1),
+        "toxic_vats": float(found[2][0]),
+        "toxic_vat_recall": found[2][1] / max(found[2][0], 1),
+        "toxic_vat_recall_any": found[2][2] / max(found[2][0], 1),
+        "ooi_recall_per_sweep": per_sweep_hit / max(per_sweep_seen, 1),
+        "shape_candidates_per_sweep": sweep_cands / max(len(cpu_ms), 1),
+        "shape_precision_per_sweep": sweep_good / max(sweep_cands, 1),
+        "confirmed_objects": float(conf_objs),
+        "shape_precision_confirmed": conf_good / max(conf_objs, 1),
         "pos_err_p95_m": float(np.percentile(errs, 95)) if errs else math.nan,
+        "hostiles_in_10m": float(host_seen),
+        "hostile_track_recall": host_hit / max(host_seen, 1),
+        "hostile_velocity_err_p50_m_s": (float(np.median(vel_err[2])) if vel_err[2] else math.nan),
+        "person_velocity_err_p50_m_s": float(np.median(all_v)) if all_v else math.nan,
         "ms_per_sweep_p50": float(np.median(cpu_ms)) if cpu_ms else math.nan,
         "ms_per_sweep_p95": float(np.percentile(cpu_ms, 95)) if cpu_ms else math.nan,
     }

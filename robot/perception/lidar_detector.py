@@ -15,6 +15,7 @@ and counts what it skipped. No I/O, no clocks: the caller passes the sweep's tim
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,9 +33,9 @@ from robot.perception.shape_classifier import (
 )
 from robot.perception.shape_features import (
     FEATURE_NAMES,
+    batch_features,
     object_position,
     ransac_circle,
-    shape_features,
 )
 
 __all__ = ["CylinderCandidate", "LidarDetector", "LidarDetectorConfig", "SweepPerception"]
@@ -48,29 +49,63 @@ _I_TOP = FEATURE_NAMES.index("top_m")
 class LidarDetectorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``max_extent_m``: segments longer than this are not measured at all (walls, cars:
     saves time); ``nominal_radius_m``: the cylinder radius used to place a candidate whose
-    circle fit is unreliable (the OOIs' size, paper 2)."""
+    circle fit is unreliable (the OOIs' size, paper 2).
+
+    Multi-sweep confirmation (precision): a candidate is ``confirmed`` once shape candidates
+    within ``confirm_gate_m`` of each other (in ``odom``) were seen in ``confirm_sweeps``
+    sweeps, the last within ``confirm_forget_s`` of the one before (a passing clutter of
+    points rarely repeats at one place; an object does, from every viewpoint)."""
 
     segmentation: SegmentationConfig = SegmentationConfig()
     tracker: TrackerConfig = TrackerConfig()
     max_extent_m: float = 1.5
     nominal_radius_m: float = 0.27
+    confirm_sweeps: int = 2
+    confirm_gate_m: float = 0.5
+    confirm_forget_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        if self.confirm_sweeps < 1:
+            raise ValueError(f"confirm_sweeps must be >= 1, got {self.confirm_sweeps}")
+        for name in ("max_extent_m", "nominal_radius_m", "confirm_gate_m", "confirm_forget_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be > 0, got {v}")
 
 
 @dataclass(frozen=True)
 class CylinderCandidate:
     """A segment whose shape passed the ``cylinder`` thresholds: centre ``(x, y)`` in odom,
     fitted ``radius_m`` (the nominal one when the fit failed), ``height_m`` above ground,
-    its ``features`` (:data:`FEATURE_NAMES`) and point count."""
+    its ``features`` (:data:`FEATURE_NAMES`) and point count; ``object_id``: the detector's
+    id of the place it was seen at (the same across sweeps), ``sweeps_seen`` there so far,
+    ``confirmed`` when that reached ``confirm_sweeps``."""
 
     position_in_odom: NDArray[np.float64]
     radius_m: float
     height_m: float
     features: NDArray[np.float64]
     n_points: int
+    object_id: int = 0
+    sweeps_seen: int = 1
+    confirmed: bool = False
+
+
+@dataclass
+class _Place:
+    """A place in ``odom`` where shape candidates were seen (running mean position)."""
+
+    object_id: int
+    xy: NDArray[np.float64]
+    sweeps: int
+    last_s: float
 
 
 @dataclass(frozen=True)
 class SweepPerception:
+    """One sweep's result: every shape candidate (``confirmed`` ones passed the multi-sweep
+    test), confirmed person tracks, this sweep's person measurements, counts."""
+
     time_s: float
     cylinders: list[CylinderCandidate]
     people: list[PersonTrack]
@@ -78,12 +113,16 @@ class SweepPerception:
     segments: int
     dropped_nonfinite: int
 
+    @property
+    def confirmed_cylinders(self) -> list[CylinderCandidate]:
+        return [c for c in self.cylinders if c.confirmed]
+
 
 class LidarDetector:
     """Shape detector and people tracker of one robot (see the module docstring).
 
     ``thresholds``: learned :class:`ShapeThresholds`, or a path to their file (default: the
-    shipped ``shape_thresholds_v1.json``); a bad file raises ``ThresholdFileError`` here,
+    shipped ``shape_thresholds_v2.json``); a bad file raises ``ThresholdFileError`` here,
     at start-up, not per sweep."""
 
     def __init__(
@@ -96,8 +135,15 @@ class LidarDetector:
             thresholds if isinstance(thresholds, ShapeThresholds) else load_thresholds(thresholds)
         )
         self.tracker = PersonTracker(self.config.tracker)
+        self.places: list[_Place] = []
+        self._next_place = 1
         self.sweeps = 0
         self.dropped_nonfinite = 0
+
+    def reset(self) -> None:
+        """Forget every place and person track (a new run; counters stay)."""
+        self.tracker = PersonTracker(self.config.tracker)
+        self.places = []
 
     def features(
         self, points_in_odom: ArrayLike, sensor_xy_in_odom: ArrayLike
@@ -105,16 +151,22 @@ class LidarDetector:
         """Segment a sweep and measure every small segment: ``(segment_xyz list, features
         (n, F), sensor_xy, dropped_nonfinite)``; large segments are left out."""
         seg = segment_sweep(points_in_odom, sensor_xy_in_odom, config=self.config.segmentation)
-        xyzs: list[NDArray[np.float64]] = []
-        feats: list[NDArray[np.float64]] = []
-        lim = self.config.max_extent_m
-        for s in seg.segments:
-            span = s.xyz[:, :2].max(axis=0) - s.xyz[:, :2].min(axis=0)
-            if math.hypot(span[0], span[1]) > lim * math.sqrt(2):
-                continue
-            xyzs.append(s.xyz)
-            feats.append(shape_features(s, seg.above_ground_xyz, seg.sensor_xy))
-        f = np.array(feats).reshape(-1, len(FEATURE_NAMES))
+        if len(seg.starts) == 0:
+            return [], np.zeros((0, len(FEATURE_NAMES))), seg.sensor_xy, seg.dropped_nonfinite
+        f = batch_features(
+            seg.object_xyz,
+            seg.object_height_m,
+            seg.starts,
+            seg.ends,
+            seg.above_ground_xyz,
+            seg.sensor_xy,
+            max_diagonal_m=self.config.max_extent_m * math.sqrt(2),
+        )
+        small = np.isfinite(f[:, 0])
+        f = f[small]
+        xyzs = [
+            seg.object_xyz[s:e] for s, e in zip(seg.starts[small], seg.ends[small], strict=True)
+        ]
         return xyzs, f, seg.sensor_xy, seg.dropped_nonfinite
 
     def process(
@@ -130,14 +182,52 @@ class LidarDetector:
             if len(f) and "person" in self.thresholds.boxes
             else np.zeros(len(f), bool)
         )
-        cylinders: list[CylinderCandidate] = []
-        for k in np.flatnonzero(cyl):
-            cylinders.append(self._place(xyzs[k], f[k], sensor))
+        cylinders = self._confirm(
+            time_s, [self._place(xyzs[k], f[k], sensor) for k in np.flatnonzero(cyl)]
+        )
         person_xy = np.array(
             [object_position(xyzs[k][:, :2], sensor, 0.2) for k in np.flatnonzero(per & ~cyl)]
         ).reshape(-1, 2)
         people = self.tracker.update(time_s, person_xy)
         return SweepPerception(time_s, cylinders, people, person_xy, len(f), dropped)
+
+    def _confirm(self, time_s: float, cands: list[CylinderCandidate]) -> list[CylinderCandidate]:
+        """Attach each candidate to the nearest place within the gate (one candidate a
+        place a sweep, nearest pairs first), start places for the rest, forget stale ones."""
+        cfg = self.config
+        self.places = [p for p in self.places if time_s - p.last_s <= cfg.confirm_forget_s]
+        out: list[CylinderCandidate | None] = [None] * len(cands)
+        if cands and self.places:
+            cxy = np.array([c.position_in_odom for c in cands])
+            pxy = np.array([p.xy for p in self.places])
+            d = np.hypot(*(cxy[:, None, :] - pxy[None, :, :]).transpose(2, 0, 1))
+            used: set[int] = set()
+            for flat in np.argsort(d, axis=None).tolist():
+                i, j = divmod(flat, len(self.places))
+                if d[i, j] > cfg.confirm_gate_m:
+                    break
+                if out[i] is not None or j in used:
+                    continue
+                used.add(j)
+                p = self.places[j]
+                p.sweeps += 1
+                p.xy = p.xy + (cxy[i] - p.xy) / p.sweeps
+                p.last_s = time_s
+                out[i] = dataclasses.replace(
+                    cands[i],
+                    object_id=p.object_id,
+                    sweeps_seen=p.sweeps,
+                    confirmed=p.sweeps >= cfg.confirm_sweeps,
+                )
+        for i, c in enumerate(cands):
+            if out[i] is None:
+                p = _Place(self._next_place, np.array(c.position_in_odom, float), 1, time_s)
+                self._next_place += 1
+                self.places.append(p)
+                out[i] = dataclasses.replace(
+                    c, object_id=p.object_id, confirmed=cfg.confirm_sweeps <= 1
+                )
+        return [c for c in out if c is not None]
 
     def _place(
         self, xyz: NDArray[np.float64], feat: NDArray[np.float64], sensor: NDArray[np.float64]

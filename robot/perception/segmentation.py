@@ -27,7 +27,7 @@ trunk); points above ``max_height_m`` belong to no object.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import msgspec
 import numba as nb
@@ -96,12 +96,21 @@ class Segment:
 @dataclass(frozen=True)
 class Segmentation:
     """The objects of one sweep; ``above_ground_xyz``: every non-ground point (``(m, 3)``,
-    odom); ``dropped_nonfinite``: rows skipped for NaN/inf coordinates."""
+    odom); ``dropped_nonfinite``: rows skipped for NaN/inf coordinates.
+
+    The same objects as arrays (for compiled feature code): ``object_xyz`` ``(n, 3)`` holds
+    every point between ``min_height_m`` and ``max_height_m`` grouped by object (groups too
+    small to be objects included), ``object_height_m`` their heights above the ground model,
+    and segment ``k`` is ``object_xyz[starts[k]:ends[k]]``."""
 
     segments: list[Segment]
     above_ground_xyz: NDArray[np.float64]
     sensor_xy: NDArray[np.float64]
     dropped_nonfinite: int
+    object_xyz: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    object_height_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    starts: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    ends: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -199,14 +208,18 @@ def segment_sweep(
     lab = labels[rc[:, 0], rc[:, 1]]
     order = np.argsort(lab, kind="stable")
     lab_sorted = lab[order]
+    xyz_sorted = pts[order]
+    h_sorted = h[order]
     starts = np.flatnonzero(np.r_[True, lab_sorted[1:] != lab_sorted[:-1]])
     ends = np.r_[starts[1:], len(lab_sorted)]
-    segments: list[Segment] = []
-    for s, e in zip(starts, ends, strict=True):
-        if e - s < cfg.min_points:
-            continue
-        idx = order[s:e]
-        xyz = pts[idx]
-        hh = h[idx]
-        segments.append(Segment(xyz, hh, float(np.median(xyz[:, 2] - hh))))
-    return Segmentation(segments, above_xyz, sensor, dropped)
+    keep = ends - starts >= cfg.min_points
+    starts, ends = starts[keep], ends[keep]
+    segments = [
+        Segment(
+            xyz_sorted[s:e],
+            h_sorted[s:e],
+            float(np.median(xyz_sorted[s:e, 2] - h_sorted[s:e])),
+        )
+        for s, e in zip(starts.tolist(), ends.tolist(), strict=True)
+    ]
+    return Segmentation(segments, above_xyz, sensor, dropped, xyz_sorted, h_sorted, starts, ends)

@@ -11,7 +11,7 @@ accepted. :func:`learn_box` learns the intervals from labelled feature vectors: 
 the positives, enlarged by a margin; the quantile and margin are chosen on the training set
 for the best F1 score (recall first on ties), in place of the paper's manual enlargement.
 
-The file (``shape_thresholds_v1.json``) holds ``format`` (:data:`FORMAT`), ``version``
+The file (``shape_thresholds_v2.json``) holds ``format`` (:data:`FORMAT`), ``version``
 (:data:`FORMAT_VERSION`), ``feature_names`` (must equal
 :data:`robot.perception.shape_features.FEATURE_NAMES`), per class ``lo``/``hi`` lists, and
 free-form ``provenance`` (worlds trained on, scores). A corrupt, truncated, other-version or
@@ -44,8 +44,8 @@ __all__ = [
 ]
 
 FORMAT = "magic-recon/shape-thresholds"
-FORMAT_VERSION = 1
-DEFAULT_THRESHOLDS_PATH = Path(__file__).with_name("shape_thresholds_v1.json")
+FORMAT_VERSION = 2
+DEFAULT_THRESHOLDS_PATH = Path(__file__).with_name("shape_thresholds_v2.json")
 CLASSES = ("cylinder", "person")
 
 
@@ -86,13 +86,17 @@ def learn_box(
     quantiles: tuple[float, ...] = (0.0, 0.01, 0.02, 0.05),
     margins: tuple[float, ...] = (0.0, 0.1, 0.25, 0.5),
     min_margin: NDArray[np.float64] | None = None,
+    min_recall: float | None = None,
 ) -> tuple[ClassBox, dict[str, float]]:
     """Learn ``[lo, hi]`` per feature from positive and negative feature rows ``(n, F)``.
 
     For each quantile ``q`` and margin ``m``: ``lo = Q(q) - m * spread - min_margin``,
     ``hi = Q(1 - q) + m * spread + min_margin`` with ``spread = Q(1 - q) - Q(q)``; the pair
-    with the best F1 on the given rows wins (ties: higher recall, then larger box). Rows with
-    NaN are left out of the quantiles. Returns the box and its training scores."""
+    with the best F1 on the given rows wins (ties: higher recall, then larger box). With
+    ``min_recall``, the most precise pair whose recall reaches it wins instead (the most
+    recalling one when none does): for a first stage whose misses are final while its false
+    alarms meet a second test (colour, paper 5.2.1). Rows with NaN are left out of the
+    quantiles. Returns the box and its training scores."""
     pos = np.asarray(positives, dtype=np.float64)
     neg = np.asarray(negatives, dtype=np.float64).reshape(-1, pos.shape[1])
     pos_ok = pos[np.isfinite(pos).all(axis=1)]
@@ -111,7 +115,12 @@ def learn_box(
             recall = tp / len(pos)
             precision = tp / max(tp + fp, 1)
             f1 = 2 * precision * recall / max(precision + recall, 1e-12)
-            key = (round(f1, 6), round(recall, 6), m - q)
+            if min_recall is None:
+                key = (round(f1, 6), round(recall, 6), m - q)
+            elif recall >= min_recall:
+                key = (1.0, round(precision, 6), q - m)
+            else:
+                key = (0.0, round(recall, 6), q - m)
             if best is None or key > best[0]:
                 scores = {"recall": recall, "precision": precision, "f1": f1, "q": q, "m": m}
                 best = (key, box, scores)

@@ -9,10 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from robot.perception.lidar_detector import LidarDetector
 from robot.perception.person_tracker import PersonTracker
 from robot.perception.segmentation import segment_sweep
 from robot.perception.shape_classifier import (
     DEFAULT_THRESHOLDS_PATH,
+    FORMAT_VERSION,
     ThresholdFileError,
     load_thresholds,
     save_thresholds,
@@ -85,7 +87,25 @@ def test_thresholds_file_round_trip_and_errors(tmp_path: Path) -> None:
     out.write_text(json.dumps(doc))
     with pytest.raises(ThresholdFileError, match="version 99"):
         load_thresholds(out)
+    # a file of the previous format (six features, version 1) is refused by name
     doc["version"] = 1
+    out.write_text(json.dumps(doc))
+    with pytest.raises(
+        ThresholdFileError, match=f"version 1, this code reads version {FORMAT_VERSION}"
+    ):
+        load_thresholds(out)
+    # truncated file, and a bound that is not a number
+    out.write_text(DEFAULT_THRESHOLDS_PATH.read_text()[:200])
+    with pytest.raises(ThresholdFileError, match="not a readable JSON"):
+        load_thresholds(out)
+    doc = json.loads(DEFAULT_THRESHOLDS_PATH.read_text())
+    doc["classes"]["cylinder"]["hi"][2] = "big"
+    out.write_text(json.dumps(doc))
+    with pytest.raises(ThresholdFileError, match=r"classes.cylinder.hi\[2\]"):
+        load_thresholds(out)
+    with pytest.raises(ThresholdFileError):
+        LidarDetector(thresholds=out)  # at start-up, not per sweep
+    doc["version"] = FORMAT_VERSION
     doc["feature_names"] = ["a"]
     out.write_text(json.dumps(doc))
     with pytest.raises(ThresholdFileError, match="feature_names"):
@@ -101,7 +121,115 @@ def test_tracker_estimates_a_walking_velocity() -> None:
     for k in range(12):
         t = 1.25 * k
         p = np.array([8.0, -2.0]) + v * t + rng.normal(0, 0.05, 2)
-        tracks = tr.update(t, [p, [np.nan, 0.0]])
+        tracks = tr.update(t, np.array([p, [np.nan, 0.0]]))
     assert len(tracks) == 1
     assert np.linalg.norm(tracks[0].velocity_m_s - v) < 0.15
     assert tr.rejected_measurements == 12
+
+
+# ---------------------------------------------------------------- constructed scenes
+# A nodding LIDAR like the simulated one (paper 3.1): 270 deg, 1.5 deg beams, scan lines
+# every 2.5 deg of tilt from -40 to +20 deg, 0.52 m above the ground, cast analytically
+# against the ground plane, upright cylinders and axis-aligned boxes.
+
+SENSOR_Z_M = 0.52
+
+
+def _rays(sensor_yaw: float = 0.0) -> np.ndarray:
+    az = sensor_yaw + np.radians(np.arange(-135.0, 135.01, 1.5))
+    el = np.radians(np.arange(-40.0, 20.01, 2.5))
+    aa, ee = np.meshgrid(az, el)
+    return np.stack(
+        [np.cos(ee) * np.cos(aa), np.cos(ee) * np.sin(aa), np.sin(ee)], axis=-1
+    ).reshape(-1, 3)
+
+
+def _scan(cylinders=(), boxes=(), sensor=(0.0, 0.0), max_range_m: float = 30.0) -> np.ndarray:
+    """Points ``(N, 3)``: first hits of the rays on the ground (z = 0), cylinders
+    ``(cx, cy, r, z0, z1)`` and boxes ``(x0, y0, z0, x1, y1, z1)``."""
+    d = _rays()
+    o = np.array([sensor[0], sensor[1], SENSOR_Z_M])
+    t = np.full(len(d), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tg = np.where(d[:, 2] < 0, -o[2] / d[:, 2], np.inf)
+        t = np.minimum(t, tg)
+        for cx, cy, r, z0, z1 in cylinders:
+            px, py = o[0] - cx, o[1] - cy
+            a = d[:, 0] ** 2 + d[:, 1] ** 2
+            b = 2 * (px * d[:, 0] + py * d[:, 1])
+            c = px * px + py * py - r * r
+            disc = b * b - 4 * a * c
+            tc = (-b - np.sqrt(disc)) / (2 * a)
+            z = o[2] + tc * d[:, 2]
+            ok = (disc >= 0) & (tc > 0) & (z >= z0) & (z <= z1)
+            t = np.where(ok & (tc < t), tc, t)
+        for x0, y0, z0, x1, y1, z1 in boxes:
+            lo = (np.array([x0, y0, z0]) - o) / d
+            hi = (np.array([x1, y1, z1]) - o) / d
+            tn = np.nanmax(np.minimum(lo, hi), axis=1)
+            tf = np.nanmin(np.maximum(lo, hi), axis=1)
+            ok = (tn <= tf) & (tn > 0)
+            t = np.where(ok & (tn < t), tn, t)
+    hit = t <= max_range_m
+    rng = np.random.default_rng(7)
+    tt = t[hit] + rng.normal(0, 0.01, hit.sum())
+    return o + d[hit] * tt[:, None]
+
+
+OOI = (4.0, 0.0, 0.25, 0.0, 0.8)  # a static OOI: radius 0.25 m, 0.8 m tall
+
+
+def _run(points_per_sweep, n: int = 3, sensor=(0.0, 0.0)):
+    det = LidarDetector()
+    outs = [det.process(p, sensor, 1.25 * k) for k, p in enumerate(points_per_sweep[:n])]
+    return det, outs
+
+
+def test_detector_finds_a_cylinder_standing_next_to_a_wall() -> None:
+    wall = (4.35, -2.0, 0.0, 4.45, 2.0, 2.5)  # 0.1 m behind the cylinder's back
+    pts = _scan(cylinders=[OOI], boxes=[wall])
+    _, outs = _run([pts] * 2)
+    first, second = outs
+    assert first.cylinders and not any(c.confirmed for c in first.cylinders)
+    conf = second.confirmed_cylinders
+    assert len(conf) == 1, [c.position_in_odom for c in second.cylinders]
+    assert np.hypot(*(conf[0].position_in_odom - [4.0, 0.0])) < 0.15
+    assert conf[0].sweeps_seen == 2 and conf[0].object_id == first.cylinders[0].object_id
+    # the wall alone gives no candidate at all
+    _, outs = _run([_scan(boxes=[wall])] * 2)
+    assert not outs[1].cylinders
+
+
+@pytest.mark.parametrize("canopy_bottom_m", [0.7, 0.8, 0.9, 1.3])
+def test_tree_trunk_of_ooi_radius_is_not_a_cylinder(canopy_bottom_m: float) -> None:
+    trunk = (4.0, 0.0, 0.25, 0.0, 3.0)
+    canopy = (4.0, 0.0, 1.8, canopy_bottom_m, 3.5)
+    pts = _scan(cylinders=[trunk, canopy])
+    _, outs = _run([pts] * 2)
+    assert not outs[1].cylinders
+    # the same trunk without its canopy, cut at OOI height, is one (the canopy decides)
+    _, outs = _run([_scan(cylinders=[(4.0, 0.0, 0.25, 0.0, 0.8)])] * 2)
+    assert len(outs[1].confirmed_cylinders) == 1
+
+
+def test_walking_person_at_the_detectors_edge_is_tracked_not_a_cylinder() -> None:
+    # 9 m away, near the edge of the 270 deg field of view, walking across it at 0.6 m/s
+    v = np.array([0.0, -0.6])
+    start = 9.0 * np.array([math.cos(math.radians(120)), math.sin(math.radians(120))])
+    det = LidarDetector()
+    for k in range(8):
+        t = 1.25 * k
+        p = start + v * t
+        out = det.process(_scan(cylinders=[(p[0], p[1], 0.25, 0.0, 1.7)]), (0.0, 0.0), t)
+        assert not out.cylinders
+    assert len(out.people) == 1
+    track = out.people[0]
+    assert np.hypot(*(track.position_m - p)) < 0.35
+    assert np.hypot(*(track.velocity_m_s - v)) < 0.3
+
+
+def test_box_shaped_robot_body_and_car_corner_are_not_cylinders() -> None:
+    chassis = (3.7, -0.25, 0.12, 4.3, 0.25, 0.42)  # a teammate's chassis, seen end-on
+    car = (5.0, 1.0, 0.25, 9.0, 2.8, 0.95)  # a car body, its corner towards the robot
+    _, outs = _run([_scan(boxes=[chassis, car])] * 2)
+    assert not outs[1].cylinders, [c.features for c in outs[1].cylinders]
