@@ -30,8 +30,10 @@ from __future__ import annotations
 import logging
 import math
 import queue
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import cv2
@@ -48,17 +50,21 @@ from compression import (
 )
 from protocol.messages import (
     AutonomyMode,
+    Detection,
     HazardUpdate,
+    ObjectKind,
     ParameterUpdate,
     PoseNode,
     TaskMessage,
     TaskStatus,
     Telemetry,
     TerrainGrid,
+    ThumbnailRequest,
 )
 from protocol.se2 import relative, wrap_angle
 from protocol.sensors import (
     BatteryState,
+    CameraImage,
     ImuSample,
     LaserPointerCommand,
     LidarSweep,
@@ -75,9 +81,15 @@ from robot.control.traversability import TraversabilityConfig, TraversabilityMap
 from robot.odometry.inertial_odometry import InertialOdometry, OdometryConfig
 from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
 from robot.odometry.scan_displacement import match_translation
+from robot.perception.fiducial_detector import fiducial_observation
+from robot.perception.onboard_perception import (
+    OdomDetection,
+    OnboardPerception,
+    PerceptionConfig,
+)
 from robot.planning.planner import PathPlanner, PlannerConfig
 from robot.tasks.task_executor import TaskExecutor, TaskExecutorConfig
-from robot.terrain.classifier import TerrainConfig, classify_sweep_layers
+from robot.terrain.classifier import TerrainConfig, classify_sweep_layers, points_in_odom
 from robot.terrain.grid import OBSTACLE, UNKNOWN, GridGeometry
 from robot.terrain.map_fusion import TerrainMapFusion
 from robot.terrain.vertical_surface_grid import VerticalSurfaceConfig, vertical_surface_grid
@@ -124,6 +136,10 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     slip_max_shift_m: float = 0.5
     slip_min_travel_m: float = 0.3
     slip_max_turn_rad: float = 0.3
+    perception: PerceptionConfig = PerceptionConfig()
+    # a detection refers to a pose node sent at least this long ago: the detection stream
+    # drains before the pose-node stream, and the GCS refuses a detection of an unknown node
+    detection_node_lag_s: float = 1.5
 
 
 @dataclass
@@ -142,6 +158,10 @@ class NodeStats:
     yields: int = 0  # plans not taken: the path got blocked and the detour was long
     memory_refreshes: int = 0  # older sweeps forgotten: the newest saw the blocked way clear
     slip_measurements: int = 0  # sweep pairs whose match measured the speed over ground
+    perception_errors: int = 0  # perception steps that failed (logged; the robot drives on)
+    detections_sent: int = 0
+    fiducials_sent: int = 0
+    thumbnails_sent: int = 0
 
 
 class RobotNode:
@@ -178,6 +198,12 @@ class RobotNode:
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._hazards: HazardUpdate | None = None
         self._keepout = np.zeros((0, 3))
+        # a bad threshold file is an error here, at start-up, naming the file
+        self.perception = (
+            OnboardPerception(robot_id, cfg.perception) if cfg.perception.enabled else None
+        )
+        self._nodes_sent: deque[tuple[int, float, np.ndarray]] = deque(maxlen=256)
+        self._held: list[OdomDetection] = []  # detections waiting for a pose node to refer to
         self._codec = cfg.codec
         self._last_grid: tuple[int, np.ndarray, tuple[int, int]] | None = None  # sent last
         self._now = -math.inf
@@ -217,6 +243,13 @@ class RobotNode:
 
     def _apply(self, msg: Any) -> None:
         pose = self.odometry.pose_in_odom
+        if isinstance(msg, ThumbnailRequest):
+            if self.perception is not None:
+                image = self.perception.on_thumbnail_request(msg)
+                if image is not None:
+                    self._send(image)  # the lowest-priority reliable stream
+                    self.stats.thumbnails_sent += 1
+            return
         if isinstance(msg, _TASK_TYPES) or not isinstance(msg, HazardUpdate | ParameterUpdate):
             for status in self.tasks.submit(msg, self._now, pose):
                 self._report(status)
@@ -224,8 +257,7 @@ class RobotNode:
             return
         if isinstance(msg, HazardUpdate):
             self._hazards = msg
-            self._keepout = keepout_disks_in_odom(self.robot_id, msg, config=self.config.keepout)
-            self._planned_goal = None
+            self._update_keepout()
             return
         if msg.name == "codec":
             if not isinstance(msg.value, str):
@@ -234,6 +266,15 @@ class RobotNode:
             self._codec = msg.value
             return
         raise ValueError(f"unknown parameter {msg.name!r}")
+
+    def _update_keepout(self) -> None:
+        """Keep-out disks of the GCS's hazards and of this robot's own dangerous detections
+        (static OOIs, hostile tracks: at once, paper 5.2)."""
+        own = self.perception.own_hazards_in_odom() if self.perception is not None else []
+        self._keepout = keepout_disks_in_odom(
+            self.robot_id, self._hazards, own, config=self.config.keepout
+        )
+        self._planned_goal = None
 
     def _report(self, status: TaskStatus) -> None:
         self._send(status)
@@ -258,12 +299,97 @@ class RobotNode:
                 elif isinstance(frame, LidarSweep):
                     self._now = max(self._now, frame.time_s + frame.duration_s)
                     self._on_sweep(frame)
+                elif isinstance(frame, CameraImage):
+                    perception = self.perception
+                    if perception is not None:
+                        self._perceive(partial(perception.on_image, frame, self.odometry.pose_at))
                 elif isinstance(frame, BatteryState):
                     self._battery_frac = float(frame.charge_frac)
             except ValueError as err:  # a bad frame is counted, never fatal
                 self.stats.bad_frames += 1
                 log.warning("robot %d: bad %s: %s", self.robot_id, type(frame).__name__, err)
+        if self.perception is not None:
+            self._perceive(self._flush_perception)
+            commands.extend(self.perception.take_requests())
         return commands
+
+    # ------------------------------------------------------------------ perception
+
+    def _perceive(self, step: Callable[[], object]) -> None:
+        """Run one perception step; a failure is counted and logged, never fatal: the robot
+        keeps driving without it."""
+        try:
+            step()
+        except Exception as err:  # noqa: BLE001 - perception must never stop the robot
+            self.stats.perception_errors += 1
+            log.warning("robot %d: perception step failed: %r", self.robot_id, err)
+
+    def _reference_node(self) -> tuple[int, float, np.ndarray] | None:
+        """The newest pose node sent at least ``detection_node_lag_s`` ago (None before)."""
+        lag = self.config.detection_node_lag_s
+        for node in reversed(self._nodes_sent):
+            if node[1] <= self._now - lag:
+                return node
+        return None
+
+    def _flush_perception(self) -> None:
+        """Perception's results as radio messages against a pose node; its hazards into the
+        keep-out at once."""
+        p = self.perception
+        assert p is not None
+        if p.take_hazards_changed():
+            self._update_keepout()
+        self._held.extend(p.take_detections())
+        fiducials = p.take_fiducials()
+        if not self._held and not fiducials:
+            return
+        ref = self._reference_node()
+        if ref is None:
+            self._held = self._held[-256:]  # before the first node: wait, bounded
+            return
+        index, _, node_pose = ref
+        c, s = math.cos(node_pose[2]), math.sin(node_pose[2])
+        rot = np.array([[c, s], [-s, c]])  # odom axes -> the node's base axes
+        latest: dict[int, OdomDetection] = {}
+        for det in self._held:  # one message per object: the newest estimate
+            latest[det.detection_id] = det
+        self._held = []
+        for det in latest.values():
+            pos = relative(node_pose, np.array([*det.position_in_odom, 0.0]))
+            cov = rot @ det.covariance @ rot.T
+            vel = rot @ np.asarray(det.velocity_in_odom)
+            self._send(
+                Detection(
+                    det.detection_id,
+                    index,
+                    det.time_s,
+                    ObjectKind(det.kind),
+                    (float(pos[0]), float(pos[1])),
+                    (float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])),
+                    float(det.radius_m),
+                    float(det.height_m),
+                    float(min(max(det.confidence, 0.0), 1.0)),
+                    (float(vel[0]), float(vel[1])),
+                )
+            )
+            self.stats.detections_sent += 1
+        for f in fiducials:
+            node_from_image = relative(node_pose, np.array(f.pose_in_odom))
+            d = float(np.hypot(node_from_image[0], node_from_image[1]))
+            sig_xy, sig_yaw = 0.01 + 0.02 * d, 0.002 + 0.01 * abs(float(node_from_image[2]))
+            msg = fiducial_observation(
+                f.sighting,
+                node_index=index,
+                time_s=f.time_s,
+                node_from_image_base=(
+                    float(node_from_image[0]),
+                    float(node_from_image[1]),
+                    float(node_from_image[2]),
+                ),
+                node_from_image_covariance=np.diag([sig_xy**2, sig_xy**2, sig_yaw**2]),
+            )
+            self._send(msg)
+            self.stats.fiducials_sent += 1
 
     # ------------------------------------------------------------------ sweep pipeline
 
@@ -306,9 +432,26 @@ class RobotNode:
         if self.nodes.due(pose, end_time):
             node = self.nodes.make(pose, end_time)
             self._send(node)
+            self._nodes_sent.append((node.node_index, end_time, np.asarray(pose, dtype=float)))
             self.stats.pose_nodes += 1
             self._send_grid(node, sweep, poses, pose, roll, pitch)
+        if self.perception is not None:
+            self._perceive(lambda: self._perceive_sweep(sweep, poses, roll, pitch))
+            self._perceive(self._flush_perception)
         self._replan(force=True)
+
+    def _perceive_sweep(
+        self, sweep: LidarSweep, poses: np.ndarray, roll: float, pitch: float
+    ) -> None:
+        assert self.perception is not None
+        pts = np.asarray(sweep.points_in_base)
+        ok = np.isfinite(pts).all(axis=1)
+        if not ok.all():  # counted by the perception as non-finite points
+            self.perception.stats.nonfinite_points += int((~ok).sum())
+            pts, poses = pts[ok], poses[ok]
+        mid = sweep.time_s + 0.5 * sweep.duration_s
+        in_odom = points_in_odom(pts, poses, roll_rad=roll, pitch_rad=pitch)
+        self.perception.on_sweep(in_odom, self.odometry.pose_at(mid), mid)
 
     def _learn_traversability(
         self, obstacle: np.ndarray, geometry: GridGeometry, time_s: float
@@ -589,6 +732,9 @@ class RobotNode:
         ):
             self._report(status)
         intent = self.tasks.intent
+        if self.perception is not None:
+            perception = self.perception
+            self._perceive(lambda: perception.on_control(now, pose))
         self._watch_deadlock(now, pose, intent)
         if self._planned_goal is None:
             self._replan()

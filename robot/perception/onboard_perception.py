@@ -1,0 +1,716 @@
+"""The robot's perception loop: LIDAR candidates, image memory, colour, tracks, fiducials
+(paper 5.2, 5.2.1, Fig. 13, 4.3.2), as the robot node runs it.
+
+Everything is in the robot's private frame ``odom``; the node turns the results into radio
+messages against its pose nodes. Per call:
+
+* :meth:`OnboardPerception.on_control` (every control period, cheap): remembers the panning
+  camera's frame every ``frame_period_s`` (time, pan from the pan schedule, robot pose:
+  :mod:`robot.perception.image_memory`), learns the schedule's phase from the first images
+  (:func:`robot.perception.camera_model.fit_pan_phase`), asks for an image of *now* every
+  ``fiducial_period_s`` (teammates' tags), and gives up on images that never came
+  (``image_timeout_s``, counted).
+* :meth:`OnboardPerception.on_sweep`: the LIDAR detector
+  (:class:`robot.perception.lidar_detector.LidarDetector`: cylinders by shape, person tracks);
+  each new cylinder candidate and each person track not yet coloured gets the newest
+  remembered frame in which it projects fully (Fig. 13) and one
+  :class:`~protocol.sensors.ImageRequest` per frame (candidates sharing a frame share it);
+  candidates at an already known object refine it without an image; a place whose colour test
+  said "other" is not asked about again for ``retest_after_s`` and at most
+  ``max_negative_tests`` times. Hostile tracks are reported (with velocity) every
+  ``hostile_report_period_s`` and are keep-out disks at once (:meth:`own_hazards_in_odom`).
+* :meth:`OnboardPerception.on_image`: the colour test of each job of the image
+  (:func:`robot.perception.colour_classifier.classify_candidate`); static OOIs and toxic vats
+  go through the :class:`robot.perception.object_registry.ObjectRegistry` (one object, one id,
+  refined later); people tracks get their kind; the image is searched for teammates' tags.
+* :meth:`OnboardPerception.on_thumbnail_request`: a :class:`~protocol.messages.DetectionImage`
+  cropped from the image the object's colour test used (only on request, paper 6.1).
+
+Bad input never stops the robot: non-finite points are dropped and counted, an image that
+never arrives is counted and its candidates may be asked about again, an image of the wrong
+shape is counted and skipped. A bad thresholds file is an error at construction, naming it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgspec
+import numpy as np
+from numpy.typing import NDArray
+
+from protocol.messages import DetectionImage, ObjectKind, ThumbnailRequest
+from protocol.se2 import relative
+from protocol.sensors import CameraImage, ImageRequest
+from robot.perception.camera_model import Intrinsics, fit_pan_phase, pan_at
+from robot.perception.colour_classifier import (
+    DEFAULT_THRESHOLDS_PATH as COLOUR_THRESHOLDS_PATH,
+)
+from robot.perception.colour_classifier import (
+    ColourThresholds,
+    classify_candidate,
+)
+from robot.perception.colour_classifier import (
+    load_thresholds as load_colour_thresholds,
+)
+from robot.perception.fiducial_detector import FiducialConfig, TeammateSighting, estimate_teammates
+from robot.perception.image_memory import Candidate, ImageMemory, ImageMemoryConfig, RememberedFrame
+from robot.perception.lidar_detector import LidarDetector, LidarDetectorConfig
+from robot.perception.object_registry import ObjectRegistry, RegistryConfig
+from robot.perception.shape_classifier import DEFAULT_THRESHOLDS_PATH as SHAPE_THRESHOLDS_PATH
+from robot.perception.thumbnail import make_thumbnail
+
+__all__ = [
+    "FiducialSighting",
+    "OdomDetection",
+    "OnboardPerception",
+    "PerceptionConfig",
+    "PerceptionStats",
+]
+
+log = logging.getLogger(__name__)
+
+_LIDAR_IN_BASE_M = (0.2, 0.0)  # the LIDAR's mount (sim.scene.RobotGeometry.lidar_m)
+_COLOUR_KIND = {"static_ooi": ObjectKind.STATIC_OOI, "toxic_vat": ObjectKind.TOXIC_VAT}
+_PERSON_KIND = {"civilian": ObjectKind.CIVILIAN, "hostile": ObjectKind.HOSTILE}
+
+
+class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """The robot's perception (see the module docstring). Paths: ``""`` means the shipped
+    threshold files beside :mod:`robot.perception`."""
+
+    enabled: bool = True
+    lidar: LidarDetectorConfig = LidarDetectorConfig()
+    shape_thresholds: str = ""
+    colour_thresholds: str = ""
+    memory: ImageMemoryConfig = ImageMemoryConfig()
+    fiducial: FiducialConfig = FiducialConfig()
+    registry: RegistryConfig = RegistryConfig()
+    frame_period_s: float = 0.1  # image memory: one frame remembered per this period
+    image_timeout_s: float = 3.0
+    max_requests_per_sweep: int = 4
+    max_requests_per_step: int = 2  # the simulator takes at most 4 per robot per step
+    fiducial_period_s: float = 1.0  # 0: teammates' tags only in images asked for objects
+    candidate_max_range_m: float = 10.0
+    retest_after_s: float = 2.0
+    max_negative_tests: int = 3
+    negative_cell_m: float = 1.0
+    refine_m: float = 0.6  # a cylinder this close to a known object refines it, no image
+    person_frame_window_s: float = 2.5  # people move: only recent frames for their colour
+    person_radius_m: float = 0.3
+    person_height_m: float = 1.6
+    person_shifts_m: tuple[float, ...] = (0.0, -0.3, 0.3, -0.6, 0.6)
+    person_merge_m: float = 1.0
+    max_report_sigma_m: float = 0.7
+    hostile_report_period_s: float = 2.0
+    hostile_lookahead_s: float = 1.0  # the keep-out disk sits where the hostile will be
+    pos_sigma_m: float = 0.06  # a cylinder centre's error at 0 m ...
+    pos_sigma_per_m: float = 0.012  # ... growing with range
+    thumbnail_max_bytes: int = 2000
+    thumbnails_kept: int = 64
+
+    def __post_init__(self) -> None:
+        for name in ("frame_period_s", "image_timeout_s", "retest_after_s", "negative_cell_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"perception.{name} must be > 0, got {v}")
+        if not (math.isfinite(self.fiducial_period_s) and self.fiducial_period_s >= 0):
+            raise ValueError(
+                f"perception.fiducial_period_s must be >= 0, got {self.fiducial_period_s}"
+            )
+        if not 1 <= self.max_requests_per_step <= 4:
+            raise ValueError("perception.max_requests_per_step must be in [1, 4]")
+
+
+@dataclass(frozen=True)
+class OdomDetection:
+    """A detection in ``odom`` for the node to send against one of its pose nodes."""
+
+    detection_id: int
+    kind: ObjectKind
+    time_s: float
+    position_in_odom: tuple[float, float]
+    covariance: NDArray[np.float64]  # 2x2, m²
+    radius_m: float
+    height_m: float
+    confidence: float
+    velocity_in_odom: tuple[float, float] = (0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class FiducialSighting:
+    """A teammate seen in the image of ``time_s`` taken at ``pose_in_odom``."""
+
+    sighting: TeammateSighting
+    time_s: float
+    pose_in_odom: tuple[float, float, float]
+
+
+@dataclass
+class PerceptionStats:
+    sweeps: int = 0
+    skipped_sweeps: int = 0  # sweeps the detector refused (counted, the node drives on)
+    nonfinite_points: int = 0
+    candidates: int = 0  # cylinder candidates by shape
+    refined_without_image: int = 0
+    no_frame: int = 0  # candidates that projected fully into no remembered frame
+    images_requested: int = 0
+    images_received: int = 0
+    images_lost: int = 0  # never arrived within image_timeout_s
+    images_unexpected: int = 0
+    bad_images: int = 0
+    colour_tests: int = 0
+    colour_other: int = 0
+    detections: int = 0  # Detection messages (first reports and refinements)
+    objects: int = 0  # distinct static objects
+    hostile_reports: int = 0
+    fiducials: int = 0
+    fiducial_dropped: int = 0
+    thumbnails: int = 0
+    thumbnail_unknown: int = 0
+    sweep_cpu_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
+    colour_cpu_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
+    person_colour_cpu_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
+
+
+@dataclass
+class _Job:
+    kind: str  # "cylinder" or "person"
+    xy_in_odom: tuple[float, float]
+    radius_m: float
+    height_m: float
+    track_id: int = 0
+    range_m: float = 0.0
+
+
+@dataclass
+class _Request:
+    request_id: int
+    time_s: float  # the frame asked for
+    asked_s: float  # when
+    jobs: list[_Job]
+
+
+@dataclass
+class _Thumb:
+    crop: NDArray[np.uint8]
+    bbox_in_crop: tuple[int, int, int, int]
+    time_s: float
+    pan_rad: float
+
+
+def _cpu_ms(t0: float) -> float:
+    return (time.thread_time() - t0) * 1e3
+
+
+class OnboardPerception:
+    """One robot's perception (see the module docstring)."""
+
+    def __init__(self, robot_id: int, config: PerceptionConfig | None = None) -> None:
+        self.robot_id = robot_id
+        self.config = cfg = config or PerceptionConfig()
+        shape_path = Path(cfg.shape_thresholds) if cfg.shape_thresholds else SHAPE_THRESHOLDS_PATH
+        colour_path = (
+            Path(cfg.colour_thresholds) if cfg.colour_thresholds else COLOUR_THRESHOLDS_PATH
+        )
+        self.lidar = LidarDetector(cfg.lidar, thresholds=shape_path)  # ThresholdFileError
+        self.colour: ColourThresholds = load_colour_thresholds(colour_path)  # ColourThresholdError
+        self.memory = ImageMemory(cfg.memory)
+        self.registry = ObjectRegistry(cfg.registry)
+        self.stats = PerceptionStats()
+        self._pan_samples: list[tuple[float, float]] = []
+        self.pan_phase_s: float | None = None
+        self._last_frame_s = -math.inf
+        self._last_fiducial_ask_s = -math.inf
+        self._next_request_id = 1
+        self._queued: list[ImageRequest] = []
+        self._pending: dict[int, _Request] = {}
+        self._negative: dict[tuple[int, int], tuple[int, float]] = {}
+        self._person_tested: dict[int, tuple[int, float]] = {}
+        self._track_ids: dict[int, int] = {}  # person track -> detection id
+        self._reported_at: dict[int, float] = {}  # detection id of people -> last report
+        self._had_hostiles = False
+        self._detections: list[OdomDetection] = []
+        self._fiducials: list[FiducialSighting] = []
+        self._thumbs: dict[int, _Thumb] = {}
+        self._hazards_changed = False
+        self._now = -math.inf
+        self._bootstrap_asks = 0
+
+    # ------------------------------------------------------------------ outputs
+
+    def take_requests(self) -> list[ImageRequest]:
+        """Image requests to send now (at most ``max_requests_per_step``; the rest wait)."""
+        n = self.config.max_requests_per_step
+        out, self._queued = self._queued[:n], self._queued[n:]
+        return out
+
+    def take_detections(self) -> list[OdomDetection]:
+        out, self._detections = self._detections, []
+        return out
+
+    def take_fiducials(self) -> list[FiducialSighting]:
+        out, self._fiducials = self._fiducials, []
+        return out
+
+    def take_hazards_changed(self) -> bool:
+        """Whether :meth:`own_hazards_in_odom` changed since the last call."""
+        out, self._hazards_changed = self._hazards_changed, False
+        return out
+
+    def own_hazards_in_odom(self) -> list[tuple[ObjectKind, float, float]]:
+        """This robot's own dangerous objects for its keep-out (paper 5.2: avoidance on the
+        robot, without waiting for the GCS): static OOIs where fused, hostile tracks where
+        they will be ``hostile_lookahead_s`` from now."""
+        out: list[tuple[ObjectKind, float, float]] = []
+        for o in self.registry.objects:
+            if o.kind == ObjectKind.STATIC_OOI:
+                out.append(
+                    (
+                        ObjectKind.STATIC_OOI,
+                        float(o.position_in_odom[0]),
+                        float(o.position_in_odom[1]),
+                    )
+                )
+        la = self.config.hostile_lookahead_s
+        for t in self.lidar.tracker.tracks:
+            if t.kind == ObjectKind.HOSTILE:
+                p = t.position_m + la * t.velocity_m_s
+                out.append((ObjectKind.HOSTILE, float(p[0]), float(p[1])))
+        return out
+
+    # ------------------------------------------------------------------ control period
+
+    def on_control(self, now_s: float, pose_in_odom: NDArray[np.float64]) -> None:
+        """Remember the camera's frame, bootstrap the pan phase, ask for teammate images,
+        expire lost requests."""
+        cfg = self.config
+        self._now = max(self._now, now_s)
+        pose = (float(pose_in_odom[0]), float(pose_in_odom[1]), float(pose_in_odom[2]))
+        if self.pan_phase_s is None:
+            # two images a few tenths of a second apart settle the schedule's phase
+            if self._bootstrap_asks < 2 and now_s - self._last_fiducial_ask_s >= 0.4:
+                self._ask(now_s, [])
+                self._last_fiducial_ask_s = now_s
+                self._bootstrap_asks += 1
+            elif self._bootstrap_asks >= 2 and not self._pending and not self._queued:
+                self._bootstrap_asks = 0  # answers lost or ambiguous: ask again
+        elif now_s - self._last_frame_s >= cfg.frame_period_s - 1e-9:
+            pan = pan_at(now_s, cfg.memory.mount, self.pan_phase_s)
+            if self.memory.record(RememberedFrame(now_s, pan, cfg.memory.mount.tilt_rad, pose)):
+                self._last_frame_s = now_s
+        if (
+            self.pan_phase_s is not None
+            and cfg.fiducial_period_s > 0
+            and now_s - self._last_fiducial_ask_s >= cfg.fiducial_period_s
+        ):
+            self._ask(now_s, [])
+            self._last_fiducial_ask_s = now_s
+        for rid in [r for r, q in self._pending.items() if now_s - q.asked_s > cfg.image_timeout_s]:
+            del self._pending[rid]
+            self.stats.images_lost += 1
+
+    def _ask(self, frame_time_s: float, jobs: list[_Job]) -> None:
+        cfg = self.config.memory
+        rid = self._next_request_id
+        self._next_request_id += 1
+        self._queued.append(ImageRequest(rid, float(frame_time_s), cfg.width_px, cfg.height_px))
+        self._pending[rid] = _Request(rid, frame_time_s, self._now, jobs)
+        self.stats.images_requested += 1
+
+    # ------------------------------------------------------------------ sweeps
+
+    def on_sweep(
+        self,
+        points_in_odom: NDArray[np.float64],
+        pose_in_odom: NDArray[np.float64],
+        time_s: float,
+    ) -> None:
+        """One de-skewed sweep (points in ``odom``; ``pose_in_odom``: the robot at ``time_s``,
+        the sweep's middle). A sweep the detector refuses is counted, not raised."""
+        cfg = self.config
+        self.stats.sweeps += 1
+        pts = np.asarray(points_in_odom, dtype=np.float64).reshape(-1, 3)
+        finite = np.isfinite(pts).all(axis=1)
+        if not finite.all():
+            self.stats.nonfinite_points += int((~finite).sum())
+            pts = pts[finite]
+        pose = np.asarray(pose_in_odom, dtype=np.float64)
+        if not (np.all(np.isfinite(pose)) and math.isfinite(time_s)):
+            self.stats.skipped_sweeps += 1
+            return
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        sensor = pose[:2] + [c * _LIDAR_IN_BASE_M[0], s * _LIDAR_IN_BASE_M[0]]
+        t0 = time.thread_time()
+        try:
+            out = self.lidar.process(pts, sensor, time_s)
+        except ValueError as err:
+            self.stats.skipped_sweeps += 1
+            log.warning("robot %d: perception skipped a sweep: %s", self.robot_id, err)
+            return
+        self.stats.sweep_cpu_ms.append(_cpu_ms(t0))
+        jobs: list[tuple[RememberedFrame, _Job]] = []
+        for cand in out.cylinders:
+            xy = (float(cand.position_in_odom[0]), float(cand.position_in_odom[1]))
+            rng = math.hypot(xy[0] - pose[0], xy[1] - pose[1])
+            if rng > cfg.candidate_max_range_m:
+                continue
+            self.stats.candidates += 1
+            known = self.registry.nearest(xy, cfg.refine_m)
+            if known is not None:
+                self._fuse(int(known.kind), xy, cand.radius_m, cand.height_m, rng, time_s, 0.5)
+                self.stats.refined_without_image += 1
+                continue
+            if not self._may_test(xy, time_s) or self._job_pending(xy):
+                continue
+            job = _Job("cylinder", xy, float(cand.radius_m), float(max(cand.height_m, 0.3)), 0, rng)
+            frame = self.memory.choose(Candidate(xy, job.radius_m, job.height_m))
+            if frame is None:
+                self.stats.no_frame += 1
+                continue
+            jobs.append((frame, job))
+        for t in out.people:
+            self._person_jobs(t, time_s, jobs)
+        self._report_people(max(self._now, time_s))
+        hostile_now = any(t.kind == ObjectKind.HOSTILE for t in self.lidar.tracker.tracks)
+        if hostile_now or self._had_hostiles:
+            self._hazards_changed = True  # hostiles move: their disks move with them
+        self._had_hostiles = hostile_now
+        by_frame: dict[float, list[_Job]] = {}
+        for frame, job in jobs:
+            by_frame.setdefault(frame.time_s, []).append(job)
+        for frame_t in sorted(by_frame, reverse=True)[: cfg.max_requests_per_sweep]:
+            self._ask(frame_t, by_frame[frame_t])
+
+    def _person_jobs(
+        self, track: object, time_s: float, jobs: list[tuple[RememberedFrame, _Job]]
+    ) -> None:
+        from robot.perception.person_tracker import PersonTrack
+
+        assert isinstance(track, PersonTrack)
+        cfg = self.config
+        if track.kind != 0:
+            return
+        n, last = self._person_tested.get(track.track_id, (0, -math.inf))
+        if n >= cfg.max_negative_tests or time_s - last < cfg.retest_after_s:
+            return
+        if any(j.track_id == track.track_id for q in self._pending.values() for j in q.jobs):
+            return
+        for frame in reversed(self.memory.frames):
+            if time_s - frame.time_s > cfg.person_frame_window_s:
+                break
+            if frame.time_s > time_s + 1.0:
+                continue
+            p = track.position_m - (time_s - frame.time_s) * track.velocity_m_s
+            xy = (float(p[0]), float(p[1]))
+            job = _Job("person", xy, cfg.person_radius_m, cfg.person_height_m, track.track_id)
+            if self.memory.projects_fully(frame, Candidate(xy, job.radius_m, job.height_m)):
+                self._person_tested[track.track_id] = (n + 1, time_s)
+                jobs.append((frame, job))
+                return
+
+    def _report_people(self, time_s: float) -> None:
+        """Report labelled people tracks: hostiles every ``hostile_report_period_s``,
+        civilians once. Tracks of one kind closer than ``person_merge_m`` are one person (a
+        tracker may split one walker into two tracks): one detection id, the best-placed
+        track's estimate; tracks placed worse than ``max_report_sigma_m`` wait."""
+        cfg = self.config
+        tracks = [
+            t
+            for t in self.lidar.tracker.tracks
+            if t.confirmed
+            and t.kind in (ObjectKind.HOSTILE, ObjectKind.CIVILIAN)
+            and float(np.sqrt(np.linalg.eigvalsh(t.position_cov)[-1])) <= cfg.max_report_sigma_m
+        ]
+        tracks.sort(key=lambda t: float(np.trace(t.position_cov)))
+        used: set[int] = set()
+        for t in tracks:
+            if t.track_id in used:
+                continue
+            cluster = [
+                u
+                for u in tracks
+                if u.track_id not in used
+                and u.kind == t.kind
+                and float(np.hypot(*(u.position_m - t.position_m))) < cfg.person_merge_m
+            ]
+            used.update(u.track_id for u in cluster)
+            did = next(
+                (self._track_ids[u.track_id] for u in cluster if u.track_id in self._track_ids),
+                None,
+            )
+            if did is None:
+                did = self.registry.new_id()
+            for u in cluster:
+                self._track_ids[u.track_id] = did
+            kind = ObjectKind(t.kind)
+            last = self._reported_at.get(did)
+            if last is not None and (
+                kind == ObjectKind.CIVILIAN or time_s - last < cfg.hostile_report_period_s
+            ):
+                continue  # civilians once: nothing to avoid, nothing to dispatch
+            self._reported_at[did] = time_s
+            p, v = t.position_m, t.velocity_m_s
+            self._detections.append(
+                OdomDetection(
+                    did,
+                    kind,
+                    t.time_s,
+                    (float(p[0]), float(p[1])),
+                    t.position_cov + np.eye(2) * cfg.registry.min_sigma_m**2,
+                    cfg.person_radius_m,
+                    cfg.person_height_m,
+                    0.9,
+                    (float(v[0]), float(v[1])),
+                )
+            )
+            self.stats.detections += 1
+            if kind == ObjectKind.HOSTILE:
+                self.stats.hostile_reports += 1
+                self._hazards_changed = True
+        live = {t.track_id for t in self.lidar.tracker.tracks}
+        self._track_ids = {k: v for k, v in self._track_ids.items() if k in live}
+
+    def _cell(self, xy: tuple[float, float]) -> tuple[int, int]:
+        m = self.config.negative_cell_m
+        return (int(math.floor(xy[0] / m)), int(math.floor(xy[1] / m)))
+
+    def _may_test(self, xy: tuple[float, float], time_s: float) -> bool:
+        cfg = self.config
+        n, last = self._negative.get(self._cell(xy), (0, -math.inf))
+        return n < cfg.max_negative_tests and time_s - last >= cfg.retest_after_s
+
+    def _job_pending(self, xy: tuple[float, float]) -> bool:
+        for q in self._pending.values():
+            for j in q.jobs:
+                if j.kind == "cylinder" and math.dist(j.xy_in_odom, xy) < self.config.refine_m:
+                    return True
+        return False
+
+    def _fuse(
+        self,
+        kind: int,
+        xy: tuple[float, float],
+        radius_m: float,
+        height_m: float,
+        range_m: float,
+        time_s: float,
+        confidence: float,
+    ) -> int:
+        cfg = self.config
+        sigma = cfg.pos_sigma_m + cfg.pos_sigma_per_m * range_m
+        n_before = len(self.registry)
+        obj, due = self.registry.observe(
+            kind, xy, np.eye(2) * sigma**2, radius_m=radius_m, height_m=height_m, time_s=time_s
+        )
+        if len(self.registry) != n_before:
+            self.stats.objects += 1
+        if due:
+            self.registry.mark_reported(obj)
+            self._detections.append(
+                OdomDetection(
+                    obj.detection_id,
+                    ObjectKind(obj.kind),
+                    time_s,
+                    (float(obj.position_in_odom[0]), float(obj.position_in_odom[1])),
+                    obj.covariance.copy(),
+                    obj.radius_m,
+                    obj.height_m,
+                    confidence,
+                )
+            )
+            self.stats.detections += 1
+            if obj.kind == ObjectKind.STATIC_OOI:
+                self._hazards_changed = True
+        return obj.detection_id
+
+    # ------------------------------------------------------------------ images
+
+    def on_image(self, image: CameraImage, pose_at: Callable[[float], NDArray[np.float64]]) -> None:
+        """An answered :class:`ImageRequest`: colour tests of its jobs and teammates' tags.
+        ``pose_at(t)``: the robot's ``odom`` pose at time ``t`` (odometry)."""
+        cfg = self.config
+        req = self._pending.pop(image.request_id, None)
+        if req is None:
+            self.stats.images_unexpected += 1
+            return
+        self.stats.images_received += 1
+        vals = (image.time_s, image.camera_pan_rad, image.camera_tilt_rad, image.fx_px, image.fy_px)
+        rgb = np.asarray(image.rgb)
+        if not all(math.isfinite(v) for v in vals) or rgb.ndim != 3 or rgb.shape[2] != 3:
+            self.stats.bad_images += 1
+            return
+        if len(self._pan_samples) < 8:
+            self._pan_samples.append((float(image.time_s), float(image.camera_pan_rad)))
+            if len(self._pan_samples) >= 2:
+                phase, rms = fit_pan_phase(self._pan_samples, cfg.memory.mount)
+                if rms < 0.05:
+                    self.pan_phase_s = phase
+        h, w = rgb.shape[:2]
+        intr = Intrinsics(image.fx_px, image.fy_px, image.cx_px, image.cy_px, w, h)
+        pose = np.asarray(pose_at(float(image.time_s)), dtype=np.float64)
+        pose_t = (float(pose[0]), float(pose[1]), float(pose[2]))
+        cam = cfg.memory.mount.camera_in_base_m
+        for job in req.jobs + self._opportunistic_person_jobs(image, pose_t, req.jobs):
+            rel = relative(pose, np.array([job.xy_in_odom[0], job.xy_in_odom[1], 0.0]))
+            t0 = time.thread_time()
+            # a person moves during the sweep that placed it: try it a little to either side
+            # across the line of sight, keep the strongest person colour
+            shifts = cfg.person_shifts_m if job.kind == "person" else (0.0,)
+            across = np.array([-rel[1], rel[0]]) / max(1e-6, float(np.hypot(rel[0], rel[1])))
+            res = None
+            try:
+                for d in shifts:
+                    r = classify_candidate(
+                        rgb,
+                        (float(rel[0] + d * across[0]), float(rel[1] + d * across[1])),
+                        job.radius_m,
+                        job.height_m,
+                        image.camera_pan_rad,
+                        image.camera_tilt_rad,
+                        intr,
+                        cam,
+                        self.colour,
+                    )
+                    if r is None or (job.kind == "person" and r.label not in _PERSON_KIND):
+                        continue
+                    if res is None or r.fraction > res.fraction:
+                        res = r
+                    if res.fraction >= 0.6:
+                        break  # clear enough
+            except ValueError as err:
+                self.stats.bad_images += 1
+                log.warning("robot %d: colour test skipped: %s", self.robot_id, err)
+                continue
+            if job.kind == "cylinder":
+                self.stats.colour_cpu_ms.append(_cpu_ms(t0))
+            else:
+                self.stats.person_colour_cpu_ms.append(_cpu_ms(t0))
+            self.stats.colour_tests += 1
+            label = "other" if res is None else res.label
+            if job.kind == "cylinder":
+                kind = _COLOUR_KIND.get(label)
+                if kind is None or res is None:
+                    self.stats.colour_other += 1
+                    cell = self._cell(job.xy_in_odom)
+                    n, _ = self._negative.get(cell, (0, -math.inf))
+                    self._negative[cell] = (n + 1, self._now)
+                    continue
+                did = self._fuse(
+                    int(kind),
+                    job.xy_in_odom,
+                    job.radius_m,
+                    job.height_m,
+                    job.range_m,
+                    float(image.time_s),
+                    float(res.fraction),
+                )
+                self._keep_thumb(did, rgb, res.bbox_px, float(image.time_s), image.camera_pan_rad)
+            else:
+                pkind = _PERSON_KIND.get(label)
+                if pkind is None or res is None:
+                    continue
+                try:
+                    self.lidar.tracker.set_kind(job.track_id, int(pkind))
+                except KeyError:
+                    continue  # the track ended meanwhile
+                self._report_people(self._now)
+                tdid = self._track_ids.get(job.track_id)
+                if tdid is not None:
+                    self._keep_thumb(
+                        tdid, rgb, res.bbox_px, float(image.time_s), image.camera_pan_rad
+                    )
+        try:
+            sightings, dropped = estimate_teammates(
+                rgb,
+                intr,
+                image.camera_pan_rad,
+                image.camera_tilt_rad,
+                own_robot_id=self.robot_id,
+                config=cfg.fiducial,
+            )
+        except (ValueError, np.linalg.LinAlgError) as err:
+            self.stats.bad_images += 1
+            log.warning("robot %d: fiducial search skipped: %s", self.robot_id, err)
+            return
+        self.stats.fiducial_dropped += dropped
+        for s in sightings:
+            self._fiducials.append(FiducialSighting(s, float(image.time_s), pose_t))
+            self.stats.fiducials += 1
+
+    def _opportunistic_person_jobs(
+        self, image: CameraImage, pose: tuple[float, float, float], jobs: list[_Job]
+    ) -> list[_Job]:
+        """Unlabelled people tracks that happen to project fully into ``image`` (asked for
+        something else): their colour test costs no extra image."""
+        cfg = self.config
+        asked = {j.track_id for j in jobs if j.kind == "person"}
+        frame = RememberedFrame(image.time_s, image.camera_pan_rad, image.camera_tilt_rad, pose)
+        out: list[_Job] = []
+        for t in self.lidar.tracker.tracks:
+            if not t.confirmed or t.kind != 0 or t.track_id in asked:
+                continue
+            if abs(t.time_s - image.time_s) > cfg.person_frame_window_s:
+                continue
+            p = t.position_m - (t.time_s - image.time_s) * t.velocity_m_s
+            job = _Job(
+                "person",
+                (float(p[0]), float(p[1])),
+                cfg.person_radius_m,
+                cfg.person_height_m,
+                t.track_id,
+            )
+            if self.memory.projects_fully(
+                frame, Candidate(job.xy_in_odom, job.radius_m, job.height_m)
+            ):
+                out.append(job)
+        return out
+
+    def _keep_thumb(
+        self,
+        detection_id: int,
+        rgb: NDArray[np.uint8],
+        bbox: tuple[int, int, int, int],
+        time_s: float,
+        pan_rad: float,
+    ) -> None:
+        """Keep a margin-grown crop (not the whole image) for a later thumbnail request."""
+        h, w = rgb.shape[:2]
+        u0, v0, u1, v1 = bbox
+        mu, mv = (u1 - u0) // 2 + 2, (v1 - v0) // 2 + 2
+        a0, b0 = max(0, u0 - mu), max(0, v0 - mv)
+        a1, b1 = min(w, u1 + mu + 1), min(h, v1 + mv + 1)
+        crop = np.ascontiguousarray(rgb[b0:b1, a0:a1])
+        self._thumbs.pop(detection_id, None)
+        self._thumbs[detection_id] = _Thumb(
+            crop, (u0 - a0, v0 - b0, u1 - a0, v1 - b0), time_s, pan_rad
+        )
+        while len(self._thumbs) > self.config.thumbnails_kept:
+            del self._thumbs[next(iter(self._thumbs))]
+
+    def on_thumbnail_request(self, request: ThumbnailRequest) -> DetectionImage | None:
+        """The thumbnail of detection ``request.detection_id`` (None, counted, if this robot
+        has no image of it)."""
+        th = self._thumbs.get(request.detection_id)
+        if th is None:
+            self.stats.thumbnail_unknown += 1
+            return None
+        max_bytes = request.max_bytes if request.max_bytes > 0 else self.config.thumbnail_max_bytes
+        t = make_thumbnail(th.crop, th.bbox_in_crop, max_bytes=max_bytes)
+        self.stats.thumbnails += 1
+        return DetectionImage(
+            request.request_id,
+            request.detection_id,
+            th.time_s,
+            th.pan_rad,
+            t.encoding,
+            t.width,
+            t.height,
+            t.data,
+        )
