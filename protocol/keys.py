@@ -4,6 +4,7 @@
 
     magic/<mission>/robot/<id>/up/<stream>      robot -> GCS radio traffic (metered)
     magic/<mission>/robot/<id>/down/<stream>    GCS -> robot radio traffic (metered)
+    magic/<mission>/broadcast/down/<stream>     GCS -> every robot in range (metered once)
     magic/<mission>/gcs/<topic>                 GCS command queryable, state for consoles/views
     magic/<mission>/sim/clock                   mission clock
     magic/<mission>/sim/robot/<id>/sensors      sensor frames for a remote robot node
@@ -21,6 +22,9 @@ from protocol.messages import STREAMS, Direction
 
 __all__ = [
     "RadioKey",
+    "broadcast",
+    "broadcast_wildcard",
+    "parse_broadcast_key",
     "gcs",
     "parse_radio_key",
     "radio",
@@ -51,7 +55,8 @@ def _robot(robot_id: int) -> str:
 
 def radio(mission: str, robot_id: int, direction: Direction, stream: str) -> str:
     """Key of one radio stream of one robot."""
-    if stream not in STREAMS[direction]:
+    spec = STREAMS[direction].get(stream)
+    if spec is None or spec.broadcast:
         raise ValueError(f"no {direction.value}link stream named {stream!r}")
     return (
         f"{ROOT}/{_chunk(mission, 'mission')}/robot/{_robot(robot_id)}/{direction.value}/{stream}"
@@ -62,6 +67,31 @@ def radio_wildcard(mission: str, direction: Direction, robot_id: int | None = No
     """All streams of ``direction`` for one robot, or for every robot when ``robot_id`` is None."""
     who = "*" if robot_id is None else _robot(robot_id)
     return f"{ROOT}/{_chunk(mission, 'mission')}/robot/{who}/{direction.value}/*"
+
+
+def broadcast(mission: str, stream: str) -> str:
+    """Key of one broadcast stream (GCS to every robot, paper 4.1)."""
+    spec = STREAMS[Direction.DOWN].get(stream)
+    if spec is None or not spec.broadcast:
+        raise ValueError(f"no broadcast stream named {stream!r}")
+    return f"{ROOT}/{_chunk(mission, 'mission')}/broadcast/down/{stream}"
+
+
+def broadcast_wildcard(mission: str) -> str:
+    """Every broadcast stream of ``mission``."""
+    return f"{ROOT}/{_chunk(mission, 'mission')}/broadcast/down/*"
+
+
+def parse_broadcast_key(key: str) -> str | None:
+    """The stream of a broadcast key; None if ``key`` is not one (ValueError naming the key
+    for a broadcast key with an unknown stream)."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != ROOT or parts[2] != "broadcast" or parts[3] != "down":
+        return None
+    spec = STREAMS[Direction.DOWN].get(parts[4])
+    if spec is None or not spec.broadcast:
+        raise ValueError(f"broadcast key {key!r}: no broadcast stream {parts[4]!r}")
+    return parts[4]
 
 
 @dataclass(frozen=True)
@@ -85,7 +115,8 @@ def parse_radio_key(key: str) -> RadioKey:
     ):
         raise ValueError(f"not a radio key: {key!r}")
     direction = Direction(parts[4])
-    if parts[5] not in STREAMS[direction]:
+    spec = STREAMS[direction].get(parts[5])
+    if spec is None or spec.broadcast:
         raise ValueError(f"radio key {key!r}: no {direction.value}link stream {parts[5]!r}")
     return RadioKey(parts[1], int(parts[3]), direction, parts[5])
 

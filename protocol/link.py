@@ -42,7 +42,12 @@ from protocol.clock import Clock, WallClock
 from protocol.messages import STREAMS, Direction
 from protocol.meter import Meter
 from protocol.radio import RadioConfig, RadioGrant
-from protocol.radio_channel import RadioChannel, ReliabilityConfig
+from protocol.radio_channel import (
+    BroadcastChannel,
+    RadioChannel,
+    ReliabilityConfig,
+    coalesced_ack,
+)
 from protocol.sensors import (
     RobotCommand,
     SensorFrame,
@@ -175,8 +180,12 @@ class _Endpoint:
                 grant_bps=cfg.initial_grant_bps,
                 seed=self._link.seed * 1_000_003 + robot_id,
             )
+            self._setup_channel(ch)
             self._channels[robot_id] = ch
         return ch
+
+    def _setup_channel(self, ch: RadioChannel) -> None:
+        """Hook for a side's own wiring of a new channel."""
 
     def _publisher(self, robot_id: int, stream: str) -> Any:
         pub = self._publishers.get((robot_id, stream))
@@ -268,14 +277,25 @@ class _Endpoint:
         addr = self._key_cache.get(key)
         if addr is None:
             try:
-                parsed = keys.parse_radio_key(key)
+                stream = keys.parse_broadcast_key(key)
+                if stream is not None:
+                    rid = self._broadcast_robot_id()
+                    if rid is None:
+                        raise ValueError(f"broadcast key {key!r} on a GCS endpoint")
+                    addr = (rid, stream)
+                else:
+                    parsed = keys.parse_radio_key(key)
+                    addr = (parsed.robot_id, parsed.stream)
             except ValueError as err:
                 self.rejected_keys += 1
                 log.warning("ignoring %s", err)
                 return None
-            addr = (parsed.robot_id, parsed.stream)
             self._key_cache[key] = addr
         return addr
+
+    def _broadcast_robot_id(self) -> int | None:
+        """The robot whose channel takes broadcasts heard here (None: none does)."""
+        return None
 
     def _handle_sample(self, sample: Any) -> None:
         addr = self._address(str(sample.key_expr))
@@ -369,8 +389,17 @@ class RobotEndpoint(_Endpoint):
             keys.radio_wildcard(link.mission, Direction.DOWN, robot_id), self._on_sample
         )
         self._subs.append(Subscription(sub))
+        # broadcasts (paper 4.1): heard by every robot; its channel decides whether it was
+        # in range and whether the message survived the air
+        sub = link._session.declare_subscriber(
+            keys.broadcast_wildcard(link.mission), self._on_sample
+        )
+        self._subs.append(Subscription(sub))
         if follow_radio:
             self._follow_radio(robot_id)
+
+    def _broadcast_robot_id(self) -> int | None:
+        return self.robot_id
 
     def send(self, message: Any) -> int:
         """Queue an uplink message; returns its stream sequence number."""
@@ -404,9 +433,19 @@ class RobotEndpoint(_Endpoint):
 
 
 class GcsEndpoint(_Endpoint):
-    """The GCS side: one radio channel per robot, created when the robot is first heard from.
+    """The GCS side: one radio channel per robot, created when the robot is first heard from,
+    and one broadcast to every robot (paper 4.1).
 
-    ``on_message(robot_id, message)`` receives every robot's uplink.
+    ``on_message(robot_id, message)`` receives every robot's uplink. :meth:`broadcast` sends
+    a message once to every robot in range (hazards and every robot's ``map_from_odom``:
+    :class:`~protocol.messages.HazardUpdate`), metered once; robots receive it like any
+    downlink message. ``coalesce_acks`` (default): the acknowledgements of every robot's
+    uplink go out together as one broadcast :class:`~protocol.messages.BroadcastAck` when one
+    of them is due, instead of one radio message per robot.
+
+    Lockstep drivers count arrivals per robot: ``packets_out_by_robot[rid]`` includes every
+    broadcast packet put on the air while robot ``rid``'s channel existed (every robot whose
+    grant was set), since each robot's endpoint receives each broadcast.
     """
 
     sends = Direction.DOWN
@@ -417,7 +456,18 @@ class GcsEndpoint(_Endpoint):
         *,
         on_message: Callable[[int, Any], None] | None = None,
         follow_radio: bool = False,
+        coalesce_acks: bool = True,
     ) -> None:
+        cfg = link.config
+        self.coalesce_acks = coalesce_acks
+        self._broadcast = BroadcastChannel(
+            config=cfg.reliability,
+            framing_overhead_bytes=cfg.radio.framing_overhead_bytes,
+            meter=link.meter,
+            grant_bps=cfg.initial_grant_bps,
+        )
+        self._broadcast_publishers: dict[str, Any] = {}
+        self.broadcast_packets_out = 0
         super().__init__(link, on_message)
         sub = link._session.declare_subscriber(
             keys.radio_wildcard(link.mission, Direction.UP), self._on_sample
@@ -430,6 +480,68 @@ class GcsEndpoint(_Endpoint):
         """Queue a downlink message for ``robot_id``; returns its stream sequence number."""
         with self._lock:
             return self._channel(robot_id).send(message)
+
+    def broadcast(self, message: Any) -> int:
+        """Queue ``message`` (a :class:`~protocol.messages.HazardUpdate`) once for every robot
+        in range; returns its broadcast sequence number. Latest-reliable: a newer one
+        supersedes it; it is resent until every robot in range acknowledged it."""
+        with self._lock:
+            return self._broadcast.send(message)
+
+    def set_broadcast_grant(self, rate_bps: float) -> None:
+        """The broadcast's share of the shared channel (bits per mission second)."""
+        with self._lock:
+            self._broadcast.set_grant(rate_bps)
+
+    @property
+    def broadcast_channel(self) -> BroadcastChannel:
+        """The broadcast's state machine; read its ``stats`` freely."""
+        return self._broadcast
+
+    def demand(self, robot_id: int) -> int:
+        """Bytes robot ``robot_id`` last reported still queued for the air (its backlog,
+        carried in its acks): what the GCS grants air time by (issue 16)."""
+        with self._lock:
+            ch = self._channels.get(robot_id)
+            return 0 if ch is None else ch.peer_backlog_bytes
+
+    def _setup_channel(self, ch: RadioChannel) -> None:
+        ch.external_acks = self.coalesce_acks
+        ch.on_broadcast_ack = self._broadcast.on_robot_ack
+
+    def _pump(self, now: float) -> int:
+        n = super()._pump(now)
+        with self._lock:
+            if self.coalesce_acks and not self._broadcast.queued("ack_broadcast"):
+                ack = coalesced_ack(self._channels, now)
+                if ack is not None:
+                    self._broadcast.send(ack)
+            in_range = frozenset(r for r, ch in self._channels.items() if ch.rate_bps > 0)
+            packets = self._broadcast.poll(now, in_range)
+            robots = list(self._channels)
+        for pkt in packets:
+            pub = self._broadcast_publishers.get(pkt.stream)
+            if pub is None:
+                pub = self._link._session.declare_publisher(
+                    keys.broadcast(self._link.mission, pkt.stream),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
+                self._broadcast_publishers[pkt.stream] = pub
+            pub.put(pkt.payload)
+        if packets:
+            k = len(packets)
+            self.broadcast_packets_out += k
+            self.packets_out += k
+            by_robot = self.packets_out_by_robot
+            for rid in robots:
+                by_robot[rid] = by_robot.get(rid, 0) + k
+        return n + len(packets)
+
+    def _close(self) -> None:
+        super()._close()
+        for pub in self._broadcast_publishers.values():
+            pub.undeclare()
+        self._broadcast_publishers.clear()
 
     def set_grant(self, robot_id: int, grant: RadioGrant) -> None:
         """Apply a radio grant for ``robot_id`` (its ``downlink_bps`` and ``loss``)."""

@@ -46,6 +46,8 @@ from protocol.wire import (
 __all__ = [
     "Ack",
     "AckEntry",
+    "BROADCAST_ROBOT_ID",
+    "BroadcastAck",
     "AutonomyMode",
     "Detection",
     "DetectionImage",
@@ -57,15 +59,18 @@ __all__ = [
     "GoToTask",
     "Hazard",
     "HazardUpdate",
+    "HazardUpdateCoded",
     "IdleTask",
     "NeutralizeTask",
     "ObjectKind",
     "ParameterUpdate",
     "PauseTask",
     "PoseNode",
+    "PoseNodeCoded",
     "RelayTask",
     "Reliability",
     "ResumeTask",
+    "RobotAck",
     "RobotFrame",
     "STREAMS",
     "StreamSpec",
@@ -77,13 +82,18 @@ __all__ = [
     "covariance_from_upper",
     "covariance_to_upper",
     "TerrainGrid",
+    "TerrainGridCoded",
     "ThumbnailRequest",
     "UplinkFrame",
     "UplinkMessage",
     "decode_frame",
     "encode_frame",
+    "broadcast_stream_of",
     "stream_of",
 ]
+
+#: The robot id under which broadcast traffic is metered (once, on the shared channel).
+BROADCAST_ROBOT_ID = -1
 
 F2 = tuple[float, float]
 F3 = tuple[float, float, float]
@@ -180,9 +190,15 @@ class AckEntry(msgspec.Struct, array_like=True, frozen=True, gc=False, omit_defa
 
 
 class Ack(_Message, tag=0, frozen=True):
-    """Acknowledges reliable streams of the opposite direction (both directions use it)."""
+    """Acknowledges reliable streams of the opposite direction (both directions use it).
+
+    ``backlog_bytes``: reliable bytes the sender of this ack still has queued for the air
+    (its demand; a robot's tells the GCS how much air time it needs, issue 16). An ack also
+    rides inside a data frame (:class:`Frame` ``ack``) instead of going on its own.
+    """
 
     entries: list[AckEntry]
+    backlog_bytes: int = 0
 
 
 # ----------------------------------------------------------------------------- robot -> GCS
@@ -204,6 +220,21 @@ class PoseNode(_Message, tag=1, frozen=True):
     pose_in_odom: F3
     odom_delta: F3
     odom_covariance: F6
+
+
+class PoseNodeCoded(_Message, tag=8, frozen=True):
+    """A :class:`PoseNode` as the radio carries it: coded against the stream's previous node
+    (:class:`protocol.stream_coding.PoseNodeCoder`). Made and undone by the radio channel;
+    nodes and the GCS only ever see :class:`PoseNode`."""
+
+    data: bytes
+
+
+class TerrainGridCoded(_Message, tag=9, frozen=True):
+    """A :class:`TerrainGrid` as the radio carries it (node index against the previous grid,
+    resolution only when it changes: :class:`protocol.stream_coding.TerrainGridCoder`)."""
+
+    data: bytes
 
 
 class TerrainGrid(_Message, tag=2, frozen=True):
@@ -431,8 +462,37 @@ class HazardUpdate(_Message, tag=32, frozen=True):
     frames: list[RobotFrame]
 
 
+class HazardUpdateCoded(_Message, tag=36, frozen=True):
+    """A :class:`HazardUpdate` as the broadcast carries it: ``frames`` packed as robot-id
+    differences and quantised ``map_from_odom`` (:mod:`protocol.stream_coding`). Made and
+    undone by the radio; robots only ever see :class:`HazardUpdate`."""
+
+    time_s: float
+    hazards: list[Hazard]
+    frames: bytes
+
+
+class RobotAck(msgspec.Struct, array_like=True, frozen=True, gc=False, omit_defaults=True):
+    """One robot's share of a :class:`BroadcastAck`: what the GCS acknowledges of its uplink."""
+
+    robot_id: int
+    entries: list[AckEntry]
+
+
+class BroadcastAck(_Message, tag=35, frozen=True):
+    """The GCS's acknowledgements of many robots' uplinks, coalesced into one broadcast
+    (one radio message and one framing for the whole team instead of one per robot)."""
+
+    acks: list[RobotAck]
+
+
 class ParameterUpdate(_Message, tag=33, frozen=True):
-    """Set a robot parameter at run time by dotted name (e.g. ``planner.clearance_m``)."""
+    """Set a robot parameter at run time by dotted name (e.g. ``planner.clearance_m``).
+
+    Names under ``link.`` are the radio link's own and are consumed by the robot's channel,
+    never delivered to the node: ``link.telemetry_period_s`` (float, mission seconds: the
+    least time between two telemetry messages on the air; 0 lifts the limit).
+    """
 
     name: str
     value: bool | int | float | str
@@ -453,14 +513,24 @@ TaskMessage = GoToTask | NeutralizeTask | PauseTask | ResumeTask | RelayTask | I
 UplinkMessage = (
     Ack
     | PoseNode
+    | PoseNodeCoded
     | TerrainGrid
+    | TerrainGridCoded
     | FiducialObservation
     | Detection
     | DetectionImage
     | Telemetry
     | TaskStatus
 )
-DownlinkMessage = Ack | TaskMessage | HazardUpdate | ParameterUpdate | ThumbnailRequest
+DownlinkMessage = (
+    Ack
+    | TaskMessage
+    | HazardUpdate
+    | HazardUpdateCoded
+    | ParameterUpdate
+    | ThumbnailRequest
+    | BroadcastAck
+)
 
 
 # ----------------------------------------------------------------------------- streams
@@ -482,7 +552,9 @@ class StreamSpec:
     """One logical stream of one direction: its key name, id, queue priority and semantics.
 
     Lower ``priority`` drains first (DESIGN section 4: acks and task status first, then
-    detections, pose nodes, fiducials, terrain grids, telemetry, images).
+    detections, pose nodes, fiducials, terrain grids, telemetry, images). ``broadcast``
+    streams go from the GCS to every robot in range at once (paper 4.1), metered once; their
+    reliable kinds are acknowledged by each robot in its ordinary uplink ack.
     """
 
     name: str
@@ -491,12 +563,17 @@ class StreamSpec:
     priority: int
     reliability: Reliability
     types: tuple[type, ...]
+    broadcast: bool = False
 
 
 def _spec(
     name: str, sid: int, d: Direction, prio: int, rel: Reliability, *types: type
 ) -> StreamSpec:
     return StreamSpec(name, sid, d, prio, rel, types)
+
+
+def _bspec(name: str, sid: int, prio: int, rel: Reliability, *types: type) -> StreamSpec:
+    return StreamSpec(name, sid, Direction.DOWN, prio, rel, types, broadcast=True)
 
 
 _UP, _DOWN = Direction.UP, Direction.DOWN
@@ -510,9 +587,9 @@ STREAMS: dict[Direction, dict[str, StreamSpec]] = {
             _spec("ack", 0, _UP, 0, _L, Ack),
             _spec("task_status", 1, _UP, 1, _R, TaskStatus),
             _spec("detection", 2, _UP, 2, _R, Detection),
-            _spec("pose_node", 3, _UP, 3, _R, PoseNode),
+            _spec("pose_node", 3, _UP, 3, _R, PoseNode, PoseNodeCoded),
             _spec("fiducial", 4, _UP, 4, _R, FiducialObservation),
-            _spec("terrain_grid", 5, _UP, 5, _R, TerrainGrid),
+            _spec("terrain_grid", 5, _UP, 5, _R, TerrainGrid, TerrainGridCoded),
             _spec("telemetry", 6, _UP, 6, _L, Telemetry),
             _spec("detection_image", 7, _UP, 7, _R, DetectionImage),
         )
@@ -525,12 +602,21 @@ STREAMS: dict[Direction, dict[str, StreamSpec]] = {
             _spec("hazard_update", 2, _DOWN, 2, _LR, HazardUpdate),
             _spec("parameter_update", 3, _DOWN, 3, _R, ParameterUpdate),
             _spec("thumbnail_request", 4, _DOWN, 4, _R, ThumbnailRequest),
+            _bspec("ack_broadcast", 5, 0, _L, BroadcastAck),
+            _bspec("hazard_broadcast", 6, 2, _LR, HazardUpdate, HazardUpdateCoded),
         )
     },
 }
 
 _STREAM_OF: dict[tuple[Direction, type], StreamSpec] = {
-    (d, t): spec for d, specs in STREAMS.items() for spec in specs.values() for t in spec.types
+    (d, t): spec
+    for d, specs in STREAMS.items()
+    for spec in specs.values()
+    if not spec.broadcast
+    for t in spec.types
+}
+_BROADCAST_OF: dict[type, StreamSpec] = {
+    t: spec for spec in STREAMS[Direction.DOWN].values() if spec.broadcast for t in spec.types
 }
 
 
@@ -544,6 +630,14 @@ def stream_of(direction: Direction, message: Any) -> StreamSpec:
         ) from None
 
 
+def broadcast_stream_of(message: Any) -> StreamSpec:
+    """The broadcast stream that carries ``message``; ``ProtocolError`` if none does."""
+    try:
+        return _BROADCAST_OF[type(message)]
+    except KeyError:
+        raise ProtocolError(f"{type(message).__name__} is not a broadcast message") from None
+
+
 # ----------------------------------------------------------------------------- frames
 
 
@@ -551,12 +645,15 @@ class Frame(msgspec.Struct, array_like=True, frozen=True, gc=False):
     """What one radio message carries: protocol version, stream sequence number, message.
 
     ``seq`` counts from 1 per (robot, direction, stream) on reliable streams and orders latest
-    streams; 0 for acks. The stream and robot are addressed by the key expression.
+    streams; 0 for acks. The stream and robot are addressed by the key expression. ``ack``:
+    acknowledgements of the opposite direction riding along (coalesced: no radio message and
+    framing of their own), absent when there are none.
     """
 
     version: int
     seq: int
     msg: Any
+    ack: Ack | None = None
 
 
 class UplinkFrame(Frame, frozen=True, gc=False):
@@ -583,9 +680,12 @@ _TAGS = {
 _FRAME_TYPES = {Direction.UP: UplinkFrame, Direction.DOWN: DownlinkFrame}
 
 
-def encode_frame(seq: int, message: Any) -> bytes:
-    """Encode ``message`` with sequence number ``seq`` into the bytes that cross the radio."""
+def encode_frame(seq: int, message: Any, ack: Ack | None = None) -> bytes:
+    """Encode ``message`` with sequence number ``seq`` (and an ``ack`` riding along) into the
+    bytes that cross the radio."""
     try:
+        if ack is not None:
+            return _ENCODER.encode((PROTOCOL_VERSION, seq, message, ack))
         return _ENCODER.encode((PROTOCOL_VERSION, seq, message))
     except (TypeError, ValueError, OverflowError, NotImplementedError) as err:
         raise ProtocolError(f"cannot encode {type(message).__name__}: {err}") from None
@@ -600,8 +700,10 @@ def _diagnose(data: bytes, direction: Direction, err: Exception) -> ProtocolErro
         raw = msgspec.msgpack.decode(data, ext_hook=lambda code, buf: None)
     except Exception:  # not even msgpack: report msgspec's own message
         return ProtocolError(f"{direction.value}link frame: malformed msgpack: {text}")
-    if not (isinstance(raw, list) and len(raw) == 3):
-        return ProtocolError(f"{direction.value}link frame: expected [version, seq, message]")
+    if not (isinstance(raw, list) and len(raw) in (3, 4)):
+        return ProtocolError(
+            f"{direction.value}link frame: expected [version, seq, message(, ack)]"
+        )
     if raw[0] != PROTOCOL_VERSION:
         return ProtocolError(
             f"{direction.value}link frame: protocol version {raw[0]!r}, expected {PROTOCOL_VERSION}"

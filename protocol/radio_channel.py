@@ -39,29 +39,71 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import logging
 import math
 import random
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import msgspec
 
 from protocol.messages import (
+    BROADCAST_ROBOT_ID,
     STREAMS,
     Ack,
     AckEntry,
+    BroadcastAck,
     Direction,
+    HazardUpdateCoded,
+    ParameterUpdate,
+    PoseNodeCoded,
     Reliability,
+    RobotAck,
     StreamSpec,
+    TerrainGridCoded,
+    broadcast_stream_of,
     decode_frame,
     encode_frame,
     stream_of,
 )
 from protocol.meter import Meter
 from protocol.radio import RadioGrant
+from protocol.stream_coding import (
+    PoseNodeCoder,
+    TerrainGridCoder,
+    decode_hazard_update,
+    encode_hazard_update,
+)
 from protocol.wire import ProtocolError
 
-__all__ = ["ChannelStats", "LinkBackpressure", "Packet", "RadioChannel", "ReliabilityConfig"]
+__all__ = [
+    "BroadcastChannel",
+    "coalesced_ack",
+    "ChannelStats",
+    "LinkBackpressure",
+    "Packet",
+    "RadioChannel",
+    "ReliabilityConfig",
+]
+
+#: Link parameters a :class:`ParameterUpdate` may set (consumed by the channel).
+LINK_PARAMETERS = ("link.telemetry_period_s",)
+_CODED_TYPES = (PoseNodeCoded, TerrainGridCoded, HazardUpdateCoded, BroadcastAck)
+#: A robot reports its backlog again when it moved by this fraction (or this many bytes).
+_BACKLOG_REPORT_FRAC = 0.25
+_BACKLOG_REPORT_MIN_BYTES = 256
+
+log = logging.getLogger(__name__)
+_ACK_ENCODER = msgspec.msgpack.Encoder()
+
+
+def _with_ack(payload: bytes, ack: Ack) -> bytes:
+    """A frame's bytes with ``ack`` appended as its fourth element (see :class:`Frame`)."""
+    if payload[0] != 0x93:  # msgpack fixarray of 3: [version, seq, message]
+        raise ProtocolError("frame bytes do not start with a 3-element array")
+    return b"\x94" + payload[1:] + _ACK_ENCODER.encode(ack)
+
 
 #: Most sequence numbers beyond a gap that one ack reports (bytes of bitmap = this / 8).
 SACK_MAX_BITS = 2048
@@ -76,13 +118,15 @@ class ReliabilityConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
     #: Acks may use at most this fraction of the bytes they acknowledge ...
     ack_budget_frac: float = 0.03
     #: ... but wait no longer than this after the first unacknowledged arrival.
-    ack_max_delay_s: float = 5.0
+    #: (8 s: with coded pose nodes a robot's uplink is ~700 bps, and acks of every 5 s would
+    #: cost more than 5% of it; acks also ride in data frames, so most never wait this long)
+    ack_max_delay_s: float = 8.0
     #: How soon to ack after a duplicate or an out-of-order arrival.
     ack_prompt_delay_s: float = 0.1
     #: Retransmission timeout before any round trip was measured (> ack_max_delay_s).
-    rto_initial_s: float = 6.0
+    rto_initial_s: float = 10.0
     rto_min_s: float = 1.0
-    rto_max_s: float = 8.0
+    rto_max_s: float = 12.0
     #: Messages a receiver buffers ahead of a gap, per stream; later ones are dropped unacked.
     receive_window: int = 4096
     #: Reliable bytes a sender holds (queued or unacknowledged) before refusing new messages.
@@ -128,6 +172,9 @@ class ChannelStats:
     superseded: int = 0  # latest-only messages replaced in the queue before going out
     rejected: int = 0  # bytes that did not decode, or a message on the wrong stream
     acks_sent: int = 0
+    acks_piggybacked: int = 0  # acks that rode inside a data frame instead of their own
+    bytes_received: int = 0  # on-air bytes that arrived (payload + framing), broadcasts too
+    broadcast_unheard: int = 0  # broadcasts this robot did not hear (out of range, lost)
 
 
 @dataclass(slots=True)
@@ -149,6 +196,8 @@ class _SendStream:
     next_seq: int = 1
     unacked: dict[int, _Outgoing] = field(default_factory=dict)  # reliable kinds only
     latest: _Outgoing | None = None
+    period_s: float = 0.0  # latest-only streams: least time between two on the air
+    next_allowed_s: float = -math.inf
 
 
 @dataclass
@@ -203,11 +252,38 @@ class RadioChannel:
         self._order = itertools.count()
         self._timers: list[tuple[float, int, _Outgoing]] = []
         self._held_bytes = 0
-        self._send = {name: _SendStream(spec) for name, spec in STREAMS[direction].items()}
+        self._send = {
+            name: _SendStream(spec)
+            for name, spec in STREAMS[direction].items()
+            if not spec.broadcast
+        }
         incoming = _OPPOSITE[direction]
         self._recv = {name: _RecvStream(spec) for name, spec in STREAMS[incoming].items()}
+        # stream codings (protocol.stream_coding): the uplink's busiest streams
+        coders: dict[str, Any] = {"pose_node": PoseNodeCoder, "terrain_grid": TerrainGridCoder}
+        self._coders_out: dict[str, Any] = {n: c() for n, c in coders.items() if n in self._send}
+        self._coders_in: dict[str, Any] = {n: c() for n, c in coders.items() if n in self._recv}
+        #: Acks ride inside outgoing data frames when there are any (coalesced).
+        self.piggyback_acks = True
+        #: GCS side, coalesced acks: the endpoint collects due acks (take_ack) for one
+        #: broadcast instead of this channel sending its own.
+        self.external_acks = False
+        #: GCS side: called with (robot_id, stream_id, through) for a robot's ack of a
+        #: broadcast stream.
+        self.on_broadcast_ack: Callable[[int, int, int], None] | None = None
+        #: The peer's last reported backlog (bytes it still has queued): its demand.
+        self.peer_backlog_bytes = 0
+        self._reported_backlog = 0
+        # robot side: whether broadcasts reach this robot, and their loss (own draws, so
+        # the uplink's loss sequence does not depend on how many broadcasts went out)
+        self._hears_broadcast = True
+        self._broadcast_loss = 0.0
+        self._broadcast_rng = random.Random(seed ^ 0x5BD1E995)
         self._recv_by_id = {s.spec.stream_id: s for s in self._recv.values()}
         self._send_by_id = {s.spec.stream_id: s for s in self._send.values()}
+        self._broadcast_ids = {
+            spec.stream_id: spec for spec in STREAMS[direction].values() if spec.broadcast
+        }
         self._incoming = incoming
         # ack bookkeeping for the incoming reliable streams
         self._ack_dirty: set[int] = set()
@@ -235,9 +311,16 @@ class RadioChannel:
             self._credit_bytes = 0.0
 
     def apply_grant(self, grant: RadioGrant) -> None:
-        """Apply a :class:`RadioGrant`, taking the rate of this side's sending direction."""
+        """Apply a :class:`RadioGrant`, taking the rate of this side's sending direction.
+
+        On the robot side the downlink rate also says whether broadcasts reach the robot (0:
+        out of range, it hears none) and the loss applies to each broadcast it hears.
+        """
         rate = grant.uplink_bps if self.direction is Direction.UP else grant.downlink_bps
         self.set_grant(rate, grant.loss)
+        if self.direction is Direction.UP:
+            self._hears_broadcast = grant.downlink_bps > 0
+            self._broadcast_loss = grant.loss
 
     @property
     def rate_bps(self) -> float:
@@ -267,12 +350,23 @@ class RadioChannel:
         spec = stream_of(self.direction, message)
         if spec.name == "ack":
             raise ProtocolError("acks are generated by the channel, not sent by callers")
+        if isinstance(message, _CODED_TYPES):
+            raise ProtocolError(f"{type(message).__name__} is made by the channel, not sent")
         st = self._send[spec.name]
         seq = st.next_seq
-        payload = encode_frame(seq, message)
         rel = spec.reliability
+        coder = self._coders_out.get(spec.name)
+        if coder is not None:
+            # refused before coding: the coder's reference must only see what is sent
+            if rel is Reliability.RELIABLE and self._held_bytes >= self.config.max_queue_bytes:
+                raise LinkBackpressure(
+                    f"robot {self.robot_id} {self.direction.value}link holds "
+                    f"{self._held_bytes} reliable bytes (max {self.config.max_queue_bytes})"
+                )
+            message = coder.encode(message)
+        payload = encode_frame(seq, message)
         if rel is Reliability.RELIABLE:
-            if self._held_bytes + len(payload) > self.config.max_queue_bytes:
+            if coder is None and self._held_bytes + len(payload) > self.config.max_queue_bytes:
                 raise LinkBackpressure(
                     f"robot {self.robot_id} {self.direction.value}link holds "
                     f"{self._held_bytes} reliable bytes (max {self.config.max_queue_bytes})"
@@ -285,14 +379,49 @@ class RadioChannel:
         else:
             if st.latest is not None and st.latest.alive:
                 st.latest.alive = False
-                if st.latest.queued:
+                if st.latest.queued or st.latest.tx_count == 0:
                     self.stats.superseded += 1
             st.latest = out
             if rel is Reliability.LATEST_RELIABLE:
                 st.unacked = {seq: out}
-        self._enqueue(out)
+        if st.period_s > 0 and rel is Reliability.LATEST:
+            out.queued = False  # released by poll once the stream's period has passed
+        else:
+            self._enqueue(out)
         self.stats.sent += 1
         return seq
+
+    def set_stream_period(self, stream: str, period_s: float) -> None:
+        """Least mission time between two messages of latest-only ``stream`` on the air (0:
+        no limit); the newest message waits, older ones are superseded (issue 16: telemetry
+        at the rate the GCS sets, ``link.telemetry_period_s``)."""
+        st = self._send.get(stream)
+        if st is None or st.spec.reliability is not Reliability.LATEST or stream == "ack":
+            raise ValueError(f"{stream!r} is not a latest-only {self.direction.value}link stream")
+        if not (math.isfinite(period_s) and period_s >= 0):
+            raise ValueError(f"period_s must be finite and >= 0, got {period_s}")
+        st.period_s = float(period_s)
+        item = st.latest
+        if period_s == 0 and item is not None and item.alive and not item.queued:
+            if item.tx_count == 0:
+                self._enqueue(item)
+
+    def _release_periodic(self, now: float) -> None:
+        for st in self._send.values():
+            item = st.latest
+            if (
+                st.period_s > 0
+                and item is not None
+                and item.alive
+                and not item.queued
+                and item.tx_count == 0
+                and now >= st.next_allowed_s
+            ):
+                self._enqueue(item)
+
+    def backlog_bytes(self) -> int:
+        """Bytes queued for the air now (reliable and latest, not yet sent this round)."""
+        return sum(len(e[3].payload) for e in self._heap if e[3].alive)
 
     def _enqueue(self, out: _Outgoing) -> None:
         out.queued = True
@@ -308,8 +437,15 @@ class RadioChannel:
         if self._last_poll_s is None or now > self._last_poll_s:
             self._last_poll_s = now
         self._expire_timers(now)
-        self._maybe_queue_ack(now)
+        self._release_periodic(now)
         out: list[Packet] = []
+        self._drain(now, out)
+        if not self.external_acks and self._maybe_queue_ack(now):
+            self._drain(now, out)  # the ack had no data frame to ride in
+        self._backlogged = any(entry[3].alive for entry in self._heap)
+        return out
+
+    def _drain(self, now: float, out: list[Packet]) -> None:
         heap = self._heap
         unlimited = math.isinf(self._rate_bps)
         while heap and self._rate_bps > 0 and (unlimited or self._credit_bytes > 0):
@@ -317,22 +453,56 @@ class RadioChannel:
             if not item.alive:
                 continue
             item.queued = False
-            size = len(item.payload)
+            payload = item.payload
+            if item.spec.name != "ack" and self.piggyback_acks:
+                ack = self._ride_along(now)
+                if ack is not None:
+                    payload = _with_ack(payload, ack)
             if not unlimited:
-                self._credit_bytes -= size + self.framing_bytes
-            self._transmit(item, now, out)
-        self._backlogged = any(entry[3].alive for entry in heap)
-        return out
+                self._credit_bytes -= len(payload) + self.framing_bytes
+            self._transmit(item, now, out, payload)
 
-    def _transmit(self, item: _Outgoing, now: float, out: list[Packet]) -> None:
+    def _ride_along(self, now: float) -> Ack | None:
+        """The ack to put inside the next data frame: every pending acknowledgement, and on
+        the robot side the backlog when it changed enough to tell the GCS (its demand)."""
+        backlog = 0
+        report = False
+        if self.direction is Direction.UP:
+            backlog = self.backlog_bytes()
+            last = self._reported_backlog
+            report = abs(backlog - last) >= max(
+                _BACKLOG_REPORT_MIN_BYTES, _BACKLOG_REPORT_FRAC * last
+            ) or (backlog == 0 < last)
+        if not self._ack_dirty and not report:
+            return None
+        ack = self._take_ack_now(backlog)
+        self.stats.acks_piggybacked += 1
+        return ack
+
+    def _take_ack_now(self, backlog: int) -> Ack:
+        entries = [self._ack_entry(self._recv_by_id[sid]) for sid in sorted(self._ack_dirty)]
+        self._ack_dirty.clear()
+        self._ack_bytes_since = 0
+        self._ack_first_pending_s = None
+        self._ack_prompt_s = None
+        st = self._send["ack"]
+        if st.latest is not None and st.latest.alive:
+            st.latest.alive = False  # a standalone ack still queued is now redundant
+        self._reported_backlog = backlog
+        return Ack(entries, backlog)
+
+    def _transmit(
+        self, item: _Outgoing, now: float, out: list[Packet], payload: bytes | None = None
+    ) -> None:
         spec = item.spec
+        payload = item.payload if payload is None else payload
         lost = self._loss > 0 and self._rng.random() < self._loss
         retrans = item.tx_count > 0
         self.meter.record(
             self.robot_id,
             self.direction,
             spec.name,
-            payload_bytes=len(item.payload),
+            payload_bytes=len(payload),
             framing_bytes=self.framing_bytes,
             retransmission=retrans,
             lost=lost,
@@ -346,10 +516,14 @@ class RadioChannel:
             backoff = 2.0 ** (item.tx_count - 1)
             item.deadline_s = now + min(self.rto_s * backoff, self.config.rto_max_s)
             heapq.heappush(self._timers, (item.deadline_s, next(self._order), item))
+        else:
+            st = self._send[spec.name]
+            if st.period_s > 0:
+                st.next_allowed_s = now + st.period_s
         if spec.name == "ack":
             self.stats.acks_sent += 1
         if not lost:
-            out.append(Packet(spec.name, item.payload))
+            out.append(Packet(spec.name, payload))
 
     def _expire_timers(self, now: float) -> None:
         timers = self._timers
@@ -376,6 +550,10 @@ class RadioChannel:
         a message on the wrong stream (also counted in ``stats.rejected``).
         """
         rs = self._recv.get(stream)
+        self.stats.bytes_received += len(data) + self.framing_bytes
+        if rs is not None and rs.spec.broadcast and not self._hear_broadcast():
+            self.stats.broadcast_unheard += 1
+            return []
         try:
             if rs is None:
                 raise ProtocolError(f"no {self._incoming.value}link stream named {stream!r}")
@@ -389,6 +567,8 @@ class RadioChannel:
         except ProtocolError:
             self.stats.rejected += 1
             raise
+        if frame.ack is not None:
+            self._on_ack(frame.ack, now)
         spec = rs.spec
         if spec.name == "ack":
             self._on_ack(msg, now)
@@ -396,17 +576,60 @@ class RadioChannel:
         seq = frame.seq
         rel = spec.reliability
         if rel is Reliability.RELIABLE:
-            return self._receive_reliable(rs, seq, msg, len(data), now)
+            return self._consume(rs, self._receive_reliable(rs, seq, msg, len(data), now))
+        # broadcasts: their acks wait for a data frame to ride in (or ack_max_delay_s)
+        nbytes = 0 if spec.broadcast else len(data)
         if seq <= rs.delivered_through:
             self.stats.stale_dropped += 1
             if rel is Reliability.LATEST_RELIABLE:
-                self._note_ack(spec.stream_id, len(data), now, prompt=True)
+                self._note_ack(spec.stream_id, nbytes, now, prompt=True)
             return []
         rs.delivered_through = seq
         if rel is Reliability.LATEST_RELIABLE:
-            self._note_ack(spec.stream_id, len(data), now, prompt=False)
+            self._note_ack(spec.stream_id, nbytes, now, prompt=False)
+        if isinstance(msg, BroadcastAck):
+            for robot_ack in msg.acks:
+                if robot_ack.robot_id == self.robot_id:
+                    self._on_ack(Ack(robot_ack.entries), now)
+            return []
         self.stats.delivered += 1
-        return [msg]
+        return self._consume(rs, [msg])
+
+    def _hear_broadcast(self) -> bool:
+        if not self._hears_broadcast:
+            return False
+        loss = self._broadcast_loss
+        return not (loss > 0 and self._broadcast_rng.random() < loss)
+
+    def _consume(self, rs: _RecvStream, messages: list[Any]) -> list[Any]:
+        """Delivered messages, in order: codings undone, link parameters applied here."""
+        coder = self._coders_in.get(rs.spec.name)
+        out = []
+        for msg in messages:
+            try:
+                if coder is not None:
+                    msg = coder.decode(msg)
+                elif isinstance(msg, HazardUpdateCoded):
+                    msg = decode_hazard_update(msg)
+                elif isinstance(msg, ParameterUpdate) and msg.name.startswith("link."):
+                    self._apply_link_parameter(msg)
+                    continue
+            except (ProtocolError, ValueError, TypeError) as err:
+                # counted and skipped; the rest of the batch is still delivered
+                self.stats.rejected += 1
+                log.warning("robot %d %s: rejected message: %s", self.robot_id, rs.spec.name, err)
+                continue
+            out.append(msg)
+        return out
+
+    def _apply_link_parameter(self, msg: ParameterUpdate) -> None:
+        if msg.name == "link.telemetry_period_s":
+            value = msg.value
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ValueError(f"link.telemetry_period_s must be a number, got {value!r}")
+            self.set_stream_period("telemetry", float(value))
+            return
+        raise ValueError(f"unknown link parameter {msg.name!r} (known: {LINK_PARAMETERS})")
 
     def _receive_reliable(
         self, rs: _RecvStream, seq: int, msg: Any, nbytes: int, now: float
@@ -452,36 +675,50 @@ class RadioChannel:
             bitmap[b >> 3] |= 1 << (b & 7)
         return AckEntry(rs.spec.stream_id, rs.delivered_through, bytes(bitmap))
 
-    def _maybe_queue_ack(self, now: float) -> None:
+    def ack_due(self, now: float) -> bool:
+        """Whether pending acknowledgements should go now: their bytes are within
+        ``ack_budget_frac`` of what they acknowledge, or they waited ``ack_max_delay_s``, or
+        a duplicate or a gap asks for a prompt one."""
         if not self._ack_dirty:
-            return
+            return False
         cfg = self.config
         entries = [self._ack_entry(self._recv_by_id[sid]) for sid in sorted(self._ack_dirty)]
-        ack = Ack(entries)
-        ack_size = len(encode_frame(0, ack)) + self.framing_bytes
+        ack_size = len(encode_frame(0, Ack(entries))) + self.framing_bytes
         assert self._ack_first_pending_s is not None
-        due = (
+        return (
             self._ack_bytes_since * cfg.ack_budget_frac >= ack_size
             or now - self._ack_first_pending_s >= cfg.ack_max_delay_s
             or (self._ack_prompt_s is not None and now >= self._ack_prompt_s)
         )
-        if not due:
-            return
+
+    def take_ack(self) -> list[AckEntry] | None:
+        """Coalesced acks (GCS side, ``external_acks``): the pending entries, now counted as
+        sent by the caller's broadcast; None when nothing is pending."""
+        if not self._ack_dirty:
+            return None
+        return self._take_ack_now(0).entries
+
+    def _maybe_queue_ack(self, now: float) -> bool:
+        if not self.ack_due(now):
+            return False
+        backlog = self.backlog_bytes() if self.direction is Direction.UP else 0
+        ack = self._take_ack_now(backlog)
         st = self._send["ack"]
-        if st.latest is not None and st.latest.alive:
-            st.latest.alive = False
         item = _Outgoing(st.spec, 0, encode_frame(0, ack))
         st.latest = item
         self._enqueue(item)
-        self._ack_dirty.clear()
-        self._ack_bytes_since = 0
-        self._ack_first_pending_s = None
-        self._ack_prompt_s = None
+        return True
 
     def _on_ack(self, ack: Ack, now: float) -> None:
+        self.peer_backlog_bytes = ack.backlog_bytes
         for entry in ack.entries:
             st = self._send_by_id.get(entry.stream_id)
-            if st is None or st.spec.reliability is Reliability.LATEST:
+            if st is None:
+                spec = self._broadcast_ids.get(entry.stream_id)
+                if spec is not None and self.on_broadcast_ack is not None:
+                    self.on_broadcast_ack(self.robot_id, entry.stream_id, entry.through)
+                continue
+            if st.spec.reliability is Reliability.LATEST:
                 continue
             acked = [s for s in st.unacked if s <= entry.through]
             sacked = _bitmap_seqs(entry.received, entry.through + 2)
@@ -537,3 +774,162 @@ class RadioChannel:
             1 for st in self._send.values() for it in st.unacked.values() if not it.queued
         )
         return queued + waiting
+
+
+class BroadcastChannel:
+    """The GCS's broadcast to every robot in range (paper 4.1: hazards and every robot's
+    ``map_from_odom`` go out once, not once per robot), as a sans-IO state machine.
+
+    One queue drained at its own granted rate (a token bucket like :class:`RadioChannel`'s),
+    metered once under :data:`~protocol.messages.BROADCAST_ROBOT_ID`. Reliability follows the
+    stream: ``ack_broadcast`` (coalesced acknowledgements) is latest-only, never resent;
+    ``hazard_broadcast`` is latest-reliable: each robot acknowledges the broadcast's sequence
+    number in its ordinary uplink ack (:meth:`on_robot_ack`), and the broadcast is resent
+    after a timeout while a robot in range (the ``in_range`` set given to :meth:`poll`) has
+    not acknowledged it, unless a newer one superseded it. Robots decide themselves whether
+    they heard it (range, loss: :meth:`RadioChannel.receive`).
+    """
+
+    def __init__(
+        self,
+        *,
+        config: ReliabilityConfig | None = None,
+        framing_overhead_bytes: int = 8,
+        meter: Meter | None = None,
+        grant_bps: float = math.inf,
+    ) -> None:
+        self.config = config or ReliabilityConfig()
+        self.framing_bytes = framing_overhead_bytes
+        self.meter = meter if meter is not None else Meter()
+        self.stats = ChannelStats()
+        self._rate_bps = 0.0
+        self._credit_bytes = 0.0
+        self._last_poll_s: float | None = None
+        self._backlogged = False
+        self._heap: list[tuple[int, int, int, _Outgoing]] = []
+        self._order = itertools.count()
+        self._timers: list[tuple[float, int, _Outgoing]] = []
+        specs = [spec for spec in STREAMS[Direction.DOWN].values() if spec.broadcast]
+        self._send = {spec.name: _SendStream(spec) for spec in specs}
+        self._by_id = {spec.stream_id: self._send[spec.name] for spec in specs}
+        #: per stream id: robot -> highest sequence number it acknowledged
+        self._acked: dict[int, dict[int, int]] = {spec.stream_id: {} for spec in specs}
+        self.set_grant(grant_bps)
+
+    def set_grant(self, rate_bps: float) -> None:
+        """The broadcast's share of the shared channel, bits per mission second."""
+        if not (rate_bps >= 0 and not math.isnan(rate_bps)):
+            raise ValueError(f"rate_bps must be >= 0, got {rate_bps}")
+        self._rate_bps = float(rate_bps)
+        if rate_bps == 0:
+            self._credit_bytes = 0.0
+
+    @property
+    def rate_bps(self) -> float:
+        return self._rate_bps
+
+    def send(self, message: Any) -> int:
+        """Queue ``message`` for every robot; returns its broadcast sequence number."""
+        spec = broadcast_stream_of(message)
+        if isinstance(message, HazardUpdateCoded):
+            raise ProtocolError("HazardUpdateCoded is made by the channel, not sent")
+        st = self._send[spec.name]
+        seq = st.next_seq
+        coded = encode_hazard_update(message) if spec.name == "hazard_broadcast" else message
+        out = _Outgoing(spec, seq, encode_frame(seq, coded))
+        st.next_seq = seq + 1
+        if st.latest is not None and st.latest.alive:
+            st.latest.alive = False
+            if st.latest.tx_count == 0:
+                self.stats.superseded += 1
+        st.latest = out
+        heapq.heappush(self._heap, (spec.priority, seq, next(self._order), out))
+        self.stats.sent += 1
+        return seq
+
+    def queued(self, stream: str) -> bool:
+        """Whether the newest message of ``stream`` still waits for the air."""
+        item = self._send[stream].latest
+        return item is not None and item.alive and item.queued
+
+    def on_robot_ack(self, robot_id: int, stream_id: int, through: int) -> None:
+        """Robot ``robot_id`` acknowledged broadcast stream ``stream_id`` up to ``through``."""
+        acked = self._acked.get(stream_id)
+        if acked is not None and through > acked.get(robot_id, 0):
+            acked[robot_id] = through
+
+    def acknowledged_by(self, stream: str, seq: int) -> list[int]:
+        """Robots that acknowledged ``stream``'s message ``seq`` (or a newer one), sorted."""
+        sid = self._send[stream].spec.stream_id
+        return sorted(r for r, s in self._acked[sid].items() if s >= seq)
+
+    def poll(self, now: float, in_range: set[int] | frozenset[int]) -> list[Packet]:
+        """Advance to mission time ``now``; return what goes on the air. A reliable broadcast
+        whose timeout passed is resent if a robot of ``in_range`` did not acknowledge it."""
+        if self._last_poll_s is not None and now > self._last_poll_s and self._rate_bps > 0:
+            self._credit_bytes += (now - self._last_poll_s) * self._rate_bps / 8.0
+            if not self._backlogged:
+                burst = self._rate_bps / 8.0 * self.config.burst_s
+                self._credit_bytes = min(self._credit_bytes, burst)
+        if self._last_poll_s is None or now > self._last_poll_s:
+            self._last_poll_s = now
+        timers = self._timers
+        while timers and timers[0][0] <= now:
+            deadline, _, item = heapq.heappop(timers)
+            if not (item.alive and not item.queued and deadline == item.deadline_s):
+                continue
+            acked = self._acked[item.spec.stream_id]
+            if all(acked.get(r, 0) >= item.seq for r in in_range):
+                item.alive = False  # everyone in range has it
+                continue
+            heapq.heappush(self._heap, (item.spec.priority, item.seq, next(self._order), item))
+            item.queued = True
+        out: list[Packet] = []
+        heap = self._heap
+        unlimited = math.isinf(self._rate_bps)
+        while heap and self._rate_bps > 0 and (unlimited or self._credit_bytes > 0):
+            item = heapq.heappop(heap)[3]
+            if not item.alive:
+                continue
+            item.queued = False
+            if not unlimited:
+                self._credit_bytes -= len(item.payload) + self.framing_bytes
+            retrans = item.tx_count > 0
+            self.meter.record(
+                BROADCAST_ROBOT_ID,
+                Direction.DOWN,
+                item.spec.name,
+                payload_bytes=len(item.payload),
+                framing_bytes=self.framing_bytes,
+                retransmission=retrans,
+                lost=False,
+            )
+            self.stats.transmitted += 1
+            self.stats.retransmitted += retrans
+            item.tx_count += 1
+            item.last_sent_s = now
+            if item.spec.reliability is Reliability.LATEST_RELIABLE:
+                cfg = self.config
+                # robots may hold their ack for ack_max_delay_s waiting for a frame to ride in
+                rto = max(cfg.rto_initial_s, cfg.ack_max_delay_s + cfg.rto_min_s)
+                item.deadline_s = now + min(rto * 2.0 ** (item.tx_count - 1), 4 * rto)
+                heapq.heappush(timers, (item.deadline_s, next(self._order), item))
+            else:
+                item.alive = False
+            out.append(Packet(item.spec.name, item.payload))
+        self._backlogged = any(entry[3].alive for entry in heap)
+        return out
+
+
+def coalesced_ack(channels: dict[int, RadioChannel], now: float) -> BroadcastAck | None:
+    """One :class:`BroadcastAck` for every channel with pending acks, when at least one of
+    them is due (:meth:`RadioChannel.ack_due`); None otherwise. The channels' pending acks
+    are taken (they count as sent)."""
+    if not any(ch.ack_due(now) for ch in channels.values()):
+        return None
+    acks = []
+    for rid in sorted(channels):
+        entries = channels[rid].take_ack()
+        if entries:
+            acks.append(RobotAck(rid, entries))
+    return BroadcastAck(acks) if acks else None

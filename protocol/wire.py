@@ -39,7 +39,7 @@ __all__ = [
 ]
 
 #: Bumped whenever a message layout changes; a frame of another version is refused.
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 
 #: Largest numpy array a frame may carry (a 3D sweep of 50k points is 600 kB; an image 230 kB).
 MAX_ARRAY_BYTES = 64 * 1024 * 1024

@@ -14,7 +14,9 @@ from protocol.messages import STREAMS, Direction
 
 UP, DOWN = Direction.UP, Direction.DOWN
 missions = st.from_regex(r"[A-Za-z0-9_.\-]+", fullmatch=True).filter(lambda s: "\n" not in s)
-streams = st.sampled_from([(d, name) for d in Direction for name in STREAMS[d]])
+streams = st.sampled_from(
+    [(d, name) for d in Direction for name, spec in STREAMS[d].items() if not spec.broadcast]
+)
 
 
 @settings(max_examples=150, deadline=None)
@@ -28,9 +30,17 @@ def test_radio_keys_round_trip(mission: str, robot_id: int, stream: tuple[Direct
 
 def test_every_stream_has_a_key() -> None:
     for direction in Direction:
-        for name in STREAMS[direction]:
+        for name, spec in STREAMS[direction].items():
+            if spec.broadcast:
+                key = keys.broadcast("m", name)
+                assert key == f"magic/m/broadcast/down/{name}"
+                assert keys.parse_broadcast_key(key) == name
+                with pytest.raises(ValueError, match="no downlink stream"):
+                    keys.radio("m", 0, direction, name)
+                continue
             key = keys.radio("m", 0, direction, name)
             assert parse_radio_key(key).stream == name
+            assert keys.parse_broadcast_key(key) is None
     assert keys.radio("field-trial_2.b", 13, UP, "pose_node") == (
         "magic/field-trial_2.b/robot/13/up/pose_node"
     )
@@ -127,3 +137,11 @@ def test_other_keys() -> None:
         keys.sim_truth("m", "a/b")
     with pytest.raises(ValueError, match=r"^robot id -2"):
         keys.sim_radio("m", -2)
+
+
+def test_broadcast_keys_refuse_unicast_streams_and_name_the_key() -> None:
+    with pytest.raises(ValueError, match="no broadcast stream named 'task'"):
+        keys.broadcast("m", "task")
+    with pytest.raises(ValueError, match="magic/m/broadcast/down/task"):
+        keys.parse_broadcast_key("magic/m/broadcast/down/task")
+    assert keys.broadcast_wildcard("m") == "magic/m/broadcast/down/*"

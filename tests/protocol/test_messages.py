@@ -17,6 +17,7 @@ from protocol.messages import (
     Ack,
     AckEntry,
     AutonomyMode,
+    BroadcastAck,
     Detection,
     DetectionImage,
     Direction,
@@ -26,24 +27,29 @@ from protocol.messages import (
     GoToTask,
     Hazard,
     HazardUpdate,
+    HazardUpdateCoded,
     IdleTask,
     NeutralizeTask,
     ObjectKind,
     ParameterUpdate,
     PauseTask,
     PoseNode,
+    PoseNodeCoded,
     RelayTask,
     Reliability,
     ResumeTask,
+    RobotAck,
     RobotFrame,
     TaskState,
     TaskStatus,
     Telemetry,
     TeleopTask,
     TerrainGrid,
+    TerrainGridCoded,
     ThumbnailRequest,
     UplinkFrame,
     UplinkMessage,
+    broadcast_stream_of,
     decode_frame,
     encode_frame,
     stream_of,
@@ -72,7 +78,9 @@ def f32_tuple(n: int) -> st.SearchStrategy[tuple[float, ...]]:
 
 
 ack_entries = st.builds(AckEntry, stream_id=ints, through=ints, received=blobs)
-acks = st.builds(Ack, entries=st.lists(ack_entries, max_size=4))
+acks = st.builds(
+    Ack, entries=st.lists(ack_entries, max_size=4), backlog_bytes=st.integers(0, 2**40)
+)
 pose_nodes = st.builds(
     PoseNode,
     node_index=ints,
@@ -179,6 +187,19 @@ parameter_updates = st.builds(
     name=texts,
     value=st.one_of(st.booleans(), ints, f64, texts),
 )
+coded_blobs = st.binary(max_size=48)
+pose_nodes_coded = st.builds(PoseNodeCoded, data=coded_blobs)
+terrain_grids_coded = st.builds(TerrainGridCoded, data=coded_blobs)
+hazard_updates_coded = st.builds(
+    HazardUpdateCoded, time_s=f64, hazards=st.lists(hazards, max_size=4), frames=coded_blobs
+)
+broadcast_acks = st.builds(
+    BroadcastAck,
+    acks=st.lists(
+        st.builds(RobotAck, robot_id=ints, entries=st.lists(ack_entries, max_size=3)),
+        max_size=4,
+    ),
+)
 thumbnail_requests = st.builds(
     ThumbnailRequest, request_id=ints, detection_id=ints, max_bytes=st.integers(0, 65535)
 )
@@ -186,7 +207,9 @@ thumbnail_requests = st.builds(
 UPLINK: dict[type, st.SearchStrategy[Any]] = {
     Ack: acks,
     PoseNode: pose_nodes,
+    PoseNodeCoded: pose_nodes_coded,
     TerrainGrid: terrain_grids,
+    TerrainGridCoded: terrain_grids_coded,
     FiducialObservation: fiducials,
     Detection: detections,
     DetectionImage: detection_images,
@@ -205,6 +228,8 @@ DOWNLINK: dict[type, st.SearchStrategy[Any]] = {
     HazardUpdate: hazard_updates,
     ParameterUpdate: parameter_updates,
     ThumbnailRequest: thumbnail_requests,
+    HazardUpdateCoded: hazard_updates_coded,
+    BroadcastAck: broadcast_acks,
 }
 CASES = [(UP, t) for t in UPLINK] + [(DOWN, t) for t in DOWNLINK]
 STRATEGIES = {UP: UPLINK, DOWN: DOWNLINK}
@@ -298,13 +323,24 @@ def test_encode_failures_are_protocol_errors() -> None:
 
 @pytest.mark.parametrize(("direction", "cls"), CASES, ids=lambda v: getattr(v, "__name__", v))
 def test_every_message_type_has_exactly_one_stream(direction: Direction, cls: type) -> None:
-    carrying = [s for s in STREAMS[direction].values() if cls in s.types]
-    assert len(carrying) == 1
+    """One unicast stream per type (a broadcast stream may carry it too, see below)."""
+    carrying = [s for s in STREAMS[direction].values() if cls in s.types and not s.broadcast]
+    broadcast = [s for s in STREAMS[direction].values() if cls in s.types and s.broadcast]
+    assert len(carrying) + len(broadcast) >= 1 and len(carrying) <= 1 and len(broadcast) <= 1
     msg = _sample(direction, cls)
-    spec = stream_of(direction, msg)
-    assert spec is carrying[0]
-    assert spec.direction is direction
-    assert STREAMS[direction][spec.name] is spec
+    if carrying:
+        spec = stream_of(direction, msg)
+        assert spec is carrying[0]
+        assert spec.direction is direction
+        assert STREAMS[direction][spec.name] is spec
+    else:
+        with pytest.raises(ProtocolError, match="not a downlink message"):
+            stream_of(direction, msg)
+    if broadcast:
+        assert broadcast_stream_of(msg) is broadcast[0]
+    else:
+        with pytest.raises(ProtocolError, match="not a broadcast message"):
+            broadcast_stream_of(msg)
 
 
 def _sample(direction: Direction, cls: type) -> Any:
@@ -327,6 +363,10 @@ def _sample(direction: Direction, cls: type) -> Any:
         TeleopTask: TeleopTask(1, 0.0, 0.5, 0.1, 2.0),
         HazardUpdate: HazardUpdate(0.0, [], []),
         ParameterUpdate: ParameterUpdate("planner.clearance_m", 0.3),
+        PoseNodeCoded: PoseNodeCoded(b"\x00"),
+        TerrainGridCoded: TerrainGridCoded(b"\x00"),
+        HazardUpdateCoded: HazardUpdateCoded(0.0, [], b""),
+        BroadcastAck: BroadcastAck([]),
     }
     msg = samples[cls]
     assert type(msg) is cls and direction in STREAMS
@@ -336,7 +376,7 @@ def _sample(direction: Direction, cls: type) -> Any:
 def test_streams_match_the_unions_and_the_design_priorities() -> None:
     for direction, union in ((UP, UplinkMessage), (DOWN, DownlinkMessage)):
         specs = list(STREAMS[direction].values())
-        carried = [t for s in specs for t in s.types]
+        carried = {t for s in specs for t in s.types}
         assert sorted(carried, key=str) == sorted(union.__args__, key=str)
         assert len({s.stream_id for s in specs}) == len(specs)
         assert all(s.direction is direction for s in specs)
@@ -354,6 +394,13 @@ def test_streams_match_the_unions_and_the_design_priorities() -> None:
     assert STREAMS[UP]["telemetry"].reliability is Reliability.LATEST
     assert STREAMS[DOWN]["hazard_update"].reliability is Reliability.LATEST_RELIABLE
     assert STREAMS[DOWN]["task"].reliability is Reliability.RELIABLE
+    assert STREAMS[DOWN]["hazard_broadcast"].reliability is Reliability.LATEST_RELIABLE
+    assert STREAMS[DOWN]["ack_broadcast"].reliability is Reliability.LATEST
+    assert [s.name for s in STREAMS[DOWN].values() if s.broadcast] == [
+        "ack_broadcast",
+        "hazard_broadcast",
+    ]
+    assert not any(s.broadcast for s in STREAMS[UP].values())
 
 
 def test_stream_of_refuses_the_wrong_direction() -> None:
@@ -513,7 +560,7 @@ HAZARDS = [32, 1.0, [[1, 4, [0.0, 0.0], 5.0], [2, 1, [1.0, 1.0], 2.0]], [[3, [0.
         ([V, 3, [16, 1, 0.0, [], 0.0]], UP, "uplink frame: unknown message type tag 16"),
         ([V, 3, [2, 5, "rle"]], DOWN, "downlink frame: unknown message type tag 2"),
         ([V, 3, "hello"], UP, "uplink frame: message is not a tagged array"),
-        ([V, 3], UP, "uplink frame: expected [version, seq, message]"),
+        ([V, 3], UP, "uplink frame: expected [version, seq, message(, ack)]"),
     ],
 )
 def test_errors_name_the_field(frame: list[Any], direction: Direction, expected: str) -> None:
