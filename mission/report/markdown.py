@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from mission.report.report_builder import RunRecord, Scored
 
-__all__ = ["write_markdown"]
+__all__ = ["headline_lines", "write_markdown"]
 
 #: The headline metrics, in order, with how to print them.
 _HEADLINE: tuple[tuple[str, str, str], ...] = (
@@ -49,6 +49,12 @@ def _fmt(v: float | None, how: str) -> str:
     if how == "int":
         return f"{int(round(v))}"
     return f"{v:.{int(how[1:])}f}"
+
+
+def headline_lines(metrics: dict[str, float]) -> list[str]:
+    """The headline metrics, one ``label: value`` line each (for a terminal)."""
+    width = max(len(label) for _, label, _ in _HEADLINE)
+    return [f"{label:<{width}}  {_fmt(metrics.get(key), how)}" for key, label, how in _HEADLINE]
 
 
 def write_markdown(record: RunRecord, scored: Scored, plots: list[Path], path: Path) -> Path:

@@ -106,10 +106,14 @@ def explored(record: RunRecord, scored: Scored, path: Path) -> Path:
 def map_vs_truth(record: RunRecord, scored: Scored, path: Path) -> Path:
     """The final global map beside the truth, and their overlay."""
     ext = _extent(record)
-    fig, axes = plt.subplots(1, 3, figsize=(16, 5.6), sharex=True, sharey=True)
-    axes[0].imshow(_truth_background(record), origin="lower", extent=ext, cmap=_TRUTH_CMAP,
-                   vmin=0, vmax=2, interpolation="nearest")  # fmt: skip
-    axes[0].set_title("truth: structures, reachable area (white)")
+    aspect = (ext[3] - ext[2]) / max(ext[1] - ext[0], 1e-9)
+    fig, axes = plt.subplots(
+        1, 3, figsize=(18, 6 * aspect + 1.6), sharex=True, sharey=True, layout="constrained"
+    )
+    # "antialiased": thin walls survive the downsampling to screen pixels
+    style = {"origin": "lower", "extent": ext, "interpolation": "antialiased"}
+    axes[0].imshow(_truth_background(record), cmap=_TRUTH_CMAP, vmin=0, vmax=2, **style)
+    axes[0].set_title("truth\nblack structures, white reachable, grey not reachable")
     occupancy = record.final_map()
     wfm = record.world_from_map
     m = scored.metrics
@@ -118,33 +122,32 @@ def map_vs_truth(record: RunRecord, scored: Scored, path: Path) -> Path:
         code = np.zeros(est.shape, dtype=np.int8)
         code[est == 0] = 1
         code[est == 100] = 2
-        axes[1].imshow(code, origin="lower", extent=ext, cmap=_MAP_CMAP, vmin=0, vmax=2,
-                       interpolation="nearest")  # fmt: skip
+        axes[1].imshow(code, cmap=_MAP_CMAP, vmin=0, vmax=2, **style)
         overlay = np.ones((*est.shape, 3))
-        overlay[est == 0] = (0.93, 0.93, 1.0)
+        overlay[est == 0] = (0.88, 0.9, 1.0)
         truth_occ, est_occ = record.truth_occupied, est == 100
-        overlay[truth_occ & ~est_occ] = (0.75, 0.75, 0.75)
+        overlay[truth_occ & ~est_occ] = (0.7, 0.7, 0.7)
         overlay[est_occ & ~truth_occ] = (0.85, 0.1, 0.1)
         overlay[est_occ & truth_occ] = (0.0, 0.0, 0.0)
-        axes[2].imshow(overlay, origin="lower", extent=ext, interpolation="nearest")
-        axes[2].legend(
-            handles=[
-                Patch(color=(0, 0, 0), label="map and truth occupied"),
-                Patch(color=(0.85, 0.1, 0.1), label="map only (cell-exact)"),
-                Patch(color=(0.75, 0.75, 0.75), label="truth only"),
-                Patch(color=(0.93, 0.93, 1.0), label="map free"),
-            ],
-            loc="upper right", fontsize=7, framealpha=0.9,
-        )  # fmt: skip
+        axes[2].imshow(overlay, **style)
+        handles = [
+            Patch(color=(0, 0, 0), label="occupied in both"),
+            Patch(color=(0.85, 0.1, 0.1), label="map only (cell-exact)"),
+            Patch(color=(0.7, 0.7, 0.7), label="truth only"),
+            Patch(color=(0.88, 0.9, 1.0), label="map free"),
+        ]
+        fig.legend(handles=handles, loc="outside lower right", ncols=4, fontsize=9)
     else:
         for ax in axes[1:]:
             ax.text(0.5, 0.5, "no final map", ha="center", va="center", transform=ax.transAxes)
-    axes[1].set_title("GCS global map (grey unknown, white free, black occupied)")
+    axes[1].set_title(
+        "GCS global map (in the truth frame)\ngrey unknown, white free, black occupied"
+    )
     axes[2].set_title(
         f"overlay: occupancy F1 {m.get('occupancy_f1', math.nan):.3f} "
-        f"(P {m.get('occupancy_precision', math.nan):.3f}, "
-        f"R {m.get('occupancy_recall', math.nan):.3f}, "
-        f"±{record.config.occupancy_tolerance_m:g} m)"
+        f"(±{record.config.occupancy_tolerance_m:g} m)\n"
+        f"precision {m.get('occupancy_precision', math.nan):.3f}, "
+        f"recall {m.get('occupancy_recall', math.nan):.3f}"
     )
     for ax in axes:
         ax.set_xlabel("x (m, world)")
@@ -152,7 +155,7 @@ def map_vs_truth(record: RunRecord, scored: Scored, path: Path) -> Path:
     axes[0].set_ylabel("y (m, world)")
     fig.suptitle(
         f"Final global map vs truth: explored {100 * m.get('explored_frac', math.nan):.1f}% "
-        "of the reachable area"
+        f"of the reachable area ({m.get('explored_area_m2', math.nan):.0f} m² known)"
     )
     return _save(fig, path)
 
@@ -230,22 +233,32 @@ def radio(record: RunRecord, scored: Scored, path: Path) -> Path:
             by_stream[f"{stream} ({d})"] = by_stream[f"{stream} ({d})"] + bps[:, i]
             by_robot[(int(rid), d)] = by_robot[(int(rid), d)] + bps[:, i]
         names = sorted(by_stream, key=lambda n: -float(by_stream[n].sum()))
+        edges = np.concatenate([[float(r.get("start_s", 0.0))], t])
         cmap = plt.get_cmap("tab20")
-        ax1.stackplot(t, [by_stream[n] / 1000.0 for n in names], labels=names,
-                      colors=[cmap(i % 20) for i in range(len(names))], step="pre")  # fmt: skip
+        bottom = np.zeros(len(t))
+        for i, name in enumerate(names):  # stacked stairs: each rate holds over its interval
+            top = bottom + by_stream[name] / 1000.0
+            ax1.stairs(top, edges, baseline=bottom, fill=True, color=cmap(i % 20), label=name)
+            bottom = top
         ax1.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7, title="stream")
         for k, rid in enumerate(record.robot_ids):
             for d, ls in (("up", "-"), ("down", ":")):
                 if (rid, d) in by_robot:
-                    ax2.step(t, by_robot[(rid, d)] / 1000.0, where="pre", color=_robot_colour(k),
-                             ls=ls, label=f"robot {rid} {d}link")  # fmt: skip
+                    ax2.stairs(
+                        by_robot[(rid, d)] / 1000.0, edges, color=_robot_colour(k), ls=ls,
+                        lw=1.6, baseline=None, label=f"robot {rid} {d}link",
+                    )  # fmt: skip
         ax2.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7)
     else:
         ax1.text(0.5, 0.5, "fewer than two samples", ha="center", transform=ax1.transAxes)
     if math.isfinite(capacity):
-        ax1.axhline(capacity / 1000.0, color="k", ls="--", lw=1)
-        ax1.text(0.01, 0.95, f"shared radio capacity {capacity / 1000:.1f} kbps (dashed)",
-                 transform=ax1.transAxes, va="top", fontsize=8)  # fmt: skip
+        top = ax1.get_ylim()[1]
+        if top >= 0.3 * capacity / 1000.0:  # the line would not flatten the data
+            ax1.axhline(capacity / 1000.0, color="k", ls="--", lw=1)
+            note = f"shared radio capacity {capacity / 1000:.1f} kbit/s (dashed)"
+        else:
+            note = f"shared radio capacity {capacity / 1000:.1f} kbit/s (off the scale)"
+        ax1.text(0.01, 0.97, note, transform=ax1.transAxes, va="top", fontsize=8)
     m = scored.metrics
     ax1.set_title(
         f"Radio use by stream (all robots): {100 * m.get('radio_use_frac', math.nan):.2f}% of "
@@ -286,25 +299,30 @@ def modes(record: RunRecord, scored: Scored, path: Path) -> Path:
 
 
 def interactions(record: RunRecord, scored: Scored, path: Path) -> Path:
-    """Operator interactions per minute (paper Fig. 24)."""
-    mission_s = scored.metrics.get("mission_s", 0.0)
-    minutes = max(1, int(math.ceil(mission_s / 60.0))) if math.isfinite(mission_s) else 1
-    counts = np.zeros(minutes)
-    for e in record.events:
-        if e.get("kind") == "interaction":
-            counts[min(int(float(e["t_s"]) // 60.0), minutes - 1)] += 1
-    fig, ax = plt.subplots(figsize=(8, 3.5))
-    ax.bar(np.arange(minutes) + 0.5, counts, width=0.9, color="#ff7f0e")
-    ax.set_xlim(0, minutes)
-    ax.set_ylim(0, max(1.0, counts.max() * 1.15))
+    """Operator interactions per minute (paper Fig. 24), in one-minute bins (a last, partial
+    minute is scaled to its length)."""
+    mission_s = scored.metrics.get("mission_s", math.nan)
+    end_min = mission_s / 60.0 if math.isfinite(mission_s) and mission_s > 0 else 1.0
+    edges = np.append(np.arange(0.0, end_min, 1.0), end_min)
+    times = [float(e["t_s"]) / 60.0 for e in record.events if e.get("kind") == "interaction"]
+    counts, _ = np.histogram(np.clip(times, 0.0, end_min), bins=edges)
+    widths = np.diff(edges)
+    rate = counts / np.maximum(widths, 1e-9)
+    fig, ax = plt.subplots(figsize=(8, 3.5), layout="constrained")
+    ax.bar(edges[:-1], rate, width=widths * 0.95, align="edge", color="#ff7f0e")
+    ax.set_xlim(0, end_min)
+    ax.set_ylim(0, max(1.0, float(rate.max(initial=0.0)) * 1.15))
     ax.set_xlabel("mission time (min)")
     ax.set_ylabel("interactions per minute")
     total = int(counts.sum())
-    title = f"Operator interactions per minute (cf. paper Fig. 24): {total} in all"
+    per_min = scored.metrics.get("interactions_per_min", math.nan)
+    ax.set_title(
+        f"Operator interactions per minute (cf. paper Fig. 24): {total} in all, "
+        f"{per_min:.2f}/min on average"
+    )
     if total == 0:
         ax.text(0.5, 0.5, "no operator interactions: the mission ran unattended",
                 ha="center", va="center", transform=ax.transAxes)  # fmt: skip
-    ax.set_title(title)
     ax.grid(axis="y", alpha=0.3)
     return _save(fig, path)
 

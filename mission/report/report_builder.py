@@ -305,7 +305,8 @@ def _radio(
         dt = np.diff(np.asarray(times))
         rates = np.diff(cum, axis=0) * 8.0 / np.maximum(dt, 1e-9)[:, None]
         series["radio"] = {
-            "t_s": times[1:],
+            "t_s": times[1:],  # each rate holds over the interval ending at its time
+            "start_s": times[0],
             "keys": [list(k) for k in keys],
             "bps": rates.tolist(),
         }
