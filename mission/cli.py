@@ -25,7 +25,6 @@ __all__ = ["main"]
 #: Subcommands that are specified but not built yet, and the issue that brings each.
 _NOT_BUILT = {
     "console": "the operator console (operator interfaces)",
-    "report": "mission reports against ground truth (metrics)",
 }
 
 #: Subcommands with their own parser (``magic X --help`` is theirs): what each produces.
@@ -153,6 +152,18 @@ def _build_parser() -> argparse.ArgumentParser:
         help="model version 1..255 in every stream header (default: the shipped one + 1)",
     )
 
+    report = sub.add_parser(
+        "report",
+        help="rebuild a mission's report from its run directory: report.json, report.md, plots",
+        description="Score the run recorded in RUN_DIR against its ground truth and write "
+        "RUN_DIR/report.json (metrics, time series, configuration), RUN_DIR/report.md (with "
+        "the plots) and RUN_DIR/plots/*.png, from the run directory alone (RUN_DIR/record/, "
+        "written by the mission's recorder). The headline metrics go to stdout.",
+        epilog=_EXIT_STATUSES,
+        formatter_class=_HelpFormatter,
+    )
+    report.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (has record/)")
+
     for name, what in _NOT_BUILT.items():
         p = sub.add_parser(name, help=f"{what} [not built yet]", add_help=True)
         p.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
@@ -245,6 +256,30 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    """``magic report RUN_DIR``: rebuild the report; a bad RUN_DIR is one line, status 2."""
+    from protocol.process_cli import one_line
+
+    err = _console(stderr=True)
+    from mission.report.report_builder import RunDirError, build_report
+
+    try:
+        metrics = build_report(args.run_dir)
+    except RunDirError as exc:
+        err.print(one_line(f"magic report: {exc}"), style="red", markup=False)
+        return 2
+    except OSError as exc:  # e.g. the run directory is read-only
+        err.print(one_line(f"magic report: cannot write into {args.run_dir}: {exc}"), markup=False)
+        return 1
+    out = _console()
+    from mission.report.markdown import headline_lines
+
+    for line in headline_lines(metrics):
+        out.print(line, markup=False)
+    err.print(f"wrote {args.run_dir}/report.json, report.md and plots/", markup=False)
+    return 0
+
+
 def _dispatch(argv: list[str]) -> int:
     if argv and argv[0] in ("sim", "robot", "gcs", "replay", "run"):  # their own parsers
         if argv[0] == "run":
@@ -279,6 +314,10 @@ def _dispatch(argv: list[str]) -> int:
         if unknown:
             parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         return _cmd_bench(args)
+    if args.command == "report":
+        if unknown:
+            parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+        return _cmd_report(args)
     what = _NOT_BUILT[args.command]
     print(f"magic {args.command}: not built yet; it arrives with {what}.", file=sys.stderr)
     return 2
