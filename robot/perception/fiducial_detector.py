@@ -61,10 +61,9 @@ class TagLayoutConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     marker_in_base_m: tuple[float, float, float] = (0.2, 0.0, 0.45)
     marker_half_m: float = 0.05
     # Where the tag a viewer sees lies, along the face normal towards the viewer, from the head
-    # centre: +head_half_m on a real head. The simulator's head (sim.apriltag.head_mesh) is
-    # rendered with its faces culled the other way, so a viewer sees the *far* face from
-    # inside (measured: tag sizes and corners match the far face to 0.5 px): -head_half_m.
-    tag_plane_offset_m: float = -0.1
+    # centre: +head_half_m, on a real head and on the simulator's (sim.apriltag.head_mesh, whose
+    # faces once culled the wrong way showed the far face: then -head_half_m fitted).
+    tag_plane_offset_m: float = 0.1
 
     def __post_init__(self) -> None:
         if self.ids_per_robot not in (1, 4):
