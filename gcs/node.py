@@ -24,6 +24,12 @@ from typing import Any
 
 from gcs.ground_station import GroundStation, GroundStationConfig
 from gcs.mission_control import MissionControl, MissionControlConfig
+from gcs.operator.node_hooks import (  # operator (issue 15): views and console commands
+    add_operator_arguments,
+    check_operator_arguments,
+    operator_service,
+)
+from gcs.operator.service import OperatorService  # operator (issue 15)
 from protocol import keys
 from protocol.clock import ManualClock, WallClock
 from protocol.config import ConfigError, load_config
@@ -72,6 +78,7 @@ class GcsProcess:
             self._clock_sub = follow_sim_clock(link, clock)
         self._stop = threading.Event()
         self._last_step_s = -float("inf")
+        self.operator: OperatorService | None = None  # operator (issue 15): set by main
 
     def spin_once(self, timeout_s: float = 0.05) -> int:
         """Hand the queued messages to the station; step it when due. Returns messages taken."""
@@ -83,6 +90,8 @@ class GcsProcess:
         now = self.clock.now()
         while item is not None:
             self.control.handle(item[0], item[1], now_s=now)
+            if self.operator is not None:  # operator (issue 15)
+                self.operator.observe(item[0], item[1], now_s=now, station=self.station)
             n += 1
             try:
                 item = self._inbox.get_nowait()
@@ -95,6 +104,8 @@ class GcsProcess:
                     self.radio.send(robot_id, msg)
                 except LinkBackpressure:
                     self.refused += 1  # the next periodic update supersedes it
+        if self.operator is not None:  # operator (issue 15): commands, status, views
+            self.operator.after_step(now_s=now, station=self.station, send=self.radio.send)
         return n
 
     def run(
@@ -131,6 +142,8 @@ class GcsProcess:
 
     def close(self) -> None:
         """Release the clock subscription (the link owns the radio endpoint)."""
+        if self.operator is not None:  # operator (issue 15): last picture, flush the views
+            self.operator.close(self.station)
         if self._clock_sub is not None:
             self._clock_sub.close()
 
@@ -189,6 +202,7 @@ def _parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_link_arguments(p)
+    add_operator_arguments(p)  # operator (issue 15)
     for action in p._actions:
         if action.dest in _LINK_HELP:
             action.help = _LINK_HELP[action.dest]
@@ -340,6 +354,7 @@ def _main(argv: list[str]) -> int:
             enabled=not args.no_tasking,
         )
         radio = load_config(args.radio, RadioConfig)
+        check_operator_arguments(args)  # operator (issue 15)
     except (ConfigError, ValueError) as err:
         print(f"magic gcs: {err}", file=sys.stderr)
         return 2
@@ -352,6 +367,7 @@ def _main(argv: list[str]) -> int:
     proc = GcsProcess(
         link, clock, config, step_period_s=args.step_s, budget_s=args.budget_s, mission=mission
     )
+    proc.operator = operator_service(args, link, getattr(proc, "control", None))  # operator (15)
     print(f"magic gcs: mission {args.mission!r}, waiting for robots", flush=True)
     stopped_by: list[int] = []
 

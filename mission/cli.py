@@ -24,7 +24,6 @@ __all__ = ["main"]
 
 #: Subcommands that are specified but not built yet, and the issue that brings each.
 _NOT_BUILT = {
-    "console": "the operator console (operator interfaces)",
 }
 
 #: Subcommands with their own parser (``magic X --help`` is theirs): what each produces.
@@ -36,6 +35,8 @@ _OWN_PARSERS = {
     "lines and a summary line",
     "replay": "replay a CARMEN laser log through the GCS and evaluate it (--carmen FILE): "
     "the evaluation, and the map and summary files in --out",
+    "console": "the operators' console: signed commands to a running GCS over zenoh, with "
+    "completion, robot subsets, macros (-c CMD, --script FILE without a terminal)",
 }
 
 _EXIT_STATUSES = (
@@ -281,6 +282,10 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _dispatch(argv: list[str]) -> int:
+    if argv and argv[0] == "console":  # its own parser: gcs/console/repl.py
+        from gcs.console.repl import main as console_main
+
+        return console_main(argv[1:])
     if argv and argv[0] in ("sim", "robot", "gcs", "replay", "run"):  # their own parsers
         if argv[0] == "run":
             from mission.run import main as run_main

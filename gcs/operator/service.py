@@ -261,7 +261,7 @@ class OperatorService:
                 self.refused_log.append(line)
                 log.warning("%s", line)
                 if cmd is not None:
-                    self._reply(cmd, "refused", reason, f"refused: {reason}: {text}", now_s)
+                    self._reply(cmd, "refused", reason, text, now_s)
                 continue
             outcome = self.handler.handle(cmd.command, self._context(station, now_s))
             self._sync_control()
