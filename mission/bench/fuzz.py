@@ -395,21 +395,29 @@ def entry_points() -> list[EntryPoint]:
 
 
 def _console_entry_points() -> list[EntryPoint]:
-    """The operator console's command parser, once it exists (issue 15)."""
-    if importlib.util.find_spec("gcs.operator") is None:
+    """The operator console's command parser (issue 15), where it is built."""
+    if importlib.util.find_spec("gcs.operator.grammar") is None:
         return []
-    module = importlib.import_module("gcs.operator")
-    parse = getattr(module, "parse_command", None)
-    error = getattr(module, "CommandError", None)
-    if parse is None or error is None:
-        return []
-    seeds = [b"pause all", b"goto 3 12.5 -4", b"resume 2-5", b"status", b"neutralize 7"]
+    from gcs.operator.grammar import CommandError, parse_line
+
+    seeds = [
+        b"pause all",
+        b"goto 3 12.5 -4",
+        b"resume 2-5,7",
+        b"status",
+        b"neutralize 7 4",
+        b"approve 7",
+        b"relay 2 10 -3.5",
+        b"reclassify 7 toxic_vat",
+        b"rewind 120",
+        b"set telemetry_period_s 2 sensors",
+    ]
     return [
         EntryPoint(
             "console_commands",
             seeds,
-            lambda b: parse(b.decode("utf-8", "replace")),
-            (error,),
+            lambda b: parse_line(b.decode("utf-8", "replace")),
+            (CommandError,),
             text=True,
         )
     ]

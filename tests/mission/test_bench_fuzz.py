@@ -16,7 +16,7 @@ def test_every_decoder_and_parser_is_an_entry_point(points: dict[str, EntryPoint
     names = set(points)
     assert {"uplink_frames", "downlink_frames", "sensor_frames", "robot_commands"} <= names
     assert {"station", "journal_records", "world_configs", "carmen_logs", "g2o_graphs"} <= names
-    assert {"grids_magic4", "grids_inter16", "grids_zlib"} <= names
+    assert {"grids_magic4", "grids_inter16", "grids_zlib", "console_commands"} <= names
     for ep in points.values():  # every seed is valid: the fuzz starts from real input
         for seed in ep.seeds:
             ep.call(seed)
