@@ -29,6 +29,7 @@ import struct
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -42,6 +43,7 @@ from mission.assembly import Assembly, GroundSide, assemble
 from mission.config import config_path, load_config
 from mission.lockstep import seed_streams
 from protocol.messages import (
+    Detection,
     GoToTask,
     Hazard,
     HazardUpdate,
@@ -147,6 +149,8 @@ class RunReport:
     interrupted: BaseException | None = None
     setup_s: float = 0.0  # wall seconds to build the world and bring the team up
     scripted: bool = False
+    run_dir: str = ""  # where the recorder wrote the run ("" : nothing written)
+    metrics: dict[str, float] = field(default_factory=dict)  # the report's, scored vs truth
     gcs: dict[str, float] = field(default_factory=dict)  # the GCS's own figures (no truth)
     tasking_events: list[str] = field(default_factory=list)  # the planners' journal
 
@@ -363,11 +367,15 @@ def run_mission(
     on_progress: Callable[[RunReport], None] | None = None,
     progress_period_s: float = 0.5,
     on_step: Callable[[Assembly], None] | None = None,
+    out_dir: str | Path | None = None,
 ) -> RunReport:
     """Run the team for ``config.duration_s`` mission-seconds; returns what happened.
 
     The GCS and its planners on the ground side (``config.scripted``: the truth-drawn goal
-    script instead). ``on_step(assembly)`` is called after every step (recorders, tests).
+    script instead). ``on_step(assembly)`` is called after every step (tests). ``out_dir``:
+    the run directory the mission recorder (:mod:`mission.report`) writes (record, map,
+    ``report.json``, ``report.md``, plots; the metrics in :attr:`RunReport.metrics`); a
+    scripted run has no GCS and writes none.
     Deterministic unless ``config.realtime`` (see :mod:`mission.lockstep`). ^C or SIGTERM
     (any ``KeyboardInterrupt``) ends the run early: links are closed and the report so far is
     returned with ``interrupted`` set to the exception; an interrupt before the team is up
@@ -403,17 +411,102 @@ def run_mission(
         robot_processes=config.robot_processes,
         realtime=config.realtime,
     ) as asm:
+        recorder = None
+        if out_dir is not None and asm.gcs is not None:
+            recorder = _Recording(Path(out_dir), config, asm)
+            report.run_dir = str(out_dir)
+        steps = [] if on_step is None else [on_step]
+        if recorder is not None:
+            steps.insert(0, recorder.step)
         report.setup_s = time.perf_counter() - t_setup
         t_wall = time.perf_counter()
         try:
-            _run_steps(config, asm, report, on_progress, progress_period_s, on_step)
+            _run_steps(config, asm, report, on_progress, progress_period_s, steps)
         except KeyboardInterrupt as exc:
             report.interrupted = exc
         _fill_bytes(report, asm)
         _fill_poses(report, asm.sim)
         _fill_gcs(report, asm)
         report.wall_s = time.perf_counter() - t_wall
+        if recorder is not None:
+            report.metrics = recorder.finish()
         return report
+
+
+class _Recording:
+    """The mission recorder fed from the assembly: the truth track every step, a sample every
+    ``sample_period_s`` mission seconds, the GCS's detections and planner decisions as events
+    (scoring reads the truth; the GCS never does)."""
+
+    sample_period_s = 5.0
+
+    def __init__(self, run_dir: Path, config: RunConfig, asm: Assembly) -> None:
+        from mission.report.recorder import MissionRecorder
+
+        assert asm.gcs is not None
+        self.asm = asm
+        self.gcs = asm.gcs
+        self.rec = MissionRecorder(
+            run_dir,
+            world_name=Path(config.world).stem,
+            seed=config.seed,
+            duration_s=config.duration_s,
+            roles={rid: role.value for rid, role in asm.roles.items()},
+        )
+        self._next_sample_s = 0.0
+        self.gcs.taps.append(self._on_uplink)
+        self.gcs.control.on_event = self._on_planner_event
+
+    def _on_uplink(self, robot_id: int, msg: Any, accepted: bool) -> None:
+        if not (accepted and isinstance(msg, Detection)):
+            return
+        station = self.gcs.station
+        key = station.key_of(robot_id, msg.node_index)
+        if key is None:
+            return
+        xy = transform_points(station.graph.pose(key), np.asarray(msg.position_in_base))
+        self.rec.event(
+            self.asm.sim.time_s,
+            "detection",
+            object_kind=msg.kind.name.lower(),
+            position_in_map=(float(xy[0]), float(xy[1])),
+            robot_id=robot_id,
+            confidence=float(msg.confidence),
+        )
+
+    def _on_planner_event(self, event: Any) -> None:
+        self.rec.event(
+            event.time_s,
+            f"planner_{event.kind}",
+            robot_id=event.robot_id,
+            hazard_id=event.hazard_id,
+            text=event.text,
+        )
+
+    def step(self, asm: Assembly) -> None:
+        sim = asm.sim
+        self.rec.track(sim.time_s, sim=sim)
+        if sim.time_s + 1e-9 >= self._next_sample_s:
+            self._next_sample_s = sim.time_s + self.sample_period_s
+            self._sample()
+
+    def _sample(self) -> None:
+        station = self.gcs.station
+        modes = {}
+        for rid in self.asm.sim.robot_ids:
+            t = station.telemetry(rid)
+            modes[rid] = None if t is None else t.mode
+        self.rec.sample(
+            self.asm.sim.time_s,
+            sim=self.asm.sim,
+            station=station,
+            link_bytes=self.asm.link_bytes(),
+            modes=modes,
+        )
+
+    def finish(self) -> dict[str, float]:
+        self._sample()
+        return self.rec.finish(sim=self.asm.sim, station=self.gcs.station)
 
 
 def _run_steps(
@@ -422,7 +515,7 @@ def _run_steps(
     report: RunReport,
     on_progress: Callable[[RunReport], None] | None,
     progress_period_s: float,
-    on_step: Callable[[Assembly], None] | None,
+    on_step: list[Callable[[Assembly], None]],
 ) -> None:
     sim = asm.sim
     t_wall = time.perf_counter()
@@ -452,8 +545,8 @@ def _run_steps(
         for event in sim.events[len(report.events) :]:
             report.events.append(str(event))
         report.mission_s = sim.time_s
-        if on_step is not None:
-            on_step(asm)
+        for call in on_step:
+            call(asm)
         if on_progress is not None and time.perf_counter() - last_report >= progress_period_s:
             _fill_bytes(report, asm)
             _fill_gcs(report, asm)
@@ -571,10 +664,13 @@ def format_progress(report: RunReport, duration_s: float | None = None) -> Any:
 
 
 _HELP_EPILOG = """\
-what a run produces: nothing on disk. Progress goes to stderr (a live table on a terminal,
-else one line per tenth of the run), the final summary table to stdout; status 0 when the run
-completes, 2 on bad input (one line on stderr), 130 after ^C and 143 after SIGTERM (the run
-stops at once, its links are closed and the summary so far is printed).
+what a run produces: a run directory (--out; default runs/<UTC date-time>-<world>-<seed>/):
+the record, the final global map, report.json and report.md with plots, scored against the
+ground truth (magic report RUN_DIR rebuilds it). Progress goes to stderr (a live table on a
+terminal, else one line per tenth of the run), the final summary table and the report's
+headline to stdout; status 0 when the run completes, 2 on bad input (one line on stderr), 130
+after ^C and 143 after SIGTERM (the run stops at once, its links are closed, the report is
+written from what ran and the summary so far is printed).
 
 deterministic by default: a run is fixed by its world, seed, duration and configuration;
 running it twice (on a loaded machine too) gives the same poses, events and figures, bit for
@@ -643,6 +739,13 @@ def _parser() -> Any:
         "the ground side in this one: the same run as in one process (default: one process)",
     )
     p.add_argument(
+        "--out",
+        metavar="RUN_DIR",
+        help="run directory for the record and the report (report.json, report.md, plots, "
+        "map); must not hold a run yet (default: runs/<UTC date-time>-<world>-<seed>/ under "
+        "the current directory; --scripted writes none)",
+    )
+    p.add_argument(
         "--scripted",
         action="store_true",
         help="no GCS: a script sends goals and hazards drawn from the ground truth "
@@ -680,6 +783,43 @@ def _check_inputs(config: RunConfig) -> None:
     load_config(config_path(config.radio, "radio"), RadioConfig)
     if world.robots.sensors + world.robots.disruptors < 1:  # pragma: no cover - config refuses
         raise ValueError(f"world {config.world}: no robots")
+
+
+def _run_dir(out: str | None, config: RunConfig) -> Path:
+    """The run directory: ``out``, or a fresh ``runs/<UTC date-time>-<world>-<seed>``; a
+    directory that already holds a run (``record/``) is refused (ValueError)."""
+    if out:
+        path = Path(out)
+    else:
+        stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+        path = Path("runs") / f"{stamp}-{Path(config.world).stem}-{config.seed}"
+    if (path / "record").exists():
+        raise ValueError(f"--out {path}: already holds a run (record/); give another directory")
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"--out {path}: not a directory")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out {path}: cannot create it: {err.strerror}") from None
+    return path
+
+
+def _headline(report: RunReport) -> str:
+    """The report's main scores (against the truth) in one line, and where the report is."""
+    m = report.metrics
+
+    def f(name: str, fmt: str = ".2f") -> str:
+        v = m.get(name, math.nan)
+        return "n/a" if not math.isfinite(v) else format(v, fmt)
+
+    return (
+        f"report: explored {f('explored_frac')}, static OOIs detected "
+        f"{f('static_ooi_detected_frac')} neutralized {f('static_ooi_neutralized_frac')}, "
+        f"robots lost {f('robots_lost', '.0f')}, civilians harmed "
+        f"{f('civilians_harmed', '.0f')}, false closures {f('false_closures', '.0f')}, "
+        f"ATE {f('ate_rmse_m')} m, occupancy F1 {f('occupancy_f1')}, radio use "
+        f"{f('radio_use_frac', '.3f')}: {report.run_dir}/report.md"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -720,6 +860,7 @@ def main(argv: list[str] | None = None) -> int:
         if overrides:
             config = msgspec.structs.replace(config, **overrides)
         _check_inputs(config)
+        out_dir = None if config.scripted else _run_dir(args.out, config)
     except (ConfigError, ValueError) as exc:
         return fail(exc)
     total_s = config.duration_s
@@ -738,11 +879,13 @@ def main(argv: list[str] | None = None) -> int:
         )
     try:
         if args.quiet:
-            report = run_mission(config)
+            report = run_mission(config, out_dir=out_dir)
         elif err.is_terminal:
             with Live(console=err, refresh_per_second=4) as live:
                 report = run_mission(
-                    config, on_progress=lambda r: live.update(format_progress(r, total_s))
+                    config,
+                    on_progress=lambda r: live.update(format_progress(r, total_s)),
+                    out_dir=out_dir,
                 )
         else:  # a log or a pipe: a line every tenth of the run, not a redrawn table
             next_s = [0.0]
@@ -757,7 +900,7 @@ def main(argv: list[str] | None = None) -> int:
                         soft_wrap=True,
                     )
 
-            report = run_mission(config, on_progress=line)
+            report = run_mission(config, on_progress=line, out_dir=out_dir)
     except KeyboardInterrupt as exc:  # before the team was up: nothing ran
         status, name = _exit_status(exc)
         err.print(f"magic run: stopped by {name} before the run started", soft_wrap=True)
@@ -767,6 +910,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
     out.print(format_progress(report, total_s))
+    if report.run_dir:
+        out.print(_headline(report), soft_wrap=True, markup=False)
     if report.interrupted is not None:
         status, name = _exit_status(report.interrupted)
         err.print(

@@ -414,3 +414,47 @@ def test_a_near_singular_tag_covariance_is_refused_at_the_door() -> None:
     assert "above 1e+06)" in gs.stats.errors[-1]
     gs.step(now_s=1.0)
     assert gs.stats.solver_faults == 0
+
+
+def test_what_the_allocator_reads_status_heard_time_poses_trajectories_hostiles() -> None:
+    from protocol.messages import AutonomyMode, TaskState, TaskStatus, Telemetry
+
+    gs = GroundStation(GroundStationConfig(robots=(0, 1)))
+    assert gs.robot_ids == [] and gs.last_heard_s(0) is None and gs.last_status(0) is None
+    for k, msg in enumerate(nodes_along(straight(5))):
+        assert gs.handle(0, msg, now_s=float(k))
+    for msg in nodes_along(straight(3, heading=1.0)):
+        gs.handle(1, msg, now_s=2.0)
+    status = TaskStatus(7, TaskState.ACTIVE, 4.5)
+    gs.handle(0, status, now_s=5.0)
+    gs.handle(0, msg, now_s=4.0)  # a late, refused message still says the robot was heard
+    assert gs.last_status(0) == status and gs.last_heard_s(0) == 5.0
+    assert gs.last_heard_s(1) == 2.0 and gs.robot_ids == [0, 1]
+    gs.step(now_s=5.0)
+    # robot 0 defines map; robot 1 has no link to it yet
+    assert gs.linked(0) and not gs.linked(1) and gs.pose_in_map(1) is None
+    np.testing.assert_allclose(gs.pose_in_map(0), straight(5)[-1], atol=1e-6)
+    telemetry = Telemetry(
+        5.2, (2.3, 0.1, 0.05), (0.3, 0.0), (0.0, 0.0), 0.9, AutonomyMode.AUTONOMOUS, 7
+    )
+    gs.handle(0, telemetry, now_s=5.2)
+    np.testing.assert_allclose(gs.pose_in_map(0), (2.3, 0.1, 0.05), atol=1e-5)
+    assert gs.telemetry(0) == telemetry
+    ids, keys, xy = gs.trajectories()
+    assert ids.tolist() == [0] * 5 and np.all(np.diff(keys) > 0)
+    np.testing.assert_allclose(xy, straight(5)[:, :2], atol=1e-6)
+    assert gs.robot_of_key(gs.key_of(1, 2)) == 1 and gs.robot_of_key(int(keys[3])) == 0
+    # a hostile walks: the same object at its latest sighting, who saw it when
+    cov = (0.01, 0.0, 0.01)
+    seen = [(1, 3.0, (4.0, 0.0)), (2, 3.5, (5.5, 0.5)), (4, 4.0, (5.0, 1.0))]
+    for i, (node, t, p) in enumerate(seen):
+        det = Detection(i, node, t, ObjectKind.HOSTILE, p, cov, 0.3, 1.7, 0.9)
+        assert gs.handle(0, det, now_s=t)
+    hostiles = [h for h in gs.hazards if h.kind == ObjectKind.HOSTILE]
+    assert len(hostiles) == 1
+    np.testing.assert_allclose(hostiles[0].position_in_map, (straight(5)[4, 0] + 5.0, 1.0))
+    assert gs.hostile_sightings() == {hostiles[0].hazard_id: {0: 4.0}}
+    # one far away is another hostile
+    far = Detection(9, 4, 4.5, ObjectKind.HOSTILE, (15.0, 0.0), cov, 0.3, 1.7, 0.9)
+    gs.handle(0, far, now_s=4.5)
+    assert len(gs.hostile_sightings()) == 2
