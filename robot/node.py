@@ -158,6 +158,7 @@ class NodeStats:
     yields: int = 0  # plans not taken: the path got blocked and the detour was long
     memory_refreshes: int = 0  # older sweeps forgotten: the newest saw the blocked way clear
     slip_measurements: int = 0  # sweep pairs whose match measured the speed over ground
+    nonfinite_points: int = 0  # LIDAR returns dropped (NaN/inf); the rest of the sweep is used
     perception_errors: int = 0  # perception steps that failed (logged; the robot drives on)
     detections_sent: int = 0
     fiducials_sent: int = 0
@@ -410,6 +411,15 @@ class RobotNode:
     def _on_sweep(self, sweep: LidarSweep) -> None:
         cfg = self.config
         self.stats.sweeps += 1
+        pts = np.asarray(sweep.points_in_base)
+        times = np.asarray(sweep.point_time_s)
+        ok = np.isfinite(pts).all(axis=1) & np.isfinite(times)
+        if not ok.all():
+            # a few bad returns must not cost the whole sweep: drop them, count them
+            self.stats.nonfinite_points += int((~ok).sum())
+            sweep = LidarSweep(
+                sweep.sweep_index, sweep.time_s, sweep.duration_s, pts[ok], times[ok]
+            )
         if len(sweep.points_in_base) == 0:
             return
         poses = self._sweep_poses(sweep)
@@ -444,11 +454,7 @@ class RobotNode:
         self, sweep: LidarSweep, poses: np.ndarray, roll: float, pitch: float
     ) -> None:
         assert self.perception is not None
-        pts = np.asarray(sweep.points_in_base)
-        ok = np.isfinite(pts).all(axis=1)
-        if not ok.all():  # counted by the perception as non-finite points
-            self.perception.stats.nonfinite_points += int((~ok).sum())
-            pts, poses = pts[ok], poses[ok]
+        pts = np.asarray(sweep.points_in_base)  # finite: _on_sweep dropped the others
         mid = sweep.time_s + 0.5 * sweep.duration_s
         in_odom = points_in_odom(pts, poses, roll_rad=roll, pitch_rad=pitch)
         self.perception.on_sweep(in_odom, self.odometry.pose_at(mid), mid)
