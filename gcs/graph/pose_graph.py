@@ -34,6 +34,7 @@ import copy
 import enum
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -61,6 +62,7 @@ from gcs.graph.spanning_tree_init import GlobalAnchor, spanning_tree_initializat
 __all__ = [
     "EdgeRecord",
     "NodeRecord",
+    "OdometryCorrection",
     "PoseGraph",
     "PoseGraphConfig",
     "PoseGraphError",
@@ -91,6 +93,11 @@ _FAULT_KEY = int(gtsam.symbol("z", 0))
 FloatArray = NDArray[np.floating[Any]]
 _Arrays = tuple[NDArray[np.int64], FloatArray, FloatArray]
 
+
+#: A robot's odometry model (:meth:`PoseGraph.set_odometry_correction`): reported increments
+#: ``a_from_b`` ``(N, 3)`` and covariances ``(N, 3, 3)`` in, the increments and covariances the
+#: graph should use out (same shapes, new arrays).
+OdometryCorrection = Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray]]
 
 #: How weakly :meth:`PoseGraph.from_g2o` bridges a gap in a g2o graph's odometry chain.
 GAP_SIGMA_XY_M = 1e3
@@ -266,6 +273,9 @@ class PoseGraph:
         self._isam_anchors: set[tuple[str, int]] = set()
         self._isam_stale = True
         self._injected_faults: list[SolverFaultKind] = []
+        # odometry edges whose measurement was changed: what the robot reported
+        self._reported: dict[int, tuple[FloatArray, FloatArray]] = {}
+        self._corrections: dict[int, OdometryCorrection] = {}
 
     # ---- queries -------------------------------------------------------------------------
 
@@ -375,7 +385,14 @@ class PoseGraph:
             if odometry_covariance is None:
                 raise PoseGraphError(f"robot {robot_id} pose {index}: odometry covariance missing")
             cov = _check_cov(odometry_covariance, f"robot {robot_id} pose {index} odometry")
-            z = se2.between(self._nodes[prev].odom_from_base, pose)
+            z: FloatArray = se2.between(self._nodes[prev].odom_from_base, pose)
+            reported = (z, cov)
+            correct = self._corrections.get(robot_id)
+            if correct is not None:
+                zz, cc = correct(z.reshape(1, 3), cov.reshape(1, 3, 3))
+                what = f"robot {robot_id} pose {index} corrected odometry"
+                z = _check_pose(np.asarray(zz).reshape(3), what)
+                cov = _check_cov(np.asarray(cc).reshape(3, 3), what)
             estimate = se2.compose(self._estimate[prev], z)
         pose.setflags(write=False)
         self._nodes[key] = NodeRecord(key, robot_id, index, float(time_s), pose)
@@ -388,7 +405,9 @@ class PoseGraph:
             else:
                 self._components[key] = self._components[prev]
         if prev is not None:
-            self._append(prev, key, z, cov, Provenance.ODOMETRY, time_s)
+            eid = self._append(prev, key, z, cov, Provenance.ODOMETRY, time_s)
+            if robot_id in self._corrections:
+                self._reported[eid] = reported
         return key
 
     def add_edge(
@@ -492,6 +511,91 @@ class PoseGraph:
         self._components = None
         self._isam_stale = True
         return removed
+
+    def update_edges(self, updates: dict[int, tuple[FloatArray, FloatArray]]) -> list[EdgeRecord]:
+        """Replace the measurement and covariance of existing edges in place:
+        ``{edge_id: (z, covariance)}`` (``z`` as the edge states it: ``a_from_b``, or
+        ``map_from_base`` for a prior). Ids, ends, provenance and times stay; what an odometry
+        edge first reported is kept (:meth:`odometry_reported`). Returns the previous records.
+
+        Everything is checked before anything changes (a bad entry raises
+        :class:`PoseGraphError` naming the edge, and no edge is touched). The estimate is not
+        changed: optimize next. iSAM2 is re-seeded from the whole graph at the next
+        :meth:`optimize_incremental` (its factors are the old measurements); a batch
+        :meth:`optimize` first makes that re-seed start at the new optimum.
+        """
+        checked: dict[int, tuple[FloatArray, FloatArray]] = {}
+        for eid, (z, cov) in updates.items():
+            if eid not in self._edges:
+                raise PoseGraphError(f"update: no edge with id {eid}")
+            e = self._edges[eid]
+            what = f"update of {e.provenance.value} edge {eid}"
+            checked[eid] = (_check_pose(z, what), _check_cov(cov, what))
+        previous = []
+        for eid, (z, cov) in checked.items():
+            e = self._edges[eid]
+            previous.append(e)
+            if e.provenance is Provenance.ODOMETRY:
+                self._reported.setdefault(eid, (e.z, e.covariance))
+            z.setflags(write=False)
+            cov.setflags(write=False)
+            self._edges[eid] = EdgeRecord(eid, e.key_a, e.key_b, z, cov, e.provenance, e.time_s)
+        if checked:
+            self._isam_stale = True
+        return previous
+
+    def odometry_reported(
+        self, robot_id: int
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], FloatArray, FloatArray]:
+        """A robot's odometry edges as the robot reported them, in chain order:
+        ``(edge_ids, keys_b, z (N, 3), covariances (N, 3, 3))`` (``keys_b[k]`` the pose each
+        edge reaches), whatever correction the graph applies now."""
+        self._require_robot(robot_id)
+        rows = sorted(
+            (e for e in self._edges.values() if e.provenance is Provenance.ODOMETRY
+             and self._nodes[e.key_a].robot_id == robot_id),
+            key=lambda e: e.key_b or 0,
+        )  # fmt: skip
+        z = [self._reported[e.edge_id][0] if e.edge_id in self._reported else e.z for e in rows]
+        cov = [
+            self._reported[e.edge_id][1] if e.edge_id in self._reported else e.covariance
+            for e in rows
+        ]
+        return (
+            np.array([e.edge_id for e in rows], dtype=np.int64),
+            np.array([e.key_b for e in rows], dtype=np.int64),
+            np.array(z, dtype=np.float64).reshape(-1, 3),
+            np.array(cov, dtype=np.float64).reshape(-1, 3, 3),
+        )
+
+    def set_odometry_correction(self, robot_id: int, correct: OdometryCorrection | None) -> int:
+        """Use ``correct`` (None: nothing) as ``robot_id``'s odometry model from now on.
+
+        Every odometry edge of the robot is re-expressed from what the robot reported (never
+        from an earlier correction: corrections do not compound), and every later one as
+        :meth:`add_pose` adds it; e.g. a turn-scale estimate (:mod:`gcs.loops.odometry_bias`)
+        scales the yaw of each increment and widens its variance. Raises
+        :class:`PoseGraphError` (nothing changed) when ``correct`` returns bad numbers.
+        Returns how many edges were rewritten; optimize next (see :meth:`update_edges`).
+        """
+        ids, _keys, z0, cov0 = self.odometry_reported(robot_id)
+        if correct is None:
+            z, cov = z0, cov0
+        else:
+            z, cov = correct(z0.copy(), cov0.copy())
+            z = np.asarray(z, dtype=np.float64)
+            cov = np.asarray(cov, dtype=np.float64)
+            if z.shape != z0.shape or cov.shape != cov0.shape:
+                raise PoseGraphError(
+                    f"odometry correction of robot {robot_id}: expected shapes {z0.shape} and "
+                    f"{cov0.shape}, got {z.shape} and {cov.shape}"
+                )
+        self.update_edges({int(eid): (z[i], cov[i]) for i, eid in enumerate(ids.tolist())})
+        if correct is None:
+            self._corrections.pop(robot_id, None)
+        else:
+            self._corrections[robot_id] = correct
+        return len(ids)
 
     def rewind(
         self,
@@ -946,6 +1050,8 @@ class PoseGraph:
         other = PoseGraph(self.config)
         other.restore(self.snapshot())
         other._next_edge_id = self._next_edge_id
+        other._reported = dict(self._reported)
+        other._corrections = dict(self._corrections)
         return other
 
     def copy(self) -> PoseGraph:
