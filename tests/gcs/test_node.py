@@ -77,6 +77,59 @@ def test_gcs_node_takes_uplink_and_sends_frames_over_zenoh() -> None:
         gcs_link.close()
 
 
+def test_the_gcs_node_plans_and_sends_a_task_in_the_robots_frame_over_zenoh() -> None:
+    """``magic gcs`` is the GCS with its planners: a robot that sent nodes and grids gets an
+    exploration goal from the allocator on its downlink."""
+    from gcs.mission_control import MissionControlConfig
+    from protocol.messages import AutonomyMode, GoToTask, Telemetry
+
+    clock = ManualClock()
+    gcs_link, robot_link = open_pair(clock=clock)
+    proc = GcsProcess(
+        gcs_link,
+        clock,
+        GroundStationConfig(robots=(0,)),
+        step_period_s=0.5,
+        mission=MissionControlConfig(plan_period_s=1.0),
+    )
+    tasks: list[GoToTask] = []
+    got = threading.Event()
+
+    def on_down(msg: object) -> None:
+        if isinstance(msg, GoToTask):
+            tasks.append(msg)
+            got.set()
+
+    robot0 = robot_link.robot_endpoint(0, on_message=on_down)
+    try:
+        assert proc.radio.wait_for_robot(0, 10.0)
+        grid = np.zeros((40, 40), dtype=bool)
+        grid[2, :] = True  # a wall 1.8 m to the right
+        for i in range(4):
+            pose = (0.5 * i, 0.0, 0.0)
+            robot0.send(PoseNode(i, float(i), pose, (0.5, 0.0, 0.0) if i else (0.0,) * 3,
+                                 COV if i else (0.0,) * 6))  # fmt: skip
+            robot0.send(TerrainGrid(i, 0.1, encode_grid(grid, origin_cells=(-20, -20))))
+        robot0.send(Telemetry(3.0, (1.5, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), 1.0,
+                              AutonomyMode.IDLE, 0))  # fmt: skip
+        for _ in range(200):
+            if got.is_set():
+                break
+            clock.set(clock.now() + 0.25)
+            robot_link.pump()
+            gcs_link.pump()
+            proc.spin_once(timeout_s=0.05)
+        assert got.is_set(), proc.status_line()
+        assert tasks[0].task_id >= 1_000_000 and tasks[0].waypoints_in_odom
+        goal = np.asarray(tasks[0].waypoints_in_odom[-1])
+        assert np.hypot(*(goal - (1.5, 0.0))) > 2.0  # out towards the unknown
+        assert "tasks 1" in proc.status_line()
+    finally:
+        proc.close()
+        robot_link.close()
+        gcs_link.close()
+
+
 def test_magic_gcs_rejects_a_bad_config(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
     bad = tmp_path / "gcs.yaml"
     bad.write_text("frames_period_s: fast\n")
@@ -171,6 +224,8 @@ def test_magic_gcs_bad_endpoints_fail_in_one_line_with_status_2(capsys) -> None:
         (["--listen", "carrier-pigeon/x:1"], "unknown protocol"),
         (["--listen", "tcp/nohost.invalid:7447"], "cannot open the zenoh link"),
         (["--step-s", "0"], "--step-s"),
+        (["--disruptors", "3,x"], "--disruptors: expected robot ids"),
+        (["--plan-s", "-1"], "--plan-s"),
     ):
         t0 = time.monotonic()
         assert main(argv) == 2

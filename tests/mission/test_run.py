@@ -113,9 +113,10 @@ def test_fields_differing_compares_floats_bit_for_bit() -> None:
     ("sig", "status", "name"),
     [(signal.SIGINT, 130, "SIGINT"), (signal.SIGTERM, 143, "SIGTERM")],
 )
-def test_a_signal_mid_run_ends_it_with_the_summary_so_far(sig, status, name) -> None:
+def test_a_signal_mid_run_ends_it_with_the_summary_so_far(sig, status, name, tmp_path) -> None:
+    run_dir = tmp_path / "run"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "mission.cli", "run", "--duration", "600"],
+        [sys.executable, "-m", "mission.cli", "run", "--duration", "600", "--out", str(run_dir)],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -141,10 +142,13 @@ def test_a_signal_mid_run_ends_it_with_the_summary_so_far(sig, status, name) -> 
     assert "Traceback" not in err
     assert f"magic run: stopped by {name} at " in err
     lines = out.splitlines()
-    assert any("goals ok/sent" in line for line in lines)  # the table of the run so far
+    assert any("tasks ok/sent" in line for line in lines)  # the table of the run so far
     # a pipe: every summary line whole, none wrapped mid-phrase
     assert any(line.startswith("teammate deadlocks broken: ") for line in lines), out
     assert any(line.startswith("mode: deterministic lockstep") for line in lines), out
+    # the report is written from what ran
+    assert (run_dir / "report.json").is_file() and (run_dir / "report.md").is_file()
+    assert any(line.startswith("report: explored ") for line in lines), out
 
 
 def test_run_help_gives_defaults_units_outputs_and_terms(capsys) -> None:
@@ -156,7 +160,8 @@ def test_run_help_gives_defaults_units_outputs_and_terms(capsys) -> None:
         "mission-seconds to run (default: 180)",
         "(default: 0)",
         "(default: small)",
-        "what a run produces: nothing on disk",
+        "what a run produces: a run directory (--out; default runs/",
+        "--scripted",
         "events (rule events): the simulator's rule events",
         "130 after ^C and 143 after SIGTERM",
         "--realtime",
@@ -165,14 +170,22 @@ def test_run_help_gives_defaults_units_outputs_and_terms(capsys) -> None:
         assert needle in text, needle
 
 
+def test_run_command_refuses_a_run_directory_that_holds_a_run(capsys, tmp_path) -> None:
+    (tmp_path / "record").mkdir()
+    assert main(["run", "--out", str(tmp_path), "--duration", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "already holds a run (record/)" in err and err.count("\n") == 1
+
+
 def test_run_command_refuses_a_negative_seed_in_one_line(capsys) -> None:
     assert main(["run", "--seed", "-1", "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.strip() == "magic run: seed must be >= 0, got -1"
 
 
-def test_realtime_says_it_is_not_repeatable(capsys) -> None:
-    assert main(["run", "--realtime", "--duration", "2", "--quiet"]) == 0
+def test_realtime_says_it_is_not_repeatable(capsys, tmp_path) -> None:
+    out = ["--out", str(tmp_path / "run")]
+    assert main(["run", "--realtime", "--duration", "2", "--quiet", *out]) == 0
     captured = capsys.readouterr()
     assert "--realtime: radio delivery on wall-clock threads; this run is not repeatable" in (
         " ".join(captured.err.split())
