@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
@@ -52,7 +53,9 @@ VISIBLE_RANGE_M = 8.0
 # and multi-sweep confirmation (paper 5.2.1: thresholds "manually enlarged")
 MAX_CYLINDER_OVERHEAD = 0.3
 MIN_RECALL = {"cylinder": 0.97, "person": 0.9}
-LIDAR_HALF_FOV_DEG = 130.0  # 270 deg scanner, less a few beams at the edge
+LIDAR_HALF_FOV_DEG = 130.0
+PERSON_RANGE_M = 10.0
+SWEEP_PERIOD_S = 1.25  # 270 deg scanner, less a few beams at the edge
 MATCH_M = 0.5
 
 
@@ -101,9 +104,16 @@ def _poses_for(world: Any, truth: Any, rng: np.random.Generator, per_object: int
 
 
 def record(
-    seeds: list[int], out_dir: Path, *, per_object: int = 3, sweeps_per_pose: int = 2
+    seeds: list[int],
+    out_dir: Path,
+    *,
+    per_object: int = 3,
+    sweeps_per_pose: int = 2,
+    walking_hostiles: int | None = None,
 ) -> Path:
-    """Record sweeps of worlds ``seeds`` into ``out_dir/world_<seed>.npz``; returns out_dir."""
+    """Record sweeps of worlds ``seeds`` into ``out_dir/world_<seed>.npz``; returns out_dir.
+    ``walking_hostiles``: that many hostiles, all walking their patrol routes (the tracker's
+    velocity test), in place of the world's default people."""
     from protocol.sensors import LidarSweep
     from sim.ground_truth import rasterize
     from sim.simulator import Simulator
@@ -112,12 +122,21 @@ def record(
     out_dir.mkdir(parents=True, exist_ok=True)
     for seed in seeds:
         rng = np.random.default_rng(1000 + seed)
-        world = generate_world(WorldConfig(seed=seed))
+        wcfg = WorldConfig(seed=seed)
+        if walking_hostiles is not None:
+            wcfg = msgspec.structs.replace(
+                wcfg,
+                hostiles=msgspec.structs.replace(
+                    wcfg.hostiles, count=walking_hostiles, mobile_fraction=1.0
+                ),
+            )
+        world = generate_world(wcfg)
         truth = rasterize(world)
         poses = _poses_for(world, truth, rng, per_object)
         robots = tuple(RobotStart(k, "sensor", p) for k, p in enumerate(poses))
         world = dataclasses.replace(world, robots=robots)
         pts_all: list[NDArray[np.float32]] = []
+        times_all: list[NDArray[np.float32]] = []
         meta: list[tuple[int, float, float, float, float]] = []
         ooi_xy = np.array([o.xy_m for o in world.oois]).reshape(-1, 2)
         ooi_info = np.array(
@@ -154,6 +173,7 @@ def record(
                                 near = math.hypot(*(ooi_xy[i] - sensor)) <= VISIBLE_RANGE_M
                                 vis[i] = near and kind == ("ooi", world.oois[i].ooi_id)
                         pts_all.append(pts.astype(np.float32))
+                        times_all.append(np.asarray(fr.point_time_s, dtype=np.float32))
                         meta.append((k, fr.time_s, sensor[0], sensor[1], pose[2]))
                         human_xy.append(hxy)
                         visible.append(vis)
@@ -168,10 +188,166 @@ def record(
             human_xy=np.array(human_xy).reshape(len(meta), -1, 2),
             visible=np.array(visible).reshape(len(meta), -1),
             human_kind=np.array([2 if h.kind == "hostile" else 1 for h in world.humans]),
+            point_time_s=np.concatenate(times_all) if times_all else np.zeros(0, np.float32),
         )
         print(
             f"world {seed}: {len(robots)} robots, {len(meta)} sweeps, "
             f"{len(world.oois)} OOIs, {len(world.humans)} people, {time.perf_counter() - t0:.1f} s",
+            flush=True,
+        )
+    return out_dir
+
+
+def _drive_lines(
+    world: Any, truth: Any, rng: np.random.Generator, per_object: int, length_m: float
+) -> list[tuple[float, float, float]]:
+    """Start poses of straight drives of ``length_m`` that pass each OOI and person 3-5 m
+    to the side at their end (outside the static OOI's 2.5 m trigger), on drivable ground."""
+    targets = [np.asarray(o.xy_m) for o in world.oois]
+    targets += [np.asarray(h.route_m[0]) for h in world.humans]
+    w, h = world.size_m
+    r = int(math.ceil(0.5 / truth.resolution_m))
+    out: list[tuple[float, float, float]] = []
+
+    def drivable(x: float, y: float) -> bool:
+        if not (1.0 < x < w - 1.0 and 1.0 < y < h - 1.0):
+            return False
+        i, j = truth.cells(np.array([x, y]))
+        return bool(truth.drivable[max(i - r, 0) : i + r + 1, max(j - r, 0) : j + r + 1].all())
+
+    for t in targets:
+        got = 0
+        for _ in range(300):
+            if got >= per_object:
+                break
+            heading = rng.uniform(-math.pi, math.pi)
+            u = np.array([math.cos(heading), math.sin(heading)])
+            side = np.array([-u[1], u[0]]) * rng.choice([-1.0, 1.0]) * rng.uniform(3.0, 5.0)
+            end = t + side
+            start = end - u * length_m
+            line = start + np.outer(np.linspace(0, 1, int(length_m / 0.3) + 2), end - start)
+            if not all(drivable(float(x), float(y)) for x, y in line):
+                continue
+            if any(math.hypot(start[0] - p[0], start[1] - p[1]) < 1.5 for p in out):
+                continue
+            out.append((float(start[0]), float(start[1]), heading))
+            got += 1
+    return out
+
+
+def record_drive(
+    seeds: list[int],
+    out_dir: Path,
+    *,
+    per_object: int = 2,
+    sweeps: int = 10,
+    speed_m_s: float = 0.8,
+) -> Path:
+    """Like :func:`record`, but each robot drives straight past an object or person at
+    ``speed_m_s`` for ``sweeps`` sweeps (the bench's situation: objects come into range
+    and their view changes). Points are de-skewed with the true pose at each line's time
+    (``odom`` = world for evaluation); ``meta`` holds the sensor at mid-sweep."""
+    from protocol.sensors import LidarSweep, VelocityCommand
+    from sim.ground_truth import rasterize
+    from sim.simulator import Simulator
+    from sim.world_generator import RobotStart, WorldConfig, generate_world
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for seed in seeds:
+        rng = np.random.default_rng(2000 + seed)
+        world = generate_world(WorldConfig(seed=seed))
+        truth = rasterize(world)
+        starts = _drive_lines(world, truth, rng, per_object, speed_m_s * 1.25 * sweeps)
+        robots = tuple(RobotStart(k, "sensor", p) for k, p in enumerate(starts))
+        world = dataclasses.replace(world, robots=robots)
+        ooi_xy = np.array([o.xy_m for o in world.oois]).reshape(-1, 2)
+        ooi_info = np.array(
+            [[o.radius_m, o.height_m, 1 if o.kind == "static_ooi" else 2] for o in world.oois]
+        ).reshape(-1, 3)
+        pts_all: list[NDArray[np.float32]] = []
+        times_all: list[NDArray[np.float32]] = []
+        meta: list[tuple[float, float, float, float, float]] = []
+        human_xy: list[NDArray[np.float64]] = []
+        visible: list[NDArray[np.bool_]] = []
+        t0 = time.perf_counter()
+        with Simulator(world) as sim:
+            drivers = [sim.driver(r.robot_id) for r in robots]
+            hist_t: list[float] = [sim.time_s]
+            hist_p: list[NDArray[np.float64]] = [sim.robot_poses()]
+            counts = np.zeros(len(robots), dtype=int)
+            pending: list[tuple[int, Any]] = []
+            while counts.min() < sweeps and sim.time_s < 3.0 + 1.3 * sweeps:
+                for d in drivers:
+                    d.send(
+                        VelocityCommand(time_s=sim.time_s, linear_m_s=speed_m_s, angular_rad_s=0.0)
+                    )
+                sim.step()
+                hist_t.append(sim.time_s)
+                hist_p.append(sim.robot_poses())
+                for k, d in enumerate(drivers):
+                    for fr in d.poll(0.0):
+                        if isinstance(fr, LidarSweep) and counts[k] < sweeps:
+                            counts[k] += 1
+                            pending.append((k, fr))
+                # de-skew once the poses of the sweep's whole span are known
+                ht = np.array(hist_t)
+                hp = np.array(hist_p)
+                keep: list[tuple[int, Any]] = []
+                for k, fr in pending:
+                    if fr.time_s + fr.duration_s > ht[-1]:
+                        keep.append((k, fr))
+                        continue
+                    tp = fr.time_s + fr.point_time_s.astype(np.float64)
+                    yaw = np.unwrap(hp[:, k, 2])
+                    pose = np.column_stack(
+                        [
+                            np.interp(tp, ht, hp[:, k, 0]),
+                            np.interp(tp, ht, hp[:, k, 1]),
+                            np.interp(tp, ht, yaw),
+                        ]
+                    )
+                    pts = points_in_odom(fr.points_in_base, pose) if len(tp) else np.zeros((0, 3))
+                    mid = fr.time_s + fr.duration_s / 2
+                    pm = np.array(
+                        [
+                            np.interp(mid, ht, hp[:, k, 0]),
+                            np.interp(mid, ht, hp[:, k, 1]),
+                            float(np.interp(mid, ht, yaw)),
+                        ]
+                    )
+                    sensor = _sensor_xy(pm)
+                    hxy = sim.routes.positions(mid) if world.humans else np.zeros((0, 2))
+                    vis = np.zeros(len(world.oois), dtype=bool)
+                    if len(world.oois):
+                        src = np.array([[sensor[0], sensor[1], LIDAR_IN_BASE_M[2]]] * len(ooi_xy))
+                        dst = np.column_stack([ooi_xy, ooi_info[:, 1] * 0.5])
+                        _, body = sim.scene.ray_cast(src, dst)
+                        for i, b in enumerate(body):
+                            kind = sim.scene.body_kind.get(int(b)) if b >= 0 else None
+                            near = math.hypot(*(ooi_xy[i] - sensor)) <= VISIBLE_RANGE_M
+                            vis[i] = near and kind == ("ooi", world.oois[i].ooi_id)
+                    pts_all.append(pts.astype(np.float32))
+                    times_all.append(np.asarray(fr.point_time_s, dtype=np.float32))
+                    meta.append((k, fr.time_s, sensor[0], sensor[1], pm[2]))
+                    human_xy.append(hxy)
+                    visible.append(vis)
+                pending = keep
+        n = np.array([len(p) for p in pts_all])
+        np.savez_compressed(
+            out_dir / f"world_{seed}.npz",
+            points=np.concatenate(pts_all) if pts_all else np.zeros((0, 3), np.float32),
+            counts=n,
+            meta=np.array(meta).reshape(-1, 5),
+            ooi_xy=ooi_xy,
+            ooi_info=ooi_info,
+            human_xy=np.array(human_xy).reshape(len(meta), -1, 2),
+            visible=np.array(visible).reshape(len(meta), -1),
+            human_kind=np.array([2 if h.kind == "hostile" else 1 for h in world.humans]),
+            point_time_s=np.concatenate(times_all) if times_all else np.zeros(0, np.float32),
+        )
+        print(
+            f"world {seed}: {len(robots)} driving robots, {len(meta)} sweeps, "
+            f"{time.perf_counter() - t0:.1f} s",
             flush=True,
         )
     return out_dir
@@ -194,19 +370,24 @@ def _sweeps(d: dict[str, Any]) -> list[tuple[NDArray[np.float64], int]]:
 def label_segments(
     xyzs: list[NDArray[np.float64]], d: dict[str, Any], sweep: int
 ) -> NDArray[np.int64]:
-    """0: distractor, 1: cylinder (OOI or vat), 2: person; from ground truth (labels only)."""
+    """0: distractor, 1: cylinder (OOI or vat), 2: person, -1: a fragment of either (from
+    ground truth, labels only). Of the segments near one object, the one with the most
+    points is the object; the others (a few returns off its top or edge) are fragments,
+    left out of training: neither what the box must accept nor what it must refuse."""
     lab = np.zeros(len(xyzs), dtype=np.int64)
-    for k, xyz in enumerate(xyzs):
-        c = xyz[:, :2].mean(axis=0)
-        if len(d["ooi_xy"]):
-            dist = np.hypot(*(d["ooi_xy"] - c).T)
-            i = int(np.argmin(dist))
-            if dist[i] <= d["ooi_info"][i, 0] + 0.25:
-                lab[k] = 1
-                continue
-        h = d["human_xy"][sweep]
-        if len(h) and np.hypot(*(h - c).T).min() <= 0.6:
-            lab[k] = 2
+    if not xyzs:
+        return lab
+    c = np.array([xyz[:, :2].mean(axis=0) for xyz in xyzs])
+    n = np.array([len(xyz) for xyz in xyzs])
+    objects = [
+        (xy, float(info[0]) + 0.25, 1) for xy, info in zip(d["ooi_xy"], d["ooi_info"], strict=True)
+    ]
+    objects += [(xy, 0.6, 2) for xy in d["human_xy"][sweep]]
+    for xy, reach, cls in objects:
+        near = np.flatnonzero((np.hypot(*(c - xy).T) <= reach) & (lab == 0))
+        if len(near):
+            lab[near] = -1
+            lab[near[int(np.argmax(n[near]))]] = cls
     return lab
 
 
@@ -242,7 +423,7 @@ def train(files: list[Path], out: Path) -> dict[str, Any]:
     for name, cls in (("cylinder", 1), ("person", 2)):
         box, sc = learn_box(
             f[lab == cls],
-            f[lab != cls],
+            f[(lab != cls) & (lab >= 0)],
             quantiles=(0.0, 0.01, 0.02),
             margins=(0.0, 0.1),
             min_margin=margin,
@@ -253,11 +434,14 @@ def train(files: list[Path], out: Path) -> dict[str, Any]:
             # objects stood beside a tree or under a person's reach and would let trunks in
             i = FEATURE_NAMES.index("overhead_frac")
             box.hi[i] = min(box.hi[i], MAX_CYLINDER_OVERHEAD)
+        else:
+            # people stand and walk beside walls, cars and teammates: no side test
+            box.lo[FEATURE_NAMES.index("side_gap_m")] = -1e9
         boxes[name] = box
         scores[name] = {
             **sc,
             "positives": int((lab == cls).sum()),
-            "negatives": int((lab != cls).sum()),
+            "negatives": int(((lab != cls) & (lab >= 0)).sum()),
         }
     prov = {
         "trained_on": [p.name for p in files],
@@ -293,6 +477,7 @@ def evaluate(
     *,
     report_s: float = 5.0,
     detector_config: LidarDetectorConfig | None = None,
+    use_point_times: bool = True,
 ) -> dict[str, float]:
     """The detector on held-out recordings, one robot pose at a time (its sweeps in order,
     the detector reset between poses, as a robot arriving there).
@@ -306,7 +491,8 @@ def evaluate(
       ``shape_precision_confirmed``: the same over confirmed objects (one per object id, at
       its last position): what the colour test receives;
     * ``pos_err_p95_m``: confirmed objects' error against the nearest true object;
-    * ``hostile_track_recall``: hostiles within 10 m in at least 3 sweeps of a pose that
+    * ``hostile_track_recall``: hostiles within 10 m and in view (3 or more returns within
+      0.4 m of them) in at least 3 sweeps of a pose that
       were covered by a confirmed person track within 1 m; ``hostile_velocity_err_p50_m_s``
       (and people in general, ``person_velocity_err_p50_m_s``) of those tracks against the
       truth's displacement between sweeps;
@@ -329,6 +515,8 @@ def evaluate(
         d = _load(path)
         kinds_h = _human_kinds(path, d)
         sweeps = _sweeps(d)
+        ends_pt = np.cumsum(d["counts"])
+        starts_pt = ends_pt - d["counts"]
         robots = d["meta"][:, 0].astype(int)
         for r in np.unique(robots):
             idx = [i for _, i in sweeps if robots[i] == r]
@@ -346,7 +534,12 @@ def evaluate(
                 t = float(d["meta"][i, 1])
                 sensor = d["meta"][i, 2:4]
                 t0 = time.process_time()
-                out = det.process(pts, sensor, t)
+                pt = (
+                    d["point_time_s"][starts_pt[i] : ends_pt[i]]
+                    if "point_time_s" in d and use_point_times
+                    else None
+                )
+                out = det.process(pts, sensor, t, point_time_s=pt)
                 cpu_ms.append((time.process_time() - t0) * 1e3)
                 cxy = np.array([c.position_in_odom for c in out.cylinders]).reshape(-1, 2)
                 conf = np.array([c.confirmed for c in out.cylinders], dtype=bool)
@@ -371,9 +564,16 @@ def evaluate(
                 # people
                 hxy = d["human_xy"][i]
                 tracks = out.people
-                txy = np.array([tr.position_m for tr in tracks]).reshape(-1, 2)
+                # tracks at the truth's time (mid-sweep), each from its own last update
+                t_mid = t + SWEEP_PERIOD_S / 2
+                txy = np.array(
+                    [tr.position_m + tr.velocity_m_s * (t_mid - tr.time_s) for tr in tracks]
+                ).reshape(-1, 2)
                 for h in range(len(hxy)):
-                    if math.hypot(*(hxy[h] - sensor)) > 10.0:
+                    if math.hypot(*(hxy[h] - sensor)) > PERSON_RANGE_M:
+                        continue
+                    # in view: the sweep has returns on the person (not occluded, not behind)
+                    if (np.hypot(*(pts[:, :2] - hxy[h]).T) <= 0.4).sum() < 3:
                         continue
                     near_h[h] = near_h.get(h, 0) + 1
                     if len(txy) == 0:
@@ -435,6 +635,14 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--out", type=Path, required=True, help="directory for world_<seed>.npz")
     r.add_argument("--per-object", type=int, default=3)
     r.add_argument("--sweeps-per-pose", type=int, default=2)
+    r.add_argument(
+        "--drive",
+        action="store_true",
+        help="robots drive straight past objects and people (10 sweeps at 0.8 m/s)",
+    )
+    r.add_argument(
+        "--walking-hostiles", type=int, default=None, help="N hostiles, all walking (tracker)"
+    )
     t = sub.add_parser("train", help="learn the shape thresholds from recorded worlds")
     t.add_argument("files", type=Path, nargs="+")
     t.add_argument("--out", type=Path, default=DEFAULT_THRESHOLDS_PATH)
@@ -442,8 +650,16 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("files", type=Path, nargs="+")
     e.add_argument("--thresholds", type=Path, default=DEFAULT_THRESHOLDS_PATH)
     a = ap.parse_args(argv)
-    if a.cmd == "record":
-        record(a.seeds, a.out, per_object=a.per_object, sweeps_per_pose=a.sweeps_per_pose)
+    if a.cmd == "record" and a.drive:
+        record_drive(a.seeds, a.out, per_object=a.per_object)
+    elif a.cmd == "record":
+        record(
+            a.seeds,
+            a.out,
+            per_object=a.per_object,
+            sweeps_per_pose=a.sweeps_per_pose,
+            walking_hostiles=a.walking_hostiles,
+        )
     elif a.cmd == "train":
         print(json.dumps(train(a.files, a.out), indent=1))
     else:

@@ -105,10 +105,19 @@ class PersonTracker:
         t.p = f @ t.p @ f.T + q * (g @ g.T)
         t.time_s = time_s
 
-    def update(self, time_s: float, positions_in_odom: ArrayLike) -> list[PersonTrack]:
+    def update(
+        self,
+        time_s: float,
+        positions_in_odom: ArrayLike,
+        *,
+        measurement_times_s: ArrayLike | None = None,
+    ) -> list[PersonTrack]:
         """Advance to ``time_s`` with this sweep's person positions ``(n, 2)`` (odom); returns
-        the confirmed tracks. Non-finite rows are skipped and counted
-        (``rejected_measurements``); a time earlier than the last is a ValueError."""
+        the confirmed tracks. ``measurement_times_s`` ``(n,)``: when each position was
+        measured (default: all at ``time_s``); a track is predicted to its measurement's
+        own time before the update, so the points of a sweep need not share one instant.
+        Non-finite rows are skipped and counted (``rejected_measurements``); a time earlier
+        than the last is a ValueError."""
         cfg = self.config
         if not math.isfinite(time_s):
             raise ValueError(f"PersonTracker.update: time_s must be finite, got {time_s}")
@@ -118,17 +127,31 @@ class PersonTracker:
             )
         self.time_s = time_s
         z = np.asarray(positions_in_odom, dtype=np.float64).reshape(-1, 2)
-        ok = np.isfinite(z).all(axis=1)
+        if measurement_times_s is None:
+            tz = np.full(len(z), time_s)
+        else:
+            tz = np.asarray(measurement_times_s, dtype=np.float64).reshape(-1)
+            if tz.shape[0] != z.shape[0]:
+                raise ValueError(
+                    f"PersonTracker.update: {tz.shape[0]} measurement times for {len(z)} positions"
+                )
+        ok = np.isfinite(z).all(axis=1) & np.isfinite(tz)
         self.rejected_measurements += int((~ok).sum())
-        z = z[ok]
-        for t in self.tracks:
-            self._predict(t, time_s)
+        z, tz = z[ok], tz[ok]
         r = cfg.meas_sigma_m**2 * np.eye(2)
         pairs: list[tuple[float, int, int]] = []
         for i, t in enumerate(self.tracks):
-            s_inv = np.linalg.inv(t.p[:2, :2] + r)
-            d = z - t.x[:2]
-            m2 = np.einsum("ni,ij,nj->n", d, s_inv, d)
+            # each measurement against the track predicted to that measurement's time
+            dt = np.maximum(tz - t.time_s, 0.0)
+            pred = t.x[:2] + dt[:, None] * t.x[2:]
+            q = cfg.accel_noise_m_s2**2 * (dt**4 / 4 + 0.0)
+            d = z - pred
+            m2 = np.empty(len(z))
+            for jj in range(len(z)):
+                f = np.eye(4)
+                f[0, 2] = f[1, 3] = dt[jj]
+                p_pos = (f @ t.p @ f.T)[:2, :2] + q[jj] * np.eye(2)
+                m2[jj] = float(d[jj] @ np.linalg.solve(p_pos + r, d[jj]))
             eu = np.hypot(d[:, 0], d[:, 1])
             for jj in np.flatnonzero((m2 <= cfg.gate_sigma**2) & (eu <= cfg.gate_max_m)).tolist():
                 pairs.append((float(m2[jj]), i, int(jj)))
@@ -143,6 +166,7 @@ class PersonTracker:
             used_t.add(i)
             used_z.add(j)
             t = self.tracks[i]
+            self._predict(t, float(tz[j]))
             s = t.p[:2, :2] + r
             k = t.p[:, :2] @ np.linalg.inv(s)
             t.x = t.x + k @ (z[j] - t.x[:2])
@@ -151,7 +175,7 @@ class PersonTracker:
             t.hits += 1
             t.missed = 0
             t.confirmed = t.confirmed or t.hits >= cfg.confirm_hits
-            t.history.append((time_s, float(z[j, 0]), float(z[j, 1])))
+            t.history.append((float(tz[j]), float(z[j, 0]), float(z[j, 1])))
             del t.history[:-20]
         keep: list[PersonTrack] = []
         for i, t in enumerate(self.tracks):
@@ -171,9 +195,9 @@ class PersonTracker:
                     self._next_id,
                     np.array([z[j, 0], z[j, 1], 0.0, 0.0]),
                     p0,
-                    time_s,
+                    float(tz[j]),
                     confirmed=cfg.confirm_hits <= 1,
-                    history=[(time_s, float(z[j, 0]), float(z[j, 1]))],
+                    history=[(float(tz[j]), float(z[j, 0]), float(z[j, 1]))],
                 )
             )
             self._next_id += 1

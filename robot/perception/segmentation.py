@@ -101,7 +101,8 @@ class Segmentation:
     The same objects as arrays (for compiled feature code): ``object_xyz`` ``(n, 3)`` holds
     every point between ``min_height_m`` and ``max_height_m`` grouped by object (groups too
     small to be objects included), ``object_height_m`` their heights above the ground model,
-    and segment ``k`` is ``object_xyz[starts[k]:ends[k]]``."""
+    and segment ``k`` is ``object_xyz[starts[k]:ends[k]]``; ``object_rows``: each object
+    point's row in the input (to look up per-point data such as its time)."""
 
     segments: list[Segment]
     above_ground_xyz: NDArray[np.float64]
@@ -111,6 +112,7 @@ class Segmentation:
     object_height_m: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     starts: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     ends: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    object_rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 @nb.njit(cache=True, nogil=True)
@@ -181,12 +183,15 @@ def segment_sweep(
     sensor = np.asarray(sensor_xy_in_odom, dtype=np.float64).reshape(-1)
     if sensor.shape != (2,) or not np.all(np.isfinite(sensor)):
         raise ValueError(f"sensor_xy_in_odom: expected 2 finite numbers, got {sensor!r}")
+    rows = np.arange(len(pts), dtype=np.int64)
     finite = np.isfinite(pts).all(axis=1)
     dropped = int(len(pts) - finite.sum())
     if dropped:
         pts = pts[finite]
+        rows = rows[finite]
     d2 = np.sum((pts[:, :2] - sensor) ** 2, axis=1)
-    pts = pts[d2 <= cfg.range_m**2]
+    near = d2 <= cfg.range_m**2
+    pts, rows = pts[near], rows[near]
     size = int(math.ceil(2 * cfg.range_m / cfg.resolution_m)) + 2
     geometry = GridGeometry.centered(sensor, resolution_m=cfg.resolution_m, rows=size, cols=size)
     empty = Segmentation([], np.zeros((0, 3)), sensor, dropped)
@@ -195,12 +200,12 @@ def segment_sweep(
     ground = ground_model(pts, geometry, ground_slope_deg=cfg.ground_slope_deg)
     rc = geometry.cell_of(pts[:, :2])
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < size) & (rc[:, 1] >= 0) & (rc[:, 1] < size)
-    pts, rc = pts[inside], rc[inside]
+    pts, rc, rows = pts[inside], rc[inside], rows[inside]
     h = pts[:, 2] - ground[rc[:, 0], rc[:, 1]]
     above = h >= cfg.min_height_m
     above_xyz = pts[above]
     obj = above & (h <= cfg.max_height_m)
-    pts, rc, h = pts[obj], rc[obj], h[obj]
+    pts, rc, h, rows = pts[obj], rc[obj], h[obj], rows[obj]
     if len(pts) == 0:
         return Segmentation([], above_xyz, sensor, dropped)
     top = _cell_tops(rc[:, 0], rc[:, 1], h, size, size)
@@ -209,6 +214,7 @@ def segment_sweep(
     order = np.argsort(lab, kind="stable")
     lab_sorted = lab[order]
     xyz_sorted = pts[order]
+    rows_sorted = rows[order]
     h_sorted = h[order]
     starts = np.flatnonzero(np.r_[True, lab_sorted[1:] != lab_sorted[:-1]])
     ends = np.r_[starts[1:], len(lab_sorted)]
@@ -222,4 +228,6 @@ def segment_sweep(
         )
         for s, e in zip(starts.tolist(), ends.tolist(), strict=True)
     ]
-    return Segmentation(segments, above_xyz, sensor, dropped, xyz_sorted, h_sorted, starts, ends)
+    return Segmentation(
+        segments, above_xyz, sensor, dropped, xyz_sorted, h_sorted, starts, ends, rows_sorted
+    )

@@ -39,6 +39,7 @@ __all__ = [
     "ShapeThresholds",
     "ThresholdFileError",
     "learn_box",
+    "peel_box",
     "load_thresholds",
     "save_thresholds",
 ]
@@ -126,6 +127,79 @@ def learn_box(
                 best = (key, box, scores)
     assert best is not None
     return best[1], best[2]
+
+
+def peel_box(
+    positives: NDArray[np.float64],
+    negatives: NDArray[np.float64],
+    *,
+    min_recall: float,
+    min_margin: NDArray[np.float64] | None = None,
+    fixed: NDArray[np.bool_] | None = None,
+) -> tuple[ClassBox, dict[str, float]]:
+    """Learn ``[lo, hi]`` by peeling (Friedman and Fisher's PRIM, top-down): start from the
+    box of all finite positives and repeatedly move the one bound inward past the next
+    positive(s) that removes the most negatives per positive lost, while the recall stays
+    at least ``min_recall``; then widen every bound by ``min_margin`` (the paper's manual
+    enlargement). Unlike quantile boxes, the recall given up is spent where the negatives
+    are (a feature that separates is cut, one that does not is left wide). ``fixed``:
+    features whose bounds are never peeled. Returns the box and its training scores."""
+    pos = np.asarray(positives, dtype=np.float64)
+    neg = np.asarray(negatives, dtype=np.float64).reshape(-1, pos.shape[1])
+    pos_ok = pos[np.isfinite(pos).all(axis=1)]
+    if len(pos_ok) < 3:
+        raise ValueError(f"peel_box: need at least 3 finite positive rows, got {len(pos_ok)}")
+    nf = pos.shape[1]
+    lo, hi = pos_ok.min(axis=0), pos_ok.max(axis=0)
+    frozen = np.zeros(nf, bool) if fixed is None else np.asarray(fixed, bool)
+    min_keep = int(math.ceil(min_recall * len(pos)))
+    with np.errstate(invalid="ignore"):
+        p_in = np.all((pos_ok >= lo) & (pos_ok <= hi), axis=1)
+        n_in = np.all((neg >= lo) & (neg <= hi), axis=1)
+        while True:
+            best: tuple[float, int, int, float] | None = None
+            for i in range(nf):
+                if frozen[i]:
+                    continue
+                vals = np.unique(pos_ok[p_in, i])
+                if len(vals) < 2:
+                    continue
+                pv = np.sort(pos_ok[p_in, i])
+                nv = np.sort(neg[n_in, i])
+                budget = int(p_in.sum()) - min_keep
+                # lo moved up to vals[k] loses the positives below it; hi down likewise
+                lost_lo = np.searchsorted(pv, vals[1:], side="left")
+                gone_lo = np.searchsorted(nv, vals[1:], side="left")
+                lost_hi = len(pv) - np.searchsorted(pv, vals[:-1], side="right")
+                gone_hi = len(nv) - np.searchsorted(nv, vals[:-1], side="right")
+                for side, cuts, lost, gone in (
+                    (0, vals[1:], lost_lo, gone_lo),
+                    (1, vals[:-1], lost_hi, gone_hi),
+                ):
+                    ok = (lost <= budget) & (gone > 0)
+                    if not ok.any():
+                        continue
+                    ratio = np.where(ok, gone / np.maximum(lost, 1), -1.0)
+                    k = int(np.argmax(ratio))
+                    if best is None or ratio[k] > best[0]:
+                        best = (float(ratio[k]), i, side, float(cuts[k]))
+            if best is None:
+                break
+            _, i, side, new = best
+            if side == 0:
+                lo[i] = new
+            else:
+                hi[i] = new
+            p_in &= (pos_ok[:, i] >= lo[i]) & (pos_ok[:, i] <= hi[i])
+            n_in &= (neg[:, i] >= lo[i]) & (neg[:, i] <= hi[i])
+    extra = np.zeros(nf) if min_margin is None else np.asarray(min_margin, float)
+    box = ClassBox(lo - extra, hi + extra)
+    tp = int(box.accepts(pos).sum())
+    fp = int(box.accepts(neg).sum()) if len(neg) else 0
+    recall = tp / len(pos)
+    precision = tp / max(tp + fp, 1)
+    f1 = 2 * precision * recall / max(precision + recall, 1e-12)
+    return box, {"recall": recall, "precision": precision, "f1": f1, "method": "peel"}  # type: ignore[dict-item]
 
 
 def save_thresholds(path: str | Path, thresholds: ShapeThresholds) -> None:
