@@ -157,3 +157,10 @@ def test_magic_phase_world_places_everything_reachably() -> None:
         route = np.array(h.route_m)
         i, j = gt.cells(route)
         assert gt.drivable[i, j].all()  # people walk where robots could drive
+
+
+def test_the_hundred_robot_world_decodes_with_its_team() -> None:
+    # generating it takes ~30 s (six phases): `magic bench scale` does; here only its config
+    cfg = load_world_config(REPO / "configs/world/magic_team100.yaml")
+    assert cfg.robots.sensors + cfg.robots.disruptors == 100
+    assert cfg.size_m[0] * cfg.size_m[1] >= 6 * 220 * 160 * 0.99
