@@ -35,6 +35,7 @@ _HEADLINE: tuple[tuple[str, str, str], ...] = (
     ("downlink_bps", "downlink, team (bit/s)", "f0"),
     ("radio_use_frac", "share of the shared radio", "pct"),
     ("interactions_per_min", "operator interactions per minute", "f2"),
+    ("gcs_rejected_messages", "messages the GCS rejected", "int"),
     ("mission_s", "mission time (s)", "f1"),
     ("wall_s", "wall time (s)", "f1"),
     ("rtf", "real-time factor (mission s per wall s)", "f2"),
@@ -111,10 +112,21 @@ def write_markdown(record: RunRecord, scored: Scored, plots: list[Path], path: P
               "| object | id | detected at (s) | neutralized at (s) | detonated at (s) |",
               "| --- | ---: | ---: | ---: | ---: |"]  # fmt: skip
     for o in scored.objects:
-        lines.append(
-            f"| {o['kind']} | {o['id']} | {_fmt(o['detected_s'], 'f1')} | "
-            f"{_fmt(o['neutralized_s'], 'f1')} | {_fmt(o['detonated_s'], 'f1')} |"
-        )
+        when = [_fmt(o[k], "f1") if o[k] is not None else "-" for k in
+                ("detected_s", "neutralized_s", "detonated_s")]  # fmt: skip
+        lines.append(f"| {o['kind']} | {o['id']} | " + " | ".join(when) + " |")
+    ce = scored.series.get("closure_errors", {})
+    wrong = [i for i, bad in enumerate(ce.get("false", [])) if bad]
+    if wrong:
+        lines += ["", "## False loop closures (truth)", "",
+                  "| accepted at (s) | robot/node a | robot/node b | error (m) | error (deg) |",
+                  "| ---: | ---: | ---: | ---: | ---: |"]  # fmt: skip
+        lines += [
+            f"| {ce['time_s'][i]:.1f} | {ce['robot_a'][i]}/{ce['node_a'][i]} | "
+            f"{ce['robot_b'][i]}/{ce['node_b'][i]} | {ce['error_m'][i]:.3f} | "
+            f"{math.degrees(ce['error_rad'][i]):.2f} |"
+            for i in wrong
+        ]
     lines += ["", "## Plots", ""]
     for p in plots:
         lines += [f"![{p.stem}](plots/{p.name})", ""]

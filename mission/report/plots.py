@@ -333,7 +333,8 @@ def events(record: RunRecord, scored: Scored, path: Path) -> Path:
     rows: dict[str, list[tuple[float, str]]] = defaultdict(list)
     for e in record.events:
         kind = str(e.get("kind"))
-        label = f"{kind} ({'truth' if e.get('source') == 'sim' else 'mission'})"
+        what = f"{kind}: {e['object_kind']}" if kind == "detection" and "object_kind" in e else kind
+        label = f"{what} ({'truth' if e.get('source') == 'sim' else 'mission'})"
         rows[label].append((float(e["t_s"]), kind))
     for o in scored.objects:  # first detection of each truth object, as scored
         if o["detected_s"] is not None:

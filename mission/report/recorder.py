@@ -347,6 +347,7 @@ class MissionRecorder:
             "pose_nodes": int(station.stats.pose_nodes),
             "terrain_grids": int(station.stats.terrain_grids),
             "closures": len(graph.edges(Provenance.LOOP_AUTO)),
+            "rejected": int(station.stats.rejected_total),
         }
         self._samples.write(json.dumps(_jsonable(line)) + "\n")
         self._samples.flush()

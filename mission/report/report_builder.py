@@ -180,21 +180,29 @@ def _to_world(world_from_map: NDArray[np.float64], xy: NDArray[np.float64]) -> N
     )
 
 
-def _sightings(record: RunRecord) -> list[tuple[float, str, NDArray[np.float64]]]:
-    """``(time_s, object kind, xy in world)`` of every GCS hazard (as of each sample) and
-    every detection event with a position."""
+def _sightings(
+    record: RunRecord,
+) -> tuple[NDArray[np.float64], NDArray[np.str_], NDArray[np.float64]]:
+    """``(time_s (K,), object kind (K,), xy in world (K, 2))`` of every GCS hazard (as of
+    each sample) and every detection event with a position."""
     wfm = record.world_from_map
-    if wfm is None:
-        return []
-    out: list[tuple[float, str, NDArray[np.float64]]] = []
-    for s in record.samples:
-        for _hid, kind, x, y in s.get("hazards", []):
-            out.append((float(s["t_s"]), str(kind), _to_world(wfm, np.array([x, y]))[0]))
-    for e in record.events:
-        if e.get("kind") == "detection" and e.get("position_in_map") is not None:
-            kind = str(e.get("object_kind", "unknown")).lower()
-            out.append((float(e["t_s"]), kind, _to_world(wfm, np.asarray(e["position_in_map"]))[0]))
-    return out
+    times: list[float] = []
+    kinds: list[str] = []
+    xys: list[tuple[float, float]] = []
+    if wfm is not None:
+        for s in record.samples:
+            for _hid, kind, x, y in s.get("hazards", []):
+                times.append(float(s["t_s"]))
+                kinds.append(str(kind))
+                xys.append((float(x), float(y)))
+        for e in record.events:
+            if e.get("kind") == "detection" and e.get("position_in_map") is not None:
+                times.append(float(e["t_s"]))
+                kinds.append(str(e.get("object_kind", "unknown")).lower())
+                x, y = e["position_in_map"][:2]
+                xys.append((float(x), float(y)))
+    xy = _to_world(wfm, np.asarray(xys)) if wfm is not None and xys else np.zeros((0, 2))
+    return np.asarray(times, dtype=np.float64), np.asarray(kinds, dtype=str), xy
 
 
 @dataclass
@@ -207,10 +215,15 @@ class Scored:
     modes_m: dict[int, dict[str, float]]
 
 
+def _first(times: NDArray[np.float64], hit: NDArray[np.bool_]) -> float | None:
+    return float(times[hit].min()) if np.any(hit) else None
+
+
 def _objects(record: RunRecord, metrics: dict[str, float]) -> list[dict[str, Any]]:
-    """Each truth object with when it was first detected and neutralized (or None)."""
+    """Each truth object with when it was first detected and neutralized (or None). A hostile
+    is matched against where it was at the sighting's time (its sampled truth, interpolated)."""
     cfg = record.config
-    sightings = _sightings(record)
+    t, kinds, xy = _sightings(record)
     neutralized = {
         e["subject"]: float(e["t_s"])
         for e in record.events
@@ -223,31 +236,29 @@ def _objects(record: RunRecord, metrics: dict[str, float]) -> list[dict[str, Any
     }
     objects: list[dict[str, Any]] = []
     for o in record.meta.get("oois", []):
-        xy = np.asarray(o["xy_m"], dtype=np.float64)
-        hits = [
-            t for t, kind, p in sightings
-            if kind == o["kind"] and float(np.hypot(*(p - xy))) <= cfg.ooi_match_m
-        ]  # fmt: skip
+        at = np.asarray(o["xy_m"], dtype=np.float64)
+        hit = (kinds == o["kind"]) & (np.hypot(*(xy - at).T) <= cfg.ooi_match_m)
         subject = f"{o['kind']}:{o['ooi_id']}"
         objects.append({
-            "kind": o["kind"], "id": o["ooi_id"], "xy_m": [float(v) for v in xy],
-            "detected_s": min(hits) if hits else None,
+            "kind": o["kind"], "id": o["ooi_id"], "xy_m": [float(v) for v in at],
+            "detected_s": _first(t, hit),
             "neutralized_s": neutralized.get(subject), "detonated_s": detonated.get(subject),
         })  # fmt: skip
     hostile_ids = [h["human_id"] for h in record.meta.get("humans", []) if h["kind"] == "hostile"]
     for hid in hostile_ids:
-        first: float | None = None
-        for s in record.samples:  # hazards of kind hostile near the hostile at that sample
-            truth = {int(h[0]): np.array(h[1:3]) for h in s.get("hostiles_truth", [])}
-            if hid not in truth:
-                continue
-            t = float(s["t_s"])
-            for st, kind, p in sightings:
-                if kind == "hostile" and st <= t and abs(st - t) <= 10.0:
-                    if float(np.hypot(*(p - truth[hid]))) <= cfg.hostile_match_m:
-                        first = st if first is None else min(first, st)
+        track = np.array(
+            [(float(s["t_s"]), h[1], h[2]) for s in record.samples
+             for h in s.get("hostiles_truth", []) if int(h[0]) == hid]
+        ).reshape(-1, 3)  # fmt: skip
+        hit = np.zeros(len(t), dtype=bool)
+        if len(track):
+            where = np.stack(
+                [np.interp(t, track[:, 0], track[:, 1]), np.interp(t, track[:, 0], track[:, 2])],
+                axis=1,
+            )
+            hit = (kinds == "hostile") & (np.hypot(*(xy - where).T) <= cfg.hostile_match_m)
         objects.append({
-            "kind": "hostile", "id": hid, "xy_m": None, "detected_s": first,
+            "kind": "hostile", "id": hid, "xy_m": None, "detected_s": _first(t, hit),
             "neutralized_s": neutralized.get(f"hostile:{hid}"),
             "detonated_s": detonated.get(f"hostile:{hid}"),
         })  # fmt: skip
@@ -382,6 +393,8 @@ def score_run(record: RunRecord) -> Scored:
     ]
     series["known_area_m2"] = [float(s.get("known_area_m2", math.nan)) for s in record.samples]
     series["closures"] = [int(s.get("closures", 0)) for s in record.samples]
+    series["gcs_rejected"] = [int(s.get("rejected", 0)) for s in record.samples]
+    metrics["gcs_rejected_messages"] = float(last["rejected"]) if "rejected" in last else math.nan
 
     objects = _objects(record, metrics)
 
@@ -421,6 +434,11 @@ def score_run(record: RunRecord) -> Scored:
         metrics["closure_error_max_m"] = float(err_m.max()) if len(err_m) else math.nan
         metrics["closure_error_median_m"] = float(np.median(err_m)) if len(err_m) else math.nan
         series["closure_errors"] = {
+            "robot_a": [int(ka[i] >> 32) for i in scored],
+            "node_a": [int(ka[i] & 0xFFFFFFFF) for i in scored],
+            "robot_b": [int(kb[i] >> 32) for i in scored],
+            "node_b": [int(kb[i] & 0xFFFFFFFF) for i in scored],
+            "false": false.tolist(),
             "time_s": f["closure_time_s"][scored].tolist(),
             "error_m": err_m.tolist(),
             "error_rad": err_rad.tolist(),
