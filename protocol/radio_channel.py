@@ -249,6 +249,7 @@ class RadioChannel:
         self._last_poll_s: float | None = None
         self._backlogged = False
         self._heap: list[tuple[int, int, int, _Outgoing]] = []
+        self._heap_bytes = 0
         self._order = itertools.count()
         self._timers: list[tuple[float, int, _Outgoing]] = []
         self._held_bytes = 0
@@ -420,11 +421,13 @@ class RadioChannel:
                 self._enqueue(item)
 
     def backlog_bytes(self) -> int:
-        """Bytes queued for the air now (reliable and latest, not yet sent this round)."""
-        return sum(len(e[3].payload) for e in self._heap if e[3].alive)
+        """Bytes queued for the air now (counted from queueing to leaving the queue; a
+        message superseded or acknowledged while queued counts until its turn comes)."""
+        return self._heap_bytes
 
     def _enqueue(self, out: _Outgoing) -> None:
         out.queued = True
+        self._heap_bytes += len(out.payload)
         heapq.heappush(self._heap, (out.spec.priority, out.seq, next(self._order), out))
 
     def poll(self, now: float) -> list[Packet]:
@@ -450,6 +453,7 @@ class RadioChannel:
         unlimited = math.isinf(self._rate_bps)
         while heap and self._rate_bps > 0 and (unlimited or self._credit_bytes > 0):
             item = heapq.heappop(heap)[3]
+            self._heap_bytes -= len(item.payload)
             if not item.alive:
                 continue
             item.queued = False
@@ -550,10 +554,10 @@ class RadioChannel:
         a message on the wrong stream (also counted in ``stats.rejected``).
         """
         rs = self._recv.get(stream)
-        self.stats.bytes_received += len(data) + self.framing_bytes
         if rs is not None and rs.spec.broadcast and not self._hear_broadcast():
             self.stats.broadcast_unheard += 1
             return []
+        self.stats.bytes_received += len(data) + self.framing_bytes
         try:
             if rs is None:
                 raise ProtocolError(f"no {self._incoming.value}link stream named {stream!r}")
