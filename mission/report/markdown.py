@@ -26,6 +26,8 @@ _HEADLINE: tuple[tuple[str, str, str], ...] = (
     ("closures", "loop closures accepted (automatic)", "int"),
     ("cross_robot_closures", "... of them between robots", "int"),
     ("false_closures", "false loop closures (truth)", "int"),
+    ("fiducial_edges", "fiducial edges", "int"),
+    ("false_fiducial_edges", "false fiducial edges (truth)", "int"),
     ("closure_error_max_m", "largest closure error (m)", "f3"),
     ("ate_rmse_m", "ATE RMSE (m)", "f3"),
     ("occupancy_f1", "occupancy F1 of the global map", "f3"),
@@ -115,17 +117,22 @@ def write_markdown(record: RunRecord, scored: Scored, plots: list[Path], path: P
         when = [_fmt(o[k], "f1") if o[k] is not None else "-" for k in
                 ("detected_s", "neutralized_s", "detonated_s")]  # fmt: skip
         lines.append(f"| {o['kind']} | {o['id']} | " + " | ".join(when) + " |")
-    ce = scored.series.get("closure_errors", {})
-    wrong = [i for i, bad in enumerate(ce.get("false", [])) if bad]
+    wrong = [
+        (what, ce, i)
+        for what, key in (("loop closure", "closure_errors"), ("fiducial", "fiducial_errors"),
+                          ("operator", "operator_errors"))
+        for ce in [scored.series.get(key, {})]
+        for i, bad in enumerate(ce.get("false", [])) if bad
+    ]  # fmt: skip
     if wrong:
-        lines += ["", "## False loop closures (truth)", "",
-                  "| accepted at (s) | robot/node a | robot/node b | error (m) | error (deg) |",
-                  "| ---: | ---: | ---: | ---: | ---: |"]  # fmt: skip
+        lines += ["", "## False edges in the pose graph (truth)", "",
+                  "| edge | added at (s) | robot/node a | robot/node b | error (m) | error (deg) |",
+                  "| --- | ---: | ---: | ---: | ---: | ---: |"]  # fmt: skip
         lines += [
-            f"| {ce['time_s'][i]:.1f} | {ce['robot_a'][i]}/{ce['node_a'][i]} | "
+            f"| {what} | {ce['time_s'][i]:.1f} | {ce['robot_a'][i]}/{ce['node_a'][i]} | "
             f"{ce['robot_b'][i]}/{ce['node_b'][i]} | {ce['error_m'][i]:.3f} | "
             f"{math.degrees(ce['error_rad'][i]):.2f} |"
-            for i in wrong
+            for what, ce, i in wrong
         ]
     lines += ["", "## Plots", ""]
     for p in plots:

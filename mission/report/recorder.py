@@ -27,8 +27,8 @@ Run directory (everything ``magic report RUN_DIR`` needs to rebuild the report, 
     record/events.jsonl      mission events (``event``) and the simulator's rule events
     record/truth_map.npz     truth raster: vertical occupancy and reachable cells
     record/truth_track.npz   true poses over time (``finish``)
-    record/final.npz         posterior pose nodes with their true poses, loop closures, the
-                             final global map (``finish``)
+    record/final.npz         posterior pose nodes with their true poses, loop closures,
+                             fiducial and operator edges, the final global map (``finish``)
     map/global_map.{pgm,yaml,png}  the final global map (ROS map_server format)
     report.json, report.md, plots/*.png   (:mod:`mission.report.report_builder`)
 
@@ -395,7 +395,23 @@ class MissionRecorder:
                 k = self._robot_ids.index(r)
                 sel = robots == r
                 truth[sel] = interpolate_poses(t, track[:, k, :], times[sel])
-        loops = graph.edges(Provenance.LOOP_AUTO)
+        edges = {
+            prefix: graph.edges(provenance)
+            for prefix, provenance in (
+                ("closure", Provenance.LOOP_AUTO),
+                ("fiducial", Provenance.FIDUCIAL),
+                ("operator", Provenance.LOOP_OPERATOR),
+            )
+        }
+        edge_arrays: dict[str, Any] = {}  # (Any: numpy's stub types savez's keywords as bool)
+        for prefix, found in edges.items():
+            rel = [e for e in found if e.key_b is not None]
+            edge_arrays[f"{prefix}_key_a"] = np.array([e.key_a for e in rel], dtype=np.int64)
+            edge_arrays[f"{prefix}_key_b"] = np.array([e.key_b for e in rel], dtype=np.int64)
+            edge_arrays[f"{prefix}_a_from_b"] = np.array(
+                [e.z for e in rel], dtype=np.float64
+            ).reshape(-1, 3)
+            edge_arrays[f"{prefix}_time_s"] = np.array([e.time_s for e in rel], dtype=np.float64)
         occupancy = station.rasterize()
         np.savez_compressed(
             self.record_dir / "final.npz",
@@ -404,10 +420,7 @@ class MissionRecorder:
             node_time_s=times,
             node_map_from_base=est,
             node_world_from_base=truth,
-            closure_key_a=np.array([e.key_a for e in loops], dtype=np.int64),
-            closure_key_b=np.array([e.key_b for e in loops], dtype=np.int64),
-            closure_a_from_b=np.array([e.z for e in loops], dtype=np.float64).reshape(-1, 3),
-            closure_time_s=np.array([e.time_s for e in loops], dtype=np.float64),
+            **edge_arrays,
             map_values=occupancy.values,
             map_origin_m=np.asarray(occupancy.origin_in_map, dtype=np.float64),
             map_resolution_m=np.float64(occupancy.resolution_m),

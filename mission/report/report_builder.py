@@ -16,7 +16,9 @@ Metrics (all floats; NaN where the record cannot say, e.g. no pose node yet):
   of the object, in the truth frame; neutralized: the simulator's rule events);
 * losses: ``robots_lost``, ``civilians_harmed``, ``blasts``;
 * estimation: ``closures`` (automatic loop closures accepted), ``false_closures``,
-  ``closure_error_max_m``, ``ate_rmse_m``, ``occupancy_f1`` / ``_precision`` / ``_recall``;
+  ``closure_error_max_m``; the same for ``fiducial_edges`` and ``operator_edges`` (start
+  hints and accepted suggestions); ``ate_rmse_m``, ``occupancy_f1`` / ``_precision`` /
+  ``_recall``;
 * radio: ``uplink_bps``, ``downlink_bps`` (team) and per robot ``robot<id>.uplink_bps``,
   ``robot<id>.downlink_bps``, ``robot<id>.radio_share``; ``radio_use_frac`` (all traffic over
   the shared capacity);
@@ -347,6 +349,41 @@ def _modes(record: RunRecord) -> tuple[dict[int, dict[str, float]], dict[int, di
     return {r: dict(v) for r, v in time_s.items()}, {r: dict(v) for r, v in dist_m.items()}
 
 
+def _score_edges(
+    f: dict[str, NDArray[Any]],
+    prefix: str,
+    truth_of: dict[int, NDArray[np.float64]],
+    cfg: ReportConfig,
+) -> dict[str, list[Any]]:
+    """The relative edges ``prefix_*`` of the final graph against the true relative poses of
+    their nodes (edges whose nodes have no truth are left out): per edge the robots and node
+    indices, time, error and whether it is false (``false_closure_m`` / ``_rad``). A fiducial
+    edge joins the observed robot's node nearest in time, so a moving robot adds its motion
+    between the two times to the error."""
+    ka, kb = f[f"{prefix}_key_a"], f[f"{prefix}_key_b"]
+    scored = [
+        i for i in range(len(ka))
+        if np.all(np.isfinite(truth_of.get(int(ka[i]), np.nan)))
+        and np.all(np.isfinite(truth_of.get(int(kb[i]), np.nan)))
+    ]  # fmt: skip
+    err_m, err_rad = closure_errors(
+        f[f"{prefix}_a_from_b"][scored],
+        np.array([truth_of[int(ka[i])] for i in scored]).reshape(-1, 3),
+        np.array([truth_of[int(kb[i])] for i in scored]).reshape(-1, 3),
+    )
+    false = false_closures(err_m, err_rad, max_m=cfg.false_closure_m, max_rad=cfg.false_closure_rad)
+    return {
+        "robot_a": [int(ka[i] >> 32) for i in scored],
+        "node_a": [int(ka[i] & 0xFFFFFFFF) for i in scored],
+        "robot_b": [int(kb[i] >> 32) for i in scored],
+        "node_b": [int(kb[i] & 0xFFFFFFFF) for i in scored],
+        "false": [bool(v) for v in false],
+        "time_s": [float(v) for v in f[f"{prefix}_time_s"][scored]],
+        "error_m": [float(v) for v in err_m],
+        "error_rad": [float(v) for v in err_rad],
+    }
+
+
 def score_run(record: RunRecord) -> Scored:
     """Every metric and time series of the run (module docstring)."""
     cfg = record.config
@@ -414,38 +451,27 @@ def score_run(record: RunRecord) -> Scored:
             if np.count_nonzero(ok) >= 3
             else math.nan
         )
+        for prefix, count, false_name in (
+            ("closure", "closures", "false_closures"),
+            ("fiducial", "fiducial_edges", "false_fiducial_edges"),
+            ("operator", "operator_edges", "false_operator_edges"),
+        ):
+            if f"{prefix}_key_a" not in f:
+                continue
+            found = _score_edges(f, prefix, truth_of, cfg)
+            metrics[count] = float(len(f[f"{prefix}_key_a"]))
+            metrics[false_name] = float(sum(found["false"]))
+            metrics[f"{prefix}_error_max_m"] = max(found["error_m"], default=math.nan)
+            metrics[f"{prefix}_error_median_m"] = (
+                float(np.median(found["error_m"])) if found["error_m"] else math.nan
+            )
+            series[f"{prefix}_errors"] = found
         ka, kb = f["closure_key_a"], f["closure_key_b"]
-        scored = [
-            i for i in range(len(ka))
-            if np.all(np.isfinite(truth_of.get(int(ka[i]), np.nan)))
-            and np.all(np.isfinite(truth_of.get(int(kb[i]), np.nan)))
-        ]  # fmt: skip
-        err_m, err_rad = closure_errors(
-            f["closure_a_from_b"][scored],
-            np.array([truth_of[int(ka[i])] for i in scored]).reshape(-1, 3),
-            np.array([truth_of[int(kb[i])] for i in scored]).reshape(-1, 3),
-        )
-        false = false_closures(
-            err_m, err_rad, max_m=cfg.false_closure_m, max_rad=cfg.false_closure_rad
-        )
-        metrics["closures"] = float(len(ka))
         metrics["cross_robot_closures"] = float(np.count_nonzero((ka >> 32) != (kb >> 32)))
-        metrics["false_closures"] = float(np.count_nonzero(false))
-        metrics["closure_error_max_m"] = float(err_m.max()) if len(err_m) else math.nan
-        metrics["closure_error_median_m"] = float(np.median(err_m)) if len(err_m) else math.nan
-        series["closure_errors"] = {
-            "robot_a": [int(ka[i] >> 32) for i in scored],
-            "node_a": [int(ka[i] & 0xFFFFFFFF) for i in scored],
-            "robot_b": [int(kb[i] >> 32) for i in scored],
-            "node_b": [int(kb[i] & 0xFFFFFFFF) for i in scored],
-            "false": false.tolist(),
-            "time_s": f["closure_time_s"][scored].tolist(),
-            "error_m": err_m.tolist(),
-            "error_rad": err_rad.tolist(),
-        }
     else:
         for k in ("pose_nodes", "ate_rmse_m", "closures", "cross_robot_closures",
-                  "false_closures", "closure_error_max_m", "closure_error_median_m"):  # fmt: skip
+                  "false_closures", "closure_error_max_m", "closure_error_median_m",
+                  "fiducial_edges", "false_fiducial_edges"):  # fmt: skip
             metrics[k] = math.nan
     if record.track_t is not None and len(record.track_t) >= 2:
         metrics["truth_period_s"] = float(np.median(np.diff(record.track_t)))
