@@ -39,7 +39,7 @@ class TrackerConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     init_speed_sigma_m_s: float = 1.5
     gate_sigma: float = 4.0
     gate_max_m: float = 2.0
-    confirm_hits: int = 3
+    confirm_hits: int = 2
     max_missed: int = 4
     max_missed_tentative: int = 1
 

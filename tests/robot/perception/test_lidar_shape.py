@@ -17,6 +17,7 @@ from robot.perception.shape_classifier import (
     FORMAT_VERSION,
     ThresholdFileError,
     load_thresholds,
+    peel_box,
     save_thresholds,
 )
 from robot.perception.shape_features import aligned_rectangle, arc_length, ransac_circle
@@ -236,3 +237,59 @@ def test_box_shaped_robot_body_and_car_corner_are_not_cylinders() -> None:
     car = (5.0, 1.0, 0.25, 9.0, 2.8, 0.95)  # a car body, its corner towards the robot
     _, outs = _run([_scan(boxes=[chassis, car])] * 2)
     assert not outs[1].cylinders, [c.features for c in outs[1].cylinders]
+
+
+def test_tracker_uses_each_measurements_own_time() -> None:
+    # a nodding scanner crosses a person early in one sweep and late in the next
+    v = np.array([0.6, 0.0])
+    with_t, without_t = PersonTracker(), PersonTracker()
+    for k in range(10):
+        t_sweep = 1.25 * k
+        t_meas = t_sweep + (0.15 if k % 2 == 0 else 1.05)
+        p = np.array([2.0, 3.0]) + v * t_meas
+        with_t.update(t_sweep, p[None, :], measurement_times_s=np.array([t_meas]))
+        without_t.update(t_sweep, p[None, :])
+    (a,) = with_t.confirmed()
+    assert len(with_t.tracks) == 1
+    assert np.hypot(*(a.velocity_m_s - v)) < 0.05
+    # what the per-point times are for: at the sweep's time the walker seems to jump
+    # 0.54 m back and forth; the track breaks up or its velocity is wrong
+    b = without_t.confirmed()
+    assert len(without_t.tracks) > 1 or np.hypot(*(b[0].velocity_m_s - v)) > 0.1
+    assert a.time_s == pytest.approx(1.25 * 9 + 1.05)
+    with pytest.raises(ValueError, match="measurement times"):
+        with_t.update(20.0, np.zeros((2, 2)), measurement_times_s=np.zeros(3))
+
+
+def test_detector_checks_point_times_and_confirms_only_repeated_places() -> None:
+    pts = _scan(cylinders=[OOI])
+    det = LidarDetector()
+    with pytest.raises(ValueError, match="point_time_s"):
+        det.process(pts, (0.0, 0.0), 0.0, point_time_s=np.zeros(len(pts) + 1))
+    out = det.process(pts, (0.0, 0.0), 0.0, point_time_s=np.zeros(len(pts)))
+    assert len(out.cylinders) == 1 and not out.confirmed_cylinders
+    # the next sweep sees a cylinder 1.5 m away from the first: a new place, unconfirmed
+    moved = _scan(cylinders=[(4.0, 1.5, 0.25, 0.0, 0.8)])
+    out = det.process(moved, (0.0, 0.0), 1.25)
+    assert len(out.cylinders) == 1 and not out.confirmed_cylinders
+    # back at the first place within the forget time: confirmed, same id as before
+    out = det.process(pts, (0.0, 0.0), 2.5)
+    assert len(out.confirmed_cylinders) == 1
+    assert out.confirmed_cylinders[0].sweeps_seen == 2
+    # forgotten after confirm_forget_s without a sighting
+    out = det.process(moved, (0.0, 0.0), 2.5 + det.config.confirm_forget_s + 1.3)
+    assert not out.confirmed_cylinders
+
+
+def test_peel_box_cuts_the_feature_that_separates() -> None:
+    rng = np.random.default_rng(3)
+    pos = np.column_stack([rng.uniform(0.4, 0.6, 200), rng.uniform(0, 1, 200)])
+    neg = np.column_stack([rng.uniform(0.0, 0.45, 2000), rng.uniform(0, 1, 2000)])
+    pos[:4, 0] = 0.05  # a few odd positives (slivers) that a min/max box would follow
+    box, sc = peel_box(pos, neg, min_recall=0.95)
+    assert sc["recall"] >= 0.95
+    assert box.lo[0] > 0.35  # the separating feature is cut past the odd positives
+    # the other is left at the positives' full range
+    assert box.lo[1] < 0.02 and box.hi[1] > 0.98
+    with pytest.raises(ValueError, match="at least 3"):
+        peel_box(pos[:2], neg, min_recall=0.9)
