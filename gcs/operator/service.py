@@ -442,6 +442,10 @@ class OperatorService:
         if self.builder is None or self.views is None:
             return
         c0 = time.thread_time()
+        if occupancy is None:
+            # the map the planners rasterized for their last plan, when they keep it: the
+            # views then need no rasterization of their own
+            occupancy = getattr(self.control, "occupancy", None)
         try:
             if self.builder.due(now_s):
                 pic = self.builder.build(

@@ -1,0 +1,117 @@
+"""`magic gcs` with the operator station: a console's signed command reaches the robot over
+zenoh and the radio, the views record while the node runs, the options are checked."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rerun.chunk import RrdReader
+
+from gcs.console.client import ConsoleClient
+from gcs.ground_station import GroundStationConfig
+from gcs.node import GcsProcess
+from gcs.operator.node_hooks import add_operator_arguments, check_operator_arguments
+from gcs.operator.service import OperatorService
+from protocol import operator as op
+from protocol.clock import ManualClock
+from protocol.link import Link, LinkConfig
+from protocol.loopback import open_pair
+from protocol.messages import AutonomyMode, PauseTask, Telemetry
+from tests.gcs.test_ground_station import grid_msg, nodes_along, straight
+
+KEY = bytes(range(32, 64))
+
+
+def test_console_command_reaches_the_robot_and_views_record(tmp_path: Path) -> None:
+    clock = ManualClock()
+    gcs_link, robot_link = open_pair(clock=clock)
+    console_link = Link(
+        LinkConfig(connect=gcs_link.config.listen, pump_period_s=0.0), mission=gcs_link.mission
+    )
+    proc = GcsProcess(gcs_link, clock, GroundStationConfig(robots=(0,)), step_period_s=0.5)
+    rrd = tmp_path / "gcs.rrd"
+    proc.operator = OperatorService(
+        gcs_link, key=KEY, views=[f"save {rrd}"], control=proc.control, status_period_s=0.2
+    )
+    got: list[object] = []
+    robot0 = robot_link.robot_endpoint(0, on_message=got.append)
+    client = ConsoleClient(console_link, "alice", KEY)
+    stop = threading.Event()
+
+    def spin() -> None:
+        while not stop.is_set():
+            clock.set(clock.now() + 0.1)
+            robot_link.pump()
+            gcs_link.pump()
+            proc.spin_once(timeout_s=0.01)
+
+    thread = threading.Thread(target=spin, daemon=True)
+    try:
+        assert proc.radio.wait_for_robot(0, 10.0)
+        wall = np.zeros((40, 40), dtype=bool)
+        wall[30, :] = True
+        for i, node in enumerate(nodes_along(straight(8))):
+            robot0.send(node)
+            robot0.send(grid_msg(i, wall))
+            robot0.send(Telemetry(float(i), node.pose_in_odom, (0.5, 0.0), (0.0, 0.0), 0.9,
+                                  AutonomyMode.AUTONOMOUS, 5))  # fmt: skip
+        thread.start()
+        assert client.wait_for_status(lambda s: any(r.robot_id == 0 for r in s.robots), 20.0)
+        reply = client.send(op.Command("pause", "0"), timeout_s=20.0)
+        assert reply is not None and reply.status == "ok", reply
+        assert reply.interaction and len(reply.task_ids) == 1
+
+        def paused() -> bool:
+            return any(isinstance(m, PauseTask) and m.task_id == reply.task_ids[0] for m in got)
+
+        deadline = threading.Event()
+        for _ in range(200):
+            if paused():
+                break
+            deadline.wait(0.05)
+        assert paused(), f"robot 0 never got its PauseTask: {got}"
+        bad = client.send_raw(
+            op.sign(bytes(32), client.mission, "alice", client.seq.next(), op.Command("status")),
+            timeout_s=20.0,
+        )
+        assert bad is not None and bad.reason == "forged"
+    finally:
+        stop.set()
+        if thread.is_alive():
+            thread.join(5.0)
+        client.close()
+        proc.close()
+        console_link.close()
+        robot_link.close()
+        gcs_link.close()
+    entities = {c.entity_path for c in RrdReader(rrd).stream() if c.num_rows}
+    assert {"/world/robots", "/world/map", "/world/graph/odometry", "/dashboard/table"} <= entities
+
+
+def _args(tmp_path: Path, *argv: str) -> argparse.Namespace:
+    p = argparse.ArgumentParser()
+    add_operator_arguments(p)
+    return p.parse_args([*argv, "--operator-key", str(tmp_path / "k.key")])
+
+
+def test_operator_options_are_checked(tmp_path: Path) -> None:
+    check_operator_arguments(_args(tmp_path, "--rerun", "connect", "127.0.0.1:9876"))
+    assert (tmp_path / "k.key").stat().st_mode & 0o777 == 0o600
+    check_operator_arguments(
+        _args(tmp_path, "--rerun", "serve", "--rerun-save", str(tmp_path / "a.rrd"))
+    )
+    with pytest.raises(ValueError, match="--rerun: expected spawn"):
+        check_operator_arguments(_args(tmp_path, "--rerun", "sapwn"))
+    with pytest.raises(ValueError, match="takes no address"):
+        check_operator_arguments(_args(tmp_path, "--rerun", "spawn", "1.2.3.4:5"))
+    with pytest.raises(ValueError, match=".rrd"):
+        check_operator_arguments(_args(tmp_path, "--rerun-save", str(tmp_path / "a.txt")))
+    with pytest.raises(ValueError, match="does not exist"):
+        check_operator_arguments(_args(tmp_path, "--rerun-save", str(tmp_path / "no/a.rrd")))
+    (tmp_path / "k.key").chmod(0o644)
+    with pytest.raises(ValueError, match="--operator-key: .*chmod 600"):
+        check_operator_arguments(_args(tmp_path))
