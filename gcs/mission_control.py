@@ -31,12 +31,15 @@ from __future__ import annotations
 
 import collections
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
+import cv2
 import msgspec
+import numpy as np
 
 from gcs.ground_station import GroundStation, GroundStationConfig
+from gcs.mapping.rasterization import OCCUPIED, OccupancyMap
 from gcs.tasking.allocator import (
     RobotInfo,
     Role,
@@ -47,16 +50,22 @@ from gcs.tasking.allocator import (
 )
 from protocol.messages import AutonomyMode
 
-__all__ = ["MissionControl", "MissionControlConfig", "tasking_state"]
+__all__ = ["MissionControl", "MissionControlConfig", "bounded", "tasking_state"]
 
 
 class MissionControlConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``plan_period_s``: mission seconds between plans; ``disruptors``: ids of the team's
     disruptors (the others are sensor robots); ``tasking``: the planners' configuration;
-    ``journal_size``: planner events kept; ``enabled``: plan at all (off: estimation only)."""
+    ``journal_size``: planner events kept; ``enabled``: plan at all (off: estimation only);
+    ``area_in_map``: the area of operations, a polygon ``[(x_m, y_m), ...]`` in ``map``
+    (MAGIC's phase boundaries were known to the teams): the planners treat everything outside
+    it as blocked, so no frontier lies beyond it (empty: no bound). The GCS's map marks free
+    space by range from each pose, without occlusion, so without a bound the far side of the
+    site's outer walls looks like open frontier."""
 
     plan_period_s: float = 2.0
     disruptors: tuple[int, ...] = ()
+    area_in_map: tuple[tuple[float, float], ...] = ()
     tasking: TaskingConfig = msgspec.field(default_factory=TaskingConfig)
     journal_size: int = 10_000
     enabled: bool = True
@@ -68,6 +77,30 @@ class MissionControlConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tr
             raise ValueError(f"disruptors: ids must be >= 0, got {self.disruptors}")
         if self.journal_size < 1:
             raise ValueError(f"journal_size: expected >= 1, got {self.journal_size}")
+        if self.area_in_map and (
+            len(self.area_in_map) < 3
+            or not all(math.isfinite(v) for xy in self.area_in_map for v in xy)
+        ):
+            raise ValueError(
+                f"area_in_map: expected 3 or more finite (x_m, y_m) vertices, got "
+                f"{list(self.area_in_map)}"
+            )
+
+
+def bounded(occupancy: OccupancyMap, area_in_map: Sequence[tuple[float, float]]) -> OccupancyMap:
+    """``occupancy`` with every cell outside the polygon ``area_in_map`` marked occupied, to
+    within a cell on the polygon's edges (a copy; the input is unchanged). No polygon:
+    ``occupancy`` itself."""
+    if len(area_in_map) < 3 or occupancy.values.size == 0:
+        return occupancy
+    res = occupancy.resolution_m
+    poly = (np.asarray(area_in_map, dtype=np.float64) - occupancy.origin_in_map) / res - 0.5
+    inside = np.zeros(occupancy.values.shape, dtype=np.uint8)
+    # cv2 fills integer vertices: 8 fractional bits keep the polygon to 1/256 of a cell
+    cv2.fillPoly(inside, [np.round(poly * 256).astype(np.int32)], 1, lineType=cv2.LINE_8, shift=8)
+    values = occupancy.values.copy()
+    values[inside == 0] = OCCUPIED
+    return OccupancyMap(values, occupancy.origin_in_map, res)
 
 
 def tasking_state(
@@ -77,11 +110,13 @@ def tasking_state(
     operator_controlled: frozenset[int] = frozenset(),
     lost: frozenset[int] = frozenset(),
     approved: frozenset[int] = frozenset(),
+    area_in_map: Sequence[tuple[float, float]] = (),
 ) -> TaskingState:
     """What the allocator needs, from the station only: every robot heard from (its role from
     ``roles``, sensor if absent), its pose and ``map_from_odom`` when linked to ``map``, its
-    last report and last time heard; the rasterized map, hazards, hostile sightings and the
-    pose graph's trajectories. A robot whose telemetry says ``DISABLED`` counts as lost."""
+    last report and last time heard; the rasterized map (blocked outside ``area_in_map``, see
+    :func:`bounded`), hazards, hostile sightings and the pose graph's trajectories. A robot
+    whose telemetry says ``DISABLED`` counts as lost."""
     robots = []
     for rid in station.robot_ids:
         heard = station.last_heard_s(rid)
@@ -105,7 +140,7 @@ def tasking_state(
         )
     ids, keys, xy = station.trajectories()
     return TaskingState(
-        station.rasterize(),
+        bounded(station.rasterize(), area_in_map),
         robots,
         hazards=list(station.hazards),
         trajectory_robot_ids=ids,
@@ -167,6 +202,7 @@ class MissionControl:
             operator_controlled=frozenset(self.operator_controlled),
             lost=frozenset(self.lost),
             approved=frozenset(self.approved),
+            area_in_map=self.config.area_in_map,
         )
         tasks = self.allocator.plan(state, now_s)
         for event in self.allocator.events:

@@ -17,13 +17,15 @@ the benchmarks build their team here instead of wiring it themselves:
   ``(robot_id, message)`` pairs) can ride beside the GCS or replace it (``magic run
   --scripted``, the team-mapping trial's shared waypoints).
 
-Roles come from the world's roster (sensor robots, then disruptors, paper 2). Robots start in
+The GCS's planners are bounded by the area of operations (:func:`area_of_operations`, the
+site's rectangle: MAGIC's phase boundaries were known). Roles come from the world's roster
+(sensor robots, then disruptors, paper 2). Robots start in
 a staging area laid out in a known formation (``RobotsConfig``: a grid at ``spacing_m``), as in
 MAGIC, where the operators knew where they had put each robot; the GCS gets that deployment
 plan, with the placement uncertainty ``hint_sigma_*`` (and a seeded error of that size), as
 start hints (:meth:`~gcs.ground_station.GroundStation.add_start_hint`), which links every
 robot's private frame to ``map`` (robot ``map_robot``'s private frame) from the first pose
-node on. That plan is the only thing the GCS learns that the robots did not send; the truth
+node on. That plan and the boundary are all the GCS learns that the robots did not send; the truth
 (:attr:`Simulator.truth`) stays with the scoring.
 """
 
@@ -44,7 +46,7 @@ from gcs.mission_control import MissionControl, MissionControlConfig
 from gcs.tasking.allocator import Role
 from mission.lockstep import RunSeeds, TeamInLockstep, TeamOverProcesses
 from protocol.radio import RadioConfig
-from protocol.se2 import compose, relative
+from protocol.se2 import compose, inverse, relative, transform_points
 from robot.node import RobotNodeConfig
 from sim.simulator import Simulator, SimulatorConfig
 from sim.world_generator import World, WorldConfig
@@ -180,6 +182,15 @@ def _gcs_config(
     )
 
 
+def area_of_operations(sim: Simulator, map_robot: int) -> tuple[tuple[float, float], ...]:
+    """The site's boundary (the world's rectangle, as MAGIC's phase boundaries were given to
+    the teams) in ``map``, through the deployment plan's start of the map robot."""
+    w, h = sim.world.size_m
+    corners = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+    in_map = transform_points(inverse(staging_plan(sim.world)[map_robot]), corners)
+    return tuple((float(x), float(y)) for x, y in in_map)
+
+
 def give_start_hints(
     station: GroundStation,
     sim: Simulator,
@@ -248,6 +259,8 @@ def assemble(
             )
             disruptors = tuple(r for r, role in roles.items() if role is Role.DISRUPTOR)
             mc = msgspec.structs.replace(mission or MissionControlConfig(), disruptors=disruptors)
+            if not mc.area_in_map:
+                mc = msgspec.structs.replace(mc, area_in_map=area_of_operations(sim, ids[0]))
             gcs_ground = GcsGround(
                 MissionControl(station, mc),
                 lockstep=not realtime,

@@ -4,6 +4,7 @@ private frame; roles; estimation-only mode; lost robots (issue 14)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from gcs.ground_station import GroundStation, GroundStationConfig
 from gcs.mapping.rasterization import UNKNOWN
@@ -126,3 +127,39 @@ def test_a_robot_that_falls_silent_is_written_off_and_gets_nothing_more() -> Non
     a = control.allocator.assignments.get(1)
     assert a is None or a.purpose.endswith(":released")
     assert control.journal[-1] is events[-1]
+
+
+def test_the_area_of_operations_blocks_everything_outside_it() -> None:
+    from gcs.mapping.rasterization import FREE, OCCUPIED, OccupancyMap
+    from gcs.mission_control import bounded
+
+    occ = OccupancyMap(np.full((40, 60), FREE, dtype=np.int8), (-1.0, -2.0), 0.1)
+    area = ((0.0, 0.0), (4.0, 0.0), (4.0, 1.5), (0.0, 1.5))
+    out = bounded(occ, area)
+    assert (occ.values == FREE).all()  # the input is unchanged
+    centres_x = -1.0 + (np.arange(60) + 0.5) * 0.1
+    centres_y = -2.0 + (np.arange(40) + 0.5) * 0.1
+
+    def within(margin: float) -> np.ndarray:
+        ok_y = (centres_y[:, None] > margin) & (centres_y[:, None] < 1.5 - margin)
+        return ok_y & (centres_x[None, :] > margin) & (centres_x[None, :] < 4.0 - margin)
+
+    # exact to within a cell on the boundary
+    assert (out.values[within(0.1)] == FREE).all()
+    assert (out.values[~within(-0.1)] == OCCUPIED).all()
+    assert bounded(occ, ()) is occ
+    with pytest.raises(ValueError, match="area_in_map: expected 3 or more finite"):
+        MissionControlConfig(area_in_map=((0.0, 0.0), (1.0, float("nan")), (2.0, 0.0)))
+
+
+def test_no_frontier_beyond_the_area_of_operations() -> None:
+    """A robot by the site's edge: the free disc the map draws beyond the edge is not
+    explored towards; inside the bound, goals go where the map is unknown."""
+    area = ((-1.0, -3.0), (12.0, -3.0), (12.0, 3.0), (-1.0, 3.0))
+    control = _team(MissionControlConfig(area_in_map=area), robots=(0,))
+    out = control.step(now_s=1.0, budget_s=1.0)
+    goals = [m for _, m in out if isinstance(m, GoToTask)]
+    assert len(goals) == 1
+    end = np.asarray(goals[0].waypoints_in_odom[-1])
+    assert -1.0 < end[0] < 12.0 and -3.0 < end[1] < 3.0, end
+    assert end[0] > 4.0  # along the corridor, where the map does not reach yet
