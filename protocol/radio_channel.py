@@ -333,7 +333,10 @@ class RadioChannel:
         cfg = self.config
         if self._srtt_s is None:
             return cfg.rto_initial_s
-        return min(max(self._srtt_s + 4.0 * self._rttvar_s, cfg.rto_min_s), cfg.rto_max_s)
+        # never below what the peer may hold an ack for (ack_max_delay_s): round trips are
+        # mostly that wait, and a timeout inside it resends what merely waits for its ack
+        floor = max(cfg.rto_min_s, cfg.ack_max_delay_s + cfg.rto_min_s)
+        return min(max(self._srtt_s + 4.0 * self._rttvar_s, floor), cfg.rto_max_s)
 
     @property
     def held_bytes(self) -> int:
@@ -679,15 +682,19 @@ class RadioChannel:
             bitmap[b >> 3] |= 1 << (b & 7)
         return AckEntry(rs.spec.stream_id, rs.delivered_through, bytes(bitmap))
 
-    def ack_due(self, now: float) -> bool:
+    def ack_due(self, now: float, *, coalesced: bool = False) -> bool:
         """Whether pending acknowledgements should go now: their bytes are within
         ``ack_budget_frac`` of what they acknowledge, or they waited ``ack_max_delay_s``, or
-        a duplicate or a gap asks for a prompt one."""
+        a duplicate or a gap asks for a prompt one. ``coalesced``: their size is what they
+        add to a :class:`BroadcastAck` (no frame or framing of their own)."""
         if not self._ack_dirty:
             return False
         cfg = self.config
         entries = [self._ack_entry(self._recv_by_id[sid]) for sid in sorted(self._ack_dirty)]
-        ack_size = len(encode_frame(0, Ack(entries))) + self.framing_bytes
+        if coalesced:
+            ack_size = len(_ACK_ENCODER.encode(RobotAck(self.robot_id, entries)))
+        else:
+            ack_size = len(encode_frame(0, Ack(entries))) + self.framing_bytes
         assert self._ack_first_pending_s is not None
         return (
             self._ack_bytes_since * cfg.ack_budget_frac >= ack_size
@@ -926,14 +933,15 @@ class BroadcastChannel:
 
 
 def coalesced_ack(channels: dict[int, RadioChannel], now: float) -> BroadcastAck | None:
-    """One :class:`BroadcastAck` for every channel with pending acks, when at least one of
-    them is due (:meth:`RadioChannel.ack_due`); None otherwise. The channels' pending acks
-    are taken (they count as sent)."""
-    if not any(ch.ack_due(now) for ch in channels.values()):
-        return None
+    """One :class:`BroadcastAck` for the channels whose pending acks are due by their size
+    inside it (:meth:`RadioChannel.ack_due` ``coalesced``: the budget rule then costs each
+    robot's entry, not a frame and framing of its own); None when none is due. Their pending
+    acks are taken (they count as sent)."""
     acks = []
     for rid in sorted(channels):
-        entries = channels[rid].take_ack()
-        if entries:
-            acks.append(RobotAck(rid, entries))
+        ch = channels[rid]
+        if ch.ack_due(now, coalesced=True):
+            entries = ch.take_ack()
+            if entries:
+                acks.append(RobotAck(rid, entries))
     return BroadcastAck(acks) if acks else None

@@ -227,8 +227,8 @@ def simulate(
         radio = LockstepRadio(ground_link, ground, [robot_link], radios)
         radio.wait_connected(20.0)
         loss = {r.rid: float(rng.uniform(0.0, 0.1)) for r in team}
-        down_per_robot_bps = 40.0
-        broadcast_bps = 6000.0
+        down_per_robot_bps = 30.0
+        broadcast_bps = 9000.0
         uplink_capacity = 0.8 * CAPACITY_BPS - broadcast_bps - robots * down_per_robot_bps
         scheduler = AirtimeScheduler()
         up_grant = {r.rid: uplink_capacity / robots for r in team}
@@ -348,6 +348,7 @@ def simulate(
             "broadcast_bps": sum(c.bytes for (rid, _d, _s), c in down.items() if rid < 0)
             * 8.0
             / span,
+            "gcs_ack_bytes_per_node": ack_share / max(all_nodes, 1),
             "delivered_fraction": ok / max(sent, 1),
             "hazard_heard_fraction": heard / robots,
             "backlog_grant_ratio": statistics.median(backlog_ratio) if backlog_ratio else 0.0,
