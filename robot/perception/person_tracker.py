@@ -141,17 +141,19 @@ class PersonTracker:
         r = cfg.meas_sigma_m**2 * np.eye(2)
         pairs: list[tuple[float, int, int]] = []
         for i, t in enumerate(self.tracks):
-            # each measurement against the track predicted to that measurement's time
+            # each measurement against the track predicted to that measurement's time:
+            # position covariance P_pp + dt (P_pv + P_vp) + dt^2 P_vv + q dt^4 / 4, all
+            # measurements at once (closed-form 2x2 inverse)
             dt = np.maximum(tz - t.time_s, 0.0)
-            pred = t.x[:2] + dt[:, None] * t.x[2:]
-            q = cfg.accel_noise_m_s2**2 * (dt**4 / 4 + 0.0)
-            d = z - pred
-            m2 = np.empty(len(z))
-            for jj in range(len(z)):
-                f = np.eye(4)
-                f[0, 2] = f[1, 3] = dt[jj]
-                p_pos = (f @ t.p @ f.T)[:2, :2] + q[jj] * np.eye(2)
-                m2[jj] = float(d[jj] @ np.linalg.solve(p_pos + r, d[jj]))
+            d = z - (t.x[:2] + dt[:, None] * t.x[2:])
+            p = t.p
+            q = cfg.accel_noise_m_s2**2 * dt**4 / 4 + cfg.meas_sigma_m**2
+            cross = p[:2, 2:] + p[2:, :2]
+            a = p[0, 0] + dt * cross[0, 0] + dt**2 * p[2, 2] + q
+            b = p[0, 1] + dt * (p[0, 3] + p[2, 1]) + dt**2 * p[2, 3]
+            c = p[1, 1] + dt * cross[1, 1] + dt**2 * p[3, 3] + q
+            det = a * c - b * b
+            m2 = (c * d[:, 0] ** 2 - 2 * b * d[:, 0] * d[:, 1] + a * d[:, 1] ** 2) / det
             eu = np.hypot(d[:, 0], d[:, 1])
             for jj in np.flatnonzero((m2 <= cfg.gate_sigma**2) & (eu <= cfg.gate_max_m)).tolist():
                 pairs.append((float(m2[jj]), i, int(jj)))
