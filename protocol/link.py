@@ -16,6 +16,13 @@ Typical use::
     robot = Link(LinkConfig(connect=("tcp/127.0.0.1:7447",)), mission="demo").robot_endpoint(3)
     robot.send(PoseNode(...))                       # queued, rate-limited, reliable
     robot_id, msg = gcs.recv(timeout_s=1.0)
+    gcs.broadcast(HazardUpdate(...))                # once, to every robot in range
+    robot.recv(timeout_s=1.0)                       # -> the HazardUpdate, like any downlink
+
+Broadcasts (paper 4.1) go on ``magic/<mission>/broadcast/down/<stream>`` and are metered once
+(robot id :data:`~protocol.messages.BROADCAST_ROBOT_ID`); each robot's channel decides whether
+it heard one (its grant's downlink rate and loss) and acknowledges it in its uplink. The GCS's
+acknowledgements of every robot's uplink go out coalesced in one broadcast.
 
 Received messages go to the endpoint's ``on_message`` callback (called in order, on a zenoh
 thread; keep it short) or, without one, to a queue read by ``recv``. Bad bytes never raise out

@@ -10,7 +10,8 @@ the same the other way. Runs are therefore repeatable and as fast as the machine
 endpoints on one or more links): :meth:`LockstepRadio.exchange` pumps every robot link, waits
 until the ground side has *received* every packet put on the air, processes them in canonical
 order (:meth:`~protocol.link._Endpoint.deliver_held`: robot, stream, sender's order), then does
-the same for the downlink. Wall-clock timing then decides nothing: what a side sees at a
+the same for the downlink, broadcasts included (each robot waits for its unicast packets and
+every broadcast packet). Wall-clock timing then decides nothing: what a side sees at a
 mission step is exactly what was due, in an order fixed by the run.
 """
 
@@ -108,8 +109,11 @@ class LockstepRadio:
         self.robot_links = list(robot_links)
         self.robots = dict(sorted(robots.items()))
         ground.hold_arrivals()
-        for ep in self.robots.values():
+        for rid, ep in self.robots.items():
             ep.hold_arrivals()
+            # every robot hears every broadcast: the ground counts broadcast packets for the
+            # robots it has a channel to, so it gets one for each from the start
+            ground.channel(rid)
 
     def wait_connected(self, timeout_s: float) -> None:
         """Block until every robot and the ground side hear each other (TimeoutError)."""
