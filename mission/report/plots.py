@@ -53,6 +53,18 @@ _EVENT_STYLE = {  # kind -> (colour, marker)
 }
 
 
+def _num(metrics: dict[str, float], key: str, spec: str, scale: float = 1.0) -> str:
+    """A metric formatted for a title; ``n/a`` when the run cannot say (NaN or absent)."""
+    v = metrics.get(key, math.nan)
+    return format(v * scale, spec) if v is not None and math.isfinite(v) else "n/a"
+
+
+def _legend(ax: Any, **kwargs: Any) -> None:
+    """A legend only when something is labelled (an empty run draws none)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(**kwargs)
+
+
 def _robot_colour(k: int) -> Any:
     return plt.get_cmap("tab10")(k % 10)
 
@@ -98,8 +110,8 @@ def explored(record: RunRecord, scored: Scored, path: Path) -> Path:
     ax2.set_ylim(bottom=0)
     lines = ax.get_lines() + ax2.get_lines()
     ax.legend(lines, [str(ln.get_label()) for ln in lines], loc="lower right")
-    final = scored.metrics.get("explored_frac", math.nan)
-    ax.set_title(f"Exploration over time (final: {100 * final:.1f}% of the reachable area)")
+    final = _num(scored.metrics, "explored_frac", ".1f", 100.0)
+    ax.set_title(f"Exploration over time (final: {final}% of the reachable area)")
     return _save(fig, path)
 
 
@@ -144,18 +156,18 @@ def map_vs_truth(record: RunRecord, scored: Scored, path: Path) -> Path:
         "GCS global map (in the truth frame)\ngrey unknown, white free, black occupied"
     )
     axes[2].set_title(
-        f"overlay: occupancy F1 {m.get('occupancy_f1', math.nan):.3f} "
+        f"overlay: occupancy F1 {_num(m, 'occupancy_f1', '.3f')} "
         f"(±{record.config.occupancy_tolerance_m:g} m)\n"
-        f"precision {m.get('occupancy_precision', math.nan):.3f}, "
-        f"recall {m.get('occupancy_recall', math.nan):.3f}"
+        f"precision {_num(m, 'occupancy_precision', '.3f')}, "
+        f"recall {_num(m, 'occupancy_recall', '.3f')}"
     )
     for ax in axes:
         ax.set_xlabel("x (m, world)")
         ax.set_aspect("equal")
     axes[0].set_ylabel("y (m, world)")
     fig.suptitle(
-        f"Final global map vs truth: explored {100 * m.get('explored_frac', math.nan):.1f}% "
-        f"of the reachable area ({m.get('explored_area_m2', math.nan):.0f} m² known)"
+        f"Final global map vs truth: explored {_num(m, 'explored_frac', '.1f', 100.0)}% "
+        f"of the reachable area ({_num(m, 'explored_area_m2', '.0f')} m² known)"
     )
     return _save(fig, path)
 
@@ -210,11 +222,11 @@ def paths(record: RunRecord, scored: Scored, path: Path) -> Path:
             ax.plot(*o["xy_m"], marker="+", color="#2ca02c", ms=14, mew=2)
     m = scored.metrics
     ax.set_title(f"Robot paths: truth (solid) and GCS estimate (dashed); ATE RMSE "
-                 f"{m.get('ate_rmse_m', math.nan):.3f} m")  # fmt: skip
+                 f"{_num(m, 'ate_rmse_m', '.3f')} m")  # fmt: skip
     ax.set_xlabel("x (m, world)")
     ax.set_ylabel("y (m, world)")
     ax.set_aspect("equal")
-    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
+    _legend(ax, loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)
     return _save(fig, path)
 
 
@@ -240,7 +252,7 @@ def radio(record: RunRecord, scored: Scored, path: Path) -> Path:
             top = bottom + by_stream[name] / 1000.0
             ax1.stairs(top, edges, baseline=bottom, fill=True, color=cmap(i % 20), label=name)
             bottom = top
-        ax1.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7, title="stream")
+        _legend(ax1, loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7, title="stream")
         for k, rid in enumerate(record.robot_ids):
             for d, ls in (("up", "-"), ("down", ":")):
                 if (rid, d) in by_robot:
@@ -248,7 +260,7 @@ def radio(record: RunRecord, scored: Scored, path: Path) -> Path:
                         by_robot[(rid, d)] / 1000.0, edges, color=_robot_colour(k), ls=ls,
                         lw=1.6, baseline=None, label=f"robot {rid} {d}link",
                     )  # fmt: skip
-        ax2.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7)
+        _legend(ax2, loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=7)
     else:
         ax1.text(0.5, 0.5, "fewer than two samples", ha="center", transform=ax1.transAxes)
     if math.isfinite(capacity):
@@ -261,7 +273,7 @@ def radio(record: RunRecord, scored: Scored, path: Path) -> Path:
         ax1.text(0.01, 0.97, note, transform=ax1.transAxes, va="top", fontsize=8)
     m = scored.metrics
     ax1.set_title(
-        f"Radio use by stream (all robots): {100 * m.get('radio_use_frac', math.nan):.2f}% of "
+        f"Radio use by stream (all robots): {_num(m, 'radio_use_frac', '.2f', 100.0)}% of "
         f"the shared capacity over the run"
     )
     ax1.set_ylabel("kbit/s")
@@ -293,7 +305,7 @@ def modes(record: RunRecord, scored: Scored, path: Path) -> Path:
         ax.set_title(title)
         ax.invert_yaxis()
         ax.grid(axis="x", alpha=0.3)
-    ax2.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), title="mode")
+    _legend(ax2, loc="center left", bbox_to_anchor=(1.01, 0.5), title="mode")
     fig.suptitle("Autonomy modes (cf. paper Tables 4-5, Figs. 27-28)")
     return _save(fig, path)
 

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import enum
 import json
+import logging
 import math
 import time
 from collections.abc import Mapping
@@ -66,6 +67,8 @@ __all__ = [
     "ReportConfig",
     "link_bytes_from_meters",
 ]
+
+log = logging.getLogger("magic.report")
 
 #: Version of the run directory's record format (``record/meta.json``).
 FORMAT_VERSION = 1
@@ -179,6 +182,7 @@ class MissionRecorder:
         self._reachable_map: np.ndarray | None = None
         self._cell_area_m2 = 0.0
         self._finished = False
+        self.faults = 0  # exceptions caught in track/sample/event (logged; the run went on)
 
     # ---- during the run ----------------------------------------------------------------
 
@@ -249,9 +253,26 @@ class MissionRecorder:
         }
         (self.record_dir / "meta.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
 
+    def _fault(self, where: str, t_s: float) -> None:
+        """A bug of the recorder must not stop the run: logged with its traceback, counted,
+        and noted in the record."""
+        self.faults += 1
+        log.exception("mission recorder: %s failed at t=%.2f s (the run goes on)", where, t_s)
+        try:
+            line = {"t_s": float(t_s), "kind": "recorder_fault", "source": "report", "in": where}
+            self._events.write(json.dumps(line) + "\n")
+        except Exception:  # the record file itself is the problem
+            pass
+
     def track(self, t_s: float, *, sim: Simulator, force: bool = False) -> None:
         """Record the true poses if ``truth_period_s`` has passed since the last (call every
-        step: the distance driven is summed at every call)."""
+        step: the distance driven is summed at every call). Never raises (see ``faults``)."""
+        try:
+            self._track(t_s, sim=sim, force=force)
+        except Exception:
+            self._fault("track", t_s)
+
+    def _track(self, t_s: float, *, sim: Simulator, force: bool = False) -> None:
         self._start(sim, None)
         poses = sim.robot_poses()
         assert self._distance_m is not None and self._last_xy is not None
@@ -294,9 +315,26 @@ class MissionRecorder:
         modes: dict[int, Any],
     ) -> None:
         """One point of the time series: truth, the GCS's estimate and map (explored area
-        scored against the truth now), radio bytes so far, autonomy modes."""
+        scored against the truth now), radio bytes so far (cumulative, by robot, ``"up"`` /
+        ``"down"`` or :class:`~protocol.messages.Direction`, stream), autonomy modes (robot id
+        -> :class:`~protocol.messages.AutonomyMode`, a name, or None). Never raises (see
+        ``faults``)."""
+        try:
+            self._sample(t_s, sim=sim, station=station, link_bytes=link_bytes, modes=modes)
+        except Exception:
+            self._fault("sample", t_s)
+
+    def _sample(
+        self,
+        t_s: float,
+        *,
+        sim: Simulator,
+        station: GroundStation,
+        link_bytes: dict[tuple[int, str, str], int],
+        modes: dict[int, Any],
+    ) -> None:
         self._start(sim, station)
-        self.track(t_s, sim=sim, force=True)
+        self._track(t_s, sim=sim, force=True)
         self._drain_sim_events(sim)
         graph = station.graph
         estimate: dict[str, list[float]] = {}
@@ -354,10 +392,14 @@ class MissionRecorder:
         self._events.flush()
 
     def event(self, t_s: float, kind: str, **fields: Any) -> None:
-        """A mission event (module docstring lists the kinds the report understands)."""
-        line = {"t_s": float(t_s), "kind": str(kind), "source": "mission"}
-        line.update({k: _jsonable(v) for k, v in fields.items() if k not in line})
-        self._events.write(json.dumps(line) + "\n")
+        """A mission event (module docstring lists the kinds the report understands). Never
+        raises (see ``faults``)."""
+        try:
+            line = {"t_s": float(t_s), "kind": str(kind), "source": "mission"}
+            line.update({k: _jsonable(v) for k, v in fields.items() if k not in line})
+            self._events.write(json.dumps(line) + "\n")
+        except Exception:
+            self._fault(f"event {kind!r}", t_s)
 
     # ---- at the end ----------------------------------------------------------------------
 
@@ -368,7 +410,7 @@ class MissionRecorder:
         from mission.report.report_builder import build_report
 
         self._start(sim, station)
-        self.track(sim.time_s, sim=sim, force=True)
+        self._track(sim.time_s, sim=sim, force=True)
         self._drain_sim_events(sim)
         self._samples.close()
         self._events.close()

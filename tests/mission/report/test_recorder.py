@@ -33,10 +33,11 @@ PLOTS = (
 @pytest.fixture(scope="module")
 def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, float]]:
     run_dir = tmp_path_factory.mktemp("run")
-    metrics, _ = run_small_team(
+    metrics, rec = run_small_team(
         run_dir, duration_s=12.0, sample_period_s=4.0, interactions_at_s=(3.0, 7.0)
     )
     assert metrics is not None
+    assert rec.faults == 0
     return run_dir, metrics
 
 
@@ -216,3 +217,27 @@ def test_bad_roles_and_config_are_refused(tmp_path: Path) -> None:
         MissionRecorder(tmp_path, world_name="w", seed=0, duration_s=1.0, roles={0: "pilot"})
     with pytest.raises(ValueError, match="ooi_match_m"):
         ReportConfig(ooi_match_m=-1.0)
+
+
+def test_a_bad_sample_is_a_counted_fault_not_a_stopped_run(tmp_path: Path) -> None:
+    from gcs.ground_station import GroundStation
+    from mission.config import CONFIGS_DIR
+    from sim.simulator import Simulator, load_world_config
+
+    world = load_world_config(CONFIGS_DIR / "world" / "small.yaml")
+    with Simulator(world) as sim:
+        roles = dict(zip(sim.robot_ids, sim.roles, strict=True))
+        rec = MissionRecorder(tmp_path, world_name="small", seed=0, duration_s=1.0, roles=roles)
+        station = GroundStation()
+        bad: dict = {"not a (robot, direction, stream) key": 3}
+        rec.sample(0.0, sim=sim, station=station, link_bytes=bad, modes={})
+        assert rec.faults == 1
+        sim.run_for(0.5)
+        rec.sample(sim.time_s, sim=sim, station=station, link_bytes={}, modes={0: None})
+        rec.event(sim.time_s, "note", payload=object())  # unknown values are kept as text
+        assert rec.faults == 1
+        metrics = rec.finish(sim=sim, station=station)
+    assert metrics["mission_s"] == pytest.approx(0.5)
+    assert math.isnan(metrics["ate_rmse_m"])  # no pose node: nothing to score, no error
+    kinds = [json.loads(line)["kind"] for line in (tmp_path / "record" / "events.jsonl").open()]
+    assert kinds.count("recorder_fault") == 1 and "note" in kinds
