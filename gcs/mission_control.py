@@ -111,12 +111,14 @@ def tasking_state(
     lost: frozenset[int] = frozenset(),
     approved: frozenset[int] = frozenset(),
     area_in_map: Sequence[tuple[float, float]] = (),
+    occupancy: OccupancyMap | None = None,
 ) -> TaskingState:
     """What the allocator needs, from the station only: every robot heard from (its role from
     ``roles``, sensor if absent), its pose and ``map_from_odom`` when linked to ``map``, its
     last report and last time heard; the rasterized map (blocked outside ``area_in_map``, see
     :func:`bounded`), hazards, hostile sightings and the pose graph's trajectories. A robot
-    whose telemetry says ``DISABLED`` counts as lost."""
+    whose telemetry says ``DISABLED`` counts as lost. ``occupancy``: the station's map if
+    already rasterized now (else rasterized here)."""
     robots = []
     for rid in station.robot_ids:
         heard = station.last_heard_s(rid)
@@ -140,7 +142,7 @@ def tasking_state(
         )
     ids, keys, xy = station.trajectories()
     return TaskingState(
-        bounded(station.rasterize(), area_in_map),
+        bounded(station.rasterize() if occupancy is None else occupancy, area_in_map),
         robots,
         hazards=list(station.hazards),
         trajectory_robot_ids=ids,
@@ -175,6 +177,7 @@ class MissionControl:
         self.on_event = on_event
         self.tasks_sent: collections.Counter[int] = collections.Counter()
         self.last_tasks: dict[int, Any] = {}
+        self.occupancy: OccupancyMap | None = None  # the map of the last plan (views reuse it)
         self._last_plan_s = -math.inf
 
     def role(self, robot_id: int) -> Role:
@@ -196,6 +199,7 @@ class MissionControl:
 
     def plan(self, now_s: float) -> list[tuple[int, Any]]:
         """Build the state from the station and plan now (the allocator never raises)."""
+        self.occupancy = self.station.rasterize()
         state = tasking_state(
             self.station,
             self.roles,
@@ -203,6 +207,7 @@ class MissionControl:
             lost=frozenset(self.lost),
             approved=frozenset(self.approved),
             area_in_map=self.config.area_in_map,
+            occupancy=self.occupancy,
         )
         tasks = self.allocator.plan(state, now_s)
         for event in self.allocator.events:

@@ -22,6 +22,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from gcs.ground_station import GroundStation, GroundStationConfig
 from gcs.mission_control import MissionControl, MissionControlConfig
 from gcs.operator.node_hooks import (  # operator (issue 15): views and console commands
@@ -243,6 +245,14 @@ def _parser() -> argparse.ArgumentParser:
         help="wall seconds of loop closing per step (default: %(default)s)",
     )
     p.add_argument(
+        "--tasking-config",
+        type=Path,
+        metavar="YAML",
+        help="task allocation config YAML (gcs.mission_control.MissionControlConfig: plan "
+        "period, disruptors, area of operations, the planners' settings); --disruptors, "
+        "--plan-s and --no-tasking override it (default: built in)",
+    )
+    p.add_argument(
         "--disruptors",
         metavar="IDS",
         default="",
@@ -253,8 +263,7 @@ def _parser() -> argparse.ArgumentParser:
         "--plan-s",
         type=float,
         metavar="S",
-        default=2.0,
-        help="mission seconds between task allocations (default: %(default)s)",
+        help="mission seconds between task allocations (default: 2)",
     )
     p.add_argument(
         "--no-tasking",
@@ -343,16 +352,24 @@ def _main(argv: list[str]) -> int:
             check_endpoint(endpoint)
         for name in ("step_s", "budget_s", "progress_s", "plan_s"):
             v = getattr(args, name)
+            if v is None:
+                continue
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"--{name.replace('_', '-')}: expected seconds > 0, got {v}")
         if args.duration is not None and not (math.isfinite(args.duration) and args.duration >= 0):
             raise ValueError(f"--duration: expected mission seconds >= 0, got {args.duration}")
         config = load_config(args.config, GroundStationConfig) if args.config else None
-        mission = MissionControlConfig(
-            plan_period_s=args.plan_s,
-            disruptors=_robot_ids(args.disruptors, "--disruptors"),
-            enabled=not args.no_tasking,
+        mission = (
+            load_config(args.tasking_config, MissionControlConfig)
+            if args.tasking_config
+            else MissionControlConfig()
         )
+        overrides: dict[str, Any] = {"enabled": mission.enabled and not args.no_tasking}
+        if args.plan_s is not None:
+            overrides["plan_period_s"] = args.plan_s
+        if args.disruptors:
+            overrides["disruptors"] = _robot_ids(args.disruptors, "--disruptors")
+        mission = msgspec.structs.replace(mission, **overrides)
         radio = load_config(args.radio, RadioConfig)
         check_operator_arguments(args)  # operator (issue 15)
     except (ConfigError, ValueError) as err:
