@@ -102,21 +102,25 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     image_timeout_s: float = 3.0
     max_requests_per_sweep: int = 4
     max_requests_per_step: int = 2  # the simulator takes at most 4 per robot per step
-    # every fiducial_period_s a coarse image of now; one showing a teammate's tag is asked
+    # every fiducial_period_s a coarse image of now (1 s: the 60 deg view pans 0.8 rad, so
+    # consecutive images leave no gap); one showing a teammate's tag is asked
     # again at fiducial_width_px x fiducial_height_px for the pose (yaw p95 at 1-3 m: 6.6 deg
     # at 320x240, 1.3 deg at 640x480); 0: tags only in images asked for objects
-    fiducial_period_s: float = 2.0
+    fiducial_period_s: float = 1.0
     fiducial_width_px: int = 640
     fiducial_height_px: int = 480
     candidate_max_range_m: float = 10.0
     retest_after_s: float = 2.0
-    max_negative_tests: int = 3
-    negative_cell_m: float = 1.0
+    wait_for_frame_s: float = 8.0  # a candidate no frame shows whole waits this long for one
+    max_negative_tests: int = 2
+    negative_radius_m: float = 0.7
+    negative_places_kept: int = 512
     refine_m: float = 0.6  # a cylinder this close to a known object refines it, no image
     person_frame_window_s: float = 2.5  # people move: only recent frames for their colour
     person_radius_m: float = 0.3
     person_height_m: float = 1.6
-    person_shifts_m: tuple[float, ...] = (0.0, -0.3, 0.3, -0.6, 0.6)
+    person_shifts_m: tuple[float, ...] = (0.0, -0.25, 0.25)
+    person_shifted_min_fraction: float = 0.7
     person_merge_m: float = 1.0
     velocity_window_s: float = 4.0
     max_report_sigma_m: float = 0.7
@@ -128,7 +132,7 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     thumbnails_kept: int = 64
 
     def __post_init__(self) -> None:
-        for name in ("frame_period_s", "image_timeout_s", "retest_after_s", "negative_cell_m"):
+        for name in ("frame_period_s", "image_timeout_s", "retest_after_s", "negative_radius_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"perception.{name} must be > 0, got {v}")
@@ -184,6 +188,7 @@ class PerceptionStats:
     hostile_reports: int = 0
     fiducials: int = 0
     fiducial_dropped: int = 0
+    fiducial_fine_images: int = 0  # fine images asked for a teammate's tag seen coarse
     thumbnails: int = 0
     thumbnail_unknown: int = 0
     sweep_cpu_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
@@ -261,7 +266,9 @@ class OnboardPerception:
         self._next_request_id = 1
         self._queued: list[ImageRequest] = []
         self._pending: dict[int, _Request] = {}
-        self._negative: dict[tuple[int, int], tuple[int, float]] = {}
+        # places whose colour said "other": (xy in odom, tests, last test time)
+        self._waiting: list[tuple[_Job, float]] = []  # candidates waiting for a view, deadline
+        self._negative: list[tuple[tuple[float, float], int, float]] = []
         self._person_tested: dict[int, tuple[int, float]] = {}
         self._track_ids: dict[int, int] = {}  # person track -> detection id
         self._reported_at: dict[int, float] = {}  # detection id of people -> last report
@@ -333,8 +340,10 @@ class OnboardPerception:
                 self._bootstrap_asks = 0  # answers lost or ambiguous: ask again
         elif now_s - self._last_frame_s >= cfg.frame_period_s - 1e-9:
             pan = pan_at(now_s, cfg.memory.mount, self.pan_phase_s)
-            if self.memory.record(RememberedFrame(now_s, pan, cfg.memory.mount.tilt_rad, pose)):
+            frame = RememberedFrame(now_s, pan, cfg.memory.mount.tilt_rad, pose)
+            if self.memory.record(frame):
                 self._last_frame_s = now_s
+                self._serve_waiting(frame)
         if (
             self.pan_phase_s is not None
             and cfg.fiducial_period_s > 0
@@ -345,6 +354,24 @@ class OnboardPerception:
         for rid in [r for r, q in self._pending.items() if now_s - q.asked_s > cfg.image_timeout_s]:
             del self._pending[rid]
             self.stats.images_lost += 1
+
+    def _serve_waiting(self, frame: RememberedFrame) -> None:
+        """Ask for ``frame`` if a candidate waiting for a view projects fully into it."""
+        keep: list[tuple[_Job, float]] = []
+        ready: list[_Job] = []
+        for job, deadline in self._waiting:
+            if frame.time_s > deadline or self.registry.nearest(
+                job.xy_in_odom, self.config.refine_m
+            ):
+                continue  # too late, or found meanwhile
+            cand = Candidate(job.xy_in_odom, job.radius_m, job.height_m)
+            if self.memory.projects_fully(frame, cand):
+                ready.append(job)
+            else:
+                keep.append((job, deadline))
+        self._waiting = keep
+        if ready:
+            self._ask(frame.time_s, ready)
 
     def _ask(self, frame_time_s: float, jobs: list[_Job], *, fine: bool = False) -> None:
         cfg = self.config
@@ -407,7 +434,11 @@ class OnboardPerception:
             job = _Job("cylinder", xy, float(cand.radius_m), float(max(cand.height_m, 0.3)), 0, rng)
             frame = self.memory.choose(Candidate(xy, job.radius_m, job.height_m))
             if frame is None:
+                # no remembered frame shows it whole yet: the camera pans on; ask as soon as
+                # one does (on_control), rather than wait for the LIDAR to find it again
                 self.stats.no_frame += 1
+                if not any(math.dist(w.xy_in_odom, xy) < cfg.refine_m for w, _ in self._waiting):
+                    self._waiting.append((job, time_s + cfg.wait_for_frame_s))
                 continue
             jobs.append((frame, job))
         for t in out.people:
@@ -427,7 +458,7 @@ class OnboardPerception:
         self, track: PersonTrack, time_s: float, jobs: list[tuple[RememberedFrame, _Job]]
     ) -> None:
         cfg = self.config
-        if track.kind != 0:
+        if track.kind != 0 or self._at_known_object(track):
             return
         n, last = self._person_tested.get(track.track_id, (0, -math.inf))
         if n >= cfg.max_negative_tests or time_s - last < cfg.retest_after_s:
@@ -447,6 +478,11 @@ class OnboardPerception:
                 jobs.append((frame, job))
                 return
 
+    def _at_known_object(self, track: PersonTrack) -> bool:
+        """A "person" standing where a static object is known is that object (a vat's
+        segment can pass the person shape test): never coloured or reported as a person."""
+        return self.registry.nearest(track.position_m, self.config.refine_m) is not None
+
     def _report_people(self, time_s: float) -> None:
         """Report labelled people tracks: hostiles every ``hostile_report_period_s``,
         civilians once. Tracks of one kind closer than ``person_merge_m`` are one person (a
@@ -457,7 +493,10 @@ class OnboardPerception:
             t
             for t in self.lidar.tracker.tracks
             if t.confirmed
+            and t.missed == 0  # measured in the latest sweep: no stale or coasting reports
+            and t.history
             and t.kind in (ObjectKind.HOSTILE, ObjectKind.CIVILIAN)
+            and not self._at_known_object(t)
             and float(np.sqrt(np.linalg.eigvalsh(t.position_cov)[-1])) <= cfg.max_report_sigma_m
         ]
         tracks.sort(key=lambda t: float(np.trace(t.position_cov)))
@@ -493,7 +532,7 @@ class OnboardPerception:
                 OdomDetection(
                     did,
                     kind,
-                    t.time_s,
+                    float(t.history[-1][0]),
                     (float(p[0]), float(p[1])),
                     t.position_cov + np.eye(2) * cfg.registry.min_sigma_m**2,
                     cfg.person_radius_m,
@@ -509,13 +548,20 @@ class OnboardPerception:
         live = {t.track_id for t in self.lidar.tracker.tracks}
         self._track_ids = {k: v for k, v in self._track_ids.items() if k in live}
 
-    def _cell(self, xy: tuple[float, float]) -> tuple[int, int]:
-        m = self.config.negative_cell_m
-        return (int(math.floor(xy[0] / m)), int(math.floor(xy[1] / m)))
+    def _negative_near(self, xy: tuple[float, float]) -> int | None:
+        """Index of the place tested "other" within ``negative_radius_m`` of ``xy``."""
+        r = self.config.negative_radius_m
+        for i, (pxy, _, _) in enumerate(self._negative):
+            if math.dist(pxy, xy) <= r:
+                return i
+        return None
 
     def _may_test(self, xy: tuple[float, float], time_s: float) -> bool:
         cfg = self.config
-        n, last = self._negative.get(self._cell(xy), (0, -math.inf))
+        i = self._negative_near(xy)
+        if i is None:
+            return True
+        _, n, last = self._negative[i]
         return n < cfg.max_negative_tests and time_s - last >= cfg.retest_after_s
 
     def _job_pending(self, xy: tuple[float, float]) -> bool:
@@ -610,8 +656,16 @@ class OnboardPerception:
                         cam,
                         self.colour,
                     )
+                    if r is not None and job.kind == "person" and r.label in _COLOUR_KIND:
+                        if d == 0.0:  # the segment is an object of interest, not a person
+                            self._person_tested[job.track_id] = (cfg.max_negative_tests, 0.0)
+                            res = None
+                            break
+                        continue
                     if r is None or (job.kind == "person" and r.label not in _PERSON_KIND):
                         continue
+                    if d != 0.0 and r.fraction < cfg.person_shifted_min_fraction:
+                        continue  # off the segment, only a clear person: not one behind it
                     if res is None or r.fraction > res.fraction:
                         res = r
                     if res.fraction >= 0.6:
@@ -630,9 +684,13 @@ class OnboardPerception:
                 kind = _COLOUR_KIND.get(label)
                 if kind is None or res is None:
                     self.stats.colour_other += 1
-                    cell = self._cell(job.xy_in_odom)
-                    n, _ = self._negative.get(cell, (0, -math.inf))
-                    self._negative[cell] = (n + 1, self._now)
+                    i = self._negative_near(job.xy_in_odom)
+                    if i is None:
+                        self._negative.append((job.xy_in_odom, 1, self._now))
+                        del self._negative[: -cfg.negative_places_kept]
+                    else:
+                        pxy, n, _ = self._negative[i]
+                        self._negative[i] = (pxy, n + 1, self._now)
                     continue
                 did = self._fuse(
                     int(kind),
@@ -668,6 +726,7 @@ class OnboardPerception:
             ipr = cfg.fiducial.layout.ids_per_robot
             if any(t.tag_id // ipr != self.robot_id for t in tags):
                 self._ask(float(image.time_s), [], fine=True)
+                self.stats.fiducial_fine_images += 1
             return
         try:
             sightings, dropped = estimate_teammates(
