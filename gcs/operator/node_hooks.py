@@ -2,7 +2,7 @@
 link opens) and the :class:`~gcs.operator.service.OperatorService` they describe.
 
 Options: ``--rerun spawn`` (start a viewer), ``--rerun connect [HOST:PORT]`` (a running viewer,
-default 127.0.0.1:9876), ``--rerun serve`` (rerun's web viewer, served by this process),
+default 127.0.0.1:9876), ``--rerun serve`` (rerun's web viewer, served by this process at http://HOST:9090),
 ``--rerun-save FILE.rrd`` (a recording), ``--operator-key FILE`` (the operators' shared key;
 default ``$MAGIC_OPERATOR_KEY`` or ``~/.config/magic/operator.key``, created on first use).
 A viewer that is not running never slows or stops the GCS (the views draw on their own thread
@@ -28,7 +28,8 @@ def add_operator_arguments(p: argparse.ArgumentParser) -> None:
         metavar="MODE",
         help="live operator views: `spawn` (start a rerun viewer), `connect [HOST:PORT]` (a "
         "running viewer, default 127.0.0.1:9876) or `serve` (rerun's web viewer from this "
-        "process); a viewer that is not there never slows the GCS (default: no live views)",
+        "process: open http://<gcs host>:9090; data on gRPC port 9876); a viewer that is not "
+        "there never slows the GCS (default: no live views)",
     )
     p.add_argument(
         "--rerun-save",

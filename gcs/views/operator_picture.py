@@ -84,9 +84,12 @@ EDGE_KINDS = {
 class ViewsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """When layers are published and how much history the views keep (mission seconds).
 
-    The defaults keep the views under a tenth of the GCS's CPU with 14 robots on the replay
-    trial (:mod:`gcs.views.trial`): robots and dashboard every 2 s, the graph every 20 s (10 s
-    after a closure), the map every 30 s. At 1 s / 10 s / 15 s the views cost about 0.15.
+    The defaults (robots and dashboard every 2.5 s, the graph every 30 s or 10 s after a
+    closure, the map every 60 s) cost 0.086 of the GCS process's CPU with 14 robots on the
+    replay trial (:mod:`gcs.views.trial`, rerun's threads included) when the GCS hands the views
+    the map it rasterized for its planners, 0.125 when the views rasterize it themselves
+    (estimation-only GCS); at 2 s / 20 s / 30 s: 0.099 / 0.146, at 1 s / 10 s / 15 s about 0.15
+    without rasterization.
 
     ``robots_period_s``: a picture (robots, dashboard, alerts, events) at most this often.
     ``graph_period_s`` / ``closure_period_s``: the SLAM graph at most this often / this often
@@ -98,10 +101,10 @@ class ViewsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     one object.
     """
 
-    robots_period_s: float = 2.0
-    graph_period_s: float = 20.0
+    robots_period_s: float = 2.5
+    graph_period_s: float = 30.0
     closure_period_s: float = 10.0
-    map_period_s: float = 30.0
+    map_period_s: float = 60.0
     trail_nodes: int = 60
     rate_window_s: float = 30.0
     stuck_s: float = 60.0

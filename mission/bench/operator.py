@@ -274,6 +274,8 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
         rrd_path=rrd,
         threaded=True,
     )
+    # the views rasterize their own map (what runs until the planners share theirs) and, for
+    # comparison, the share when the GCS hands them the map it rasterized anyway
     metrics["views_cpu_frac"] = res.views_cpu_frac
     metrics["views_cpu_frac_given_map"] = res.views_cpu_frac_given_map
     metrics["rrd_bytes_per_robot_hour"] = res.rrd_bytes_per_robot_hour
