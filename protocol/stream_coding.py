@@ -15,14 +15,16 @@ and the GCS never see the codings:
   - time: milliseconds, second difference (a node per metre at a steady speed: 1 byte);
   - ``pose_in_odom``: ``QUANTUM_M`` / ``QUANTUM_RAD`` units, second difference (the step
     against the previous step: small when driving straight);
-  - ``odom_delta``: units, difference from the previous node's;
+  - ``odom_delta``: its float32 values exactly (12 bytes): the GCS decodes inter-frame grids
+    against the previous grid warped by this delta, which must be the robot's to the bit;
   - covariance: each upper-triangle entry on a log scale (``COV_STEPS_PER_OCTAVE`` steps per
     factor of two, relative error at most 0.27%, sign kept, so a non-physical covariance
     stays non-physical for the GCS to refuse), difference from the previous node's codes.
 
   Quantisation is absolute (each value is rounded on its own grid, the differences are exact
   integers), so no error accumulates along the trajectory: a decoded ``pose_in_odom`` is
-  within half a quantum (0.05 mm, 5 µrad) of the robot's, whatever the node count. A node
+  within half a quantum (0.05 mm, 5 µrad) of the robot's, whatever the node count, and
+  ``odom_delta`` is the robot's exactly. A node
   with a value that is not finite, or too large for the grid, travels as a plain
   :class:`PoseNode` and both ends restart the reference from zero.
 * **Terrain grids** (:class:`TerrainGridCoder`): node index against the previous grid's,
@@ -76,6 +78,7 @@ FRAME_QUANTUM_RAD = 1e-4
 _MAX_UNITS = 2**50
 _COV_OFFSET = 2**20
 _F32 = struct.Struct("<f")
+_DELTA = struct.Struct("<3f")
 
 
 # ----------------------------------------------------------------------------- varints
@@ -176,21 +179,21 @@ class _PoseRef:
     dt_ms: int = 0
     pose: list[int] = field(default_factory=lambda: [0, 0, 0])
     step: list[int] = field(default_factory=lambda: [0, 0, 0])
-    delta: list[int] = field(default_factory=lambda: [0, 0, 0])
     cov: list[int] = field(default_factory=lambda: [0] * 6)
 
 
 _POSE_Q = (QUANTUM_M, QUANTUM_M, QUANTUM_RAD)
 
 
-def _pose_ints(node: PoseNode) -> tuple[int, list[int], list[int], list[int]] | None:
+def _pose_ints(node: PoseNode) -> tuple[int, list[int], list[int]] | None:
     t = _units(node.time_s, QUANTUM_S)
     pose = [_units(v, q) for v, q in zip(node.pose_in_odom, _POSE_Q, strict=True)]
-    delta = [_units(v, q) for v, q in zip(node.odom_delta, _POSE_Q, strict=True)]
     cov = [_cov_code(v) for v in node.odom_covariance]
-    if t is None or None in pose or None in delta or None in cov:
+    if t is None or None in pose or None in cov:
         return None
-    return t, pose, delta, cov  # type: ignore[return-value]
+    if not all(math.isfinite(v) for v in node.odom_delta):
+        return None
+    return t, pose, cov  # type: ignore[return-value]
 
 
 class PoseNodeCoder:
@@ -209,7 +212,7 @@ class PoseNodeCoder:
         if ints is None:
             self._ref = _PoseRef()
             return node
-        t, pose, delta, cov = ints
+        t, pose, cov = ints
         ref = self._ref
         out = bytearray()
         _put(out, node.node_index - (ref.index + 1))
@@ -218,11 +221,10 @@ class PoseNodeCoder:
         step = [p - r for p, r in zip(pose, ref.pose, strict=True)]
         for s, r in zip(step, ref.step, strict=True):
             _put(out, s - r)
-        for d, r in zip(delta, ref.delta, strict=True):
-            _put(out, d - r)
+        out += _DELTA.pack(*node.odom_delta)
         for c, r in zip(cov, ref.cov, strict=True):
             _put(out, c - r)
-        self._ref = _PoseRef(node.node_index, t, dt, pose, step, delta, cov)
+        self._ref = _PoseRef(node.node_index, t, dt, pose, step, cov)
         return PoseNodeCoded(bytes(out))
 
     def decode(self, msg: PoseNodeCoded | PoseNode) -> PoseNode:
@@ -231,10 +233,10 @@ class PoseNodeCoder:
             if ints is None:
                 self._ref = _PoseRef()
             else:
-                t, pose, delta, cov = ints
+                t, pose, cov = ints
                 ref = self._ref
                 step = [p - r for p, r in zip(pose, ref.pose, strict=True)]
-                self._ref = _PoseRef(msg.node_index, t, t - ref.t_ms, pose, step, delta, cov)
+                self._ref = _PoseRef(msg.node_index, t, t - ref.t_ms, pose, step, cov)
             return msg
         ref = self._ref
         r = _Reader(msg.data, "PoseNodeCoded.data")
@@ -243,7 +245,7 @@ class PoseNodeCoder:
         t = ref.t_ms + dt
         step = [s + r.varint() for s in ref.step]
         pose = [p + s for p, s in zip(ref.pose, step, strict=True)]
-        delta = [d + r.varint() for d in ref.delta]
+        odom_delta = _DELTA.unpack(r.raw(12))
         cov = [c + r.varint() for c in ref.cov]
         r.end()
         if any(c < 0 for c in cov):
@@ -252,10 +254,10 @@ class PoseNodeCoder:
             index,
             t * QUANTUM_S,
             tuple(u * q for u, q in zip(pose, _POSE_Q, strict=True)),  # type: ignore[arg-type]
-            tuple(u * q for u, q in zip(delta, _POSE_Q, strict=True)),  # type: ignore[arg-type]
+            odom_delta,  # type: ignore[arg-type]
             tuple(_cov_value(c) for c in cov),  # type: ignore[arg-type]
         )
-        self._ref = _PoseRef(index, t, dt, pose, step, delta, cov)
+        self._ref = _PoseRef(index, t, dt, pose, step, cov)
         return node
 
 

@@ -62,7 +62,8 @@ def test_pose_nodes_decode_within_half_a_quantum_with_no_drift_and_are_small() -
         # absolute quantisation (then float32): error bounded however long the trajectory
         np.testing.assert_allclose(got.pose_in_odom[:2], node.pose_in_odom[:2], atol=1.2e-4)
         np.testing.assert_allclose(got.pose_in_odom[2], node.pose_in_odom[2], atol=6e-6)
-        np.testing.assert_allclose(got.odom_delta, node.odom_delta, atol=6e-5)
+        # exact: the GCS warps the previous grid by it to decode an inter-frame grid
+        assert got.odom_delta == node.odom_delta
         np.testing.assert_allclose(got.odom_covariance, node.odom_covariance, rtol=3e-3)
         assert all(
             (a < 0) == (b < 0)
@@ -70,7 +71,7 @@ def test_pose_nodes_decode_within_half_a_quantum_with_no_drift_and_are_small() -
         )
     plain = len(encode_frame(1000, nodes[1000]))
     assert plain >= 78  # the plain node (78 B at small indices)
-    assert float(np.median(sizes)) <= 30, f"median coded pose node {np.median(sizes)} B"
+    assert float(np.median(sizes)) <= 36, f"median coded pose node {np.median(sizes)} B"
 
 
 def test_a_node_that_cannot_be_coded_goes_plain_and_both_ends_restart() -> None:
@@ -85,7 +86,7 @@ def test_a_node_that_cannot_be_coded_goes_plain_and_both_ends_restart() -> None:
             assert coded is bad and got is bad  # the GCS sees the NaN and refuses it itself
         else:
             assert isinstance(coded, PoseNodeCoded)
-            np.testing.assert_allclose(got.odom_delta, node.odom_delta, atol=6e-5)
+            assert got.odom_delta == node.odom_delta
 
 
 def test_grids_round_trip_exactly_and_save_the_index_and_resolution() -> None:
