@@ -470,8 +470,10 @@ class CommandHandler:
             rep = ctx.reports.get(r, RobotReport())
             tele = rep.telemetry
             mode = AutonomyMode(tele.mode).name.lower() if tele is not None else "unknown"
-            task = self.operator_tasks.get(r, (0, ""))[1] or (
-                f"task {tele.task_id}" if tele is not None and tele.task_id else "none"
+            task = (
+                self.operator_tasks.get(r, (0, ""))[1]
+                or planner_task(ctx.allocator, r)
+                or (f"task {tele.task_id}" if tele is not None and tele.task_id else "none")
             )
             pose = "not linked"
             if r in ctx.station.graph.robots and r in frames:
@@ -503,6 +505,14 @@ class CommandHandler:
                 f"({h.position_in_map[0]:.1f}, {h.position_in_map[1]:.1f})  {state}"
             )
         return Outcome("ok", "\n".join(lines))
+
+
+def planner_task(allocator: Any, robot_id: int) -> str:
+    """``"explore (task 1000007)"``: what the planners gave the robot, or empty."""
+    a = getattr(allocator, "assignments", {}).get(robot_id)
+    if a is None:
+        return ""
+    return f"{str(a.purpose).split(':')[0].replace('_', ' ')} (task {a.task_id})"
 
 
 def _ids(ids: list[int] | tuple[int, ...]) -> str:

@@ -39,7 +39,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gcs.operator.grammar import VERBS
-from gcs.operator.handler import CommandHandler, OperatorContext, Outcome, RobotReport
+from gcs.operator.handler import (
+    CommandHandler,
+    OperatorContext,
+    Outcome,
+    RobotReport,
+    planner_task,
+)
 from protocol import operator as op
 from protocol.messages import AutonomyMode, ObjectKind, TaskStatus, Telemetry, encode_frame
 from protocol.radio_channel import LinkBackpressure
@@ -336,6 +342,7 @@ class OperatorService:
         graph = station.graph
         frames = {f.robot_id for f in station.frames()}
         roles = self.roles
+        alloc = self._allocator()
         ids = sorted(set(graph.robots) | set(self.reports) | set(roles))
         rows = []
         for r in ids:
@@ -345,7 +352,7 @@ class OperatorService:
             if r in graph.robots and r in frames:
                 x, y, t = graph.pose(graph.last_key(r))
                 pose = (float(x), float(y), float(t))
-            task = self.handler.operator_tasks.get(r, (0, ""))[1]
+            task = self.handler.operator_tasks.get(r, (0, ""))[1] or planner_task(alloc, r)
             if not task:
                 task = f"task {tele.task_id}" if tele is not None and tele.task_id else "none"
             rows.append(
@@ -360,7 +367,6 @@ class OperatorService:
                     float(tele.battery_frac) if tele is not None else math.nan,
                 )
             )
-        alloc = self._allocator()
         pending: set[int] = getattr(alloc, "pending_approvals", set()) or set()
         neutralized: set[int] = getattr(alloc, "neutralized", set()) or set()
         hazards = []
