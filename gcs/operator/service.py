@@ -265,7 +265,9 @@ class OperatorService:
                 who = cmd.operator_id if cmd is not None else "?"
                 line = f"t={now_s:.1f} s refused command from {who!r}: {reason}: {text}"
                 self.refused_log.append(line)
-                log.warning("%s", line)
+                n = sum(self.verifier.refused.values())
+                if n <= 20 or n % 1000 == 0:  # a flood of forgeries must not flood the log
+                    log.warning("%s (%d refused so far: %s)", line, n, dict(self.verifier.refused))
                 if cmd is not None:
                     self._reply(cmd, "refused", reason, text, now_s)
                 continue
