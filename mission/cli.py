@@ -23,8 +23,7 @@ from typing import Any
 __all__ = ["main"]
 
 #: Subcommands that are specified but not built yet, and the issue that brings each.
-_NOT_BUILT = {
-}
+_NOT_BUILT: dict[str, str] = {}
 
 #: Subcommands with their own parser (``magic X --help`` is theirs): what each produces.
 _OWN_PARSERS = {
@@ -37,7 +36,22 @@ _OWN_PARSERS = {
     "the evaluation, and the map and summary files in --out",
     "console": "the operators' console: signed commands to a running GCS over zenoh, with "
     "completion, robot subsets, macros (-c CMD, --script FILE without a terminal)",
+    "perception": "learn the robots' perception thresholds in simulated worlds: LIDAR shape "
+    "(record | train | evaluate: .npz worlds, versioned JSON) and camera colour (colour)",
 }
+
+_PERCEPTION_HELP = """\
+usage: magic perception {record,train,evaluate} ...  LIDAR shape thresholds (5.2.1)
+       magic perception colour [options]             YCrCb colour thresholds (5.2.1)
+
+  record    record labelled LIDAR sweeps of seeded simulated worlds (--seeds, --out DIR)
+  train     learn the shape thresholds from recorded worlds (versioned JSON, --out)
+  evaluate  score a shape thresholds file on held-out recorded worlds
+  colour    render objects, people and distractors under random light in training worlds,
+            learn the colour thresholds (--out FILE) and score them on held-out worlds
+
+`magic perception ACTION --help` says what each takes and writes.
+"""
 
 _EXIT_STATUSES = (
     "exit status: 0 done, 1 the work failed, 2 bad input (one line on stderr naming it, "
@@ -281,7 +295,24 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_perception(argv: list[str]) -> int:
+    """``magic perception ...``: the shape (mission/perception_training.py) and colour
+    (mission/perception_camera_training.py) recorders and trainers."""
+    if argv and argv[0] == "colour":
+        from mission.perception_camera_training import main as colour_main
+
+        return colour_main(argv[1:])
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_PERCEPTION_HELP, end="", file=sys.stdout if argv else sys.stderr)
+        return 0 if argv else 2
+    from mission.perception_training import main as shape_main
+
+    return shape_main(argv)
+
+
 def _dispatch(argv: list[str]) -> int:
+    if argv and argv[0] == "perception":  # its own parsers: mission/perception_*training.py
+        return _cmd_perception(argv[1:])
     if argv and argv[0] == "console":  # its own parser: gcs/console/repl.py
         from gcs.console.repl import main as console_main
 

@@ -22,15 +22,18 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from robot.perception.camera_model import Intrinsics
 from robot.perception.colour_classifier import (
     CLASSES,
+    ColourThresholdError,
     ColourThresholds,
     classify_candidate,
     load_thresholds,
@@ -278,7 +281,7 @@ def evaluate(
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
-        prog="perception_camera_training", description=__doc__.splitlines()[0]
+        prog="magic perception colour", description=__doc__.splitlines()[0]
     )
     ap.add_argument("--train-seeds", type=int, nargs="+", default=list(TRAIN_SEEDS))
     ap.add_argument("--test-seeds", type=int, nargs="+", default=list(TEST_SEEDS))
@@ -286,8 +289,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", help="write the trained thresholds here (versioned JSON)")
     ap.add_argument("--thresholds", help="evaluate this file instead of training")
     args = ap.parse_args(argv)
+    # bad paths are one line and status 2, before the rendering starts
+    if args.out and not Path(args.out).resolve().parent.is_dir():
+        print(f"magic perception colour: --out {args.out}: no such directory", file=sys.stderr)
+        return 2
+    if args.per_target < 1:
+        print("magic perception colour: --per-target must be >= 1", file=sys.stderr)
+        return 2
     if args.thresholds:
-        thr = load_thresholds(args.thresholds)
+        try:
+            thr = load_thresholds(args.thresholds)
+        except ColourThresholdError as err:
+            print(f"magic perception colour: {err}", file=sys.stderr)
+            return 2
     else:
         px = record_pixels(args.train_seeds, per_target=args.per_target)
         thr = train_thresholds(
