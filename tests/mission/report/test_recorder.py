@@ -241,3 +241,11 @@ def test_a_bad_sample_is_a_counted_fault_not_a_stopped_run(tmp_path: Path) -> No
     assert math.isnan(metrics["ate_rmse_m"])  # no pose node: nothing to score, no error
     kinds = [json.loads(line)["kind"] for line in (tmp_path / "record" / "events.jsonl").open()]
     assert kinds.count("recorder_fault") == 1 and "note" in kinds
+
+
+def test_magic_report_help_says_what_it_writes(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main(["report", "--help"])
+    assert info.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "RUN_DIR" in out and "report.json" in out and "report.md" in out
