@@ -77,6 +77,7 @@ from gcs.loops.cycle_validation import (
     Hypothesis,
     ValidationResult,
 )
+from gcs.loops.long_loop_search import LongLoopConfig, LongLoopSearch
 
 __all__ = [
     "LoopCloser",
@@ -131,8 +132,12 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     edge_floor_sigma_xy_m: float = 0.02
     edge_floor_sigma_yaw_rad: float = math.radians(0.5)
     min_scan_points: int = 20
+    # long-loop candidate source (gcs.loops.long_loop_search, issue 19 item 5)
+    long_loops: LongLoopConfig = msgspec.field(default_factory=LongLoopConfig)
 
     def __post_init__(self) -> None:
+        if self.long_loops.enabled and self.validation.min_cycle_hypotheses < 2:
+            raise ValueError("long_loops needs validation.min_cycle_hypotheses >= 2")
         m, c = self.matcher, self.candidates
         if not math.isclose(m.search_xy_m, c.window_xy_m) or not math.isclose(
             m.search_yaw_rad, c.window_yaw_rad
@@ -258,6 +263,11 @@ class LoopCloser:
         self._groups: frozenset[frozenset[int]] | None = None
         self._links: dict[int, dict[int, tuple[FloatArray, FloatArray]]] = {}
         self._has_scan_cache: tuple[tuple[int, int], NDArray[np.bool_]] | None = None
+        self.long_loops = (
+            LongLoopSearch(cfg.long_loops, matcher=cfg.matcher, resolution_m=cfg.resolution_m)
+            if cfg.long_loops.enabled
+            else None
+        )
 
     # ---- input -----------------------------------------------------------------------------
 
@@ -600,6 +610,48 @@ class LoopCloser:
             self._queue.remove(worst)
             heapq.heapify(self._queue)
             self.stats.dropped_candidates += 1
+        # ---- long-loop candidate source (gcs.loops.long_loop_search, issue 19 item 5) ----
+        if self.long_loops is not None:
+            self._propose_long_loops(key, mirror, progress_s)
+
+    def _propose_long_loops(self, key: int, mirror: _Mirror, progress_s: float) -> None:
+        """Place-recognition matches of ``key`` become hypotheses like any other: they reach
+        the graph only through a consistent cycle (min_cycle_hypotheses >= 2)."""
+        assert self.long_loops is not None
+        c = self.config.candidates
+        found = self.long_loops.propose(
+            key,
+            scans=self._scans,
+            keys=mirror.keys,
+            index_of=mirror.index,
+            robot_ids=mirror.robot_ids,
+            indices=mirror.indices,
+            project=lambda: self._projection(key, max_trace=math.inf),
+            path=self._path,
+            regular_xy_m=c.wide_xy_m,
+            regular_yaw_rad=c.wide_yaw_rad,
+            regular_k_sigma=c.k_sigma,
+            progress_s=progress_s,
+        )
+        for m in found:
+            cov = self._edge_covariance(m.result)
+            if np.linalg.eigvalsh(cov[:2, :2])[-1] > self.config.max_match_sigma_xy_m**2:
+                self.stats.ambiguous += 1
+                continue
+            self._next_hyp += 1
+            self.stats.hypotheses += 1
+            self._validator.add(
+                Hypothesis(
+                    hyp_id=self._next_hyp,
+                    key_a=m.key_a,
+                    key_b=m.key_b,
+                    a_from_b=m.result.a_from_b,
+                    covariance=cov,
+                    score=m.result.normalized_score,
+                    time_s=progress_s,
+                )
+            )
+        # ---- end of the long-loop candidate source ----
 
     def _matcher_for(self, wide_xy: bool, yaw_rad: float) -> CorrelativeMatcher:
         """The matcher of a window: standard or wide translation (each with its own tables),
