@@ -76,17 +76,19 @@ def _sinks(args: argparse.Namespace) -> list[str]:
 def check_operator_arguments(args: argparse.Namespace) -> None:
     """ValueError (one line naming the option) for bad views options or an unusable key."""
     _sinks(args)
-    try:
-        load_or_create_key(args.operator_key)
-    except (KeyFileError, OSError) as err:
-        raise ValueError(f"--operator-key: {err}") from None
+    path = args.operator_key if args.operator_key is not None else default_key_path()
+    if Path(path).exists():  # a missing one is made at the first command
+        try:
+            load_or_create_key(path, create=False)
+        except (KeyFileError, OSError) as err:
+            raise ValueError(f"--operator-key: {err}") from None
 
 
 def operator_service(args: argparse.Namespace, link: Any, control: Any = None) -> OperatorService:
     """The service the options describe (call :func:`check_operator_arguments` first)."""
     return OperatorService(
         link,
-        key=load_or_create_key(args.operator_key),
+        key_file=args.operator_key,
         views=_sinks(args) or None,
         control=control,
     )

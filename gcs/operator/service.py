@@ -30,6 +30,7 @@ import collections
 import logging
 import math
 import queue
+import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -114,8 +115,19 @@ class OperatorService:
     ) -> None:
         self.link = link
         self.mission = link.mission
-        self.key = key if key is not None else op.load_or_create_key(key_file)
-        self.verifier = op.CommandVerifier(self.key, self.mission)
+        self._key_file = key_file
+        if key is None:
+            try:
+                key = op.load_or_create_key(key_file, create=False)
+            except op.KeyFileError:
+                # no key file yet: made at the first command (the console makes it on its
+                # first use too), so a GCS that never hears a console writes nothing
+                if (Path(key_file) if key_file else op.default_key_path()).exists():
+                    raise
+        self.verifier: op.CommandVerifier | None = (
+            op.CommandVerifier(key, self.mission) if key is not None else None
+        )
+        self._verifier_lock = threading.Lock()
         self.handler = handler or CommandHandler()
         self._roles: dict[int, str] = dict(roles or {})
         self.control = control
@@ -132,6 +144,7 @@ class OperatorService:
         self._last_status_wall = -math.inf
         self._now_s = 0.0
         self.cpu_s = 0.0  # views' CPU on the node thread (observe + build)
+        self._key_problem = ""
         self.builder: PictureBuilder | None = None
         self.views: RerunViews | None = None
         self._meter_views_bytes = meter_views_bytes
@@ -175,10 +188,32 @@ class OperatorService:
         if isinstance(approved, set):
             approved.update(self.handler.approved_hazard_ids)
 
+    def _get_verifier(self) -> op.CommandVerifier | None:
+        """The verifier, made from the key file at the first command if there was none."""
+        if self.verifier is not None:
+            return self.verifier
+        with self._verifier_lock:
+            if self.verifier is None:
+                try:
+                    key = op.load_or_create_key(self._key_file)
+                except (op.KeyFileError, OSError) as err:
+                    self._key_problem = f"the GCS has no usable operator key: {err}"
+                    return None
+                self.verifier = op.CommandVerifier(key, self.mission)
+            return self.verifier
+
     # ---- zenoh thread --------------------------------------------------------------------
 
     def _on_command(self, _key: str, payload: bytes) -> None:
-        cmd, reason, text = self.verifier.check(payload)
+        verifier = self._get_verifier()
+        if verifier is None:
+            try:
+                cmd: op.SignedCommand | None = op.decode_signed(payload)
+            except ValueError:
+                cmd = None
+            self._pending.put((time.perf_counter(), cmd, "no_key", self._key_problem))
+            return
+        cmd, reason, text = verifier.check(payload)
         self._pending.put((time.perf_counter(), cmd, reason, text))
 
     # ---- node thread ---------------------------------------------------------------------
@@ -265,9 +300,10 @@ class OperatorService:
                 who = cmd.operator_id if cmd is not None else "?"
                 line = f"t={now_s:.1f} s refused command from {who!r}: {reason}: {text}"
                 self.refused_log.append(line)
-                n = sum(self.verifier.refused.values())
+                refused = self.verifier.refused if self.verifier is not None else {}
+                n = sum(refused.values())
                 if n <= 20 or n % 1000 == 0:  # a flood of forgeries must not flood the log
-                    log.warning("%s (%d refused so far: %s)", line, n, dict(self.verifier.refused))
+                    log.warning("%s (%d refused so far: %s)", line, n, dict(refused))
                 if cmd is not None:
                     self._reply(cmd, "refused", reason, text, now_s)
                 continue
@@ -406,7 +442,9 @@ class OperatorService:
         out: dict[str, float] = {
             "interactions": float(len(self.handler.interactions)),
             "interactions_per_min": self.handler.interactions_per_minute(now, window_s=now or 1),
-            "commands_refused": float(sum(self.verifier.refused.values())),
+            "commands_refused": float(
+                sum(self.verifier.refused.values()) if self.verifier is not None else 0
+            ),
         }
         for mode, t in self.ledger.time_s.items():
             out[f"time_s_{mode}"] = t

@@ -218,6 +218,7 @@ def _attacks(
     """Forged, replayed and unsigned commands through zenoh; each answered, none accepted."""
     client = team.client
     verifier = team.service.verifier
+    assert verifier is not None  # the team's service was given its key
     accepted_before = verifier.accepted
     genuine = 0
     forged_key = bytes(32)

@@ -100,7 +100,9 @@ def _args(tmp_path: Path, *argv: str) -> argparse.Namespace:
 
 def test_operator_options_are_checked(tmp_path: Path) -> None:
     check_operator_arguments(_args(tmp_path, "--rerun", "connect", "127.0.0.1:9876"))
-    assert (tmp_path / "k.key").stat().st_mode & 0o777 == 0o600
+    assert not (tmp_path / "k.key").exists()  # made at the first command, not before
+    op.load_or_create_key(tmp_path / "k.key")
+    check_operator_arguments(_args(tmp_path))
     check_operator_arguments(
         _args(tmp_path, "--rerun", "serve", "--rerun-save", str(tmp_path / "a.rrd"))
     )
@@ -115,3 +117,21 @@ def test_operator_options_are_checked(tmp_path: Path) -> None:
     (tmp_path / "k.key").chmod(0o644)
     with pytest.raises(ValueError, match="--operator-key: .*chmod 600"):
         check_operator_arguments(_args(tmp_path))
+
+
+def test_a_gcs_without_a_key_file_makes_it_at_the_first_command(tmp_path: Path) -> None:
+    gcs_link, console_side = open_pair()
+    path = tmp_path / "conf" / "operator.key"
+    try:
+        service = OperatorService(gcs_link, key_file=path)
+        assert service.verifier is None and not path.exists()
+        verifier = service._get_verifier()
+        assert verifier is not None and path.stat().st_mode & 0o777 == 0o600
+        signed = op.sign(
+            op.load_or_create_key(path), gcs_link.mission, "a", 10**18, op.Command("status")
+        )
+        assert verifier.check(op.encode(signed))[1] == "ok"
+        service.close()
+    finally:
+        console_side.close()
+        gcs_link.close()
