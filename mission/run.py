@@ -893,9 +893,16 @@ def main(argv: list[str] | None = None) -> int:
             def line(r: RunReport) -> None:
                 if r.mission_s >= next_s[0]:
                     next_s[0] += total_s / 10
+                    g = r.gcs
+                    gcs = (
+                        f", gcs: {g['gcs_pose_nodes']:.0f} nodes, {g['gcs_closures']:.0f} "
+                        f"closures, {g['gcs_hazards']:.0f} hazards, {g['tasks_sent']:.0f} tasks"
+                        if g
+                        else ""
+                    )
                     err.print(
                         f"magic run: {r.mission_s:.0f} / {total_s:g} mission-s, "
-                        f"x{r.rtf:.1f} real time, {len(r.events)} rule events",
+                        f"x{r.rtf:.1f} real time, {len(r.events)} rule events{gcs}",
                         markup=False,
                         soft_wrap=True,
                     )
