@@ -359,7 +359,8 @@ def events(record: RunRecord, scored: Scored, path: Path) -> Path:
             ax.plot(t, i, marker=marker, color=colour, ms=9, ls="none")
     ax.set_yticks(range(len(names)), names)
     ax.set_ylim(-0.7, max(len(names), 1) - 0.3)
-    ax.set_xlim(0, max(scored.metrics.get("mission_s", 1.0), 1.0))
+    end_s = scored.metrics.get("mission_s", 1.0)
+    ax.set_xlim(0, 1.03 * max(end_s if math.isfinite(end_s) else 1.0, 1.0))
     ax.set_xlabel("mission time (s)")
     if not names:
         ax.text(0.5, 0.5, "no events", ha="center", va="center", transform=ax.transAxes)
