@@ -1,8 +1,8 @@
 """A team in one process, stepped in deterministic mission time (DESIGN section 4).
 
 :class:`TeamInLockstep` composes the simulator, one :class:`~robot.node.RobotNode` per robot
-and the radio between them and a ground side (a script today, the GCS next), over two real
-zenoh sessions on loopback. Each :meth:`TeamInLockstep.step`:
+and the radio between them and a ground side (the GCS, or a script: :mod:`mission.assembly`),
+over two real zenoh sessions on loopback. Each :meth:`TeamInLockstep.step`:
 
 1. steps the simulator by ``step_s`` and sets the mission clock to its time;
 2. applies the radio model's grants to both ends of every robot's radio;
