@@ -6,7 +6,8 @@ with the operator's key (``--operator-key``; see :mod:`protocol.operator`) and p
 reply. Interactive (a terminal): a prompt_toolkit prompt with completion of commands,
 arguments, robot ids and OOI ids, history (``--history``), function-key macros
 (``--macros``, :mod:`gcs.console.macros`) and a status bar (GCS time, robots, interactions,
-connection). ``-c "CMD; CMD"`` and ``--script FILE`` run commands without a terminal.
+connection). ``-c "CMD; CMD"``, ``--script FILE`` and lines piped on stdin run commands without a
+terminal.
 
 Lines: one or more commands separated by ``;``. Local words: ``help [COMMAND]``, ``macros``,
 ``history``, ``quit``. Commands and robot subsets: :mod:`gcs.operator.grammar`.
@@ -197,6 +198,25 @@ class Console:
 # ---- the command ----------------------------------------------------------------------------
 
 
+def _isatty(stream: Any) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, OSError, ValueError):
+        return False
+
+
+def _read_lines(stream: Any) -> list[str]:
+    try:
+        return str(stream.read()).splitlines()
+    except (OSError, ValueError):  # no readable stdin (closed, or a test harness's)
+        return []
+
+
+def _runnable(line: str) -> bool:
+    text = line.strip()
+    return bool(text) and not text.startswith("#")
+
+
 def _check_endpoint(endpoint: str) -> None:
     """ValueError unless ``endpoint`` looks like ``<protocol>/<address>`` (zenoh says more
     when it opens; importing the GCS node's full check would cost seconds of start-up)."""
@@ -301,13 +321,21 @@ def main(argv: list[str]) -> int:
                 raise ValueError(f"--{name.replace('_', '-')}: expected seconds > 0, got {v}")
         for endpoint in args.connect + args.listen:
             _check_endpoint(endpoint)
-        key = op.load_or_create_key(args.operator_key)
         macros = load_macros(args.macros)
         script: list[str] = []
         if args.script is not None:
             if not args.script.is_file():
                 raise ValueError(f"--script {args.script}: no such file")
             script = args.script.read_text(encoding="utf-8").splitlines()
+        interactive = args.commands is None and args.script is None
+        if interactive and not _isatty(sys.stdin):
+            # piped: the lines of stdin are the script (`echo "pause all" | magic console`)
+            script = _read_lines(sys.stdin)
+            interactive = False
+        lines = [*(args.commands or []), *script]
+        if not interactive and not any(_runnable(line) for line in lines):
+            return 0  # nothing to send: no key, no link
+        key = op.load_or_create_key(args.operator_key)
     except (ValueError, ConfigError, OSError) as err:
         return fail(err)
     from protocol.link import Link, LinkConfig
@@ -321,7 +349,6 @@ def main(argv: list[str]) -> int:
         link = Link(config, mission=args.mission)
     except Exception as err:
         return fail(f"cannot open the zenoh link: {str(err).split(' at /')[0]}")
-    interactive = args.commands is None and args.script is None
     printer: list[Callable[[str], None]] = [print]
     client = ConsoleClient(
         link, args.operator, key, on_notice=lambda t: printer[0](f"[console] {t}")
@@ -335,7 +362,6 @@ def main(argv: list[str]) -> int:
     )
     try:
         if not interactive:
-            lines = [c for c in (args.commands or [])] + script
             ok = True
             for line in lines:
                 if not console.run_line(line):
