@@ -101,8 +101,12 @@ def render_region(
         cv2.circle(rgb, pix(*o.position_in_map), 3, color, -1, cv2.LINE_AA)
     if len(picture.frontiers_in_map):
         for x, y in picture.frontiers_in_map:
-            cv2.drawMarker(rgb, pix(x, y), (0, 200, 200), cv2.MARKER_CROSS, 5, 1)
+            if inside(x, y):
+                cv2.drawMarker(rgb, pix(x, y), (0, 200, 200), cv2.MARKER_CROSS, 5, 1)
     for r in picture.robots:
+        # only what the zoom shows (a view of one event, not of the team)
+        if r.pose_in_map is not None and not inside(r.pose_in_map[0], r.pose_in_map[1], 30.0):
+            continue
         if len(r.trail_in_map) >= 2:
             t = np.asarray(r.trail_in_map, dtype=float)
             pts = np.rint(np.column_stack([t[:, 0] - x0, y1 - t[:, 1]]) / m_per_px)
@@ -114,6 +118,8 @@ def render_region(
         if r.pose_in_map is None:
             continue
         x, y, yaw = (float(v) for v in r.pose_in_map)
+        if not inside(x, y, 1.0):
+            continue
         color = _ROBOT_RGB if r.linked else _UNLINKED_RGB
         p = pix(x, y)
         cv2.circle(rgb, p, 5, color, -1, cv2.LINE_AA)

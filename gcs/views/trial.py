@@ -11,13 +11,13 @@ halfway (a link outage, then a lost robot). The GCS loop is the node's: handle e
 ``GroundStation.step`` every ``step_period_s`` of mission time, and a picture when the views
 say one is due.
 
-Measured (CPU seconds, this process): the station's ``handle`` + ``step`` (thread time), the
-views' picture building (``PictureBuilder.cpu_s``, rasterization included when the views asked
-for it) and drawing (``ViewsStats.draw_cpu_s``), and the whole process (``process_time``: rerun's
-own threads included). ``views_cpu_frac`` = (process CPU - station CPU) / process CPU, the
-conservative figure; ``views_cpu_frac_given_map`` the same when the GCS hands the views the map
-it rasterized anyway (for tasking, exports), so rasterization is not the views' cost;
-``views_cpu_frac_python`` / ``views_cpu_frac_no_raster`` count only the views' Python threads.
+Measured against a baseline in the same process (process CPU, every thread): the replay
+through the GCS loop without views, then with them; ``views_cpu_frac`` = (with - without) /
+with (picture building, drawing and rerun's own threads, the views' rasterization included);
+``views_cpu_frac_given_map`` the same when the GCS hands the views the map it rasterized
+anyway (for its planners), so rasterization is not the views' cost; ``views_cpu_frac_python``
+/ ``views_cpu_frac_no_raster`` count only the views' Python work (thread CPU of building and
+drawing). Nothing is timed per message.
 
 Run: ``python -m gcs.views.trial LOG [--robots 14] [--max-nodes 120] [--rrd FILE] [--png F]``.
 """
@@ -169,6 +169,41 @@ def feed_events(
     return events
 
 
+def _run_gcs(
+    events: list[tuple[float, int, Any, int]],
+    step_period_s: float,
+    builder: PictureBuilder | None,
+    views: RerunViews | None,
+) -> tuple[float, GroundStation, Any, int]:
+    """The GCS loop over ``events`` (with the views when given): process CPU seconds (all
+    threads, rerun's included: the views are closed, their thread joined, before the clock is
+    read), the station, the last picture and the pictures published."""
+    station = GroundStation(_station_config())
+    last_step = -math.inf
+    pictures = 0
+    picture = None
+    p0 = time.process_time()
+    for now, rid, msg, nbytes in events:
+        station.handle(rid, msg, now_s=now)
+        if now - last_step >= step_period_s:
+            last_step = now
+            station.step(now_s=now)
+        if builder is not None and views is not None:
+            builder.observe(rid, msg, now_s=now, nbytes=nbytes, station=station)
+            if builder.due(now):
+                picture = builder.build(station, now, planner=_planner(station))
+                views.publish(picture, now)
+                pictures += 1
+    end = (events[-1][0] if events else 0.0) + step_period_s
+    station.step(now_s=end)
+    if builder is not None and views is not None:
+        picture = builder.build(station, end, force_layers=True)
+        views.publish(picture, end)
+        pictures += 1
+        views.close()
+    return time.process_time() - p0, station, picture, pictures
+
+
 def run_trial(
     log_path: str | Path,
     *,
@@ -181,44 +216,25 @@ def run_trial(
     views_config: ViewsConfig | None = None,
     seed: int = 0,
 ) -> TrialResult:
-    """Feed the team's replay through a GroundStation with the views on (module docstring)."""
+    """Feed the team's replay through a GroundStation with the views on (module docstring).
+
+    The views' share is measured against a baseline in the same process: the same replay
+    through the same GCS loop without views (its process CPU), then with them;
+    ``views_cpu_frac = 1 - baseline / with_views``. Nothing is timed per message."""
     events = feed_events(log_path, robots=robots, max_nodes=max_nodes, seed=seed)
     _warm_up(events)
-    station = GroundStation(_station_config())
+    base_cpu, _, _, _ = _run_gcs(events, step_period_s, None, None)
     builder = PictureBuilder(views_config)
     sink = f"save {rrd_path}" if rrd_path is not None else "memory"
     views = RerunViews(sink, threaded=threaded)
-    station_cpu = 0.0
-    last_step = -math.inf
-    pictures = 0
-    picture = None
-    p0 = time.process_time()
-    for now, rid, msg, nbytes in events:
-        c0 = time.thread_time()
-        station.handle(rid, msg, now_s=now)
-        if now - last_step >= step_period_s:
-            last_step = now
-            station.step(now_s=now)
-        station_cpu += time.thread_time() - c0
-        builder.observe(rid, msg, now_s=now, nbytes=nbytes, station=station)
-        if builder.due(now):
-            picture = builder.build(station, now, planner=_planner(station))
-            views.publish(picture, now)
-            pictures += 1
+    process_cpu, station, picture, pictures = _run_gcs(events, step_period_s, builder, views)
     end = events[-1][0] if events else 0.0
-    c0 = time.thread_time()
-    station.step(now_s=end + step_period_s)
-    station_cpu += time.thread_time() - c0
-    picture = builder.build(station, end + step_period_s, force_layers=True)
-    views.publish(picture, end + step_period_s)
-    views.close()
-    process_cpu = time.process_time() - p0
     data_len = 0
     if rrd_path is not None:
         data_len = os.path.getsize(rrd_path)
     else:
         data_len = len(views.memory_bytes())
-    if png_path is not None and picture.map is not None:
+    if png_path is not None and picture is not None and picture.map is not None:
         m = picture.map
         cx = m.origin_in_map[0] + m.shape[1] * m.resolution_m / 2
         cy = m.origin_in_map[1] + m.shape[0] * m.resolution_m / 2
@@ -226,25 +242,24 @@ def run_trial(
         img = render_region(picture, m, (cx, cy), half, px=800)
         cv2.imwrite(str(png_path), img[:, :, ::-1])
     views_py = builder.cpu_s + views.stats.draw_cpu_s
-    frac = (process_cpu - station_cpu) / process_cpu if process_cpu > 0 else math.nan
+    views_cpu = max(process_cpu - base_cpu, 0.0)
+    raster = builder.rasterize_cpu_s
     hours = max(end, 1e-9) / 3600.0
     return TrialResult(
         robots=robots,
         nodes=station.stats.pose_nodes,
         mission_s=end,
-        pictures=pictures + 1,
-        station_cpu_s=station_cpu,
+        pictures=pictures,
+        station_cpu_s=base_cpu,
         build_cpu_s=builder.cpu_s,
-        rasterize_cpu_s=builder.rasterize_cpu_s,
+        rasterize_cpu_s=raster,
         draw_cpu_s=views.stats.draw_cpu_s,
         process_cpu_s=process_cpu,
         rrd_bytes=data_len,
-        views_cpu_frac=frac,
-        views_cpu_frac_python=views_py / (views_py + station_cpu),
-        views_cpu_frac_given_map=(process_cpu - station_cpu - builder.rasterize_cpu_s)
-        / (process_cpu - builder.rasterize_cpu_s),
-        views_cpu_frac_no_raster=(views_py - builder.rasterize_cpu_s)
-        / (views_py - builder.rasterize_cpu_s + station_cpu),
+        views_cpu_frac=views_cpu / process_cpu if process_cpu > 0 else math.nan,
+        views_cpu_frac_python=views_py / (views_py + base_cpu),
+        views_cpu_frac_given_map=max(views_cpu - raster, 0.0) / (process_cpu - raster),
+        views_cpu_frac_no_raster=(views_py - raster) / (views_py - raster + base_cpu),
         rrd_bytes_per_robot_hour=data_len / (robots * hours),
         dropped=views.stats.dropped,
         sink_failures=dict(views.stats.sink_failures),
