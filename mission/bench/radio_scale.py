@@ -22,8 +22,12 @@ Metrics:
   broadcasts once) over 10 mission-minutes, over 115.2 kbps x 600 s (<= 0.8);
 * ``uplink_bytes_per_node``: pose node + grid bytes plus their share of the GCS's acks, per
   node; ``uplink_bytes_per_node_all``: every uplink byte (telemetry, detections, acks) per
-  node; ``pose_node_bytes`` (a coded pose node on the air, framing included; 86 before);
-* ``downlink_bps_per_robot_100`` (<= 100), ``uplink_bps_per_robot_100``;
+  node; ``pose_node_bytes`` (a coded pose node on the air, framing, retransmissions and the
+  acks riding in it included) against ``pose_node_bytes_plain`` (the same nodes as plain
+  frames, once each: the baseline);
+* ``downlink_bps_per_robot_100`` (<= 100), ``uplink_bps_per_robot_100``; the baseline
+  ``downlink_bps_per_robot_unicast_hazards``: the same hazard updates sent to each robot
+  (what the downlink needed before the broadcast, growing with the square of the team);
 * ``delivered_fraction``: reliable uplink messages delivered exactly once and in order, over
   sent (1.0), and ``hazard_heard_fraction``: robots holding the last broadcast's update;
 * ``backlog_grant_ratio``: the backlogged robot's grant over the median robot's while it
@@ -62,6 +66,7 @@ from protocol.messages import (
     TaskStatus,
     Telemetry,
     TerrainGrid,
+    encode_frame,
 )
 from protocol.radio import RadioConfig, RadioGrant
 from protocol.radio_channel import LinkBackpressure
@@ -69,6 +74,7 @@ from protocol.radio_channel import LinkBackpressure
 __all__ = ["run", "simulate"]
 
 CAPACITY_BPS = RadioConfig().shared_capacity_bps
+FRAMING_BYTES = RadioConfig().framing_overhead_bytes
 STEP_S = 0.25
 
 
@@ -90,6 +96,7 @@ class _Robot:
     sent_nodes: list[int] = field(default_factory=list)
     sent_grids: list[int] = field(default_factory=list)
     tasks: list[int] = field(default_factory=list)
+    plain_node_bytes: int = 0  # what the same nodes took before coding (frame + framing)
 
 
 def _covariance(dist_m: float, turn_rad: float, dt_s: float) -> tuple[float, ...]:
@@ -128,8 +135,10 @@ def _robot_step(r: _Robot, t: float, send: Callable[[Any], object]) -> int:
             delta = (0.0, 0.0, 0.0)
         cov = _covariance(moved, turned, t - r.last_node_s)
         node = PoseNode(r.node_index, t, tuple(r.pose), delta, cov)  # type: ignore[arg-type]
-        if send(node) is not None:
+        seq = send(node)
+        if isinstance(seq, int):
             r.sent_nodes.append(r.node_index)
+            r.plain_node_bytes += len(encode_frame(seq, node)) + FRAMING_BYTES
         n_bytes = int(np.clip(rng.lognormal(math.log(22.0), 0.45), 6, 120))
         grid = TerrainGrid(
             r.node_index, 0.1, rng.integers(0, 256, n_bytes, dtype=np.uint8).tobytes()
@@ -250,6 +259,7 @@ def simulate(
         ]
         next_goal = {r.rid: float(rng.uniform(5.0, 60.0)) for r in team}
         task_id = 0
+        unicast_hazard_bytes = 0
         nodes = 0
         backlog_robot = 0
         backlog_at_s = min(120.0, duration_s / 3)
@@ -277,7 +287,10 @@ def simulate(
                 for rid in frames_map:
                     frames_map[rid] = frames_map[rid] + rng.normal(0.0, 0.01, 3)
                 frames = [RobotFrame(rid, tuple(v)) for rid, v in sorted(frames_map.items())]  # type: ignore[arg-type]
-                ground.broadcast(HazardUpdate(t, hazard_list, frames))
+                update = HazardUpdate(t, hazard_list, frames)
+                ground.broadcast(update)
+                # the baseline: the same update sent to each robot (plain, framed)
+                unicast_hazard_bytes += robots * (len(encode_frame(1, update)) + FRAMING_BYTES)
             if live:
                 for r in team:
                     if t >= next_goal[r.rid]:
@@ -343,6 +356,9 @@ def simulate(
             "uplink_bytes_per_node": (node_bytes + ack_share) / max(all_nodes, 1),
             "uplink_bytes_per_node_all": up_total / max(all_nodes, 1),
             "pose_node_bytes": up_by_stream.get("pose_node", 0) / max(pose_msgs, 1),
+            "pose_node_bytes_plain": sum(r.plain_node_bytes for r in team if r.rid != backlog_robot)
+            / max(all_nodes, 1),
+            "downlink_bps_per_robot_unicast_hazards": unicast_hazard_bytes * 8.0 / span / robots,
             "downlink_bps_per_robot_100": down_total * 8.0 / span / robots,
             "uplink_bps_per_robot_100": up_total * 8.0 / span / (robots - 1),
             "broadcast_bps": sum(c.bytes for (rid, _d, _s), c in down.items() if rid < 0)
