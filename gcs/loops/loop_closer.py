@@ -32,6 +32,18 @@
    on a clock that cannot freeze: ``nominal_s_per_node`` nominal seconds per pose node added
    to the graph (any robot; nodes are made every so many metres or degrees, so this is
    distance travelled). ``now_s`` only stamps the edges (for :meth:`LoopCloser.rewind`).
+   **Odometry self-calibration** (in the spirit of the paper's online gyro calibration, 4.2).
+   A robot whose odometry misreads its turns (a gyro scale or wheel-base error) makes a graph
+   whose odometry is confidently wrong: true closures then fail the graph check and look-alikes
+   that agree with the odometry pass. So every same-robot match (before validation) is a
+   sample of the robot's turn scale ``s`` (:mod:`gcs.loops.odometry_bias`: the matched heading
+   change against the odometry's turning ``T``), counted only when its search window could hold
+   the truth; the graph check allows the scale's uncertainty ``(σ_s T)²`` along the chain. A
+   fit that differs significantly from the scale in use is fed back into the graph
+   (:meth:`PoseGraph.set_odometry_correction`: every odometry edge of the robot re-expressed
+   from what it reported, later ones as they come); then the graph is re-solved in batch, the
+   closures that contradict the corrected odometry (or the re-solved estimate) are removed
+   (``prune_chi2``) and every pair is matched again (:meth:`LoopCloser.restart`).
 3. Operator primitives (paper 6.1): :meth:`LoopCloser.suggest` (run the matcher between two
    poses, return pose and score), :meth:`LoopCloser.rewind` (remove automatic closures since
    a time), :meth:`LoopCloser.restart` (forget hypotheses and candidates).
@@ -43,6 +55,8 @@ vector components ``(x, y, yaw)`` of ``a`` and its covariance is rotated accordi
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import heapq
 import math
 import time
@@ -78,6 +92,12 @@ from gcs.loops.cycle_validation import (
     ValidationResult,
 )
 from gcs.loops.long_loop_search import LongLoopConfig, LongLoopSearch
+from gcs.loops.odometry_bias import (
+    OdometryBiasConfig,
+    TurnScale,
+    debias_odometry,
+    estimate_turn_scale,
+)
 
 __all__ = [
     "LoopCloser",
@@ -102,6 +122,11 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     the matcher's outer response surface measures it) constrains too little to be a closure
     and is dropped.
 
+    ``odometry_bias`` configures the odometry self-calibration (module docstring): after a
+    correction, automatic closures whose residual exceeds ``prune_chi2`` (against the corrected
+    odometry's heading, then at the re-solved estimate) are removed, and the latest
+    ``max_rejected_kept`` hypotheses the graph check rejected are checked again.
+
     ``matches_per_s``, ``candidate_max_age_s`` and ``validation.expiry_s`` are in nominal
     seconds of the progress clock: ``nominal_s_per_node`` per pose node added (module
     docstring), never message time.
@@ -113,6 +138,9 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     )
     candidates: CandidateSearchConfig = msgspec.field(default_factory=CandidateSearchConfig)
     validation: CycleValidationConfig = msgspec.field(default_factory=CycleValidationConfig)
+    odometry_bias: OdometryBiasConfig = msgspec.field(default_factory=OdometryBiasConfig)
+    prune_chi2: float = 16.27
+    max_rejected_kept: int = 0
     min_score: float = 0.5
     max_match_sigma_xy_m: float = 0.25
     wide_min_score: float = 0.6
@@ -160,6 +188,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             "link_sigma_yaw_rad",
             "path_sigma_xy_m",
             "max_match_sigma_xy_m",
+            "prune_chi2",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -175,6 +204,8 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+        if self.max_rejected_kept < 0:
+            raise ValueError(f"max_rejected_kept: expected >= 0, got {self.max_rejected_kept}")
         if self.max_wide_per_step < 0 or self.min_scan_points < 1:
             raise ValueError("need max_wide_per_step >= 0 and min_scan_points >= 1")
         if not (self.edge_floor_sigma_xy_m >= 0 and self.edge_floor_sigma_yaw_rad >= 0):
@@ -198,6 +229,8 @@ class LoopCloserStats:
     expired: int = 0
     stale_candidates: int = 0
     dropped_candidates: int = 0
+    odometry_recalibrations: int = 0
+    closures_pruned: int = 0
 
 
 @dataclass
@@ -215,6 +248,8 @@ class LoopClosingReport:
     elapsed_s: float = 0.0
     budget_exhausted: bool = False
     validation: ValidationResult | None = None
+    recalibrated_robots: list[int] = field(default_factory=list)
+    pruned_edge_ids: list[int] = field(default_factory=list)
 
 
 def vector_to_body_covariance(pose: FloatArray, cov_xyt: FloatArray) -> FloatArray:
@@ -263,6 +298,15 @@ class LoopCloser:
         self._groups: frozenset[frozenset[int]] | None = None
         self._links: dict[int, dict[int, tuple[FloatArray, FloatArray]]] = {}
         self._has_scan_cache: tuple[tuple[int, int], NDArray[np.bool_]] | None = None
+        # odometry self-calibration (module docstring): per robot, same-robot matches
+        # {(key_a, key_b): (yaw of a_from_b, its variance)}, the last fit and the one in use
+        self._bias_samples: dict[int, dict[tuple[int, int], tuple[float, ...]]] = {}
+        self._bias_fitted_at: dict[int, int] = {}
+        self._turn_scales: dict[int, TurnScale] = {}
+        self._applied_scales: dict[int, TurnScale] = {}
+        self._chains: dict[int, tuple[int, tuple[int, FloatArray, FloatArray] | None]] = {}
+        self._rejected: dict[int, Hypothesis] = {}  # by the graph check, latest last
+        self._restarted_at: dict[int, TurnScale] = {}  # per robot: the scale of the last restart
         self.long_loops = (
             LongLoopSearch(cfg.long_loops, matcher=cfg.matcher, resolution_m=cfg.resolution_m)
             if cfg.long_loops.enabled
@@ -315,6 +359,16 @@ class LoopCloser:
     @property
     def queued_candidates(self) -> int:
         return len(self._queue)
+
+    @property
+    def turn_scales(self) -> dict[int, TurnScale]:
+        """Per robot, the latest odometry turn-scale fit (:mod:`gcs.loops.odometry_bias`)."""
+        return dict(self._turn_scales)
+
+    @property
+    def applied_turn_scales(self) -> dict[int, TurnScale]:
+        """Per robot, the turn-scale estimate the graph's odometry edges use now."""
+        return dict(self._applied_scales)
 
     @property
     def progress_s(self) -> float:
@@ -379,6 +433,10 @@ class LoopCloser:
             now_s=progress_s, links=self._links_of, path=self._path, revision=mirror.revision
         )
         report.validation = result
+        for h in result.rejected:  # kept a while: a recalibration may vindicate them
+            self._rejected[h.hyp_id] = h
+        while len(self._rejected) > self.config.max_rejected_kept:
+            self._rejected.pop(next(iter(self._rejected)))
         for h in result.accepted:
             eid = self.graph.add_edge(
                 h.key_a,
@@ -394,6 +452,7 @@ class LoopCloser:
         self.stats.accepted += len(result.accepted)
         self.stats.rejected_by_cycle += len(result.rejected)
         self.stats.expired += len(result.expired)
+        self._calibrate_odometry(report)
         report.queued = len(self._queue)
         report.elapsed_s = time.perf_counter() - t0
         return report
@@ -725,6 +784,7 @@ class LoopCloser:
             return None
         self.stats.hypotheses += 1
         self._next_hyp += 1
+        self._record_bias_sample(a, b, result.a_from_b, cov, guess, cand.window_yaw_rad)
         return Hypothesis(
             hyp_id=self._next_hyp,
             key_a=a,
@@ -734,6 +794,193 @@ class LoopCloser:
             score=result.normalized_score,
             time_s=progress_s,
         )
+
+    # ---- odometry self-calibration (paper 4.2 in spirit; module docstring) -----------------
+
+    def _record_bias_sample(
+        self,
+        key_a: int,
+        key_b: int,
+        a_from_b: FloatArray,
+        cov: FloatArray,
+        guess: FloatArray,
+        window_yaw_rad: float,
+    ) -> None:
+        """Keep a same-robot match for the robot's turn-scale fit: every match that reached
+        ``min_score``, before validation (validating against biased odometry would select
+        the matches that agree with it), with the guess and yaw window it was searched in (a
+        match whose window could not hold the truth is not evidence, see
+        :meth:`_fit_turn_scale`)."""
+        ra, rb = split_key(key_a)[0], split_key(key_b)[0]
+        if ra != rb:
+            return
+        self._bias_samples.setdefault(ra, {})[(key_a, key_b)] = (
+            float(a_from_b[2]),
+            float(cov[2, 2]),
+            float(guess[2]),
+            float(window_yaw_rad),
+        )
+
+    def _calibrate_odometry(self, report: LoopClosingReport) -> None:
+        """Fit each robot's turn scale on its matches; feed a significant change back into the
+        graph's odometry (:meth:`PoseGraph.set_odometry_correction`), re-solve in batch, drop
+        the closures the corrected graph contradicts and match every pair again."""
+        cfg = self.config.odometry_bias
+        if not cfg.enabled:
+            return
+        changed: list[int] = []
+        for robot, samples in self._bias_samples.items():
+            n = len(samples)
+            last = self._bias_fitted_at.get(robot, 0)
+            if n < cfg.min_used or n < last + max(4, last // 10):
+                continue  # refit when the samples grew by 10 % (at least 4)
+            self._bias_fitted_at[robot] = n
+            est = self._fit_turn_scale(robot, samples)
+            if est is None:
+                continue
+            self._turn_scales[robot] = est
+            in_use = self._applied_scales.get(robot, TurnScale(scale=1.0))
+            if est.used < cfg.min_used or abs(est.scale - in_use.scale) <= cfg.apply_sigma * (
+                est.sigma
+            ):
+                continue
+            self.graph.set_odometry_correction(
+                robot, functools.partial(debias_odometry, estimate=est)
+            )
+            self._applied_scales[robot] = est
+            changed.append(robot)
+        if not changed:
+            return
+        self.stats.odometry_recalibrations += len(changed)
+        report.recalibrated_robots = changed
+        pruned = self._prune_against_odometry()
+        self.graph.optimize()
+        more = self._prune_contradicted()
+        if more:
+            self.graph.optimize()
+        report.pruned_edge_ids = pruned + more
+        # Hypotheses rejected against the biased odometry may hold now: after a large change
+        # every pair is matched again (windows and guesses were wrong too), after a small one
+        # the rejected hypotheses are checked again and the nodes searched for new pairs.
+        restart = False
+        for robot in changed:
+            before = self._restarted_at.get(robot, TurnScale(scale=1.0))
+            if abs(self._applied_scales[robot].scale - before.scale) > cfg.restart_change:
+                self._restarted_at[robot] = self._applied_scales[robot]
+                restart = True
+        if restart:
+            self.restart()
+        else:
+            pending = {h.hyp_id for h in self._validator.pending}
+            for h in self._rejected.values():
+                if h.hyp_id not in pending:
+                    self._validator.add(dataclasses.replace(h, time_s=self._progress_s))
+            self._sources = sorted(set(self._sources) | set(self._scans))
+            self._mirror = None
+            self._links.clear()
+        self._rejected.clear()
+
+    def _fit_turn_scale(
+        self, robot: int, samples: dict[tuple[int, int], tuple[float, ...]]
+    ) -> TurnScale | None:
+        """The robot's turn scale from its matches (:func:`estimate_turn_scale`).
+
+        A match is evidence only if its yaw window could hold the true heading change: the
+        matcher returns the best peak *inside* the window, so when the truth lies outside
+        (odometry biased beyond the window) it returns a look-alike near the guess, and such
+        matches would pull the fit towards the biased odometry. So a match is used when
+        ``s T ± window_k_sigma σ |T|`` (the turning ``T`` scaled by the current estimate
+        and its uncertainty) lies inside its window; starting from the prior (1 ± σ0) the fit
+        admits the short turns, its estimate then admits longer ones, and so on a few times.
+        When the prior admits fewer than ``min_used`` (a robot that only revisited places
+        after long turns) the first fit takes every match and relies on its gate.
+        """
+        chain = self._chain(robot)
+        if chain is None:
+            return None
+        first, turn, var = chain
+        n = len(turn)
+        rows = []
+        for (a, b), (yaw, yaw_var, guess_yaw, window) in samples.items():
+            ia, ib = a - first, b - first
+            if 0 <= ia < n and 0 <= ib < n:
+                rows.append(
+                    (turn[ib] - turn[ia], yaw, yaw_var + abs(var[ib] - var[ia]), guess_yaw, window)
+                )
+        if not rows:
+            return None
+        t, d, v, g, w = np.array(rows).T
+        cfg = self.config.odometry_bias
+        center, sigma = 1.0, cfg.prior_sigma
+        est: TurnScale | None = None
+        for it in range(cfg.iterations):
+            need = cfg.window_k_sigma * (sigma * np.abs(t) + np.sqrt(v))
+            inside = np.abs(se2.wrap_angle(center * t - g)) + need <= w
+            if it == 0 and np.count_nonzero(inside) < cfg.min_used:
+                # the prior admits too few (only long turns were revisited): start from all
+                # matches, the fit's own gate against the outliers
+                inside[:] = True
+            if not inside.any():
+                break
+            fit = estimate_turn_scale(t[inside], d[inside], v[inside], cfg)
+            if fit.used < cfg.min_used:
+                break
+            est = fit
+            if abs(fit.scale - center) < 0.1 * fit.sigma and fit.sigma >= sigma:
+                break
+            center, sigma = fit.scale, fit.sigma
+        return est
+
+    def _prune_against_odometry(self) -> list[int]:
+        """Remove the automatic closures of one robot whose heading change contradicts the
+        robot's corrected odometry: ``wrap(yaw - s T)`` beyond ``prune_chi2`` (as a 1-dof
+        test it is stricter than 3-dof; the closure's and the chain's variances and the
+        scale's ``(sigma_s T)^2``). Closures accepted against the biased odometry lean to it;
+        the corrected chain says which."""
+        vcfg = self.config.validation
+        bad = []
+        for e in self.graph.edges(Provenance.LOOP_AUTO):
+            assert e.key_b is not None
+            got = self._chain_turn(e.key_a, e.key_b)
+            est = self._applied_scales.get(split_key(e.key_a)[0])
+            if got is None or est is None:
+                continue
+            turn, chain_var = got
+            r = float(se2.wrap_angle(float(e.z[2]) - est.scale * turn))
+            var = (
+                float(e.covariance[2, 2])
+                + vcfg.floor_sigma_yaw_rad**2
+                + chain_var
+                + (est.sigma * turn) ** 2
+            )
+            if r * r > self.config.prune_chi2 * var:
+                bad.append(e.edge_id)
+        if bad:
+            self.graph.remove_edges(bad)
+            self.stats.closures_pruned += len(bad)
+            self._mirror = None
+        return bad
+
+    def _prune_contradicted(self) -> list[int]:
+        """Remove the automatic closures whose residual at the current estimate exceeds
+        ``prune_chi2`` (3 degrees of freedom, their covariance floored as in validation)."""
+        vcfg = self.config.validation
+        floor = np.diag(
+            [vcfg.floor_sigma_xy_m**2, vcfg.floor_sigma_xy_m**2, vcfg.floor_sigma_yaw_rad**2]
+        )
+        bad = []
+        for e in self.graph.edges(Provenance.LOOP_AUTO):
+            assert e.key_b is not None
+            pred = se2.between(self.graph.pose(e.key_a), self.graph.pose(e.key_b))
+            err = se2.between(np.asarray(e.z), pred)
+            r = np.array([err[0], err[1], float(se2.wrap_angle(err[2]))])
+            if float(r @ np.linalg.solve(e.covariance + floor, r)) > self.config.prune_chi2:
+                bad.append(e.edge_id)
+        if bad:
+            self.graph.remove_edges(bad)
+            self.stats.closures_pruned += len(bad)
+            self._mirror = None
+        return bad
 
     def _links_of(self, key: int) -> dict[int, tuple[FloatArray, FloatArray]]:
         """Tight graph paths from ``key``: ``{other: (key_from_other, covariance)}``."""
@@ -766,4 +1013,47 @@ class LoopCloser:
         i = m.index[key_b]
         if not proj.reached[i]:
             return None
-        return proj.poses[i], proj.covariances[i]
+        cov = proj.covariances[i].copy()
+        # the odometry's turn scale is uncertain (the prior, or the estimate in use): along
+        # one robot's chain that error is common to every turn, (sigma_s * turning)^2
+        cov[2, 2] += self._turn_scale_variance(key_a, key_b)
+        return proj.poses[i], cov
+
+    def _chain(self, robot: int) -> tuple[int, FloatArray, FloatArray] | None:
+        """A robot's reported odometry as prefix sums: ``(first key, turning (n,), yaw
+        variance (n,))`` (node ``first + i`` at row ``i``); cached until a node is added."""
+        n_nodes = self._nodes_seen
+        hit = self._chains.get(robot)
+        if hit is not None and hit[0] == n_nodes:
+            return hit[1]
+        _ids, keys_b, z, cov = self.graph.odometry_reported(robot)
+        out: tuple[int, FloatArray, FloatArray] | None = None
+        if len(keys_b):
+            turn = np.concatenate([[0.0], np.cumsum(se2.wrap_angle(z[:, 2]))])
+            var = np.concatenate([[0.0], np.cumsum(cov[:, 2, 2])])
+            out = (int(keys_b[0]) - 1, turn, var)  # keys are consecutive along a chain
+        self._chains[robot] = (n_nodes, out)
+        return out
+
+    def _chain_turn(self, key_a: int, key_b: int) -> tuple[float, float] | None:
+        """Odometry turning from ``key_a`` to ``key_b`` of one robot and its yaw variance
+        (None: different robots or unknown nodes)."""
+        ra, rb = split_key(key_a)[0], split_key(key_b)[0]
+        if ra != rb:
+            return None
+        chain = self._chain(ra)
+        if chain is None:
+            return None
+        first, turn, var = chain
+        ia, ib = key_a - first, key_b - first
+        if not (0 <= ia < len(turn) and 0 <= ib < len(turn)):
+            return None
+        return float(turn[ib] - turn[ia]), float(abs(var[ib] - var[ia]))
+
+    def _turn_scale_variance(self, key_a: int, key_b: int) -> float:
+        got = self._chain_turn(key_a, key_b)
+        if got is None:
+            return 0.0
+        est = self._applied_scales.get(split_key(key_a)[0])
+        sigma = est.sigma if est is not None else self.config.odometry_bias.prior_sigma
+        return (sigma * got[0]) ** 2

@@ -47,22 +47,50 @@ class OdometryBiasConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     ``pi / (prior bias)``); ``iterations`` of the gated fit; ``min_sigma`` a floor on the
     estimate's standard deviation (closures accepted against biased odometry lean towards it,
     and the scale may drift: the estimate is never trusted more than this).
+
+    Applying an estimate (:class:`~gcs.loops.loop_closer.LoopCloser`, unless ``enabled`` is
+    off): it is fitted once at
+    least ``min_used`` matches took part, and fed back into the graph's odometry when it
+    differs from the one in use by more than ``apply_sigma`` standard deviations (the first
+    time: from 1, the calibration the robot reported). ``window_k_sigma``: a match is evidence
+    only when its search window holds the heading change this many standard deviations either
+    side of the current estimate (a window that cannot hold the truth returns a look-alike).
+    ``restart_change``: a correction that moves the scale by more than this since the last
+    full re-match makes the loop closer match every pair again (windows and guesses were
+    wrong); a smaller one re-checks the hypotheses the graph rejected and searches for new
+    pairs only.
     """
 
     prior_sigma: float = 0.1
-    min_sigma: float = 0.001
+    min_sigma: float = 0.003
     gate_sigma: float = 3.0
     min_turn_rad: float = math.radians(45.0)
     max_turn_rad: float = 20.0
     iterations: int = 4
+    enabled: bool = True
+    min_used: int = 8
+    apply_sigma: float = 3.0
+    window_k_sigma: float = 2.0
+    restart_change: float = 0.02
 
     def __post_init__(self) -> None:
-        for name in ("prior_sigma", "min_sigma", "gate_sigma", "min_turn_rad", "max_turn_rad"):
+        for name in (
+            "prior_sigma",
+            "min_sigma",
+            "gate_sigma",
+            "min_turn_rad",
+            "max_turn_rad",
+            "apply_sigma",
+            "window_k_sigma",
+            "restart_change",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v}")
         if self.iterations < 1:
             raise ValueError(f"iterations: expected >= 1, got {self.iterations}")
+        if self.min_used < 1:
+            raise ValueError(f"min_used: expected >= 1, got {self.min_used}")
 
 
 @dataclass(frozen=True)
