@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 import math
 import queue
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -159,6 +160,7 @@ class NodeStats:
     memory_refreshes: int = 0  # older sweeps forgotten: the newest saw the blocked way clear
     slip_measurements: int = 0  # sweep pairs whose match measured the speed over ground
     nonfinite_points: int = 0  # LIDAR returns dropped (NaN/inf); the rest of the sweep is used
+    perception_cpu_s: float = 0.0  # thread CPU time in perception (its share of the cycle)
     perception_errors: int = 0  # perception steps that failed (logged; the robot drives on)
     detections_sent: int = 0
     fiducials_sent: int = 0
@@ -319,11 +321,14 @@ class RobotNode:
     def _perceive(self, step: Callable[[], object]) -> None:
         """Run one perception step; a failure is counted and logged, never fatal: the robot
         keeps driving without it."""
+        t0 = time.thread_time()
         try:
             step()
         except Exception as err:  # noqa: BLE001 - perception must never stop the robot
             self.stats.perception_errors += 1
             log.warning("robot %d: perception step failed: %r", self.robot_id, err)
+        finally:
+            self.stats.perception_cpu_s += time.thread_time() - t0
 
     def _reference_node(self) -> tuple[int, float, np.ndarray] | None:
         """The newest pose node sent at least ``detection_node_lag_s`` ago (None before)."""

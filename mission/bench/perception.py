@@ -28,7 +28,9 @@ Ground truth is read only here, to score:
   ``person_colour_ms_p95`` (a person's test, up to five placements);
 - ``thumbnail_bytes_p50``: the answer to a ThumbnailRequest for every object reported;
   ``uplink_detection_bytes_per_object``: encoded Detection frames per object reported;
-- ``images_per_min``: images the node asked the simulator for (its rendering cost).
+- ``images_per_min``: images the node asked the simulator for (its rendering cost);
+  ``perception_cpu_frac``: the node's thread CPU time in perception (everything: sweeps,
+  images, colour, tags, thumbnails) per second of mission: its share of one core.
 
 Quick: one world, a 24 m route. Full: four worlds, 34 m routes.
 """
@@ -184,6 +186,7 @@ class WorldResult:
     images: int = 0
     sim_s: float = 0.0
     robot_lost: bool = False
+    perception_cpu_s: float = 0.0
     hostile_ids_found: set[int] = field(default_factory=set)
 
 
@@ -251,6 +254,7 @@ def run_world(
         res.colour_ms = list(p.stats.colour_cpu_ms)
         res.person_colour_ms = list(p.stats.person_colour_cpu_ms)
         res.images = p.stats.images_requested
+        res.perception_cpu_s = node.stats.perception_cpu_s
         # thumbnails: the operator asks for each object reported
         ids = sorted({m.detection_id for _, m in sent if isinstance(m, Detection)})
         for k, did in enumerate(ids):
@@ -454,6 +458,7 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
         "uplink_detection_bytes_per_object": tot("detection_bytes")
         / max(1, tot("objects_reported")),
         "images_per_min": 60.0 * tot("images") / max(sim_s, 1e-9),
+        "perception_cpu_frac": sum(r.perception_cpu_s for r in results) / max(sim_s, 1e-9),
         "objects_in_range": float(tot("ooi_in_range") + tot("vat_in_range")),
         "robots_lost": float(sum(r.robot_lost for r in results)),
         "wall_s": time.perf_counter() - t0,

@@ -113,6 +113,7 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     retest_after_s: float = 2.0
     wait_for_frame_s: float = 8.0  # a candidate no frame shows whole waits this long for one
     max_negative_tests: int = 2
+    max_person_tests: int = 4  # colour tests of one people track before it is left unlabelled
     negative_radius_m: float = 0.7
     negative_places_kept: int = 512
     refine_m: float = 0.6  # a cylinder this close to a known object refines it, no image
@@ -461,7 +462,7 @@ class OnboardPerception:
         if track.kind != 0 or self._at_known_object(track):
             return
         n, last = self._person_tested.get(track.track_id, (0, -math.inf))
-        if n >= cfg.max_negative_tests or time_s - last < cfg.retest_after_s:
+        if n >= cfg.max_person_tests or time_s - last < cfg.retest_after_s:
             return
         if any(j.track_id == track.track_id for q in self._pending.values() for j in q.jobs):
             return
@@ -658,7 +659,7 @@ class OnboardPerception:
                     )
                     if r is not None and job.kind == "person" and r.label in _COLOUR_KIND:
                         if d == 0.0:  # the segment is an object of interest, not a person
-                            self._person_tested[job.track_id] = (cfg.max_negative_tests, 0.0)
+                            self._person_tested[job.track_id] = (cfg.max_person_tests, 0.0)
                             res = None
                             break
                         continue
@@ -758,6 +759,9 @@ class OnboardPerception:
         for t in self.lidar.tracker.tracks:
             if not t.confirmed or t.kind != 0 or t.track_id in asked:
                 continue
+            n, _ = self._person_tested.get(t.track_id, (0, -math.inf))
+            if n >= cfg.max_person_tests or self._at_known_object(t):
+                continue  # a trunk or post the tracker keeps: asked enough
             if abs(t.time_s - image.time_s) > cfg.person_frame_window_s:
                 continue
             p = t.position_m - (t.time_s - image.time_s) * t.velocity_m_s
@@ -772,6 +776,7 @@ class OnboardPerception:
                 frame, Candidate(job.xy_in_odom, job.radius_m, job.height_m)
             ):
                 out.append(job)
+                self._person_tested[t.track_id] = (n + 1, self._now)
         return out
 
     def _keep_thumb(
