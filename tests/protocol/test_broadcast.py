@@ -136,7 +136,8 @@ def test_uplink_is_exactly_once_under_loss_with_coalesced_acks() -> None:
                 team.ground.broadcast(_update(t, robots))
             team.step()
             if step > 1500 and all(
-                sum(isinstance(m, PoseNode) for m in team.up[r]) == sent[r] for r in robots
+                sum(isinstance(m, PoseNode | TerrainGrid) for m in team.up[r]) == 2 * sent[r]
+                for r in robots
             ):
                 break
         for r in robots:
