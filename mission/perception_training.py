@@ -6,18 +6,27 @@ Here the dataset comes from seeded simulated worlds (:mod:`sim.world_generator`)
 * ``record``: for each world seed, sensor robots are placed standing still at random poses
   1.5-8 m from every object of interest and person, and at random drivable places (trees,
   cars, fences, walls and other robots are the distractors); the simulator runs until each
-  robot delivered ``sweeps_per_pose`` sweeps. Each sweep is stored in the world frame (the
-  robots stand still, so ``odom`` = world) with the ground truth needed for LABELS only:
-  objects' and people's positions, and which objects were in line of sight within 8 m.
+  robot delivered ``sweeps_per_pose`` sweeps. ``--drive``: robots drive straight past the
+  objects and people instead (:func:`record_drive`, points de-skewed with the true pose of
+  each scan line); ``--walking-hostiles N``: N hostiles walk their routes (the tracker).
+  Each sweep is stored in the world frame (``odom`` = world) with each point's time and the
+  ground truth needed for LABELS and SCORES only: objects' and people's positions, people's
+  kinds, and which objects were in line of sight within 8 m.
 * ``train``: segments every stored sweep of the training worlds with the robot's own code
   (:class:`robot.perception.lidar_detector.LidarDetector`), labels each segment from the
-  truth (``cylinder``: a static OOI or toxic vat; ``person``; else a distractor) and learns
-  each class's box (:func:`robot.perception.shape_classifier.learn_box`), written to the
-  versioned thresholds file.
-* ``evaluate``: runs the detector with a thresholds file on the held-out worlds and prints
-  recall, precision, position error and CPU time per sweep.
+  truth (``cylinder``: a static OOI or toxic vat; ``person``; else a distractor; fragments
+  of an object left out) and learns the ``cylinder`` box by peeling
+  (:func:`robot.perception.shape_classifier.peel_box`) and the ``person`` box from
+  quantiles (:func:`~robot.perception.shape_classifier.learn_box`), both recall first,
+  written to the versioned thresholds file.
+* ``evaluate``: runs the detector on held-out recordings, one robot run at a time, and
+  prints the issue's figures for the LIDAR side (:func:`evaluate`): per-object recall
+  within 5 s, shape precision per sweep and per confirmed object, position error, hostile
+  track recall and velocity error, CPU time per sweep; ``--colour`` adds shape AND colour
+  (:func:`evaluate_colour`: detection precision and class confusion).
 
-``main(argv)`` is the CLI (``magic perception record|train|evaluate``)."""
+``main(argv)`` is the CLI (``python -m mission.perception_training record|train|evaluate``;
+``magic perception`` once the ``magic`` command routes to it)."""
 
 from __future__ import annotations
 
@@ -416,7 +425,7 @@ def _bootstrap() -> ShapeThresholds:
     return ShapeThresholds(FEATURE_NAMES, {"cylinder": ClassBox(-big, big)})
 
 
-def train(files: list[Path], out: Path) -> dict[str, Any]:
+def train(files: list[Path], out: Path, *, note: str = "") -> dict[str, Any]:
     """Learn the ``cylinder`` and ``person`` boxes from ``files``; write ``out``."""
     det = LidarDetector(thresholds=_bootstrap())
     f, lab = _features(files, det)
@@ -458,6 +467,7 @@ def train(files: list[Path], out: Path) -> dict[str, Any]:
         }
     prov = {
         "trained_on": [p.name for p in files],
+        "recorded_with": note,
         "train_scores": scores,
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
@@ -799,6 +809,7 @@ def main(argv: list[str] | None = None) -> int:
     t = sub.add_parser("train", help="learn the shape thresholds from recorded worlds")
     t.add_argument("files", type=Path, nargs="+")
     t.add_argument("--out", type=Path, default=DEFAULT_THRESHOLDS_PATH)
+    t.add_argument("--note", default="", help="how the recordings were made (provenance)")
     e = sub.add_parser("evaluate", help="score a thresholds file on held-out recorded worlds")
     e.add_argument("files", type=Path, nargs="+")
     e.add_argument("--thresholds", type=Path, default=DEFAULT_THRESHOLDS_PATH)
@@ -819,7 +830,7 @@ def main(argv: list[str] | None = None) -> int:
             walking_hostiles=a.walking_hostiles,
         )
     elif a.cmd == "train":
-        print(json.dumps(train(a.files, a.out), indent=1))
+        print(json.dumps(train(a.files, a.out, note=a.note), indent=1))
     else:
         load_thresholds(a.thresholds)  # a bad file: a clear error before any work
         res = evaluate(a.files, a.thresholds)
