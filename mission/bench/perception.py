@@ -23,6 +23,8 @@ Ground truth is read only here, to score:
   (rotated to the world by the truth) against the patrol's;
 - ``fiducial_pose_err_p95_m`` / ``_deg``: FiducialObservations of teammates within 3 m
   against the truth relative pose (observer at its pose node's time, teammate at the image's);
+  ``..._deg_2face``: those whose heading two tags pinned (a single frontal tag's heading is
+  loose, and its covariance says so: sigma >= 0.3 rad);
 - ``perception_ms_per_sweep_p95`` (LIDAR shape detector and tracking, thread CPU time),
   ``colour_ms_per_candidate_p95`` (one cylinder candidate's colour test, thread CPU time),
   ``person_colour_ms_p95`` (a person's test, up to five placements);
@@ -177,6 +179,7 @@ class WorldResult:
     vel_err_m_s: list[float] = field(default_factory=list)
     fid_err_m: list[float] = field(default_factory=list)
     fid_err_deg: list[float] = field(default_factory=list)
+    fid_err_deg_2face: list[float] = field(default_factory=list)  # two tags of it seen
     sweep_ms: list[float] = field(default_factory=list)
     colour_ms: list[float] = field(default_factory=list)
     person_colour_ms: list[float] = field(default_factory=list)
@@ -410,9 +413,12 @@ def _score(
                 )
             )
         )
-        res.fid_err_deg.append(
-            abs(math.degrees(float(wrap_angle(m.observed_in_base[2] - truth_rel[2]))))
-        )
+        yaw_err = abs(math.degrees(float(wrap_angle(m.observed_in_base[2] - truth_rel[2]))))
+        res.fid_err_deg.append(yaw_err)
+        # two faces pin the heading; one frontal tag leaves it loose (its covariance says so)
+        yaw_sigma = math.sqrt(max(m.covariance[5], 0.0))
+        if yaw_sigma < 0.25:
+            res.fid_err_deg_2face.append(yaw_err)
 
 
 def _ratio(a: int, b: int) -> float:
@@ -450,6 +456,7 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
         "hostile_velocity_err_p50_m_s": _pct(pool("vel_err_m_s"), 50),
         "fiducial_pose_err_p95_m": _pct(pool("fid_err_m"), 95),
         "fiducial_pose_err_p95_deg": _pct(pool("fid_err_deg"), 95),
+        "fiducial_pose_err_p95_deg_2face": _pct(pool("fid_err_deg_2face"), 95),
         "fiducial_sightings": float(len(pool("fid_err_m"))),
         "perception_ms_per_sweep_p95": _pct(pool("sweep_ms"), 95),
         "colour_ms_per_candidate_p95": _pct(pool("colour_ms"), 95),
@@ -463,9 +470,9 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
         "robots_lost": float(sum(r.robot_lost for r in results)),
         "wall_s": time.perf_counter() - t0,
     }
-    # a metric with no sample (nothing in range) is reported as the worst value, never hidden
-    worst = {"_m": 99.0, "_deg": 180.0, "_s": 99.0}
+    # a metric with no sample (nothing in range) is reported as a bad value, never hidden:
+    # every one that can lack samples is an error, a time or a size (lower is better)
     for k, v in metrics.items():
         if not math.isfinite(v):
-            metrics[k] = next((w for suf, w in worst.items() if k.endswith(suf)), 0.0)
+            metrics[k] = 999.0
     return metrics

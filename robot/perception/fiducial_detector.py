@@ -306,14 +306,13 @@ def _fit_teammate(
             continue
         rms, sol, obj, faces_t = min(fits, key=lambda f: f[0])
         own_from_team = _planar(sol.x)
-        # the face cue: the chassis top and LIDAR housing ahead of the head are dark
-        hc = np.array(lay.head_center_in_base_m)
+        # the face cue: the black LIDAR housing ahead of the head; sampled on the housing
+        # itself (its upper half: the chassis hides its foot), not around it (the chassis top
+        # beside it is lighter: 44 measured against the housing's 16-19)
+        mx, my, mz = lay.marker_in_base_m
+        e = 0.6 * lay.marker_half_m
         pts = np.array(
-            [
-                [hc[0] + a, b, lay.marker_in_base_m[2]]
-                for a in (0.25, 0.32, 0.4)
-                for b in (-0.08, 0.0, 0.08)
-            ]
+            [[mx + a, my + b, mz + c] for a in (-e, 0.0, e) for b in (-e, 0.0, e) for c in (0.0, e)]
         )
         pc = (cam_from_own @ own_from_team)[:3]
         score = _gray_at(gray, _project(pts @ pc[:3, :3].T + pc[:3, 3], k_mat))
