@@ -682,17 +682,18 @@ class RadioChannel:
             bitmap[b >> 3] |= 1 << (b & 7)
         return AckEntry(rs.spec.stream_id, rs.delivered_through, bytes(bitmap))
 
-    def ack_due(self, now: float, *, coalesced: bool = False) -> bool:
+    def ack_due(self, now: float, *, coalesced: bool = False, shared_bytes: float = 0.0) -> bool:
         """Whether pending acknowledgements should go now: their bytes are within
         ``ack_budget_frac`` of what they acknowledge, or they waited ``ack_max_delay_s``, or
         a duplicate or a gap asks for a prompt one. ``coalesced``: their size is what they
-        add to a :class:`BroadcastAck` (no frame or framing of their own)."""
+        add to a :class:`BroadcastAck` plus ``shared_bytes``, their share of its frame and
+        framing."""
         if not self._ack_dirty:
             return False
         cfg = self.config
         entries = [self._ack_entry(self._recv_by_id[sid]) for sid in sorted(self._ack_dirty)]
         if coalesced:
-            ack_size = len(_ACK_ENCODER.encode(RobotAck(self.robot_id, entries)))
+            ack_size = len(_ACK_ENCODER.encode(RobotAck(self.robot_id, entries))) + shared_bytes
         else:
             ack_size = len(encode_frame(0, Ack(entries))) + self.framing_bytes
         assert self._ack_first_pending_s is not None
@@ -935,12 +936,19 @@ class BroadcastChannel:
 def coalesced_ack(channels: dict[int, RadioChannel], now: float) -> BroadcastAck | None:
     """One :class:`BroadcastAck` for the channels whose pending acks are due by their size
     inside it (:meth:`RadioChannel.ack_due` ``coalesced``: the budget rule then costs each
-    robot's entry, not a frame and framing of its own); None when none is due. Their pending
-    acks are taken (they count as sent)."""
+    robot's entry and its share of the broadcast's frame and framing); None when none is
+    due. Their pending acks are taken (they count as sent)."""
+    pending = [ch for ch in channels.values() if ch._ack_dirty]
+    if not pending:
+        return None
+    # the broadcast's own frame and framing, shared by the robots with acks pending: a lone
+    # robot's acks keep within the ack budget as they did on a stream of their own
+    frame_bytes = len(encode_frame(0, BroadcastAck([]))) + pending[0].framing_bytes
+    shared = frame_bytes / len(pending)
     acks = []
     for rid in sorted(channels):
         ch = channels[rid]
-        if ch.ack_due(now, coalesced=True):
+        if ch.ack_due(now, coalesced=True, shared_bytes=shared):
             entries = ch.take_ack()
             if entries:
                 acks.append(RobotAck(rid, entries))

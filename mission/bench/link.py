@@ -141,7 +141,11 @@ def ack_overhead(*, duration_s: float) -> dict[str, float]:
             t += 0.05
             while pair.gcs.recv(0) is not None:
                 delivered += 1
-        ack_bytes = pair.gcs_link.meter.total_bytes(direction=Direction.DOWN, stream="ack")
+        # the GCS acknowledges on its own ack stream and in the team's coalesced broadcast ack
+        ack_bytes = sum(
+            pair.gcs_link.meter.total_bytes(direction=Direction.DOWN, stream=stream)
+            for stream in ("ack", "ack_broadcast")
+        )
         data_bytes = pair.robot_link.meter.total_bytes(direction=Direction.UP)
     return {
         "ack_overhead_frac": ack_bytes / data_bytes,
