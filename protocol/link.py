@@ -104,6 +104,9 @@ class LinkConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
     wall seconds between queue drains by the pump thread; 0 means no thread (call
     :meth:`Link.pump` yourself, e.g. in lockstep simulation). ``initial_grant_bps``: the rate
     each radio channel uses until a radio model grants one (``.inf`` in YAML: unlimited).
+    ``security_file``: a :class:`~protocol.transport_security.SecurityConfig` YAML: zenoh over
+    mutual TLS (use ``tls/`` endpoints) with access control where it names a roster; empty
+    (the default): plain zenoh, as on loopback.
     """
 
     mode: Literal["peer", "client"] = "peer"
@@ -114,6 +117,7 @@ class LinkConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
     initial_grant_bps: float = math.inf
     radio: RadioConfig = RadioConfig()
     reliability: ReliabilityConfig = ReliabilityConfig()
+    security_file: str = ""
 
     def __post_init__(self) -> None:
         if not (self.pump_period_s >= 0 and math.isfinite(self.pump_period_s)):
@@ -122,13 +126,18 @@ class LinkConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
             raise ValueError(f"initial_grant_bps must be >= 0, got {self.initial_grant_bps}")
 
 
-def _zenoh_config(cfg: LinkConfig) -> zenoh.Config:
+def _zenoh_config(cfg: LinkConfig, mission: str) -> zenoh.Config:
     zc = zenoh.Config()
     zc.insert_json5("mode", json.dumps(cfg.mode))
     zc.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
     zc.insert_json5("transport/shared_memory/enabled", "false")
     zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
     zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+    if cfg.security_file:
+        from protocol.transport_security import apply_to, load_security, zenoh_entries
+
+        security, base_dir = load_security(cfg.security_file)
+        apply_to(zc, zenoh_entries(security, base_dir=base_dir, mission=mission))
     return zc
 
 
@@ -681,7 +690,7 @@ class Link:
         self.clock: Clock = clock or WallClock()
         self.meter = meter if meter is not None else Meter()
         self.seed = seed
-        self._session = zenoh.open(_zenoh_config(self.config))
+        self._session = zenoh.open(_zenoh_config(self.config, mission))
         _OPEN_LINKS.add(self)
         self._endpoints: list[_Endpoint] = []
         self._publishers: dict[str, Any] = {}

@@ -238,8 +238,21 @@ def check_output_dir(path: str | Path, what: str) -> Path:
     return p
 
 
+def _security_file(text: str) -> str:
+    """``--security``'s argparse type: the file is read and checked at once (one line, status
+    2, on a missing certificate, an open key or a bad key)."""
+    from protocol.config import ConfigError
+    from protocol.transport_security import load_security
+
+    try:
+        load_security(text)
+    except ConfigError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
 def add_link_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--mission``, ``--radio``, ``--connect`` and ``--listen``."""
+    """``--mission``, ``--radio``, ``--connect``, ``--listen`` and ``--security``."""
     parser.add_argument(
         "--mission",
         default="default",
@@ -268,6 +281,14 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
         help="zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447; repeatable "
         "(default: tcp/127.0.0.1:0, loopback, any free port)",
     )
+    parser.add_argument(
+        "--security",
+        type=_security_file,
+        default="",
+        metavar="YAML",
+        help="mutual TLS and access control across hosts (configs/security/example.yaml says "
+        "how; use tls/ endpoints); default: plain zenoh",
+    )
 
 
 def link_config(radio: RadioConfig, args: argparse.Namespace) -> LinkConfig:
@@ -279,6 +300,8 @@ def link_config(radio: RadioConfig, args: argparse.Namespace) -> LinkConfig:
         fields["connect"] = tuple(args.connect)
     if args.listen:
         fields["listen"] = tuple(args.listen)
+    if getattr(args, "security", ""):
+        fields["security_file"] = str(args.security)
     return LinkConfig(**fields)  # type: ignore[arg-type]
 
 

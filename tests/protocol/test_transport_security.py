@@ -177,3 +177,36 @@ def test_the_example_config_loads_once_its_certificates_exist(tmp_path: Path) ->
     entries = zenoh_entries(config, base_dir=base, mission="m")
     assert entries["transport/link/tls"]["enable_mtls"] is True
     assert entries["access_control"]["default_permission"] == "deny"
+
+
+def _security_yaml(path: Path, pki: Pki, cn: str, access: str = "") -> Path:
+    cert, key = pki.certificates[cn]
+    path.write_text(
+        f"tls:\n  ca_certificate: {pki.ca_certificate}\n  certificate: {cert}\n"
+        f"  private_key: {key}\n" + access
+    )
+    return path
+
+
+def test_the_radio_link_runs_over_mutual_tls(pki: tuple[Pki, Pki], tmp_path: Path) -> None:
+    from protocol.link import Link, LinkConfig
+    from protocol.messages import PoseNode
+
+    mission, impostor = pki
+    endpoint = f"tls/127.0.0.1:{_port()}"
+    access = "access:\n  robots: {robot-1: 1}\n"
+    gcs_sec = _security_yaml(tmp_path / "gcs.yaml", mission, "gcs", access)
+    robot_sec = _security_yaml(tmp_path / "robot.yaml", mission, "robot-1")
+    fake_sec = _security_yaml(tmp_path / "fake.yaml", impostor, "robot-1")
+    node = PoseNode(0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (1e-4, 0, 0, 1e-4, 0, 1e-5))
+    with Link(LinkConfig(listen=(endpoint,), security_file=str(gcs_sec)), mission=MISSION) as g:
+        gcs = g.gcs_endpoint()
+        fake_cfg = LinkConfig(listen=(), connect=(endpoint,), security_file=str(fake_sec))
+        with Link(fake_cfg, mission=MISSION) as f:
+            f.robot_endpoint(1).send(node)
+            assert gcs.recv(timeout_s=2.0) is None  # an impostor is never heard
+        robot_cfg = LinkConfig(listen=(), connect=(endpoint,), security_file=str(robot_sec))
+        with Link(robot_cfg, mission=MISSION) as r:
+            r.robot_endpoint(1).send(node)
+            got = gcs.recv(timeout_s=10.0)
+    assert got is not None and got[0] == 1 and isinstance(got[1], PoseNode)
