@@ -85,11 +85,10 @@ class ViewsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     """When layers are published and how much history the views keep (mission seconds).
 
     The defaults (robots and dashboard every 2.5 s, the graph every 30 s or 10 s after a
-    closure, the map every 60 s) cost 0.086 of the GCS process's CPU with 14 robots on the
+    closure, the map every 60 s) cost 0.077 of the GCS process's CPU with 14 robots on the
     replay trial (:mod:`gcs.views.trial`, rerun's threads included) when the GCS hands the views
-    the map it rasterized for its planners, 0.125 when the views rasterize it themselves
-    (estimation-only GCS); at 2 s / 20 s / 30 s: 0.099 / 0.146, at 1 s / 10 s / 15 s about 0.15
-    without rasterization.
+    the map it rasterized for its planners, 0.118 when the views rasterize it themselves
+    (estimation-only GCS); at 2 s / 20 s / 30 s about 0.10 / 0.15.
 
     ``robots_period_s``: a picture (robots, dashboard, alerts, events) at most this often.
     ``graph_period_s`` / ``closure_period_s``: the SLAM graph at most this often / this often

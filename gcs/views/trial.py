@@ -11,13 +11,13 @@ halfway (a link outage, then a lost robot). The GCS loop is the node's: handle e
 ``GroundStation.step`` every ``step_period_s`` of mission time, and a picture when the views
 say one is due.
 
-Measured against a baseline in the same process (process CPU, every thread): the replay
-through the GCS loop without views, then with them; ``views_cpu_frac`` = (with - without) /
-with (picture building, drawing and rerun's own threads, the views' rasterization included);
-``views_cpu_frac_given_map`` the same when the GCS hands the views the map it rasterized
-anyway (for its planners), so rasterization is not the views' cost; ``views_cpu_frac_python``
-/ ``views_cpu_frac_no_raster`` count only the views' Python work (thread CPU of building and
-drawing). Nothing is timed per message.
+Measured in one run (process CPU, every thread): the GCS loop takes the messages batch by
+batch (``batch_s`` of mission time, as the node's loop does) and the station's thread CPU is
+read once per batch; ``views_cpu_frac`` = (process - station) / process: picture building,
+drawing, rerun's own threads and the views' rasterization; ``views_cpu_frac_given_map`` the
+same when the GCS hands the views the map it rasterized anyway (for its planners), so
+rasterization is not the views' cost; ``views_cpu_frac_python`` / ``views_cpu_frac_no_raster``
+count only the views' Python work (thread CPU of building and drawing).
 
 Run: ``python -m gcs.views.trial LOG [--robots 14] [--max-nodes 120] [--rrd FILE] [--png F]``.
 """
@@ -169,39 +169,64 @@ def feed_events(
     return events
 
 
+def _batches(
+    events: list[tuple[float, int, Any, int]], batch_s: float
+) -> list[list[tuple[float, int, Any, int]]]:
+    """Consecutive events within one ``batch_s`` slot of mission time: what one turn of the
+    GCS node's loop takes from its inbox."""
+    out: list[list[tuple[float, int, Any, int]]] = []
+    slot = None
+    for e in events:
+        k = math.floor(e[0] / batch_s)
+        if k != slot:
+            out.append([])
+            slot = k
+        out[-1].append(e)
+    return out
+
+
 def _run_gcs(
     events: list[tuple[float, int, Any, int]],
     step_period_s: float,
-    builder: PictureBuilder | None,
-    views: RerunViews | None,
-) -> tuple[float, GroundStation, Any, int]:
-    """The GCS loop over ``events`` (with the views when given): process CPU seconds (all
-    threads, rerun's included: the views are closed, their thread joined, before the clock is
-    read), the station, the last picture and the pictures published."""
+    builder: PictureBuilder,
+    views: RerunViews,
+    batch_s: float = 0.1,
+) -> tuple[float, float, GroundStation, Any, int]:
+    """The GCS node's loop over ``events``, batch by batch (:func:`_batches`): the station
+    takes a batch and steps when due, then the views observe it and publish when due.
+    Returns (process CPU s: every thread, the views closed and their thread joined first;
+    the station's thread CPU s, read once per batch, not per message; the station; the
+    last picture; pictures published)."""
     station = GroundStation(_station_config())
     last_step = -math.inf
     pictures = 0
     picture = None
+    station_cpu = 0.0
     p0 = time.process_time()
-    for now, rid, msg, nbytes in events:
-        station.handle(rid, msg, now_s=now)
+    for batch in _batches(events, batch_s):
+        now = batch[-1][0]
+        c0 = time.thread_time()
+        for t, rid, msg, _ in batch:
+            station.handle(rid, msg, now_s=t)
         if now - last_step >= step_period_s:
             last_step = now
             station.step(now_s=now)
-        if builder is not None and views is not None:
-            builder.observe(rid, msg, now_s=now, nbytes=nbytes, station=station)
-            if builder.due(now):
-                picture = builder.build(station, now, planner=_planner(station))
-                views.publish(picture, now)
-                pictures += 1
+        station_cpu += time.thread_time() - c0
+        for t, rid, msg, nbytes in batch:
+            builder.observe(rid, msg, now_s=t, nbytes=nbytes, station=station)
+        if builder.due(now):
+            picture = builder.build(station, now, planner=_planner(station))
+            views.publish(picture, now)
+            pictures += 1
     end = (events[-1][0] if events else 0.0) + step_period_s
+    c0 = time.thread_time()
     station.step(now_s=end)
-    if builder is not None and views is not None:
-        picture = builder.build(station, end, force_layers=True)
-        views.publish(picture, end)
-        pictures += 1
-        views.close()
-    return time.process_time() - p0, station, picture, pictures
+    station_cpu += time.thread_time() - c0
+    picture = builder.build(station, end, force_layers=True)
+    views.publish(picture, end)
+    pictures += 1
+    views.close()
+    return time.process_time() - p0, station_cpu, station, picture, pictures
 
 
 def run_trial(
@@ -218,16 +243,18 @@ def run_trial(
 ) -> TrialResult:
     """Feed the team's replay through a GroundStation with the views on (module docstring).
 
-    The views' share is measured against a baseline in the same process: the same replay
-    through the same GCS loop without views (its process CPU), then with them;
-    ``views_cpu_frac = 1 - baseline / with_views``. Nothing is timed per message."""
+    The views' share: everything the process spent (every thread, rerun's included) beyond
+    the station's own thread CPU, ``(process - station) / process``; the station is timed once
+    per batch of messages, as the GCS node takes them (a clock read per message would cost
+    more than the views' work on it)."""
     events = feed_events(log_path, robots=robots, max_nodes=max_nodes, seed=seed)
     _warm_up(events)
-    base_cpu, _, _, _ = _run_gcs(events, step_period_s, None, None)
     builder = PictureBuilder(views_config)
     sink = f"save {rrd_path}" if rrd_path is not None else "memory"
     views = RerunViews(sink, threaded=threaded)
-    process_cpu, station, picture, pictures = _run_gcs(events, step_period_s, builder, views)
+    process_cpu, base_cpu, station, picture, pictures = _run_gcs(
+        events, step_period_s, builder, views
+    )
     end = events[-1][0] if events else 0.0
     data_len = 0
     if rrd_path is not None:
