@@ -16,10 +16,15 @@ open. :class:`LongLoopSearch` is a second candidate source for exactly those pai
    fiducials and operators); a node whose ``k_sigma`` region does not come within
    ``max_distance_m`` is left out (the graph says it is elsewhere). When the projection's yaw
    is bounded (``k_sigma`` sigma under ``yaw_gate_max_rad``), the descriptor's yaw must fall
-   in its ``k_sigma`` interval, widened by one sector. ``k_sigma`` is 5, not the regular 3:
-   over a long loop the projection is overconfident (measured on ACES with the replay's
-   noise: yaw off by 2.5 to 3.5 sigma at the first revisit, 28 deg at 8 deg sigma across a
-   gap), and a gate that excludes the true place makes the loop unclosable.
+   in its ``k_sigma`` interval, widened by one sector. ``k_sigma`` is the regular search's
+   3: the region is where the graph allows the place to be. A larger one would let in the
+   places the graph rightly excludes (ACES: a corridor 25 m along matches "here" with
+   score 0.7, consistently from node to node, where the graph says 20 m +- 4.2 m), at the
+   price of the case where the graph is overconfident (across an odometry gap the replay's
+   widened yaw sigma was 8 deg for a 28 deg error): that one is for the gap's covariance to
+   state honestly, not for this gate to guess. When the yaw is bounded, a verified match must
+   also agree with the projection (chi-square ``confirm_chi2`` on the sum of the two
+   covariances): the region gate alone lets in a place 3.8 sigma along a corridor.
    Place recognition then ranks only the nodes that passed (Scan Context's ring key, then
    full descriptors): among a region's nodes the true place ranks near the top, among all
    nodes of a building it rarely does (ACES: top-1 13 %, top-5 44 %).
@@ -28,6 +33,16 @@ open. :class:`LongLoopSearch` is a second candidate source for exactly those pai
    ``window_xy_m``, ``window_yaw_rad``; the match must reach ``min_score`` (the closer then
    drops ambiguous, corridor-like matches by their response surface, as for its own). A match
    costs about 10 ms (ACES, +-4 m, +-30 deg), so several per node are affordable.
+4. **Unique**: a node whose matches disagree on where it is (``b1_from_b2`` they imply against
+   the graph's path, chi-square ``confirm_chi2``, or no such path) sees an aliased view: none
+   of its matches is kept.
+5. **Confirm**: a match is released only once another match, made from a node at least
+   ``confirm_min_separation_m`` away (a different view, tightly linked to the first by the
+   graph: ``confirm_link_sigma_xy_m``), closes a consistent cycle with it through the graph's
+   path between the two stored nodes (chi-square ``confirm_chi2``); matches wait
+   ``confirm_window_s``. Two matches of one view agree by construction, even when aliased;
+   separated views still agree on a consistent shift along a corridor (ACES above), which
+   only step 2 excludes.
 
 What comes out is a match, not a closure: the loop closer turns it into a hypothesis that must
 still close a consistent cycle with another hypothesis (:mod:`gcs.loops.cycle_validation`,
@@ -80,7 +95,7 @@ class LongLoopConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
     prefilter: int = 30
     top_k: int = 4
     min_index_gap: int = 40
-    k_sigma: float = 5.0
+    k_sigma: float = 3.0
     max_distance_m: float = 5.0
     yaw_gate_max_rad: float = math.pi / 2
     window_xy_m: float = 4.0
@@ -143,6 +158,8 @@ class LongLoopStats:
     matches: int = 0
     below_min_score: int = 0
     found: int = 0
+    disagree_graph: int = 0  # matches outside the projection's chi-square region
+    ambiguous_place: int = 0  # matches of a node whose matches disagreed (aliasing)
     confirmed: int = 0  # pairs of matches from separated nodes that agreed
 
 
@@ -249,7 +266,7 @@ class LongLoopSearch:
         ]
         self.stats.recognized += len(found)
         sector = 2.0 * math.pi / cfg.descriptor.sectors
-        gated: list[PlaceMatch] = []
+        gated: list[tuple[PlaceMatch, FloatArray, FloatArray, bool]] = []
         for m in found:
             i = where[m.key]
             pose, yaw_sigma = poses[i], float(syaw[i])
@@ -259,9 +276,9 @@ class LongLoopSearch:
             ):
                 self.stats.gated_yaw += 1
                 continue
-            gated.append(m)
+            gated.append((m, pose, cov[i], yaw_bounded))
         out: list[LongLoopMatch] = []
-        for m in gated[: cfg.top_k]:
+        for m, pose, pose_cov, yaw_bounded in gated[: cfg.top_k]:
             if self._tokens < 1.0:
                 self.stats.no_token += 1
                 break
@@ -275,9 +292,49 @@ class LongLoopSearch:
             if result is None:
                 self.stats.below_min_score += 1
                 continue
-            self.stats.found += 1
+            if yaw_bounded and not self._agrees(result, pose, pose_cov):
+                self.stats.disagree_graph += 1
+                continue
             out.append(LongLoopMatch(int(key), int(m.key), result, m.distance))
+        if not self._unique(out, path):
+            self.stats.ambiguous_place += len(out)
+            return self._confirm(key, [], proj, index_of, path, progress_s)
+        self.stats.found += len(out)
         return self._confirm(key, out, proj, index_of, path, progress_s)
+
+    def _agrees(self, result: MatchResult, pose: FloatArray, cov_xyt: FloatArray) -> bool:
+        """The match against the projection ``a_from_b`` (vector components): chi-square of
+        their difference on the sum of both covariances, at most ``confirm_chi2``."""
+        r = np.asarray(result.a_from_b, dtype=np.float64) - np.asarray(pose, dtype=np.float64)
+        r[2] = _wrap(float(r[2]))
+        s = np.asarray(cov_xyt, dtype=np.float64) + np.asarray(result.covariance)
+        try:
+            return float(r @ np.linalg.solve(s, r)) <= self.config.confirm_chi2
+        except np.linalg.LinAlgError:
+            return False
+
+    def _unique(
+        self,
+        matches: list[LongLoopMatch],
+        path: Callable[[int, int], tuple[FloatArray, FloatArray] | None],
+    ) -> bool:
+        """Whether one node's matches agree on where it is: for every two of them, ``b1_from_b2``
+        implied by the matches against the graph's path between ``b1`` and ``b2`` (chi-square,
+        ``confirm_chi2``). A view that matches two places the graph holds apart is aliased
+        (a corridor, a repeated facade): none of its matches is kept."""
+        for i, m1 in enumerate(matches):
+            for m2 in matches[i + 1 :]:
+                if m1.key_b == m2.key_b:
+                    continue
+                known = path(m1.key_b, m2.key_b)
+                if known is None:  # the graph holds them far apart: two places
+                    return False
+                cycle = compose_with_covariance(
+                    [_inverse_link(self._link(m1)), self._link(m2), _inverse_link(known)]
+                )
+                if _chi2(*cycle) > self.config.confirm_chi2:
+                    return False
+        return True
 
     def _confirm(
         self,
