@@ -47,7 +47,6 @@ from robot.perception.lidar_detector import LidarDetector, LidarDetectorConfig
 from robot.perception.shape_classifier import (
     DEFAULT_THRESHOLDS_PATH,
     ShapeThresholds,
-    learn_box,
     load_thresholds,
     peel_box,
     save_thresholds,
@@ -435,22 +434,12 @@ def train(files: list[Path], out: Path, *, note: str = "") -> dict[str, Any]:
     margin = np.array([0.05, 0.05, 0.05, 0.05, 0.05, 0.0, 0.05, 0.05])
     for name, cls in (("cylinder", 1), ("person", 2)):
         pos, neg = f[lab == cls], f[(lab != cls) & (lab >= 0)]
-        if name == "cylinder":
-            # peeled: the recall given up goes where the distractors are (slivers of walls
-            # and fences, robot heads); the overhead bound is a prior, never peeled
-            fixed = np.array([n == "overhead_frac" for n in FEATURE_NAMES])
-            box, sc = peel_box(
-                pos, neg, min_recall=MIN_RECALL[name], min_margin=margin, fixed=fixed
-            )
-        else:
-            box, sc = learn_box(
-                pos,
-                neg,
-                quantiles=(0.0, 0.01, 0.02),
-                margins=(0.0, 0.1),
-                min_margin=margin,
-                min_recall=MIN_RECALL[name],
-            )
+        # peeled: the recall given up goes where the distractors are (slivers of walls and
+        # fences, robot heads, trunks); priors are never peeled: the cylinder's overhead
+        # bound, and people's side test (people stand beside walls, cars and teammates)
+        keep = "overhead_frac" if name == "cylinder" else "side_gap_m"
+        fixed = np.array([n == keep for n in FEATURE_NAMES])
+        box, sc = peel_box(pos, neg, min_recall=MIN_RECALL[name], min_margin=margin, fixed=fixed)
         if name == "cylinder":
             # a prior, not learnt: nothing covers a free-standing cylinder; a few training
             # objects stood beside a tree or under a person's reach and would let trunks in
