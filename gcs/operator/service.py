@@ -97,6 +97,8 @@ class OperatorService:
     :class:`~gcs.mission_control.MissionControl`: ``allocator``, ``role(id)``, and the sets
     ``operator_controlled`` and ``approved`` it plans with, which this service keeps equal to
     the operators' decisions), or None (estimation only: commands still reach the robots).
+    ``journal``: the GCS journal (:class:`gcs.journal.GcsJournal`): every command, carried out
+    or refused, becomes an ``operator`` record.
     """
 
     def __init__(
@@ -112,6 +114,7 @@ class OperatorService:
         status_period_s: float = 1.0,
         handler: CommandHandler | None = None,
         meter_views_bytes: bool = True,
+        journal: Any = None,
     ) -> None:
         self.link = link
         self.mission = link.mission
@@ -132,6 +135,7 @@ class OperatorService:
         self._roles: dict[int, str] = dict(roles or {})
         self.control = control
         self.status_period_s = status_period_s
+        self.journal = journal  # a gcs.journal.GcsJournal: every command, kept or refused
         self.reports: dict[int, RobotReport] = {}
         self.ledger = ModeLedger()
         self.refused_log: collections.deque[str] = collections.deque(maxlen=200)
@@ -343,6 +347,7 @@ class OperatorService:
             key = op.reply_key(self.mission, cmd.operator_id)
         except ValueError:
             return  # an operator id that cannot be a key: nobody to answer
+        self._journal(cmd, status, reason, text, now_s, outcome)
         reply = op.CommandReply(
             op.OPERATOR_PROTOCOL_VERSION,
             cmd.operator_id,
@@ -356,6 +361,36 @@ class OperatorService:
         )
         self.link.publish(key, op.encode(reply))
         self.replies_sent += 1
+
+    def _journal(
+        self,
+        cmd: op.SignedCommand,
+        status: str,
+        reason: str,
+        text: str,
+        now_s: float,
+        outcome: Outcome | None,
+    ) -> None:
+        """An ``operator`` record in the GCS journal (paper 7: the logs the evaluation uses)."""
+        if self.journal is None:
+            return
+        try:
+            self.journal.event(
+                "operator",
+                now_s,
+                {
+                    "operator": cmd.operator_id,
+                    "seq": cmd.seq,
+                    "command": cmd.command.text(),
+                    "status": status,
+                    "reason": reason,
+                    "text": text[:500],
+                    "interaction": bool(outcome and outcome.interaction),
+                    "task_ids": list(outcome.task_ids) if outcome else [],
+                },
+            )
+        except Exception:
+            log.exception("journaling an operator command failed (the GCS goes on)")
 
     def _set_gcs_parameter(self, name: str, value: float) -> str:
         if name == "status_period_s":

@@ -135,3 +135,30 @@ def test_a_gcs_without_a_key_file_makes_it_at_the_first_command(tmp_path: Path) 
     finally:
         console_side.close()
         gcs_link.close()
+
+
+def test_commands_kept_and_refused_are_journaled(tmp_path: Path) -> None:
+    from gcs.ground_station import GroundStation
+    from gcs.journal import GcsJournal
+
+    journal = GcsJournal.create(tmp_path / "j.sqlite", GroundStationConfig())
+    gcs_link, other = open_pair()
+    try:
+        service = OperatorService(gcs_link, key=KEY, journal=journal)
+        station = GroundStation()
+        good = op.sign(KEY, gcs_link.mission, "alice", 10**18, op.Command("status"))
+        forged = op.sign(bytes(32), gcs_link.mission, "eve", 10**18 + 1, op.Command("pause", "all"))
+        service._on_command("", op.encode(good))
+        service._on_command("", op.encode(forged))
+        service.after_step(now_s=3.0, station=station, send=lambda r, m: None)
+        journal.commit()
+        recs = [r.json() for r in journal.records() if r.kind == "operator"]
+        assert [(r["operator"], r["status"], r["reason"]) for r in recs] == [
+            ("alice", "ok", ""),
+            ("eve", "refused", "forged"),
+        ]
+        service.close()
+    finally:
+        journal.close()
+        other.close()
+        gcs_link.close()
