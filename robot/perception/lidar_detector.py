@@ -7,12 +7,16 @@
 (:mod:`robot.perception.person_tracker`). It returns
 
 * ``cylinders``: candidate cylinders of OOI / toxic-vat size (shape only: the colour
-  classifier decides which, from the image memory), each with its centre in ``odom``;
+  classifier decides which, from the image memory), each with its centre in ``odom``, the
+  id of the place it was seen at, and ``confirmed`` once that place was seen in two sweeps
+  (``confirmed_cylinders``: what should go on to the colour test);
 * ``people``: confirmed person tracks (position and velocity in ``odom``) of the segments
   of human size, cylinder-shaped ones included (a person hidden to the waist has an OOI's
   shape; a track that moves, or the colour test, tells them apart);
 
-and counts what it skipped. No I/O, no clocks: the caller passes the sweep's time.
+and counts what it skipped. No I/O, no clocks: the caller passes the sweep's time (and,
+optionally, each point's time: people are measured at the time their points were taken).
+Cost: about 5 ms a sweep (p50), 8-9 ms p95, CPU of one core, 4000-point sweeps.
 """
 
 from __future__ import annotations
