@@ -15,6 +15,11 @@ re-sends the bytes), split ``uplink_fraction`` to the GCS and the rest from it. 
 over robots of ``(uplink + downlink) * hops`` never exceeds the shared capacity, and neither
 does the plain sum of grants. Message loss is ``max_loss * (1 - q)``. A disconnected robot
 gets 0 bps (its link holds messages until it reconnects).
+
+Scheduled blackouts (:class:`RadioBlackouts`, ``SimulatorConfig.radio_blackouts``): a robot's
+radio is off for ``[start_s, start_s + duration_s)`` of mission time, as if out of range: it
+gets 0 bps both ways, hears no broadcast and relays for no one (faults for the chaos bench,
+issue 17). :func:`blackout_schedule` draws such a schedule from a seed.
 """
 
 from __future__ import annotations
@@ -26,7 +31,92 @@ import numpy as np
 
 from protocol.radio import RadioConfig, RadioGrant
 
-__all__ = ["RadioModel", "RadioState"]
+__all__ = ["RadioBlackouts", "RadioModel", "RadioState", "blackout_schedule"]
+
+#: One scheduled outage: ``(robot_id, start_s, duration_s)`` in mission seconds.
+Blackout = tuple[int, float, float]
+_EPS_S = 1e-9  # step times are sums of float steps: an edge at 30.0 is met by 29.999999999
+
+
+class RadioBlackouts:
+    """When each robot's radio is off: the union of its ``(robot_id, start_s, duration_s)``
+    intervals ``[start_s, start_s + duration_s)`` (mission seconds).
+
+    ``robot_ids``: the team, in the simulator's order; a blackout of another robot, a
+    negative or non-finite start or a duration that is not > 0 raise ``ValueError`` naming the
+    entry. Pure: ``active(t)`` depends on ``t`` only, so lockstep runs repeat exactly.
+    """
+
+    def __init__(self, blackouts: tuple[Blackout, ...] | list[Blackout], robot_ids: list[int]):
+        index = {rid: k for k, rid in enumerate(robot_ids)}
+        rows: list[tuple[int, float, float]] = []
+        for i, entry in enumerate(blackouts):
+            where = f"radio_blackouts[{i}]"
+            if len(entry) != 3:
+                raise ValueError(f"{where}: expected (robot_id, start_s, duration_s), got {entry}")
+            rid, start_s, duration_s = int(entry[0]), float(entry[1]), float(entry[2])
+            if rid not in index:
+                raise ValueError(f"{where}: no robot {rid}; robots are {robot_ids}")
+            if not (math.isfinite(start_s) and start_s >= 0):
+                raise ValueError(f"{where}: start_s must be finite and >= 0, got {start_s}")
+            if not (math.isfinite(duration_s) and duration_s > 0):
+                raise ValueError(f"{where}: duration_s must be finite and > 0, got {duration_s}")
+            rows.append((index[rid], start_s, start_s + duration_s))
+        self._n = len(robot_ids)
+        self._k = np.array([r[0] for r in rows], dtype=np.int64)
+        self._start = np.array([r[1] for r in rows], dtype=np.float64)
+        self._end = np.array([r[2] for r in rows], dtype=np.float64)
+        self._edges = np.unique(np.concatenate([self._start, self._end]))
+
+    def __len__(self) -> int:
+        return len(self._k)
+
+    def active(self, time_s: float) -> np.ndarray:
+        """``(N,)`` bool: whose radio is off at ``time_s``."""
+        on = (self._start <= time_s + _EPS_S) & (time_s + _EPS_S < self._end)
+        out = np.zeros(self._n, dtype=bool)
+        out[self._k[on]] = True
+        return out
+
+    def next_edge_s(self, time_s: float) -> float:
+        """The first start or end after ``time_s`` (inf: none left); the simulator updates
+        the radio then, so an outage begins and ends on time, not at the radio period."""
+        i = int(np.searchsorted(self._edges, time_s + _EPS_S, side="right"))
+        return float(self._edges[i]) if i < len(self._edges) else math.inf
+
+
+def blackout_schedule(
+    robot_ids: list[int],
+    *,
+    per_robot: int,
+    duration_s: float,
+    start_s: float,
+    end_s: float,
+    seed: int,
+) -> tuple[Blackout, ...]:
+    """``per_robot`` outages of ``duration_s`` for every robot inside ``[start_s, end_s]``,
+    drawn from ``seed`` (the same arguments give the same schedule): the window is cut into
+    ``per_robot`` equal slots and each outage starts uniformly at random within its slot, so
+    a robot's outages never overlap and each robot gets its own times (e.g. the chaos bench's
+    two 60 s blackouts per robot). Sorted by start time, then robot."""
+    if per_robot < 0:
+        raise ValueError(f"per_robot must be >= 0, got {per_robot}")
+    if not (math.isfinite(duration_s) and duration_s > 0):
+        raise ValueError(f"duration_s must be finite and > 0, got {duration_s}")
+    slot_s = (end_s - start_s) / max(per_robot, 1)
+    if not (math.isfinite(start_s) and start_s >= 0 and math.isfinite(end_s)):
+        raise ValueError(f"need a finite window with start_s >= 0, got [{start_s}, {end_s}]")
+    if per_robot and slot_s < duration_s:
+        raise ValueError(
+            f"{per_robot} outages of {duration_s} s do not fit in [{start_s}, {end_s}] s"
+        )
+    rng = np.random.default_rng(seed)
+    out: list[Blackout] = []
+    for rid in robot_ids:
+        for j in range(per_robot):
+            t0 = start_s + j * slot_s + float(rng.uniform(0.0, slot_s - duration_s))
+            out.append((int(rid), t0, float(duration_s)))
+    return tuple(sorted(out, key=lambda b: (b[1], b[0])))
 
 
 @dataclass(frozen=True)

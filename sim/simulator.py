@@ -66,7 +66,7 @@ from sim.camera import CameraConfig, camera_axes, intrinsics, pan_angle
 from sim.ground_truth import GroundTruth, rasterize
 from sim.imu import EncoderConfig, ImuConfig, Imus, wheel_ticks
 from sim.lidar import LidarConfig, NoddingLidars
-from sim.radio_model import RadioModel, RadioState
+from sim.radio_model import RadioBlackouts, RadioModel, RadioState
 from sim.robot_body import RobotBodyConfig, SkidSteerBodies
 from sim.rules import Event, Rules, RulesConfig
 from sim.scene import RobotGeometry, Scene
@@ -106,6 +106,8 @@ class SimulatorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     queue_limit_frames: int = 4000
     lockstep_ack: Literal["command", "poll"] = "command"
     battery_period_s: float = 1.0
+    # scheduled radio outages (robot_id, start_s, duration_s): sim.radio_model.RadioBlackouts
+    radio_blackouts: tuple[tuple[int, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.step_s) and 0.001 <= self.step_s <= 0.5):
@@ -277,6 +279,7 @@ class Simulator:
             resolution_m=self.truth.resolution_m,
             gcs_xy_m=self.world.gcs_antenna_m[:2],
         )
+        self.radio_blackouts = RadioBlackouts(cfg.radio_blackouts, self.robot_ids)
         self.relay = np.zeros(n, dtype=bool)
         self.radio_state: RadioState | None = None
         self.radio_updates = 0
@@ -530,10 +533,14 @@ class Simulator:
         self._history_t.append(self.time_s)
 
     def _update_radio(self) -> None:
+        # a robot in a scheduled blackout has its radio off: like a dead one, to the radio
+        radio_on = self.alive() & ~self.radio_blackouts.active(self.time_s)
         self.radio_state = self.radio_model.update(
-            self.bodies.state.pose[:, :2], alive=self.alive(), relay=self.relay
+            self.bodies.state.pose[:, :2], alive=radio_on, relay=self.relay
         )
-        self._next_radio_s = self.time_s + self.config.radio_period_s
+        self._next_radio_s = min(
+            self.time_s + self.config.radio_period_s, self.radio_blackouts.next_edge_s(self.time_s)
+        )
         self.radio_updates += 1
 
     def _apply_rules(self, mats: np.ndarray, alive: np.ndarray) -> None:
