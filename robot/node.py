@@ -74,6 +74,7 @@ from protocol.sensors import (
     VelocityCommand,
     WheelTicks,
 )
+from robot.comms_watchdog import CommsWatchdogConfig, LinkAwareTasks
 from robot.control.deadlock import DeadlockBreaker, DeadlockConfig, Phase, path_block_distance
 from robot.control.keepout import KeepoutConfig, keepout_disks_in_odom, rasterize_disks
 from robot.control.path_follower import FollowerConfig, FollowStatus, PathFollower
@@ -128,6 +129,7 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     planner: PlannerConfig = PlannerConfig()
     follower: FollowerConfig = FollowerConfig()
     tasks: TaskExecutorConfig = TaskExecutorConfig()
+    comms: CommsWatchdogConfig = CommsWatchdogConfig()  # without the GCS: robot.comms_watchdog
     keepout: KeepoutConfig = KeepoutConfig()
     stuck: StuckConfig = StuckConfig()
     deadlock: DeadlockConfig = DeadlockConfig()
@@ -193,7 +195,7 @@ class RobotNode:
         )
         self.planner = PathPlanner(cfg.planner)
         self.follower = PathFollower(cfg.follower)
-        self.tasks = TaskExecutor(cfg.tasks)
+        self.tasks = LinkAwareTasks(TaskExecutor(cfg.tasks), cfg.comms)
         self.stuck = StuckDetector(cfg.stuck)
         self.deadlock = DeadlockBreaker(cfg.deadlock, seed=robot_id if seed is None else seed)
         self.traversability = TraversabilityMap(cfg.traversability)
@@ -238,6 +240,7 @@ class RobotNode:
                 msg = self._inbox.get_nowait()
             except queue.Empty:
                 return
+            self.tasks.heard(self._now, self.odometry.pose_in_odom, msg)  # the GCS is in reach
             try:
                 self._apply(msg)
             except Exception as err:  # a bad message must never stop the robot

@@ -1,0 +1,247 @@
+"""A robot without its GCS: link health from what the robot hears, and what it does meanwhile.
+
+MAGIC's robots lost their radio often (paper 4.1, 8: reliable communication remained the
+challenge); the decoupled architecture lets a robot go on alone. The link's health is read
+from the mission time of the last downlink message the robot *heard* (any: the GCS's hazard
+and frame broadcast every ``frames_period_s``, a task, a parameter, a thumbnail request), so
+it needs nothing from the radio itself and repeats exactly in lockstep.
+
+States (:class:`LinkState`), with ``quiet = now - last heard``:
+
+* ``CONNECTED``: ``quiet < silence_s``, or not armed yet. Silence means something only
+  against a sender that keeps in touch: the watchdog arms once it heard the GCS's periodic
+  broadcast (:class:`~protocol.messages.HazardUpdate`, every ``frames_period_s``) at
+  ``arm_after_broadcasts`` different times. A ground side that never repeats itself (a script
+  that hands a robot one task) never arms it, and a robot that never heard a GCS has no task.
+* ``SILENT``: ``silence_s <= quiet < silence_s + task_grace_s``: the link is lost, reported,
+  and the robot keeps executing its task.
+* ``HOLDING`` (``policy: hold``): from ``silence_s + task_grace_s`` the robot stops where it is
+  (its task suspended, not canceled; an approved neutralization keeps its laser on target).
+* ``RETURNING`` (``policy: return``): it drives back, with its own planner, to where it last
+  heard the GCS (the last point of contact, in its private frame ``odom``), then holds there
+  (``HOLDING``).
+
+The first message heard again returns it to ``CONNECTED`` and the suspended task resumes (or
+the GCS's next task replaces it). Every transition of a robot with a task is reported as a
+``TaskStatus`` (``ACTIVE``, the detail names the state), so operators see afterwards what the
+robot did; while holding, its telemetry mode is ``PAUSED``. Everything the robot produced
+meanwhile waits in its uplink queue (``protocol.radio_channel``: nothing accepted is dropped)
+and goes out in order once the radio grants a rate again.
+
+:class:`CommsWatchdog` is the pure state machine; :class:`LinkAwareTasks` puts it in front of a
+:class:`~robot.tasks.task_executor.TaskExecutor` with the executor's own interface, so the robot
+node only has to tell it when it heard the GCS (:meth:`LinkAwareTasks.heard`).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from typing import Any, Literal
+
+import msgspec
+import numpy as np
+
+from protocol.messages import AutonomyMode, HazardUpdate, TaskState, TaskStatus
+from robot.tasks.task_executor import Intent, TaskExecutor, TaskExecutorConfig
+
+__all__ = ["CommsWatchdog", "CommsWatchdogConfig", "LinkAwareTasks", "LinkState"]
+
+
+class CommsWatchdogConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """``silence_s``: no downlink this long and the link counts as lost (the GCS broadcasts
+    every 2 s: 10 s is five broadcasts in a row lost, ~0.2% at 30% loss); ``task_grace_s``:
+    then keep on the task this much longer; ``policy``: then ``hold`` where it is or
+    ``return`` to the last point of contact (``return_tolerance_m``: close enough there)."""
+
+    enabled: bool = True
+    arm_after_broadcasts: int = 2
+    silence_s: float = 10.0
+    task_grace_s: float = 20.0
+    policy: Literal["hold", "return"] = "hold"
+    return_tolerance_m: float = 0.75
+
+    def __post_init__(self) -> None:
+        for name in ("silence_s", "return_tolerance_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {v}")
+        if self.arm_after_broadcasts < 1:
+            raise ValueError(f"arm_after_broadcasts must be >= 1, got {self.arm_after_broadcasts}")
+        if not (math.isfinite(self.task_grace_s) and self.task_grace_s >= 0):
+            raise ValueError(f"task_grace_s must be finite and >= 0, got {self.task_grace_s}")
+
+
+class LinkState(enum.Enum):
+    CONNECTED = "connected"
+    SILENT = "silent"
+    HOLDING = "holding"
+    RETURNING = "returning"
+
+
+class CommsWatchdog:
+    """The link state from the last time the GCS was heard (see the module docstring).
+
+    Times are mission seconds; poses ``(x, y, theta)`` in the robot's ``odom`` frame.
+    """
+
+    def __init__(self, config: CommsWatchdogConfig | None = None) -> None:
+        self.config = config or CommsWatchdogConfig()
+        self.state = LinkState.CONNECTED
+        self.last_heard_s: float | None = None
+        #: where the robot was when it last heard the GCS (odom, metres)
+        self.contact_in_odom: np.ndarray | None = None
+        self.silent_since_s: float | None = None  # when the link was declared lost
+        self._broadcast_times: set[float] = set()  # until armed
+        self.armed = False
+
+    def heard(self, now_s: float, pose_in_odom: np.ndarray, *, periodic: bool = False) -> LinkState:
+        """The GCS was heard at ``now_s`` with the robot at ``pose_in_odom`` (``periodic``:
+        its periodic broadcast); returns the state before (the link is ``CONNECTED`` after)."""
+        before = self.state
+        if periodic and not self.armed:
+            self._broadcast_times.add(now_s)
+            self.armed = len(self._broadcast_times) >= self.config.arm_after_broadcasts
+        self.last_heard_s = now_s if self.last_heard_s is None else max(self.last_heard_s, now_s)
+        self.contact_in_odom = np.array(pose_in_odom[:2], dtype=np.float64)
+        self.state = LinkState.CONNECTED
+        self.silent_since_s = None
+        return before
+
+    def quiet_s(self, now_s: float) -> float:
+        """Seconds since the GCS was last heard (0 before it ever was)."""
+        return 0.0 if self.last_heard_s is None else max(0.0, now_s - self.last_heard_s)
+
+    def update(self, now_s: float, pose_in_odom: np.ndarray) -> LinkState:
+        """Advance to ``now_s``; returns the new state."""
+        cfg = self.config
+        if not cfg.enabled or not self.armed or self.last_heard_s is None:
+            return self.state
+        quiet = self.quiet_s(now_s)
+        if self.state is LinkState.CONNECTED and quiet >= cfg.silence_s:
+            self.state = LinkState.SILENT
+            self.silent_since_s = self.last_heard_s + cfg.silence_s
+        if self.state is LinkState.SILENT and quiet >= cfg.silence_s + cfg.task_grace_s:
+            self.state = LinkState.HOLDING if cfg.policy == "hold" else LinkState.RETURNING
+        if self.state is LinkState.RETURNING and self._at_contact(pose_in_odom):
+            self.state = LinkState.HOLDING
+        return self.state
+
+    def _at_contact(self, pose_in_odom: np.ndarray) -> bool:
+        c = self.contact_in_odom
+        if c is None:
+            return True
+        d = math.hypot(float(pose_in_odom[0] - c[0]), float(pose_in_odom[1] - c[1]))
+        return d <= self.config.return_tolerance_m
+
+    @property
+    def suspended(self) -> bool:
+        """The task is set aside (holding or returning)."""
+        return self.state in (LinkState.HOLDING, LinkState.RETURNING)
+
+
+class LinkAwareTasks:
+    """A :class:`TaskExecutor` behind a :class:`CommsWatchdog`, with the executor's interface
+    (``submit``, ``update``, ``intent``, ``current_task_id``, ``config``) plus :meth:`heard`.
+
+    While the task is suspended the executor still sees the robot's pose (a waypoint passed on
+    the way back counts; no no-path timeout runs: there is no plan for it to miss) but the
+    intent is the watchdog's: stay (``PAUSED``), or go to the last point of contact.
+    """
+
+    def __init__(
+        self,
+        executor: TaskExecutor | None = None,
+        config: CommsWatchdogConfig | None = None,
+    ) -> None:
+        self.executor = executor or TaskExecutor()
+        self.watchdog = CommsWatchdog(config)
+        self._pending: list[TaskStatus] = []  # reports made by heard(), given by update()
+        self._holding_laser: tuple[float, float] | None = None
+
+    @property
+    def config(self) -> TaskExecutorConfig:
+        return self.executor.config
+
+    @property
+    def current_task_id(self) -> int:
+        return self.executor.current_task_id
+
+    @property
+    def state(self) -> LinkState:
+        return self.watchdog.state
+
+    def heard(self, now_s: float, pose_in_odom: np.ndarray, message: Any = None) -> None:
+        """The GCS was heard (any downlink ``message``): the link is back if it was lost."""
+        wd = self.watchdog
+        quiet = wd.quiet_s(now_s)
+        before = wd.heard(now_s, pose_in_odom, periodic=isinstance(message, HazardUpdate))
+        if before is not LinkState.CONNECTED:
+            what = "resuming the task" if before is not LinkState.SILENT else "task went on"
+            self._note(now_s, f"link back after {quiet:.1f} s silent ({what})")
+
+    def submit(self, task: Any, now_s: float, pose_in_odom: np.ndarray) -> list[TaskStatus]:
+        return self.executor.submit(task, now_s, pose_in_odom)
+
+    def update(
+        self,
+        now_s: float,
+        pose_in_odom: np.ndarray,
+        *,
+        path_found: bool = True,
+        laser_on_target: bool = False,
+    ) -> list[TaskStatus]:
+        """The watchdog's transitions, then the executor's progress (see the class)."""
+        wd = self.watchdog
+        before = wd.state
+        state = wd.update(now_s, pose_in_odom)
+        if state is not before:
+            self._note(now_s, self._describe(state))
+        out, self._pending = self._pending, []
+        suspended = wd.suspended
+        out += self.executor.update(
+            now_s,
+            pose_in_odom,
+            path_found=path_found or suspended,
+            laser_on_target=laser_on_target,
+        )
+        return out
+
+    def _describe(self, state: LinkState) -> str:
+        wd = self.watchdog
+        cfg = wd.config
+        if state is LinkState.SILENT:
+            return f"link silent for {cfg.silence_s:.1f} s: continuing the task"
+        quiet = cfg.silence_s + cfg.task_grace_s
+        if state is LinkState.RETURNING:
+            c = wd.contact_in_odom
+            where = "" if c is None else f" ({c[0]:.1f}, {c[1]:.1f}) in odom"
+            return f"link silent for {quiet:.1f} s: returning to the last point of contact{where}"
+        if state is LinkState.HOLDING and cfg.policy == "return":
+            return "link silent: holding at the last point of contact"
+        return f"link silent for {quiet:.1f} s: holding"
+
+    def _note(self, now_s: float, detail: str) -> None:
+        tid = self.executor.current_task_id
+        if tid:  # an idle robot has no task to report on; its telemetry shows the mode
+            self._pending.append(TaskStatus(tid, TaskState.ACTIVE, now_s, detail))
+
+    @property
+    def intent(self) -> Intent:
+        """The executor's intent, or the watchdog's while the task is suspended."""
+        inner = self.executor.intent
+        wd = self.watchdog
+        if wd.state is LinkState.HOLDING:
+            # stand still; an approved neutralization at its stand-off keeps lasering
+            return Intent(
+                mode=AutonomyMode.PAUSED,
+                task_id=inner.task_id,
+                laser_target_in_odom=inner.laser_target_in_odom,
+            )
+        if wd.state is LinkState.RETURNING and wd.contact_in_odom is not None:
+            return Intent(
+                mode=AutonomyMode.AUTONOMOUS,
+                task_id=inner.task_id,
+                waypoints_in_odom=wd.contact_in_odom.reshape(1, 2).copy(),
+            )
+        return inner

@@ -1,0 +1,104 @@
+"""The comms watchdog (issue 17): silent -> task goes on -> hold or return -> resume."""
+
+from __future__ import annotations
+
+import msgspec
+import numpy as np
+import pytest
+
+from protocol.config import load_config
+from protocol.messages import AutonomyMode, GoToTask, HazardUpdate, TaskState
+from robot.comms_watchdog import CommsWatchdog, CommsWatchdogConfig, LinkAwareTasks, LinkState
+from robot.node import RobotNodeConfig
+
+POSE = np.zeros(3)
+
+
+def _beat(tasks: LinkAwareTasks, t: float, pose: np.ndarray = POSE) -> None:
+    tasks.heard(t, pose, HazardUpdate(t, [], []))
+
+
+def test_states_follow_the_quiet_time_and_any_message_brings_it_back() -> None:
+    wd = CommsWatchdog(CommsWatchdogConfig(silence_s=10.0, task_grace_s=20.0))
+    for t in (0.0, 2.0):
+        wd.heard(t, POSE, periodic=True)
+    assert wd.armed
+    assert wd.update(11.9, POSE) is LinkState.CONNECTED
+    assert wd.update(12.0, POSE) is LinkState.SILENT and wd.silent_since_s == 12.0
+    assert wd.update(31.9, POSE) is LinkState.SILENT
+    assert wd.update(32.0, POSE) is LinkState.HOLDING
+    assert wd.heard(60.0, POSE) is LinkState.HOLDING  # a task, not a broadcast: still contact
+    assert wd.update(60.05, POSE) is LinkState.CONNECTED
+
+
+def test_unarmed_watchdog_never_declares_silence() -> None:
+    """A ground side that handed one task and never repeats itself is no basis for silence."""
+    wd = CommsWatchdog()
+    wd.heard(0.0, POSE, periodic=True)
+    wd.heard(0.0, POSE)  # the task with it
+    assert wd.update(1000.0, POSE) is LinkState.CONNECTED and not wd.armed
+    off = CommsWatchdog(CommsWatchdogConfig(enabled=False))
+    for t in (0.0, 2.0):
+        off.heard(t, POSE, periodic=True)
+    assert off.update(1000.0, POSE) is LinkState.CONNECTED
+
+
+def test_hold_suspends_the_task_reports_it_and_resumes_it() -> None:
+    tasks = LinkAwareTasks(config=CommsWatchdogConfig(silence_s=5.0, task_grace_s=5.0))
+    _beat(tasks, 0.0)
+    _beat(tasks, 2.0)
+    assert [s.state for s in tasks.submit(GoToTask(7, 2.0, [(20.0, 0.0)]), 2.0, POSE)] == [
+        TaskState.ACTIVE
+    ]
+    goal = tasks.intent.waypoints_in_odom.copy()
+    reports = []
+    for k in range(0, 400):  # 20 s without a word
+        t = 2.0 + 0.05 * k
+        reports += tasks.update(t, POSE, path_found=False)
+        if t < 7.0:
+            assert tasks.intent.mode is AutonomyMode.AUTONOMOUS
+    assert tasks.state is LinkState.HOLDING
+    intent = tasks.intent
+    assert intent.mode is AutonomyMode.PAUSED and len(intent.waypoints_in_odom) == 0
+    assert intent.task_id == 7
+    _beat(tasks, 22.0)
+    reports += tasks.update(22.0, POSE)
+    assert np.array_equal(tasks.intent.waypoints_in_odom, goal)  # resumed, not failed
+    details = [r.detail for r in reports if r.task_id == 7]
+    assert [d.split(":")[0] for d in details] == [
+        "link silent for 5.0 s",
+        "link silent for 10.0 s",
+        "link back after 20.0 s silent (resuming the task)",
+    ], details
+    # suspended time did not count as a missing path: the 30 s no-path timeout never ran
+    assert all(r.state is TaskState.ACTIVE for r in reports)
+
+
+def test_return_drives_to_the_last_point_of_contact_then_holds_there() -> None:
+    cfg = CommsWatchdogConfig(silence_s=5.0, task_grace_s=0.0, policy="return")
+    tasks = LinkAwareTasks(config=cfg)
+    contact = np.array([3.0, -1.0, 0.0])
+    _beat(tasks, 0.0, contact)
+    _beat(tasks, 2.0, contact)
+    tasks.submit(GoToTask(1, 2.0, [(50.0, 0.0)]), 2.0, contact)
+    away = np.array([10.0, 4.0, 0.0])
+    tasks.update(7.5, away)
+    assert tasks.state is LinkState.RETURNING
+    intent = tasks.intent
+    assert intent.mode is AutonomyMode.AUTONOMOUS and intent.task_id == 1
+    assert np.allclose(intent.waypoints_in_odom, [[3.0, -1.0]])
+    tasks.update(20.0, contact + [0.3, 0.2, 0.0])
+    assert tasks.state is LinkState.HOLDING and tasks.intent.mode is AutonomyMode.PAUSED
+
+
+def test_config_rejects_unknown_keys_and_bad_values(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "robot.yaml"
+    path.write_text("comms:\n  policy: return\n  silence_s: 8\n")
+    assert load_config(path, RobotNodeConfig).comms.policy == "return"
+    path.write_text("comms:\n  policy: return\n  silense_s: 8\n")
+    with pytest.raises(Exception, match="silense_s"):
+        load_config(path, RobotNodeConfig)
+    with pytest.raises(msgspec.ValidationError, match="policy"):
+        msgspec.convert({"policy": "wander"}, CommsWatchdogConfig)
+    with pytest.raises(msgspec.ValidationError, match="silence_s"):
+        msgspec.convert({"silence_s": 0}, CommsWatchdogConfig)
