@@ -54,7 +54,9 @@ class TrackerConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
 
 @dataclass
 class PersonTrack:
-    """State ``x = (x_m, y_m, vx_m_s, vy_m_s)`` in ``odom`` with covariance ``p`` (4x4)."""
+    """State ``x = (x_m, y_m, vx_m_s, vy_m_s)`` in ``odom`` with covariance ``p`` (4x4) at
+    ``time_s``: after an update, the later of the sweep's time and the track's last
+    measurement's (extrapolate ``position_m + velocity_m_s * (t - time_s)`` for another t)."""
 
     track_id: int
     x: NDArray[np.float64]
@@ -203,6 +205,10 @@ class PersonTracker:
                 )
             )
             self._next_id += 1
+        # every track at least at the sweep's time: ``position_m`` is "now" for the caller
+        # (a track measured later in the sweep keeps its own, later, time)
+        for t in keep:
+            self._predict(t, time_s)
         self.tracks = keep
         return self.confirmed()
 
