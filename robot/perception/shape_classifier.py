@@ -7,9 +7,18 @@ enlarged." (paper 5.2.1)
 
 A class (``cylinder``: a static OOI or toxic vat by shape; ``person``: a civilian or hostile)
 is accepted when every feature lies in its ``[lo, hi]`` interval; a NaN feature is never
-accepted. :func:`learn_box` learns the intervals from labelled feature vectors: quantiles of
-the positives, enlarged by a margin; the quantile and margin are chosen on the training set
-for the best F1 score (recall first on ties), in place of the paper's manual enlargement.
+accepted. Two learners over labelled feature vectors, both followed by a fixed widening of
+every bound (the paper's manual enlargement):
+
+* :func:`peel_box` (shipped thresholds): from the box of all positives, bounds are moved
+  inward where they shed the most negatives per positive lost, down to a target recall
+  (PRIM-style peeling: recall is given up where the distractors are);
+* :func:`learn_box`: quantiles of the positives plus a margin, the pair with the best F1
+  (or, with ``min_recall``, the most precise pair that keeps that recall).
+
+Version history: 1 had six features; 2 (:data:`FORMAT_VERSION`) adds ``bottom_m`` and
+``side_gap_m`` (:mod:`robot.perception.shape_features`); a file of another version is
+refused by name, never reinterpreted.
 
 The file (``shape_thresholds_v2.json``) holds ``format`` (:data:`FORMAT`), ``version``
 (:data:`FORMAT_VERSION`), ``feature_names`` (must equal
