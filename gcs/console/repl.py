@@ -340,10 +340,14 @@ def main(argv: list[str]) -> int:
         return fail(err)
     from protocol.link import Link, LinkConfig
 
+    extra: dict[str, Any] = {}
+    if getattr(args, "security", ""):  # mutual TLS across hosts, as every magic process
+        extra["security_file"] = str(args.security)
     config = LinkConfig(
         connect=tuple(args.connect or [DEFAULT_CONNECT]),
         listen=tuple(args.listen) if args.listen else ("tcp/127.0.0.1:0",),
         pump_period_s=0.0,
+        **extra,
     )
     try:
         link = Link(config, mission=args.mission)
