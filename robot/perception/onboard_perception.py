@@ -266,6 +266,7 @@ class OnboardPerception:
         self._last_fiducial_ask_s = -math.inf
         self._next_request_id = 1
         self._queued: list[ImageRequest] = []
+        self._emitted_at, self._emitted = -math.inf, 0  # requests sent at one mission time
         self._pending: dict[int, _Request] = {}
         # places whose colour said "other": (xy in odom, tests, last test time)
         self._waiting: list[tuple[_Job, float]] = []  # candidates waiting for a view, deadline
@@ -285,8 +286,11 @@ class OnboardPerception:
 
     def take_requests(self) -> list[ImageRequest]:
         """Image requests to send now (at most ``max_requests_per_step``; the rest wait)."""
-        n = self.config.max_requests_per_step
+        if self._now != self._emitted_at:
+            self._emitted_at, self._emitted = self._now, 0
+        n = max(0, self.config.max_requests_per_step - self._emitted)  # per mission time
         out, self._queued = self._queued[:n], self._queued[n:]
+        self._emitted += len(out)
         return out
 
     def take_detections(self) -> list[OdomDetection]:

@@ -1,0 +1,99 @@
+"""The robot's perception loop without the simulator: the pan phase learnt from two images,
+image requests bounded per step, images that never come or were never asked counted, bad
+sweeps survived, own hazards for the keep-out."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from protocol.messages import ObjectKind, ThumbnailRequest
+from protocol.sensors import CameraImage
+from robot.perception.camera_model import CameraMountConfig, pan_at
+from robot.perception.onboard_perception import OnboardPerception, PerceptionConfig
+
+MOUNT = CameraMountConfig()
+PHASE_S = 3.3  # the camera's (unknown to the robot) schedule phase
+
+
+def _image(request_id: int, time_s: float, w: int = 320, h: int = 240) -> CameraImage:
+    fx = w / 2 / math.tan(math.radians(30))
+    return CameraImage(
+        request_id,
+        time_s,
+        pan_at(time_s, MOUNT, PHASE_S),
+        MOUNT.tilt_rad,
+        fx,
+        fx,
+        w / 2,
+        h / 2,
+        np.full((h, w, 3), 120, np.uint8),
+    )
+
+
+def _pose_at(_t: float) -> np.ndarray:
+    return np.zeros(3)
+
+
+def test_the_pan_phase_is_learnt_from_two_images_then_frames_are_remembered() -> None:
+    p = OnboardPerception(0)
+    p.on_control(0.05, np.zeros(3))
+    (r1,) = p.take_requests()
+    p.on_control(0.5, np.zeros(3))
+    (r2,) = p.take_requests()
+    assert (r1.time_s, r2.time_s) == (0.05, 0.5) and r1.request_id != r2.request_id
+    assert len(p.memory) == 0  # no pan known: nothing to remember yet
+    p.on_image(_image(r1.request_id, r1.time_s), _pose_at)
+    p.on_image(_image(r2.request_id, r2.time_s), _pose_at)
+    assert p.pan_phase_s is not None
+    for t in (7.0, 11.2):
+        assert abs(pan_at(t, MOUNT, p.pan_phase_s) - pan_at(t, MOUNT, PHASE_S)) < 0.02
+    for k in range(20):
+        p.on_control(0.6 + 0.05 * k, np.array([0.1 * k, 0.0, 0.0]))
+    assert len(p.memory) == 10  # one frame per 0.1 s
+    frame = p.memory.frames[-1]
+    assert abs(frame.pan_rad - pan_at(frame.time_s, MOUNT, PHASE_S)) < 0.02
+
+
+def test_requests_are_bounded_per_step_and_lost_images_counted() -> None:
+    p = OnboardPerception(0, PerceptionConfig(fiducial_period_s=0.0, image_timeout_s=1.0))
+    p.on_control(0.0, np.zeros(3))
+    p._now = 0.0
+    for _ in range(5):
+        p._ask(0.0, [])
+    assert len(p.take_requests()) == 2  # max_requests_per_step (the bootstrap one first)
+    assert p.take_requests() == []  # the same mission time: nothing more
+    p.on_control(0.05, np.zeros(3))
+    assert len(p.take_requests()) == 2
+    p.on_control(0.1, np.zeros(3))
+    assert len(p.take_requests()) == 2
+    asked = p.stats.images_requested
+    p.on_control(1.5, np.zeros(3))  # nothing ever answered
+    assert p.stats.images_lost == asked
+    p.on_image(_image(999, 1.4), _pose_at)
+    assert p.stats.images_unexpected == 1
+
+
+def test_bad_sweeps_are_counted_not_raised() -> None:
+    p = OnboardPerception(0)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-5, 5, (500, 3))
+    pts[:, 2] = np.abs(pts[:, 2]) * 0.1
+    pts[::7] = np.nan
+    p.on_sweep(pts, np.zeros(3), 1.0)
+    assert p.stats.nonfinite_points == len(pts[::7]) and p.stats.sweeps == 1
+    p.on_sweep(pts, np.array([0.0, math.nan, 0.0]), 2.0)
+    assert p.stats.skipped_sweeps == 1
+
+
+def test_own_hazards_hold_static_oois_not_vats_and_thumbnails_need_an_image() -> None:
+    p = OnboardPerception(0)
+    p._fuse(int(ObjectKind.STATIC_OOI), (4.0, 1.0), 0.25, 0.8, 4.0, 1.0, 1.0)
+    p._fuse(int(ObjectKind.TOXIC_VAT), (9.0, -3.0), 0.3, 0.9, 9.0, 1.0, 1.0)
+    assert p.take_hazards_changed()
+    assert p.own_hazards_in_odom() == [(ObjectKind.STATIC_OOI, 4.0, 1.0)]
+    dets = p.take_detections()
+    assert [d.kind for d in dets] == [ObjectKind.STATIC_OOI, ObjectKind.TOXIC_VAT]
+    assert p.on_thumbnail_request(ThumbnailRequest(1, dets[0].detection_id)) is None
+    assert p.stats.thumbnail_unknown == 1
