@@ -68,6 +68,9 @@ __all__ = ["CommandHandler", "OperatorContext", "Outcome", "RobotReport"]
 #: Trigger radius of a static OOI plus a margin: where an operator's disruptor stands (paper 2).
 STANDOFF_M = 3.5
 
+#: Several robots sent to one point stand on a ring of this radius around it (m).
+GOTO_RING_M = 1.5
+
 #: Keep-out radius by kind after a reclassification (GroundStation.HAZARD_KINDS' values).
 _HAZARD_RADIUS_M = {ObjectKind.STATIC_OOI: 2.5, ObjectKind.HOSTILE: 5.0}
 
@@ -246,12 +249,19 @@ class CommandHandler:
     def _goto(self, c: Command, ctx: OperatorContext) -> Outcome:
         robots = self._robots(c.target, ctx)
         x, y = float(c.args[0]), float(c.args[1])
-        goals = self._to_odom(ctx, robots, (x, y))
-        out = [(r, GoToTask(self._new_id(), ctx.now_s, [goals[r]])) for r in robots]
+        out = []
+        n = len(robots)
+        for i, r in enumerate(robots):
+            # several robots to one point: each to its own place on a ring around it
+            a = 2.0 * math.pi * i / n
+            ring = GOTO_RING_M if n > 1 else 0.0
+            goal = self._to_odom(ctx, [r], (x + ring * math.cos(a), y + ring * math.sin(a)))[r]
+            out.append((r, GoToTask(self._new_id(), ctx.now_s, [goal])))
         self._take(robots, [m.task_id for _, m in out], f"goto {x:g},{y:g}")
+        spread = f", spread {GOTO_RING_M:g} m around it" if n > 1 else ""
         return Outcome(
             "ok",
-            f"goto ({x:g}, {y:g}) in map sent to robot(s) {_ids(robots)} (tasks "
+            f"goto ({x:g}, {y:g}) in map sent to robot(s) {_ids(robots)}{spread} (tasks "
             f"{_ids([m.task_id for _, m in out])}); operator-controlled until `auto`",
             out,
         )

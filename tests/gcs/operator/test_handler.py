@@ -165,3 +165,22 @@ def test_subsets_and_suggestions() -> None:
         parse_line("goto 3 a b")
     with pytest.raises(CommandError, match="did you mean 'civilian'"):
         parse_line("reclassify 2 civilan")
+
+
+def test_goto_several_robots_spreads_them_around_the_point() -> None:
+    gs = GroundStation(GroundStationConfig())
+    gs.add_start_hint(1, map_from_odom=(0.0, 5.0, 0.5), sigma_xy_m=0.1, sigma_yaw_rad=0.01)
+    for rid in (0, 1):
+        for msg in nodes_along(straight(4)):
+            gs.handle(rid, msg, now_s=1.0)
+    gs.step(now_s=2.0)
+    h = CommandHandler(first_task_id=1)
+    out = h.handle(parse_line("goto 0,1 10 10"), _ctx(gs))
+    assert out.status == "ok" and "spread 1.5 m" in out.text, out.text
+    goals = []
+    for rid, task in out.downlink:
+        mfo = np.asarray(gs.graph.map_from_odom(rid))
+        goals.append(transform_points(mfo, np.asarray([task.waypoints_in_odom[0]]))[0])
+    for g in goals:
+        assert math.dist(g, (10.0, 10.0)) == pytest.approx(1.5, abs=1e-3)
+    assert math.dist(goals[0], goals[1]) == pytest.approx(3.0, abs=1e-3)
