@@ -37,10 +37,12 @@ open. :class:`LongLoopSearch` is a second candidate source for exactly those pai
    the graph's path, chi-square ``confirm_chi2``, or no such path) sees an aliased view: none
    of its matches is kept.
 5. **Confirm**: a match is released only once another match, made from a node at least
-   ``confirm_min_separation_m`` away (a different view, tightly linked to the first by the
+   ``confirm_min_separation_m`` away (another view, tightly linked to the first by the
    graph: ``confirm_link_sigma_xy_m``), closes a consistent cycle with it through the graph's
    path between the two stored nodes (chi-square ``confirm_chi2``); matches wait
-   ``confirm_window_s``. Two matches of one view agree by construction, even when aliased;
+   ``confirm_window_s``. 1.5 m, not more: a revisit can be brief (ACES crosses its start
+   while turning: its 12 true matches came from nodes within 4 m of each other). Two
+   matches of one view agree by construction, even when aliased;
    separated views still agree on a consistent shift along a corridor (ACES above), which
    only step 2 excludes.
 
@@ -104,7 +106,7 @@ class LongLoopConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
     matches_per_s: float = 2.0
     max_burst_matches: float = 8.0
     table_cache: int = 4
-    confirm_min_separation_m: float = 4.0
+    confirm_min_separation_m: float = 1.5
     confirm_link_sigma_xy_m: float = 0.5
     confirm_chi2: float = 11.34
     confirm_window_s: float = 60.0
