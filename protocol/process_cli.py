@@ -284,7 +284,7 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--security",
         type=_security_file,
-        default="",
+        default=None,
         metavar="YAML",
         help="mutual TLS and access control across hosts (configs/security/example.yaml says "
         "how; use tls/ endpoints); default: plain zenoh",

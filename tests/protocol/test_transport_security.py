@@ -210,3 +210,16 @@ def test_the_radio_link_runs_over_mutual_tls(pki: tuple[Pki, Pki], tmp_path: Pat
             r.robot_endpoint(1).send(node)
             got = gcs.recv(timeout_s=10.0)
     assert got is not None and got[0] == 1 and isinstance(got[1], PoseNode)
+
+
+def test_security_is_off_unless_asked_and_checked_when_asked(tmp_path: Path) -> None:
+    import argparse
+
+    from protocol.process_cli import add_link_arguments, link_config
+    from protocol.radio import RadioConfig
+
+    parser = argparse.ArgumentParser(exit_on_error=False)
+    add_link_arguments(parser)
+    assert link_config(RadioConfig(), parser.parse_args([])).security_file == ""
+    with pytest.raises(argparse.ArgumentError, match="missing.yaml: cannot read"):
+        parser.parse_args(["--security", str(tmp_path / "missing.yaml")])
