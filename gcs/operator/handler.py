@@ -465,7 +465,9 @@ class CommandHandler:
             val = float(raw)
             if not (math.isfinite(val) and val > 0):
                 raise CommandError(f"set {name}: expected a number > 0, got {raw!r}")
-        out = [(r, ParameterUpdate(name, val)) for r in robots]
+        # the telemetry rate is the robot's radio link's own parameter (consumed there)
+        wire_name = "link.telemetry_period_s" if name == "telemetry_period_s" else name
+        out = [(r, ParameterUpdate(wire_name, val)) for r in robots]
         return Outcome("ok", f"{name} = {val} sent to robot(s) {_ids(robots)}", out)
 
     def _status(self, c: Command, ctx: OperatorContext) -> Outcome:

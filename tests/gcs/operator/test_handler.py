@@ -122,7 +122,7 @@ def test_reclassify_relay_set_and_graph_commands() -> None:
     out = h.handle(parse_line("relay 0 20 4"), _ctx(gs))
     assert isinstance(out.downlink[0][1], RelayTask) and h.control_of(0) == "operator"
     out = h.handle(parse_line("set telemetry_period_s 0.5 0"), _ctx(gs))
-    assert out.downlink == [(0, ParameterUpdate("telemetry_period_s", 0.5))]
+    assert out.downlink == [(0, ParameterUpdate("link.telemetry_period_s", 0.5))]
     out = h.handle(parse_line("set status_period_s 2"), _ctx(gs))
     assert out.status == "failed"  # no GCS-side setter given
     out = h.handle(parse_line("rewind -100"), _ctx(gs))
