@@ -140,7 +140,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     validation: CycleValidationConfig = msgspec.field(default_factory=CycleValidationConfig)
     odometry_bias: OdometryBiasConfig = msgspec.field(default_factory=OdometryBiasConfig)
     prune_chi2: float = 16.27
-    max_rejected_kept: int = 0
+    max_rejected_kept: int = 200
     min_score: float = 0.5
     max_match_sigma_xy_m: float = 0.25
     wide_min_score: float = 0.6
@@ -302,6 +302,7 @@ class LoopCloser:
         # {(key_a, key_b): (yaw of a_from_b, its variance)}, the last fit and the one in use
         self._bias_samples: dict[int, dict[tuple[int, int], tuple[float, ...]]] = {}
         self._bias_fitted_at: dict[int, int] = {}
+        self._bias_applied_at: dict[int, int] = {}
         self._turn_scales: dict[int, TurnScale] = {}
         self._applied_scales: dict[int, TurnScale] = {}
         self._chains: dict[int, tuple[int, tuple[int, FloatArray, FloatArray] | None]] = {}
@@ -834,6 +835,8 @@ class LoopCloser:
             last = self._bias_fitted_at.get(robot, 0)
             if n < cfg.min_used or n < last + max(4, last // 10):
                 continue  # refit when the samples grew by 10 % (at least 4)
+            if n < self._bias_applied_at.get(robot, 0) * cfg.refit_growth:
+                continue  # after a correction, wait for that much more evidence
             self._bias_fitted_at[robot] = n
             est = self._fit_turn_scale(robot, samples)
             if est is None:
@@ -848,6 +851,7 @@ class LoopCloser:
                 robot, functools.partial(debias_odometry, estimate=est)
             )
             self._applied_scales[robot] = est
+            self._bias_applied_at[robot] = n
             changed.append(robot)
         if not changed:
             return
@@ -870,6 +874,10 @@ class LoopCloser:
                 restart = True
         if restart:
             self.restart()
+            # pairs already joined by a closure need no second one
+            for e in self.graph.edges((Provenance.LOOP_AUTO, Provenance.LOOP_OPERATOR)):
+                if e.key_b is not None:
+                    self._tried.add((min(e.key_a, e.key_b), max(e.key_a, e.key_b)))
         else:
             pending = {h.hyp_id for h in self._validator.pending}
             for h in self._rejected.values():

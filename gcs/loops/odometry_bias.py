@@ -12,7 +12,8 @@ Model, per robot: the true heading change between its nodes ``i < j`` is ``s * T
 A closure of the same robot measures the heading ``d_ij`` with variance ``v_closure``; the
 residual ``r_ij = wrap(d_ij - T_ij) = (s - 1) T_ij + noise``, the noise's variance being the
 closure's plus the odometry's own along the chain. With a Gaussian prior ``s ~ N(1, σ0²)``
-the estimate of ``s - 1`` is the information-weighted least squares over the closures; closures
+the estimate of ``s - 1`` is the information-weighted least squares over the closures (its
+standard deviation widened by the Birge ratio when the residuals scatter more than stated); closures
 whose residual is more than ``gate_sigma`` standard deviations off the current fit are left
 out (they are false, or the fit is not yet good), and the fit is iterated a few times.
 
@@ -58,7 +59,9 @@ class OdometryBiasConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     ``restart_change``: a correction that moves the scale by more than this since the last
     full re-match makes the loop closer match every pair again (windows and guesses were
     wrong); a smaller one re-checks the hypotheses the graph rejected and searches for new
-    pairs only.
+    pairs only. ``refit_growth``: after a correction the scale is fitted again only once the
+    robot's matches grew by this factor (each correction re-matches; a fit on the same evidence
+    would only chase its noise).
     """
 
     prior_sigma: float = 0.1
@@ -71,7 +74,8 @@ class OdometryBiasConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     min_used: int = 8
     apply_sigma: float = 3.0
     window_k_sigma: float = 2.0
-    restart_change: float = 0.02
+    restart_change: float = 0.1
+    refit_growth: float = 1.5
 
     def __post_init__(self) -> None:
         for name in (
@@ -89,6 +93,8 @@ class OdometryBiasConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
                 raise ValueError(f"{name}: expected a positive finite number, got {v}")
         if self.iterations < 1:
             raise ValueError(f"iterations: expected >= 1, got {self.iterations}")
+        if not (math.isfinite(self.refit_growth) and self.refit_growth >= 1):
+            raise ValueError(f"refit_growth: expected >= 1, got {self.refit_growth}")
         if self.min_used < 1:
             raise ValueError(f"min_used: expected >= 1, got {self.min_used}")
 
@@ -145,7 +151,14 @@ def estimate_turn_scale(
         w = inlier / v
         info = prior_info + float(np.sum(w * t * t))
         bias = float(np.sum(w * t * r)) / info
-        sigma = max(1.0 / math.sqrt(info), cfg.min_sigma)
+        # Residuals more scattered than their stated variances (look-alike matches, grids
+        # distorted by the very bias, samples sharing one stretch of odometry) mean the
+        # closures know less than they say: widen by the Birge ratio sqrt(chi2 / dof).
+        n_in = int(inlier.sum())
+        birge = 1.0
+        if n_in > 1:
+            birge = math.sqrt(max(1.0, float(np.sum(w * (r - bias * t) ** 2)) / (n_in - 1)))
+        sigma = max(birge / math.sqrt(info), cfg.min_sigma)
     return TurnScale(
         scale=1.0 + bias, sigma=sigma, used=int(inlier.sum()), rejected=int((~inlier).sum())
     )
