@@ -143,7 +143,7 @@ def bench_world(seed: int, *, length_m: float = 34.0) -> World:
     humans.append(Human(2, "hostile", ((hx, hy), (hx + 8.0, hy)), 0.5, 0.25, 1.7, HOSTILE_RGBA))
     robots = [RobotStart(0, "sensor", (3.0, ROUTE_Y_M, 0.0))]
     goal_x = length_m + 1.0
-    for k, (dx, dy) in enumerate(((1.9, 1.3), (-0.6, -2.4))):  # waiting at the rendezvous
+    for k, (dx, dy) in enumerate(((1.5, 0.9), (-0.4, -1.7))):  # waiting at the rendezvous
         yaw = float(rng.uniform(-math.pi, math.pi))
         robots.append(RobotStart(k + 1, "sensor", (goal_x + dx, ROUTE_Y_M + dy, yaw)))
     cfg = WorldConfig(size_m=size, seed=seed, robots=RobotsConfig(sensors=3, disruptors=0))

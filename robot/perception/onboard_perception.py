@@ -124,6 +124,8 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     person_shifted_min_fraction: float = 0.7
     person_merge_m: float = 1.0
     velocity_window_s: float = 4.0
+    civilian_memory_s: float = 20.0  # where civilians were seen: a hostile there is re-checked
+    label_jump_m: float = 1.0  # a labelled track jumping this far off its line is re-coloured
     max_report_sigma_m: float = 0.7
     hostile_report_period_s: float = 2.0
     hostile_lookahead_s: float = 1.0  # the keep-out disk sits where the hostile will be
@@ -241,6 +243,23 @@ def _track_velocity(track: PersonTrack, window_s: float) -> NDArray[np.float64]:
     )
 
 
+def _jumped(track: PersonTrack, window_s: float, jump_m: float) -> bool:
+    """Whether the track's newest measurement lies more than ``jump_m`` off the line fitted
+    through its earlier measurements of the last ``window_s`` (at least three)."""
+    h = np.array(track.history, dtype=np.float64).reshape(-1, 3)
+    if len(h) < 4:
+        return False
+    last, h = h[-1], h[:-1]
+    h = h[h[:, 0] >= last[0] - window_s]
+    if len(h) < 3 or h[-1, 0] - h[0, 0] <= 0:
+        return False
+    t = h[:, 0] - h[:, 0].mean()
+    den = float(t @ t)
+    v = np.array([t @ (h[:, 1] - h[:, 1].mean()), t @ (h[:, 2] - h[:, 2].mean())]) / den
+    pred = h[:, 1:].mean(axis=0) + v * (last[0] - h[:, 0].mean())
+    return float(np.hypot(*(last[1:] - pred))) > jump_m
+
+
 def _cpu_ms(t0: float) -> float:
     return (time.thread_time() - t0) * 1e3
 
@@ -273,6 +292,7 @@ class OnboardPerception:
         self._negative: list[tuple[tuple[float, float], int, float]] = []
         self._person_tested: dict[int, tuple[int, float]] = {}
         self._track_ids: dict[int, int] = {}  # person track -> detection id
+        self._civilians_seen: list[tuple[NDArray[np.float64], float]] = []
         self._reported_at: dict[int, float] = {}  # detection id of people -> last report
         self._had_hostiles = False
         self._detections: list[OdomDetection] = []
@@ -492,8 +512,29 @@ class OnboardPerception:
         """Report labelled people tracks: hostiles every ``hostile_report_period_s``,
         civilians once. Tracks of one kind closer than ``person_merge_m`` are one person (a
         tracker may split one walker into two tracks): one detection id, the best-placed
-        track's estimate; tracks placed worse than ``max_report_sigma_m`` wait."""
+        track's estimate; tracks placed worse than ``max_report_sigma_m`` wait. A labelled
+        track whose newest measurement jumped off its own recent line (the tracker swapped
+        people: a hostile's track caught a civilian) loses its label until coloured again."""
         cfg = self.config
+        civilians = [
+            (xy, ts) for xy, ts in self._civilians_seen if time_s - ts <= cfg.civilian_memory_s
+        ]
+        civilians += [
+            (t.position_m, time_s)
+            for t in self.lidar.tracker.tracks
+            if t.kind == ObjectKind.CIVILIAN
+        ]
+        self._civilians_seen = civilians[-64:]
+        for t in self.lidar.tracker.tracks:
+            swapped = t.kind != 0 and _jumped(t, cfg.velocity_window_s, cfg.label_jump_m)
+            # a hostile where a civilian stands: the labels conflict; look again
+            conflict = t.kind == ObjectKind.HOSTILE and any(
+                float(np.hypot(*(t.position_m - xy))) < cfg.person_merge_m for xy, _ in civilians
+            )
+            if swapped or conflict:
+                t.kind = 0
+                self._person_tested.pop(t.track_id, None)
+                self._track_ids.pop(t.track_id, None)  # another person: another id
         tracks = [
             t
             for t in self.lidar.tracker.tracks

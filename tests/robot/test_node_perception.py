@@ -187,9 +187,9 @@ def test_a_hostile_walking_towards_the_robot_is_tracked_reported_and_kept_out() 
 
 
 def test_a_teammate_in_view_becomes_a_fiducial_observation() -> None:
-    """Robot 1 stands 2.5 m ahead of robot 0, side on: robot 0's node sends a
+    """Robot 1 stands 1.9 m ahead of robot 0, side on: robot 0's node sends a
     FiducialObservation of robot 1 within 0.1 m of where it stands."""
-    world = _world(oois=(), robots=((3.0, 10.0, 0.0, "sensor"), (5.5, 10.2, 1.2, "sensor")))
+    world = _world(oois=(), robots=((3.0, 10.0, 0.0, "sensor"), (4.9, 10.2, 1.2, "sensor")))
     sent: list[Any] = []
     with Simulator(world) as sim:
         node = RobotNode(0, send=sent.append)
@@ -204,7 +204,7 @@ def test_a_teammate_in_view_becomes_a_fiducial_observation() -> None:
     nodes = {m.node_index: m for m in sent if isinstance(m, PoseNode)}
     o = obs[0]
     seen = compose(np.array(nodes[o.node_index].pose_in_odom), np.array(o.observed_in_base))
-    truth = relative(START, np.array([5.5, 10.2, 1.2]))
+    truth = relative(START, np.array([4.9, 10.2, 1.2]))
     assert float(np.hypot(*(seen[:2] - truth[:2]))) < 0.1
     assert abs((seen[2] - truth[2] + math.pi) % (2 * math.pi) - math.pi) < math.radians(5)
 

@@ -125,7 +125,7 @@ def test_a_fiducial_sighting_joins_two_robots_that_never_share_a_scan(scene: Sce
     cov = covariance_to_upper(np.diag([0.01**2, 0.01**2, 0.002**2]))
     start0 = np.array([5.0, 10.0, 0.0])  # robot 0's odom (and the map) starts here
     world0 = [compose(start0, (0.5 * i, 0.0, 0.0)) for i in range(8)]
-    seen1 = np.array([9.0, 10.3, 2.5])  # robot 1's node 3, 2 m ahead of robot 0's node 4
+    seen1 = np.array([8.7, 10.3, 2.5])  # robot 1's node 3, 1.7 m ahead of robot 0's node 4
     world1 = [compose(seen1, (0.3 * (j - 3), 0.0, 0.0)) for j in range(8)]
     gs = GroundStation(GroundStationConfig(robots=(0, 1)))
     for rid, poses, t0 in ((0, world0, 0.0), (1, world1, 1.0)):
