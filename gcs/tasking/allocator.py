@@ -531,7 +531,12 @@ class TaskAllocator:
         for rid, r in ctx.available.items():
             pos = self._position(r)
             a = self.assignments.get(rid)
-            if a is not None and a.goal_in_map is not None and a.purpose != "evade":
+            # a neutralization's target is the hazard itself, by design: not a goal to move
+            if (
+                a is not None
+                and a.goal_in_map is not None
+                and a.purpose not in ("evade", "neutralize")
+            ):
                 for h, radius in discs:
                     if math.dist(a.goal_in_map, h.position_in_map) < radius:
                         # a hostile moved onto the goal (or an OOI was found there): re-plan

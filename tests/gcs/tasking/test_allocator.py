@@ -183,6 +183,13 @@ def test_disruptor_dispatch_then_auto_approved_neutralization() -> None:
     target_map = transform_points(r.map_from_odom, np.asarray(neut[0].target_in_odom, float))  # type: ignore[arg-type]
     assert np.allclose(target_map, (14.0, 10.0), atol=1e-3)
     assert neut[0].standoff_m >= 3.5
+    # while the laser holds (15 s), plans leave it alone: its target is the OOI, not a goal
+    # inside a keep-out to be moved (a mission once re-dispatched it every 4 s, forever)
+    for t in (7.0, 9.0, 15.0):
+        report(r, neut[0], TaskState.ACTIVE, t)
+        r.last_heard_s = d1.last_heard_s = d2.last_heard_s = t
+        assert not [m for i, m in alloc.plan(state, now_s=t) if i == rid]
+        assert not [e for e in alloc.events if e.kind in ("goal_in_keepout", "dispatch")]
     report(r, neut[0], TaskState.SUCCEEDED, 21.0)
     r.last_heard_s = d1.last_heard_s = d2.last_heard_s = 21.0
     alloc.plan(state, now_s=21.0)
