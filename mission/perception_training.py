@@ -62,7 +62,7 @@ VISIBLE_RANGE_M = 8.0
 # and multi-sweep confirmation (paper 5.2.1: thresholds "manually enlarged"). Per segment,
 # not per object: an object is seen in several sweeps from changing viewpoints, and the 7%
 # of segments given up are mostly single columns of returns at an object's occluded edge.
-MIN_RECALL = {"cylinder": 0.93, "person": 0.9}
+MIN_RECALL = {"cylinder": 0.93, "person": 0.95}
 # nothing covers a free-standing cylinder (a prior on overhead_frac, not learnt)
 MAX_CYLINDER_OVERHEAD = 0.3
 LIDAR_HALF_FOV_DEG = 130.0  # 270 deg scanner, less a few beams at the edge

@@ -45,9 +45,14 @@ class SegmentationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     (horizontally) are ignored (the detector's reach); ``ground_slope_deg``: the ground
     model's prior (paper 5.3: 20 deg); ``min_height_m``: points lower above the ground model
     are ground; ``max_height_m``: points higher are kept only as overhead evidence;
-    ``join_height_m``: neighbouring cells whose tops differ by more are different objects;
-    ``join_reach_cells``: cells this many cells apart are still neighbours (a horizontal
-    scan line leaves gaps between its points: 1.5 deg beams are 0.2 m apart at 8 m);
+    ``join_height_m``: neighbouring cells whose tops differ by more are different objects,
+    or by more than ``range * tan(join_angle_deg)`` far from the sensor (a nodding scanner's
+    lines are 2.5 deg apart: at 7 m one cell of an object may catch a line 0.3 m higher
+    than the next, and the object must not fall apart);
+    ``join_reach_cells``: cells this many cells apart are still neighbours, or as many as
+    span ``join_reach_deg`` seen from the sensor (at most 5; a horizontal scan line leaves
+    gaps between its points: 1.5 deg beams are 0.21 m apart at 8 m, and an object must not
+    fall apart into single columns of returns);
     ``min_points``: smaller groups are dropped (noise)."""
 
     resolution_m: float = 0.1
@@ -56,6 +61,8 @@ class SegmentationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     min_height_m: float = 0.12
     max_height_m: float = 3.0
     join_height_m: float = 0.35
+    join_angle_deg: float = 3.0
+    join_reach_deg: float = 2.0
     join_reach_cells: int = 2
     min_points: int = 3
 
@@ -66,6 +73,10 @@ class SegmentationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
             raise ValueError(f"range_m must be in (0, 100], got {self.range_m}")
         if not 0 <= self.min_height_m < self.max_height_m:
             raise ValueError("need 0 <= min_height_m < max_height_m")
+        if not (math.isfinite(self.join_reach_deg) and 0 <= self.join_reach_deg < 30):
+            raise ValueError(f"join_reach_deg must be in [0, 30), got {self.join_reach_deg}")
+        if not (math.isfinite(self.join_angle_deg) and 0 <= self.join_angle_deg < 30):
+            raise ValueError(f"join_angle_deg must be in [0, 30), got {self.join_angle_deg}")
         if not (math.isfinite(self.join_height_m) and self.join_height_m > 0):
             raise ValueError(f"join_height_m must be > 0, got {self.join_height_m}")
         if not 1 <= self.join_reach_cells <= 5:
@@ -126,9 +137,12 @@ def _cell_tops(rows_idx, cols_idx, h, n_rows, n_cols):  # type: ignore[no-untype
 
 
 @nb.njit(cache=True, nogil=True)
-def _label_similar(top, join, reach):  # type: ignore[no-untyped-def]
+def _label_similar(top, join, reach, sensor_rc, join_slope, reach_slope, reach_max):  # type: ignore[no-untyped-def]
     """Connected components of occupied cells (finite ``top``): cells within ``reach`` cells
-    of each other (Chebyshev distance) are neighbours when their tops differ <= join."""
+    of each other (Chebyshev distance) are neighbours when their tops differ by at most
+    ``max(join, join_slope * range)``, range in cells from ``sensor_rc`` times the cell
+    side folded into ``join_slope``; the reach grows likewise, to ``reach_slope * range``
+    cells (at most ``reach_max``)."""
     n_rows, n_cols = top.shape
     labels = np.full((n_rows, n_cols), -1, dtype=np.int64)
     stack = np.empty(n_rows * n_cols, dtype=np.int64)
@@ -147,16 +161,19 @@ def _label_similar(top, join, reach):  # type: ignore[no-untyped-def]
                 r = k // n_cols
                 c = k - r * n_cols
                 t = top[r, c]
-                for dr in range(-reach, reach + 1):
+                rng = math.hypot(r - sensor_rc[0], c - sensor_rc[1])
+                lim = max(join, join_slope * rng)
+                rk = min(max(reach, int(math.ceil(reach_slope * rng))), reach_max)
+                for dr in range(-rk, rk + 1):
                     rr = r + dr
                     if rr < 0 or rr >= n_rows:
                         continue
-                    for dc in range(-reach, reach + 1):
+                    for dc in range(-rk, rk + 1):
                         cc = c + dc
                         if cc < 0 or cc >= n_cols or labels[rr, cc] >= 0:
                             continue
                         tt = top[rr, cc]
-                        if tt == -np.inf or abs(tt - t) > join:
+                        if tt == -np.inf or abs(tt - t) > lim:
                             continue
                         labels[rr, cc] = n
                         stack[sp] = rr * n_cols + cc
@@ -209,7 +226,17 @@ def segment_sweep(
     if len(pts) == 0:
         return Segmentation([], above_xyz, sensor, dropped)
     top = _cell_tops(rc[:, 0], rc[:, 1], h, size, size)
-    labels, _ = _label_similar(top, cfg.join_height_m, cfg.join_reach_cells)
+    src = geometry.cell_of(sensor)
+    slope = math.tan(math.radians(cfg.join_angle_deg)) * cfg.resolution_m
+    labels, _ = _label_similar(
+        top,
+        cfg.join_height_m,
+        cfg.join_reach_cells,
+        (float(src[0]), float(src[1])),
+        slope,
+        math.tan(math.radians(cfg.join_reach_deg)),
+        5,
+    )
     lab = labels[rc[:, 0], rc[:, 1]]
     order = np.argsort(lab, kind="stable")
     lab_sorted = lab[order]

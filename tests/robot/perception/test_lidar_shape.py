@@ -11,7 +11,7 @@ import pytest
 
 from robot.perception.lidar_detector import LidarDetector
 from robot.perception.person_tracker import PersonTracker
-from robot.perception.segmentation import segment_sweep
+from robot.perception.segmentation import SegmentationConfig, segment_sweep
 from robot.perception.shape_classifier import (
     DEFAULT_THRESHOLDS_PATH,
     FORMAT_VERSION,
@@ -298,3 +298,18 @@ def test_peel_box_cuts_the_feature_that_separates() -> None:
     assert box.lo[1] < 0.02 and box.hi[1] > 0.98
     with pytest.raises(ValueError, match="at least 3"):
         peel_box(pos[:2], neg, min_recall=0.9)
+
+
+def test_far_object_is_not_split_into_columns_of_returns() -> None:
+    # a toxic vat 7.5 m away: 1.5 deg beams land 0.2 m apart, further than the base reach
+    b = -0.75
+    cx, cy = 7.5 * math.cos(b), 7.5 * math.sin(b)
+    pts = _scan(cylinders=[(cx, cy, 0.3, 0.0, 0.9)])
+
+    def near(cfg: SegmentationConfig) -> list[int]:
+        seg = segment_sweep(pts, (0.0, 0.0), config=cfg)
+        return [len(s.xyz) for s in seg.segments if np.hypot(*(s.centroid_xy - [cx, cy])) < 0.6]
+
+    fixed_reach = near(SegmentationConfig(join_reach_deg=0.0, join_angle_deg=0.0))
+    assert fixed_reach == []  # only fragments below min_points: the vat is lost
+    assert len(near(SegmentationConfig())) == 1
