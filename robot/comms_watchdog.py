@@ -17,9 +17,13 @@ States (:class:`LinkState`), with ``quiet = now - last heard``:
   and the robot keeps executing its task.
 * ``HOLDING`` (``policy: hold``): from ``silence_s + task_grace_s`` the robot stops where it is
   (its task suspended, not canceled; an approved neutralization keeps its laser on target).
-* ``RETURNING`` (``policy: return``): it drives back, with its own planner, to where it last
-  heard the GCS (the last point of contact, in its private frame ``odom``), then holds there
-  (``HOLDING``).
+* ``RETURNING`` (``policy: return``, the default): it drives back, with its own planner, to
+  where it last heard the GCS (the last point of contact, in its private frame ``odom``). Radio
+  coverage has sharp edges (a wall's shadow) and odometry drifts, so if that point is silent
+  too it goes on back along its earlier points of contact (a trail of up to
+  ``return_trail_points``, ``return_spacing_m`` apart), and holds (``HOLDING``) at the oldest.
+  Why not hold by default: in a 200 s small-world mission a robot that held in a radio shadow
+  stayed there, unheard, to the end.
 
 The first message heard again returns it to ``CONNECTED`` and the suspended task resumes (or
 the GCS's next task replaces it). Every transition of a robot with a task is reported as a
@@ -37,6 +41,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections import deque
 from typing import Any, Literal
 
 import msgspec
@@ -52,17 +57,22 @@ class CommsWatchdogConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     """``silence_s``: no downlink this long and the link counts as lost (the GCS broadcasts
     every 2 s: 10 s is five broadcasts in a row lost, ~0.2% at 30% loss); ``task_grace_s``:
     then keep on the task this much longer; ``policy``: then ``hold`` where it is or
-    ``return`` to the last point of contact (``return_tolerance_m``: close enough there)."""
+    ``return`` to the last point of contact (``return_tolerance_m``: close enough there) and
+    further back along the trail of earlier ones if that is silent too."""
 
     enabled: bool = True
     arm_after_broadcasts: int = 2
     silence_s: float = 10.0
     task_grace_s: float = 20.0
-    policy: Literal["hold", "return"] = "hold"
+    policy: Literal["hold", "return"] = "return"
     return_tolerance_m: float = 0.75
+    return_spacing_m: float = 2.0
+    return_trail_points: int = 16
 
     def __post_init__(self) -> None:
-        for name in ("silence_s", "return_tolerance_m"):
+        if self.return_trail_points < 1:
+            raise ValueError(f"return_trail_points must be >= 1, got {self.return_trail_points}")
+        for name in ("silence_s", "return_tolerance_m", "return_spacing_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
@@ -91,6 +101,9 @@ class CommsWatchdog:
         self.last_heard_s: float | None = None
         #: where the robot was when it last heard the GCS (odom, metres)
         self.contact_in_odom: np.ndarray | None = None
+        #: points of contact at least ``return_spacing_m`` apart, oldest first
+        self._trail: deque[np.ndarray] = deque(maxlen=self.config.return_trail_points)
+        self._route: list[np.ndarray] = []  # returning: the points still to try, last first
         self.silent_since_s: float | None = None  # when the link was declared lost
         self._broadcast_times: set[float] = set()  # until armed
         self.armed = False
@@ -103,7 +116,12 @@ class CommsWatchdog:
             self._broadcast_times.add(now_s)
             self.armed = len(self._broadcast_times) >= self.config.arm_after_broadcasts
         self.last_heard_s = now_s if self.last_heard_s is None else max(self.last_heard_s, now_s)
-        self.contact_in_odom = np.array(pose_in_odom[:2], dtype=np.float64)
+        here = np.array(pose_in_odom[:2], dtype=np.float64)
+        self.contact_in_odom = here
+        trail = self._trail
+        if not trail or math.hypot(*(here - trail[-1])) >= self.config.return_spacing_m:
+            trail.append(here)
+        self._route = []
         self.state = LinkState.CONNECTED
         self.silent_since_s = None
         return before
@@ -123,15 +141,26 @@ class CommsWatchdog:
             self.silent_since_s = self.last_heard_s + cfg.silence_s
         if self.state is LinkState.SILENT and quiet >= cfg.silence_s + cfg.task_grace_s:
             self.state = LinkState.HOLDING if cfg.policy == "hold" else LinkState.RETURNING
-        if self.state is LinkState.RETURNING and self._at_contact(pose_in_odom):
-            self.state = LinkState.HOLDING
+            if self.state is LinkState.RETURNING and self.contact_in_odom is not None:
+                self._route = [*self._trail, self.contact_in_odom]
+        while self.state is LinkState.RETURNING and self._at(
+            self.return_target_in_odom, pose_in_odom
+        ):
+            if len(self._route) > 1:
+                self._route.pop()  # silent here too: further back
+            else:
+                self.state = LinkState.HOLDING
         return self.state
 
-    def _at_contact(self, pose_in_odom: np.ndarray) -> bool:
-        c = self.contact_in_odom
-        if c is None:
+    @property
+    def return_target_in_odom(self) -> np.ndarray | None:
+        """Where a returning robot drives: the newest point of contact not yet found silent."""
+        return self._route[-1].copy() if self._route else None
+
+    def _at(self, target: np.ndarray | None, pose_in_odom: np.ndarray) -> bool:
+        if target is None:
             return True
-        d = math.hypot(float(pose_in_odom[0] - c[0]), float(pose_in_odom[1] - c[1]))
+        d = math.hypot(float(pose_in_odom[0] - target[0]), float(pose_in_odom[1] - target[1]))
         return d <= self.config.return_tolerance_m
 
     @property
@@ -218,7 +247,7 @@ class LinkAwareTasks:
             where = "" if c is None else f" ({c[0]:.1f}, {c[1]:.1f}) in odom"
             return f"link silent for {quiet:.1f} s: returning to the last point of contact{where}"
         if state is LinkState.HOLDING and cfg.policy == "return":
-            return "link silent: holding at the last point of contact"
+            return "link silent: holding at the oldest point of contact it kept"
         return f"link silent for {quiet:.1f} s: holding"
 
     def _note(self, now_s: float, detail: str) -> None:
@@ -238,10 +267,11 @@ class LinkAwareTasks:
                 task_id=inner.task_id,
                 laser_target_in_odom=inner.laser_target_in_odom,
             )
-        if wd.state is LinkState.RETURNING and wd.contact_in_odom is not None:
+        target = wd.return_target_in_odom
+        if wd.state is LinkState.RETURNING and target is not None:
             return Intent(
                 mode=AutonomyMode.AUTONOMOUS,
                 task_id=inner.task_id,
-                waypoints_in_odom=wd.contact_in_odom.reshape(1, 2).copy(),
+                waypoints_in_odom=target.reshape(1, 2),
             )
         return inner

@@ -19,7 +19,7 @@ def _beat(tasks: LinkAwareTasks, t: float, pose: np.ndarray = POSE) -> None:
 
 
 def test_states_follow_the_quiet_time_and_any_message_brings_it_back() -> None:
-    wd = CommsWatchdog(CommsWatchdogConfig(silence_s=10.0, task_grace_s=20.0))
+    wd = CommsWatchdog(CommsWatchdogConfig(silence_s=10.0, task_grace_s=20.0, policy="hold"))
     for t in (0.0, 2.0):
         wd.heard(t, POSE, periodic=True)
     assert wd.armed
@@ -44,7 +44,8 @@ def test_unarmed_watchdog_never_declares_silence() -> None:
 
 
 def test_hold_suspends_the_task_reports_it_and_resumes_it() -> None:
-    tasks = LinkAwareTasks(config=CommsWatchdogConfig(silence_s=5.0, task_grace_s=5.0))
+    cfg = CommsWatchdogConfig(silence_s=5.0, task_grace_s=5.0, policy="hold")
+    tasks = LinkAwareTasks(config=cfg)
     _beat(tasks, 0.0)
     _beat(tasks, 2.0)
     assert [s.state for s in tasks.submit(GoToTask(7, 2.0, [(20.0, 0.0)]), 2.0, POSE)] == [
@@ -74,11 +75,12 @@ def test_hold_suspends_the_task_reports_it_and_resumes_it() -> None:
     assert all(r.state is TaskState.ACTIVE for r in reports)
 
 
-def test_return_drives_to_the_last_point_of_contact_then_holds_there() -> None:
+def test_return_drives_back_along_its_points_of_contact_then_holds() -> None:
     cfg = CommsWatchdogConfig(silence_s=5.0, task_grace_s=0.0, policy="return")
     tasks = LinkAwareTasks(config=cfg)
-    contact = np.array([3.0, -1.0, 0.0])
-    _beat(tasks, 0.0, contact)
+    earlier, contact = np.array([0.0, 0.0, 0.0]), np.array([3.0, -1.0, 0.0])
+    _beat(tasks, 0.0, earlier)
+    tasks.heard(1.0, earlier + [0.5, 0.0, 0.0])  # within return_spacing_m: not kept
     _beat(tasks, 2.0, contact)
     tasks.submit(GoToTask(1, 2.0, [(50.0, 0.0)]), 2.0, contact)
     away = np.array([10.0, 4.0, 0.0])
@@ -87,14 +89,22 @@ def test_return_drives_to_the_last_point_of_contact_then_holds_there() -> None:
     intent = tasks.intent
     assert intent.mode is AutonomyMode.AUTONOMOUS and intent.task_id == 1
     assert np.allclose(intent.waypoints_in_odom, [[3.0, -1.0]])
+    # at the last point of contact and still silent (a shadow's sharp edge): further back
     tasks.update(20.0, contact + [0.3, 0.2, 0.0])
+    assert tasks.state is LinkState.RETURNING
+    assert np.allclose(tasks.intent.waypoints_in_odom, [[0.0, 0.0]])
+    tasks.update(30.0, earlier + [0.2, 0.1, 0.0])
     assert tasks.state is LinkState.HOLDING and tasks.intent.mode is AutonomyMode.PAUSED
+    _beat(tasks, 31.0, earlier)
+    tasks.update(31.0, earlier)
+    assert tasks.state is LinkState.CONNECTED
+    assert np.allclose(tasks.intent.waypoints_in_odom, [[50.0, 0.0]])  # the task again
 
 
 def test_config_rejects_unknown_keys_and_bad_values(tmp_path) -> None:  # type: ignore[no-untyped-def]
     path = tmp_path / "robot.yaml"
-    path.write_text("comms:\n  policy: return\n  silence_s: 8\n")
-    assert load_config(path, RobotNodeConfig).comms.policy == "return"
+    path.write_text("comms:\n  policy: hold\n  silence_s: 8\n")
+    assert load_config(path, RobotNodeConfig).comms.policy == "hold"
     path.write_text("comms:\n  policy: return\n  silense_s: 8\n")
     with pytest.raises(Exception, match="silense_s"):
         load_config(path, RobotNodeConfig)
