@@ -301,6 +301,7 @@ class OnboardPerception:
         self._hazards_changed = False
         self._now = -math.inf
         self._bootstrap_asks = 0
+        self._early: list[tuple[float, tuple[float, float, float]]] = []  # before the phase
 
     # ------------------------------------------------------------------ outputs
 
@@ -363,6 +364,12 @@ class OnboardPerception:
                 self._bootstrap_asks += 1
             elif self._bootstrap_asks >= 2 and not self._pending and not self._queued:
                 self._bootstrap_asks = 0  # answers lost or ambiguous: ask again
+            if now_s - self._last_frame_s >= cfg.frame_period_s - 1e-9:
+                # the pan is a function of time: these become frames once the phase is known
+                self._early.append((now_s, pose))
+                self._last_frame_s = now_s
+                cut = now_s - cfg.memory.history_s
+                self._early = [e for e in self._early if e[0] >= cut]
         elif now_s - self._last_frame_s >= cfg.frame_period_s - 1e-9:
             pan = pan_at(now_s, cfg.memory.mount, self.pan_phase_s)
             frame = RememberedFrame(now_s, pan, cfg.memory.mount.tilt_rad, pose)
@@ -674,7 +681,16 @@ class OnboardPerception:
             self._pan_samples.append((float(image.time_s), float(image.camera_pan_rad)))
             if len(self._pan_samples) >= 2:
                 phase, rms = fit_pan_phase(self._pan_samples, cfg.memory.mount)
-                if rms < 0.05:
+                if rms < 0.05 and self.pan_phase_s is None:
+                    self.pan_phase_s = phase
+                    mount = cfg.memory.mount
+                    for t_early, pose_early in self._early:
+                        pan = pan_at(t_early, mount, phase)
+                        self.memory.record(
+                            RememberedFrame(t_early, pan, mount.tilt_rad, pose_early)
+                        )
+                    self._early = []
+                elif rms < 0.05:
                     self.pan_phase_s = phase
         h, w = rgb.shape[:2]
         intr = Intrinsics(image.fx_px, image.fy_px, image.cx_px, image.cy_px, w, h)

@@ -47,11 +47,14 @@ def test_the_pan_phase_is_learnt_from_two_images_then_frames_are_remembered() ->
     p.on_image(_image(r1.request_id, r1.time_s), _pose_at)
     p.on_image(_image(r2.request_id, r2.time_s), _pose_at)
     assert p.pan_phase_s is not None
+    # the frames of before the phase was known are remembered now, with their pans
+    assert [f.time_s for f in p.memory.frames] == [0.05, 0.5]
+    assert abs(p.memory.frames[0].pan_rad - pan_at(0.05, MOUNT, PHASE_S)) < 0.02
     for t in (7.0, 11.2):
         assert abs(pan_at(t, MOUNT, p.pan_phase_s) - pan_at(t, MOUNT, PHASE_S)) < 0.02
     for k in range(20):
         p.on_control(0.6 + 0.05 * k, np.array([0.1 * k, 0.0, 0.0]))
-    assert len(p.memory) == 10  # one frame per 0.1 s
+    assert len(p.memory) == 12  # one frame per 0.1 s
     frame = p.memory.frames[-1]
     assert abs(frame.pan_rad - pan_at(frame.time_s, MOUNT, PHASE_S)) < 0.02
 
