@@ -15,9 +15,21 @@ Everything happens in the robot's private frame ``odom`` (paper 4.1). Per sensor
   the codec registry (4.3.3, 4.3.4); a new plan to the current waypoint (5.4). No path: the
   robot stops, waits (the short memory forgets a bad map) and the task reports it after a
   timeout; a path newly blocked with only a long detour left: it waits for the way to clear
-  rather than set off on the detour, within a budget.
+  rather than set off on the detour, within a budget. Non-finite returns are dropped and
+  counted (``nonfinite_points``), the rest of the sweep is used.
+* **Perception** (:mod:`robot.perception.onboard_perception`, paper 5.2, 4.3.2): the sweep's
+  cylinder candidates and people tracks; each control period remembers the panning camera's
+  frame and asks (:class:`~protocol.sensors.ImageRequest`, among the commands) for the
+  frames that show a candidate whole (Fig. 13) or may show a teammate; each
+  :class:`~protocol.sensors.CameraImage` is colour-tested and searched for tags. Results go
+  up as :class:`~protocol.messages.Detection` (one id per object, refined later) and
+  :class:`~protocol.messages.FiducialObservation`, both against a pose node sent at least
+  ``detection_node_lag_s`` earlier (the detection stream drains before the pose nodes');
+  static OOIs and hostile tracks join the keep-out at once. A perception failure is counted
+  (``perception_errors``) and the robot drives on; its CPU time is ``perception_cpu_s``.
 * **Downlink** -> tasks (the executor validates them), hazard updates (keep-out disks via this
-  robot's ``map_from_odom``), parameter updates.
+  robot's ``map_from_odom``), parameter updates, thumbnail requests (a
+  :class:`~protocol.messages.DetectionImage`, only then, on the lowest-priority stream).
 
 The node is sans-IO: :meth:`RobotNode.process` takes the frames a driver returned and gives
 back the commands for the driver; uplink messages go to ``send`` (a radio endpoint's send);
