@@ -90,7 +90,7 @@ FloatArray = NDArray[Any]
 class LongLoopConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """The long-loop candidate source (module docstring); metres, radians, progress seconds."""
 
-    enabled: bool = False
+    enabled: bool = True
     descriptor: PlaceDescriptorConfig = msgspec.field(default_factory=PlaceDescriptorConfig)
     max_descriptor_distance: float = 0.7
     query_k: int = 12
@@ -189,6 +189,7 @@ class LongLoopSearch:
         )
         self._tables: OrderedDict[int, ReferenceTable] = OrderedDict()
         self._tried: set[tuple[int, int]] = set()
+        self._done: dict[int, FloatArray] = {}  # node -> the scan it was searched with
         # matches waiting for a second, agreeing one: (match, made at, released)
         self._pending: list[tuple[LongLoopMatch, float, bool]] = []
         self._tokens = float(config.max_burst_matches)
@@ -229,6 +230,11 @@ class LongLoopSearch:
         self._refill(progress_s)
         if key not in index_of or key not in scans:
             return []
+        if self._done.get(key) is scans[key]:
+            # once per scan: a restart or a merge makes every node a source again, and the
+            # regular search needs that step's budget (this source's pairs were tried)
+            return []
+        self._done[key] = scans[key]
         self.add_scan(key, scans[key])  # (re)described: a second scan of a node replaces it
         row = index_of[key]
         if len(self._index) < 2:

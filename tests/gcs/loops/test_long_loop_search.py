@@ -90,8 +90,8 @@ def test_a_long_loop_beyond_the_regular_window_closes_only_with_place_recognitio
     released: set[tuple[int, int]],
 ) -> None:
     world, truth = _city_loop()
-    off = LoopCloserConfig()
-    on = LoopCloserConfig(long_loops=LongLoopConfig(enabled=True))
+    off = LoopCloserConfig(long_loops=LongLoopConfig(enabled=False))
+    on = LoopCloserConfig()  # on by default
     results = {}
     for name, cfg in (("off", off), ("on", on)):
         graph, closer, keys = _drive(world, truth, np.random.default_rng(4), cfg, yaw_sigma_deg=1.2)
@@ -137,7 +137,9 @@ def test_config_checks() -> None:
         LongLoopConfig(top_k=0)
     with pytest.raises(ValueError, match="window_yaw_rad"):
         LongLoopConfig(window_yaw_rad=4.0)
-    assert LoopCloser(PoseGraph()).long_loops is None  # off by default: nothing runs
+    assert LoopCloser(PoseGraph()).long_loops is not None  # on by default
+    off = LoopCloserConfig(long_loops=LongLoopConfig(enabled=False))
+    assert LoopCloser(PoseGraph(), off).long_loops is None  # off: nothing runs
 
 
 def test_the_bench_counts_revisits_after_long_loops_and_their_closures() -> None:
