@@ -113,7 +113,8 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     retest_after_s: float = 2.0
     wait_for_frame_s: float = 8.0  # a candidate no frame shows whole waits this long for one
     max_negative_tests: int = 2
-    max_person_tests: int = 4  # colour tests of one people track before it is left unlabelled
+    max_person_tests: int = 6  # colour tests of one people track before it is left unlabelled
+    person_votes_needed: int = 2  # agreeing colour tests (images) before a track is labelled
     negative_radius_m: float = 0.7
     negative_places_kept: int = 512
     refine_m: float = 0.6  # a cylinder this close to a known object refines it, no image
@@ -245,8 +246,13 @@ def _track_velocity(track: PersonTrack, window_s: float) -> NDArray[np.float64]:
 
 def _jumped(track: PersonTrack, window_s: float, jump_m: float) -> bool:
     """Whether the track's newest measurement lies more than ``jump_m`` off the line fitted
-    through its earlier measurements of the last ``window_s`` (at least three)."""
+    through its earlier measurements of the last ``window_s`` (at least three), or, after the
+    track coasted longer than half that window, more than ``jump_m`` from where it was lost."""
     h = np.array(track.history, dtype=np.float64).reshape(-1, 3)
+    if len(h) < 2:
+        return False
+    if h[-1, 0] - h[-2, 0] > 0.5 * window_s:
+        return float(np.hypot(*(h[-1, 1:] - h[-2, 1:]))) > jump_m
     if len(h) < 4:
         return False
     last, h = h[-1], h[:-1]
@@ -292,6 +298,7 @@ class OnboardPerception:
         self._negative: list[tuple[tuple[float, float], int, float]] = []
         self._person_tested: dict[int, tuple[int, float]] = {}
         self._track_ids: dict[int, int] = {}  # person track -> detection id
+        self._person_votes: dict[int, dict[int, int]] = {}  # track -> kind -> colour tests
         self._civilians_seen: list[tuple[NDArray[np.float64], float]] = []
         self._reported_at: dict[int, float] = {}  # detection id of people -> last report
         self._had_hostiles = False
@@ -541,6 +548,7 @@ class OnboardPerception:
             if swapped or conflict:
                 t.kind = 0
                 self._person_tested.pop(t.track_id, None)
+                self._person_votes.pop(t.track_id, None)
                 self._track_ids.pop(t.track_id, None)  # another person: another id
         tracks = [
             t
@@ -600,6 +608,7 @@ class OnboardPerception:
                 self._hazards_changed = True
         live = {t.track_id for t in self.lidar.tracker.tracks}
         self._track_ids = {k: v for k, v in self._track_ids.items() if k in live}
+        self._person_votes = {k: v for k, v in self._person_votes.items() if k in live}
 
     def _negative_near(self, xy: tuple[float, float]) -> int | None:
         """Index of the place tested "other" within ``negative_radius_m`` of ``xy``."""
@@ -768,8 +777,16 @@ class OnboardPerception:
                 pkind = _PERSON_KIND.get(label)
                 if pkind is None or res is None:
                     continue
+                # a label needs agreeing tests in two images: one image can show a hostile
+                # walking behind the trunk a track sits on
+                votes = self._person_votes.setdefault(job.track_id, {})
+                votes[int(pkind)] = votes.get(int(pkind), 0) + 1
+                best = max(votes, key=lambda k: votes[k])
+                others = sum(votes.values()) - votes[best]
+                if votes[best] < cfg.person_votes_needed or others >= votes[best]:
+                    continue
                 try:
-                    self.lidar.tracker.set_kind(job.track_id, int(pkind))
+                    self.lidar.tracker.set_kind(job.track_id, best)
                 except KeyError:
                     continue  # the track ended meanwhile
                 self._report_people(self._now)
