@@ -53,6 +53,11 @@ long loop is never closed on one match. Matching is rationed on the caller's pro
 (``matches_per_s`` with a burst of ``max_burst_matches``): a node that finds no token is not
 retried, the next nodes of the revisit are. A pair is matched at most once.
 
+Cost per new node: one full Dijkstra projection and the gates over every node (measured 4 ms
+at 1,000 nodes, 33 ms at 10,000 on the loaded 2-core machine), a descriptor query, and at
+most ``top_k`` matches when tokens allow; a node is searched once per scan (a restart or a
+component merge makes every node a source of the regular search again, not of this one).
+
 Frames: points in each node's ``base``; ``a_from_b`` from the new node (reference, its table
 built) to the stored one (query). Units: metres, radians, progress seconds.
 """
@@ -249,7 +254,10 @@ class LongLoopSearch:
             return []
         poses = np.asarray(proj.poses)[rows]
         cov = body_to_vector_covariance(poses, np.asarray(proj.covariances)[rows])
-        sxy = np.sqrt(np.maximum(np.linalg.eigvalsh(cov[:, :2, :2])[:, 1], 0.0))
+        # the larger eigenvalue of each 2x2 translation block, in closed form (every node)
+        half_tr = 0.5 * (cov[:, 0, 0] + cov[:, 1, 1])
+        half_df = 0.5 * (cov[:, 0, 0] - cov[:, 1, 1])
+        sxy = np.sqrt(np.maximum(half_tr + np.hypot(half_df, cov[:, 0, 1]), 0.0))
         syaw = np.sqrt(np.maximum(cov[:, 2, 2], 0.0))
         regular = (regular_k_sigma * sxy <= regular_xy_m) & (
             regular_k_sigma * syaw <= regular_yaw_rad
