@@ -22,15 +22,17 @@ States (:class:`LinkState`), with ``quiet = now - last heard``:
   coverage has sharp edges (a wall's shadow) and odometry drifts, so if that point is silent
   too it goes on back along its earlier points of contact (a trail of up to
   ``return_trail_points``, ``return_spacing_m`` apart), and holds (``HOLDING``) at the oldest.
-  Why not hold by default: in a 200 s small-world mission a robot that held in a radio shadow
-  stayed there, unheard, to the end.
+  Why not hold by default: in a 200 s small-world mission with the real GCS a robot that held
+  in a radio shadow stayed there, unheard, to the end; returning along the trail brought two
+  robots out of shadows (41 s and 34 s long) into contact again.
 
 The first message heard again returns it to ``CONNECTED`` and the suspended task resumes (or
 the GCS's next task replaces it). Every transition of a robot with a task is reported as a
 ``TaskStatus`` (``ACTIVE``, the detail names the state), so operators see afterwards what the
 robot did; while holding, its telemetry mode is ``PAUSED``. Everything the robot produced
 meanwhile waits in its uplink queue (``protocol.radio_channel``: nothing accepted is dropped)
-and goes out in order once the radio grants a rate again.
+and goes out once the radio grants a rate again, in order within each stream (streams drain
+by priority: a detection may overtake the pose node it refers to).
 
 :class:`CommsWatchdog` is the pure state machine; :class:`LinkAwareTasks` puts it in front of a
 :class:`~robot.tasks.task_executor.TaskExecutor` with the executor's own interface, so the robot
