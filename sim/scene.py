@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from sim.apriltag import head_mesh, tag_texture
+from sim.apriltag import head_mesh, head_texture
 from sim.quiet_pybullet import import_pybullet
 
 if TYPE_CHECKING:
@@ -273,11 +273,12 @@ class Scene:
             physicsClientId=c,
         )
         chassis = pb.createMultiBody(0, col, vis, basePosition=(0, 0, -10), physicsClientId=c)
-        tex = tag_texture(robot_id, face_m=2 * g.head_half_m, tag_size_m=g.tag_size_m)
+        # each face its own tag, id 4 robot + face: a sighting tells which side is seen
+        tex = head_texture(robot_id, face_m=2 * g.head_half_m, tag_size_m=g.tag_size_m)
         path = Path(self._tmp.name) / f"tag{robot_id}.png"
         cv2.imwrite(str(path), tex[:, :, ::-1])
         tid = pb.loadTexture(str(path), physicsClientId=c)
-        v, i, uv, n = head_mesh(g.head_half_m)
+        v, i, uv, n = head_mesh(g.head_half_m, atlas=True)
         hvis = pb.createVisualShape(
             pb.GEOM_MESH, vertices=v, indices=i, uvs=uv, normals=n, physicsClientId=c
         )

@@ -62,8 +62,10 @@ class RobotsConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     def __post_init__(self) -> None:
         if self.sensors < 0 or self.disruptors < 0 or self.sensors + self.disruptors < 1:
             raise ValueError("sensors and disruptors must be >= 0 with at least one robot in all")
-        if self.sensors + self.disruptors > 587:
-            raise ValueError("sensors + disruptors must be <= 587 (AprilTag 36h11 has 587 ids)")
+        if self.sensors + self.disruptors > 146:
+            raise ValueError(
+                "sensors + disruptors must be <= 146 (AprilTag 36h11 has 587 ids, four a robot)"
+            )
         if not self.spacing_m >= 1.0:
             raise ValueError(f"spacing_m must be >= 1.0, got {self.spacing_m}")
 

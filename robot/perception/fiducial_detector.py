@@ -50,14 +50,14 @@ _FACE_NORMALS = ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))  # front, lef
 
 class TagLayoutConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """Where the tags are on a robot, in its ``base`` (the simulator's robot geometry: checked
-    equal in the tests). ``ids_per_robot``: 1 (id = robot id, on every face) or 4 (id =
-    4 robot + face; faces front, left, back, right). ``marker_*``: the dark LIDAR housing used
-    to tell the faces apart when the ids do not."""
+    equal in the tests). ``ids_per_robot``: 4 (the simulator's heads: id = 4 robot + face;
+    faces front, left, back, right) or 1 (id = robot id on every face, as on the paper's).
+    ``marker_*``: the dark LIDAR housing used to tell the faces apart when the ids do not."""
 
     tag_size_m: float = 0.137
     head_center_in_base_m: tuple[float, float, float] = (-0.12, 0.0, 0.75)
     head_half_m: float = 0.1
-    ids_per_robot: int = 1
+    ids_per_robot: int = 4
     marker_in_base_m: tuple[float, float, float] = (0.2, 0.0, 0.45)
     marker_half_m: float = 0.05
     # Where the tag a viewer sees lies, along the face normal towards the viewer, from the head

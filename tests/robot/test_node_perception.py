@@ -200,7 +200,7 @@ def test_a_teammate_in_view_becomes_a_fiducial_observation() -> None:
             until=lambda: any(isinstance(m, FiducialObservation) for m in sent),
         )
     obs = [m for m in sent if isinstance(m, FiducialObservation)]
-    assert obs and obs[0].observed_robot_id == 1 and obs[0].tag_id == 1
+    assert obs and obs[0].observed_robot_id == 1 and obs[0].tag_id // 4 == 1
     nodes = {m.node_index: m for m in sent if isinstance(m, PoseNode)}
     o = obs[0]
     seen = compose(np.array(nodes[o.node_index].pose_in_odom), np.array(o.observed_in_base))
