@@ -123,8 +123,9 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     and is dropped.
 
     ``odometry_bias`` configures the odometry self-calibration (module docstring): after a
-    correction, automatic closures whose residual exceeds ``prune_chi2`` (against the corrected
-    odometry's heading, then at the re-solved estimate) are removed, and the latest
+    correction, automatic closures whose heading contradicts the corrected odometry
+    (``prune_heading_chi2``, 1 dof) or whose residual at the re-solved estimate exceeds
+    ``prune_chi2`` (3 dof) are removed, and the latest
     ``max_rejected_kept`` hypotheses the graph check rejected are checked again.
 
     ``matches_per_s``, ``candidate_max_age_s`` and ``validation.expiry_s`` are in nominal
@@ -140,6 +141,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     validation: CycleValidationConfig = msgspec.field(default_factory=CycleValidationConfig)
     odometry_bias: OdometryBiasConfig = msgspec.field(default_factory=OdometryBiasConfig)
     prune_chi2: float = 16.27
+    prune_heading_chi2: float = 6.63
     max_rejected_kept: int = 200
     min_score: float = 0.5
     max_match_sigma_xy_m: float = 0.25
@@ -189,6 +191,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             "path_sigma_xy_m",
             "max_match_sigma_xy_m",
             "prune_chi2",
+            "prune_heading_chi2",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -842,10 +845,11 @@ class LoopCloser:
             if est is None:
                 continue
             self._turn_scales[robot] = est
-            in_use = self._applied_scales.get(robot, TurnScale(scale=1.0))
-            if est.used < cfg.min_used or abs(est.scale - in_use.scale) <= cfg.apply_sigma * (
-                est.sigma
-            ):
+            in_use = self._applied_scales.get(robot)
+            # is there a bias at all (apply_sigma from 1), then: is the better estimate
+            # different (reapply_sigma from the one in use)
+            k, ref = (cfg.apply_sigma, 1.0) if in_use is None else (cfg.reapply_sigma, in_use.scale)
+            if est.used < cfg.min_used or abs(est.scale - ref) <= k * est.sigma:
                 continue
             self.graph.set_odometry_correction(
                 robot, functools.partial(debias_odometry, estimate=est)
@@ -924,13 +928,11 @@ class LoopCloser:
         for it in range(cfg.iterations):
             need = cfg.window_k_sigma * (sigma * np.abs(t) + np.sqrt(v))
             inside = np.abs(se2.wrap_angle(center * t - g)) + need <= w
-            if it == 0 and np.count_nonzero(inside) < cfg.min_used:
+            fit = estimate_turn_scale(t[inside], d[inside], v[inside], cfg)
+            if it == 0 and fit.used < cfg.min_used:
                 # the prior admits too few (only long turns were revisited): start from all
                 # matches, the fit's own gate against the outliers
-                inside[:] = True
-            if not inside.any():
-                break
-            fit = estimate_turn_scale(t[inside], d[inside], v[inside], cfg)
+                fit = estimate_turn_scale(t, d, v, cfg)
             if fit.used < cfg.min_used:
                 break
             est = fit
@@ -941,10 +943,10 @@ class LoopCloser:
 
     def _prune_against_odometry(self) -> list[int]:
         """Remove the automatic closures of one robot whose heading change contradicts the
-        robot's corrected odometry: ``wrap(yaw - s T)`` beyond ``prune_chi2`` (as a 1-dof
-        test it is stricter than 3-dof; the closure's and the chain's variances and the
-        scale's ``(sigma_s T)^2``). Closures accepted against the biased odometry lean to it;
-        the corrected chain says which."""
+        robot's corrected odometry: ``wrap(yaw - s T)`` beyond ``prune_heading_chi2`` (1 dof,
+        99 %: a true closure lost now and then costs little, a false one stays; the closure's
+        and the chain's variances and the scale's ``(sigma_s T)^2``). Closures accepted
+        against the biased odometry lean to it; the corrected chain says which."""
         vcfg = self.config.validation
         bad = []
         for e in self.graph.edges(Provenance.LOOP_AUTO):
@@ -961,7 +963,7 @@ class LoopCloser:
                 + chain_var
                 + (est.sigma * turn) ** 2
             )
-            if r * r > self.config.prune_chi2 * var:
+            if r * r > self.config.prune_heading_chi2 * var:
                 bad.append(e.edge_id)
         if bad:
             self.graph.remove_edges(bad)

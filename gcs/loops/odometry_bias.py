@@ -13,7 +13,9 @@ A closure of the same robot measures the heading ``d_ij`` with variance ``v_clos
 residual ``r_ij = wrap(d_ij - T_ij) = (s - 1) T_ij + noise``, the noise's variance being the
 closure's plus the odometry's own along the chain. With a Gaussian prior ``s ~ N(1, σ0²)``
 the estimate of ``s - 1`` is the information-weighted least squares over the closures (its
-standard deviation widened by the Birge ratio when the residuals scatter more than stated); closures
+standard deviation widened by the Birge ratio when the residuals scatter more than stated, and
+never below the best single closure's ``sqrt(v) / |T|``: closures over one stretch of odometry
+share its noise, so they are not independent evidence); closures
 whose residual is more than ``gate_sigma`` standard deviations off the current fit are left
 out (they are false, or the fit is not yet good), and the fit is iterated a few times.
 
@@ -52,10 +54,12 @@ class OdometryBiasConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     Applying an estimate (:class:`~gcs.loops.loop_closer.LoopCloser`, unless ``enabled`` is
     off): it is fitted once at
     least ``min_used`` matches took part, and fed back into the graph's odometry when it
-    differs from the one in use by more than ``apply_sigma`` standard deviations (the first
-    time: from 1, the calibration the robot reported). ``window_k_sigma``: a match is evidence
-    only when its search window holds the heading change this many standard deviations either
-    side of the current estimate (a window that cannot hold the truth returns a look-alike).
+    differs from 1 (the calibration the robot reported) by more than ``apply_sigma``
+    standard deviations, and later when it differs from the one in use by more than
+    ``reapply_sigma`` (once a bias is established the better estimate is used).
+    ``window_k_sigma``: a match is evidence only when its search window holds the heading
+    change this many standard deviations either side of the current estimate (a window that
+    cannot hold the truth returns a look-alike).
     ``restart_change``: a correction that moves the scale by more than this since the last
     full re-match makes the loop closer match every pair again (windows and guesses were
     wrong); a smaller one re-checks the hypotheses the graph rejected and searches for new
@@ -71,8 +75,9 @@ class OdometryBiasConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     max_turn_rad: float = 20.0
     iterations: int = 4
     enabled: bool = True
-    min_used: int = 8
+    min_used: int = 20
     apply_sigma: float = 3.0
+    reapply_sigma: float = 2.0
     window_k_sigma: float = 2.0
     restart_change: float = 0.1
     refit_growth: float = 1.5
@@ -85,6 +90,7 @@ class OdometryBiasConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
             "min_turn_rad",
             "max_turn_rad",
             "apply_sigma",
+            "reapply_sigma",
             "window_k_sigma",
             "restart_change",
         ):
@@ -158,7 +164,10 @@ def estimate_turn_scale(
         birge = 1.0
         if n_in > 1:
             birge = math.sqrt(max(1.0, float(np.sum(w * (r - bias * t) ** 2)) / (n_in - 1)))
-        sigma = max(birge / math.sqrt(info), cfg.min_sigma)
+        # Closures over one stretch share its odometry noise: together they know the scale
+        # no better than the best single one does (its noise over its turning).
+        single = float(np.min(np.sqrt(v[inlier]) / np.abs(t[inlier]))) if n_in else 0.0
+        sigma = max(birge / math.sqrt(info), cfg.min_sigma, single)
     return TurnScale(
         scale=1.0 + bias, sigma=sigma, used=int(inlier.sum()), rejected=int((~inlier).sum())
     )
