@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -167,7 +168,8 @@ class Console:
             return f"{verb.usage()}\n  {verb.help}"
         lines = ["commands (TAB completes; `help COMMAND` for details; `;` separates):"]
         for v in VERBS.values():
-            first = v.help.split(". ")[0].rstrip(".")
+            # the first sentence (an abbreviation's "e.g." is no sentence end)
+            first = re.split(r"(?<!e\.g)(?<!i\.e)\. ", v.help)[0].rstrip(".")
             lines.append(f"  {v.usage():38} {first}")
         lines.append(
             "ROBOTS: an id (3), a range (2-5), " + ", ".join(GROUPS) + ", or a comma list "
@@ -187,9 +189,10 @@ class Console:
                 f" GCS {c.mission}: NOT CONNECTED ({silent}); reconnecting | operator "
                 f"{c.operator_id}"
             )
-        held = sum(1 for r in s.robots if r.control != "planner")
+        by_operator = sum(1 for r in s.robots if r.control != "planner")
         return (
-            f" GCS {s.mission} t={s.time_s:.0f} s | robots {len(s.robots)} ({held} held) | "
+            f" GCS {s.mission} t={s.time_s:.0f} s | robots {len(s.robots)} "
+            f"({by_operator} operator-controlled) | "
             f"OOIs {len(s.hazards)} | interactions {s.interactions} | planner "
             f"{'on' if s.planner else 'off'} | operator {c.operator_id}"
         )
@@ -231,12 +234,18 @@ def _check_endpoint(endpoint: str) -> None:
             raise ValueError(f"endpoint {endpoint!r}: expected {proto}/<host>:<port 0..65535>")
 
 
+def _plain(rst: str) -> str:
+    """The module docstring as help text: reStructuredText roles and literals unwrapped."""
+    text = re.sub(r":(?:mod|class|func|meth|attr):`~?([^`]+)`", r"\1", rst)
+    return text.replace("``", "")
+
+
 def _parser() -> argparse.ArgumentParser:
     from protocol.process_cli import add_link_arguments
 
     p = argparse.ArgumentParser(
         prog="magic console",
-        description=__doc__.split("\n\n", 1)[1] if __doc__ else None,
+        description=_plain(__doc__.split("\n\n", 1)[1]) if __doc__ else None,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_link_arguments(p)

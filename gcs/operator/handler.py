@@ -460,6 +460,10 @@ class CommandHandler:
         robots = self._robots(str(c.args[2]) if len(c.args) > 2 else "all", ctx)
         val: float | str
         if name == "codec":
+            from compression import codec_names
+
+            if raw not in codec_names():
+                raise CommandError(suggest(raw, codec_names(), what="codec"))
             val = raw
         else:
             val = float(raw)

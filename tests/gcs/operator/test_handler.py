@@ -123,6 +123,11 @@ def test_reclassify_relay_set_and_graph_commands() -> None:
     assert isinstance(out.downlink[0][1], RelayTask) and h.control_of(0) == "operator"
     out = h.handle(parse_line("set telemetry_period_s 0.5 0"), _ctx(gs))
     assert out.downlink == [(0, ParameterUpdate("link.telemetry_period_s", 0.5))]
+    out = h.handle(parse_line("set codec nonsense 0"), _ctx(gs))
+    assert out.status == "invalid" and "unknown codec 'nonsense'" in out.text
+    assert not out.downlink and not out.interaction
+    out = h.handle(parse_line("set codec magic4 0"), _ctx(gs))
+    assert out.downlink == [(0, ParameterUpdate("codec", "magic4"))]
     out = h.handle(parse_line("set status_period_s 2"), _ctx(gs))
     assert out.status == "failed"  # no GCS-side setter given
     out = h.handle(parse_line("rewind -100"), _ctx(gs))
