@@ -22,7 +22,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from protocol.config import CONFIGS_DIR
 from protocol.radio import RadioConfig
@@ -289,6 +289,21 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
         help="mutual TLS and access control across hosts (configs/security/example.yaml says "
         "how; use tls/ endpoints); default: plain zenoh",
     )
+
+
+def open_link(config: LinkConfig, *, mission: str, clock: Any = None) -> Link:
+    """A :class:`~protocol.link.Link`, or ``ValueError("cannot open the zenoh link: ...")``
+    on one line (an endpoint in use or unresolvable, a TLS file zenoh refuses), without
+    zenoh's source locations: every command reports it as bad input (status 2)."""
+    from protocol.link import Link as _Link
+
+    try:
+        return _Link(config, mission=mission, clock=clock)
+    except Exception as err:  # noqa: BLE001 - zenoh raises its own ZError (and others)
+        text = " ".join(str(err).split()).split(" at /", 1)[0]
+        if len(text) > 150:
+            text = text[:147] + "..."
+        raise ValueError(f"cannot open the zenoh link: {text}") from None
 
 
 def link_config(radio: RadioConfig, args: argparse.Namespace) -> LinkConfig:

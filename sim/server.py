@@ -45,6 +45,7 @@ from protocol.process_cli import (
     add_link_arguments,
     exit_code_for,
     link_config,
+    open_link,
     signal_name_for,
     stop_on_interrupt,
 )
@@ -238,23 +239,29 @@ def main(argv: list[str]) -> int:
     except (ConfigError, ValueError) as err:
         print(f"magic sim: {err}", file=sys.stderr)
         return 2
+    link = None
+    if not args.no_zenoh:  # endpoints first: a port in use fails before the world is built
+        try:
+            link = open_link(link_config(radio_cfg, args), mission=args.mission)
+        except ValueError as err:
+            print(f"magic sim: {err}", file=sys.stderr)
+            return 2
     print(f"magic sim: generating {args.world} ...", file=out, flush=True)
     try:
         sim = Simulator(world_cfg, config=sim_cfg, radio=radio_cfg)
-    except ValueError as err:
-        print(f"magic sim: {args.world}: {err}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as stop:
+    except (ValueError, KeyboardInterrupt) as problem:
+        if link is not None:
+            link.close()
+        if isinstance(problem, ValueError):
+            print(f"magic sim: {args.world}: {problem}", file=sys.stderr)
+            return 2
         print(
-            f"magic sim: stopped by {signal_name_for(stop)} before the simulation started",
+            f"magic sim: stopped by {signal_name_for(problem)} before the simulation started",
             file=sys.stderr,
         )
-        return exit_code_for(stop)
-    link = None
-    if not args.no_zenoh:
-        from protocol.link import Link
-
-        link = Link(link_config(radio_cfg, args), mission=args.mission, clock=sim.clock)
+        return exit_code_for(problem)
+    if link is not None:
+        link.clock = sim.clock  # mission time from here on
     w = sim.world
     print(
         f"magic sim: world {w.size_m[0]:.0f} x {w.size_m[1]:.0f} m, {len(w.solids)} solids, "

@@ -31,6 +31,20 @@ def test_main_runs_a_world_and_shows_progress(capsys) -> None:
     assert "t=    1.50 s" in out and "robots alive 4/4" in out
 
 
+def test_a_port_in_use_is_one_line_before_the_world_is_built(capsys) -> None:
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["--world", SMALL, "--listen", f"tcp/127.0.0.1:{port}"]) == 2
+    out, err = capsys.readouterr()
+    assert "generating" not in out
+    assert err.startswith("magic sim: cannot open the zenoh link: ") and err.count("\n") == 1
+    assert f"127.0.0.1:{port}" in err
+
+
 def test_main_refuses_an_invalid_world_config_clearly(tmp_path, capsys) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("seed: 1\ntrees:\n  count: -3\n", encoding="utf-8")
