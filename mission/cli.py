@@ -5,9 +5,6 @@ work failed, 2 bad input (one line on stderr naming what and where, before any l
 130 stopped by SIGINT, 143 stopped by SIGTERM. :func:`main` makes SIGTERM raise like ^C for
 every subcommand and is the last line of defence: a stop that escapes a subcommand ends
 with one line (``magic X: stopped by SIGINT``), never a traceback.
-
-Subcommands that are not built yet say so on stderr and exit with status 2; none prints
-made-up output.
 """
 
 from __future__ import annotations
@@ -21,9 +18,6 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 __all__ = ["main"]
-
-#: Subcommands that are specified but not built yet, and the issue that brings each.
-_NOT_BUILT: dict[str, str] = {}
 
 #: Subcommands with their own parser (``magic X --help`` is theirs): what each produces.
 _OWN_PARSERS = {
@@ -178,10 +172,6 @@ def _build_parser() -> argparse.ArgumentParser:
         formatter_class=_HelpFormatter,
     )
     report.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (has record/)")
-
-    for name, what in _NOT_BUILT.items():
-        p = sub.add_parser(name, help=f"{what} [not built yet]", add_help=True)
-        p.add_argument("args", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     return parser
 
 
@@ -338,7 +328,6 @@ def _dispatch(argv: list[str]) -> int:
 
         return robot_main(argv[1:])
     parser = _build_parser()
-    # Unbuilt subcommands take whatever options they will have (``magic robot --id 3``).
     args, unknown = parser.parse_known_args(argv)
     if args.command == "codec":
         if unknown:
@@ -350,13 +339,10 @@ def _dispatch(argv: list[str]) -> int:
         if unknown:
             parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         return _cmd_bench(args)
-    if args.command == "report":
-        if unknown:
-            parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-        return _cmd_report(args)
-    what = _NOT_BUILT[args.command]
-    print(f"magic {args.command}: not built yet; it arrives with {what}.", file=sys.stderr)
-    return 2
+    assert args.command == "report", args.command  # the others have parsers of their own
+    if unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    return _cmd_report(args)
 
 
 def _stop_children() -> None:

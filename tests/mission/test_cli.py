@@ -330,3 +330,10 @@ def test_sigterm_stops_a_suites_child_processes_too(tmp_path: Path) -> None:
         time.sleep(0.1)
     assert not [c for c in children if Path(f"/proc/{c}").exists()]
     assert sorted(p.name for p in system_tmp.iterdir()) == []
+
+
+def test_every_registered_suite_has_its_module() -> None:
+    import importlib.util
+
+    missing = [m for m in SUITES.values() if importlib.util.find_spec(m) is None]
+    assert missing == []
