@@ -53,7 +53,7 @@ def test_run_command_reports_a_bad_config_file(tmp_path, capsys) -> None:
     ("argv", "problem"),
     [
         (["--world", "nosuch"], "nosuch: no such file, nor a world config under"),
-        (["--world", "/tmp/no/such/world.yaml"], "(shipped: magic_phase, small)"),
+        (["--world", "/tmp/no/such/world.yaml"], "(shipped: magic_phase, "),
         (["--duration", "-5"], "duration_s must be > 0 mission-seconds, got -5.0"),
         (["--duration", "nan"], "duration_s must be > 0 mission-seconds, got nan"),
     ],
