@@ -120,6 +120,8 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     ``frames_period_s``: mission seconds between hazard/frame updates to each robot.
     ``max_pending_nodes``: out-of-order pose nodes held per robot before a gap is bridged.
     ``max_pending_grids``: grids held per robot while their pose node has not arrived.
+    ``max_pending_sightings``: detections and fiducials held per robot while their pose node
+    has not arrived (a radio backlog drains the detection stream before the pose nodes).
     ``max_grid_resolution_m`` / ``min_grid_resolution_m``: accepted grid cell sizes.
     ``gap_covariance_scale``: inflation of the odometry covariance across a bridged gap.
     ``hazard_merge_m``: detections of one kind closer than this are the same hazard.
@@ -144,6 +146,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     frames_period_s: float = 2.0
     max_pending_nodes: int = 32
     max_pending_grids: int = 64
+    max_pending_sightings: int = 512
     min_grid_resolution_m: float = 0.02
     max_grid_resolution_m: float = 1.0
     gap_covariance_scale: float = 4.0
@@ -172,7 +175,12 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v}")
-        for name in ("max_pending_nodes", "max_pending_grids", "error_log_size"):
+        for name in (
+            "max_pending_nodes",
+            "max_pending_grids",
+            "max_pending_sightings",
+            "error_log_size",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
         if any(r < 0 for r in self.robots):
@@ -190,12 +198,15 @@ class GroundStationStats:
     ``clock_substitutions``: node times replaced by a monotone substitute.
     ``loop_closer_faults`` / ``internal_errors``: exceptions the station caught in the loop
     closer and elsewhere (a bug, logged with its traceback; the station went on).
+    ``sightings_held``: detections and fiducials that arrived before their pose node and
+    waited for it.
     """
 
     pose_nodes: int = 0
     terrain_grids: int = 0
     fiducials: int = 0
     detections: int = 0
+    sightings_held: int = 0
     duplicates: int = 0
     gaps_bridged: int = 0
     optimizations: int = 0
@@ -282,6 +293,8 @@ class _Track:
     graph_keys: list[int] = field(default_factory=list)
     pending_nodes: dict[int, PoseNode] = field(default_factory=dict)
     pending_grids: dict[int, TerrainGrid] = field(default_factory=dict)
+    # detections and fiducials that came before their pose node, in arrival order
+    pending_sightings: list[Detection | FiducialObservation] = field(default_factory=list)
     deltas: dict[int, Any] = field(default_factory=dict)  # node_index -> odom_delta
     # recent decoded grids (references of inter-frame grids): index -> grid, origin cells, res
     decoded: dict[int, tuple[np.ndarray, tuple[int, int], float]] = field(default_factory=dict)
@@ -529,6 +542,7 @@ class GroundStation:
             if len(track.graph_keys) == 1:
                 self._apply_hints()
         self._drain_grids(robot_id, track)
+        self._drain_sightings(robot_id, track)
 
     def add_start_hint(
         self,
@@ -693,7 +707,8 @@ class GroundStation:
         cov = self._check_covariance(covariance_from_upper(msg.covariance), f"{what} covariance")
         key_a = track.keys.get(msg.node_index)
         if key_a is None:
-            raise _Rejected("orphan_fiducial", f"{what}: pose node not received")
+            self._hold_sighting(track, msg, "orphan_fiducial", f"{what}: pose node not received")
+            return
         other = self._tracks.get(msg.observed_robot_id)
         if msg.observed_robot_id == robot_id or other is None or not other.graph_keys:
             raise _Rejected(
@@ -717,6 +732,28 @@ class GroundStation:
         self.stats.fiducials += 1
         self._dirty = True
 
+    def _hold_sighting(
+        self, track: _Track, msg: Detection | FiducialObservation, reason: str, why: str
+    ) -> None:
+        """Keep a sighting whose pose node is still to come (its node index is ahead of the
+        robot's stream); one whose node was lost or passed is refused with ``reason``."""
+        if msg.node_index < track.next_index:
+            raise _Rejected(reason, why)
+        if len(track.pending_sightings) >= self.config.max_pending_sightings:
+            raise _Rejected(reason, f"{why}; too many sightings wait for pose nodes")
+        track.pending_sightings.append(msg)
+        self.stats.sightings_held += 1
+
+    def _drain_sightings(self, robot_id: int, track: _Track) -> None:
+        """Sightings held for pose nodes that have now arrived (or were passed: refused)."""
+        if not track.pending_sightings:
+            return
+        waiting = [m for m in track.pending_sightings if m.node_index >= track.next_index]
+        due = [m for m in track.pending_sightings if m.node_index < track.next_index]
+        track.pending_sightings = waiting
+        for msg in due:  # arrival order: a refined detection still follows its first report
+            self.handle(robot_id, msg, now_s=self._handle_now_s)
+
     def _on_detection(self, robot_id: int, track: _Track, msg: Detection) -> None:
         what = f"detection {msg.detection_id}"
         p = _finite(msg.position_in_base, f"{what} position_in_base")
@@ -726,7 +763,9 @@ class GroundStation:
         )
         key = track.keys.get(msg.node_index)
         if key is None:
-            raise _Rejected("orphan_detection", f"{what}: pose node {msg.node_index} not received")
+            why = f"{what}: pose node {msg.node_index} not received"
+            self._hold_sighting(track, msg, "orphan_detection", why)
+            return
         self.stats.detections += 1
         radius = HAZARD_KINDS.get(msg.kind)
         if radius is None:

@@ -458,3 +458,34 @@ def test_what_the_allocator_reads_status_heard_time_poses_trajectories_hostiles(
     far = Detection(9, 4, 4.5, ObjectKind.HOSTILE, (15.0, 0.0), cov, 0.3, 1.7, 0.9)
     gs.handle(0, far, now_s=4.5)
     assert len(gs.hostile_sightings()) == 2
+
+
+def test_sightings_before_their_pose_node_wait_for_it() -> None:
+    # a radio backlog drains the detection stream before the pose nodes (issue 17 item 2)
+    gs = GroundStation(GroundStationConfig(robots=(0, 1)))
+    path = straight(6)
+    nodes = nodes_along(path)
+    gs.handle(0, nodes[0], now_s=0.0)
+    det = Detection(1, 3, 3.0, ObjectKind.STATIC_OOI, (2.0, 1.0), (0.01, 0.0, 0.01), 0.3, 0.6, 0.9)
+    assert gs.handle(0, det, now_s=1.0)  # held, not refused
+    assert gs.hazards == [] and gs.stats.sightings_held == 1
+    for msg in nodes[1:4]:
+        gs.handle(0, msg, now_s=2.0)
+    assert len(gs.hazards) == 1
+    np.testing.assert_allclose(gs.hazards[0].position_in_map, path[3, :2] + (2.0, 1.0), atol=1e-6)
+    # a node that was passed for good: refused with the reason, as before
+    old = Detection(2, 1, 1.0, ObjectKind.STATIC_OOI, (5.0, 5.0), (0.01, 0.0, 0.01), 0.3, 0.6, 0.9)
+    gs.handle(0, nodes[4], now_s=3.0)
+    late = Detection(3, 9, 4.0, ObjectKind.TOXIC_VAT, (1.0, 0.0), (0.01, 0.0, 0.01), 0.3, 0.9, 0.9)
+    assert gs.handle(0, late, now_s=3.0)
+    assert gs.handle(0, old, now_s=3.0)  # node 1 is in the graph: a second hazard
+    assert gs.stats.rejected["orphan_detection"] == 0 and len(gs.hazards) == 2
+    # the station gives up on node 9 once the stream passes it (a lost node bridged over)
+    gs2 = GroundStation(GroundStationConfig(max_pending_nodes=2))
+    msgs = nodes_along(straight(14))
+    gs2.handle(0, msgs[0], now_s=0.0)
+    assert gs2.handle(0, late, now_s=0.0)
+    for i in list(range(1, 9)) + list(range(10, 14)):  # node 9 never comes
+        gs2.handle(0, msgs[i], now_s=0.0)
+    assert gs2.stats.gaps_bridged == 1 and gs2.key_of(0, 9) is None
+    assert gs2.stats.rejected["orphan_detection"] == 1
