@@ -7,6 +7,8 @@ The suite is composed of parts, each a module with the suite signature
   ``solver_worse_steps_accepted``, ``m3500_solve_s``, ...);
 - ``mission.bench.robustness_faults``: the ground station under bad input (``gcs_crashes``,
   ``solver_recoveries``, ...);
+- ``mission.bench.robustness_long_loops``: loops of 100 m and more (issue 19 item 5:
+  ``long_loop_revisits_closed_frac_<log>``, ``long_loop_false_closures``, ...);
 - the replay part, here: every shipped CARMEN log with reference poses replayed through
   :func:`mission.replay.run_replay`, clean and with each perturbation of
   :mod:`mission.bench.perturbations`.
@@ -86,7 +88,7 @@ __all__ = [
 
 LASER = Path(__file__).resolve().parents[2] / ".." / "shared" / "datasets" / "laser"
 #: Other parts, in the order they run (module names under ``mission.bench``).
-PARTS: tuple[str, ...] = ("robustness_solver", "robustness_faults")
+PARTS: tuple[str, ...] = ("robustness_solver", "robustness_faults", "robustness_long_loops")
 #: Logs of the replay part: short name -> file in ``../shared/datasets/laser``.
 LOGS: dict[str, str] = {
     "intel": "intel-corrected.log.gz",
