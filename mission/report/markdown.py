@@ -120,7 +120,7 @@ def write_markdown(record: RunRecord, scored: Scored, plots: list[Path], path: P
     wrong = [
         (what, ce, i)
         for what, key in (("loop closure", "closure_errors"), ("fiducial", "fiducial_errors"),
-                          ("operator", "operator_errors"))
+                          ("operator or start hint", "operator_errors"))
         for ce in [scored.series.get(key, {})]
         for i, bad in enumerate(ce.get("false", [])) if bad
     ]  # fmt: skip
@@ -134,7 +134,12 @@ def write_markdown(record: RunRecord, scored: Scored, plots: list[Path], path: P
             f"{math.degrees(ce['error_rad'][i]):.2f} |"
             for what, ce, i in wrong
         ]
+    if wrong and any(what.startswith("operator") for what, _, _ in wrong):
+        lines += ["", "A start hint is the deployment plan's loose prior (its placement sigma), "
+                  "not a measurement: its error is expected up to that sigma."]  # fmt: skip
     lines += ["", "## Plots", ""]
+    lines += ["The exported global map: [map/global_map.png](map/global_map.png) "
+              "(and PGM + YAML for ROS map_server in map/).", ""]  # fmt: skip
     for p in plots:
         lines += [f"![{p.stem}](plots/{p.name})", ""]
     if record.notes or m.get("truth_period_s", 0.0) > 1.0:
