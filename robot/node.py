@@ -155,6 +155,10 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     # a detection refers to a pose node sent at least this long ago: the detection stream
     # drains before the pose-node stream, and the GCS refuses a detection of an unknown node
     detection_node_lag_s: float = 1.5
+    # a neutralization's target comes from the GCS's map, off by its error (0.5-0.8 m in the
+    # small-world mission) while the OOI is 0.25 m in radius: the laser aims at this robot's
+    # own static-OOI detection nearest the target, if one lies this close to it
+    laser_snap_m: float = 1.5
 
 
 @dataclass
@@ -235,6 +239,8 @@ class RobotNode:
         self._latest: tuple[np.ndarray, GridGeometry] | None = None  # newest sweep's obstacles
         self._path_found = True
         self._backup_until_s = -math.inf
+        # the terrain map last planned on, without the keep-out disks: line of sight for the
+        # laser (a static OOI's own keep-out would block every view of it from outside)
         self._last_map: tuple[np.ndarray, GridGeometry] | None = None
         self._laser_on = False
         self._battery_frac = math.nan  # unknown until the hardware reports it
@@ -566,21 +572,27 @@ class RobotNode:
         self.stats.terrain_grids += 1
         self.stats.terrain_grid_bytes += len(data)
 
-    def _current_map(self) -> tuple[np.ndarray, GridGeometry]:
+    def _current_map(self, *, keepout: bool = True) -> tuple[np.ndarray, GridGeometry]:
+        """The fused terrain map around the robot, with the keep-out disks as obstacles unless
+        ``keepout`` is False."""
         geometry = self.config.terrain.geometry_around(self.odometry.pose_in_odom[:2])
         classes = (
             self.fusion.fused(geometry) if len(self.fusion) else np.zeros(geometry.shape, np.uint8)
         )
-        if len(self._keepout):
-            blocked = rasterize_disks(
-                classes == OBSTACLE,
-                self._keepout,
-                origin_in_odom=geometry.origin_m,
-                resolution_m=geometry.resolution_m,
-            )
-            classes = classes.copy()
-            classes[blocked] = OBSTACLE
-        return classes, geometry
+        return (self._with_keepout(classes, geometry) if keepout else classes), geometry
+
+    def _with_keepout(self, classes: np.ndarray, geometry: GridGeometry) -> np.ndarray:
+        if not len(self._keepout):
+            return classes
+        blocked = rasterize_disks(
+            classes == OBSTACLE,
+            self._keepout,
+            origin_in_odom=geometry.origin_m,
+            resolution_m=geometry.resolution_m,
+        )
+        classes = classes.copy()
+        classes[blocked] = OBSTACLE
+        return classes
 
     def _replan(self, *, force: bool = False) -> None:
         intent = self.tasks.intent
@@ -605,8 +617,9 @@ class RobotNode:
             and np.array_equal(goal, self._planned_goal)
         ):
             return
-        classes, geometry = self._current_map()
-        self._last_map = (classes, geometry)
+        terrain, geometry = self._current_map(keepout=False)
+        self._last_map = (terrain, geometry)
+        classes = self._with_keepout(terrain, geometry)
         pose = self.odometry.pose_in_odom
         clipped = self._clip_to_map(goal, geometry)
         beyond_map = not np.allclose(clipped, goal)
@@ -750,7 +763,7 @@ class RobotNode:
         now = self._now
         pose = self.odometry.pose_in_odom
         intent = self.tasks.intent
-        laser_target = intent.laser_target_in_odom
+        laser_target = self._laser_aim(intent.laser_target_in_odom)
         laser_ok = laser_target is not None and self._line_of_sight(pose, laser_target)
         breaking = self.deadlock.phase in (Phase.BACKOFF, Phase.HOLD)
         for status in self.tasks.update(
@@ -840,6 +853,24 @@ class RobotNode:
         if phase is not before:
             self._planned_goal = None  # replan: to the back-off point, nowhere, or the goal
 
+    def _laser_aim(self, target: tuple[float, float] | None) -> tuple[float, float] | None:
+        """Where the laser points for a neutralization aimed at ``target`` (odom): this
+        robot's own static-OOI detection nearest it within ``laser_snap_m`` (fused from its
+        sweeps in its own frame: centimetres, where the GCS's target carries the global map's
+        error), else ``target`` itself."""
+        if target is None or self.perception is None:
+            return target
+        best: tuple[float, float] | None = None
+        best_d = self.config.laser_snap_m
+        for o in self.perception.registry.objects:
+            if o.kind != ObjectKind.STATIC_OOI:
+                continue
+            x, y = float(o.position_in_odom[0]), float(o.position_in_odom[1])
+            d = math.hypot(x - target[0], y - target[1])
+            if d <= best_d:
+                best, best_d = (x, y), d
+        return target if best is None else best
+
     def _laser(self, pose: np.ndarray, target: tuple[float, float] | None) -> list[RobotCommand]:
         if target is None:
             if self._laser_on:
@@ -851,7 +882,8 @@ class RobotNode:
         return [LaserPointerCommand(self._now, True, float(wrap_angle(bearing)), 0.0)]
 
     def _line_of_sight(self, pose: np.ndarray, target: tuple[float, float]) -> bool:
-        """No obstacle cell of the fused map between the robot and ``target``."""
+        """No obstacle cell of the fused terrain map (keep-out disks are not obstacles to a
+        laser) between the robot and ``target``."""
         if self._last_map is None:
             return False
         classes, geometry = self._last_map

@@ -1,0 +1,63 @@
+"""A disruptor's node neutralizes a static OOI the GCS placed off by its map's error (issue 14):
+the laser aims at the robot's own detection of the OOI near the GCS's target, not at the
+target itself (a 0.25 m-radius object is missed by a ray aimed 0.7 m beside it)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+from protocol.messages import NeutralizeTask, TaskState, TaskStatus
+from protocol.se2 import relative
+from robot.node import RobotNode, RobotNodeConfig
+from sim.simulator import Simulator
+from sim.world_generator import Ooi
+from tests.sim.simworlds import make_world
+
+pytestmark = pytest.mark.slow
+
+OOI_RGBA = (1.0, 0.3, 0.0, 1.0)
+START = np.array([3.0, 10.0, 0.0])
+OOI_XY = (10.0, 8.0)
+
+
+def _neutralize(config: RobotNodeConfig, seconds: float = 70.0) -> tuple[list[Any], list[str]]:
+    world = make_world(
+        robots=((*START, "disruptor"),),
+        oois=(Ooi(1, "static_ooi", OOI_XY, 0.25, 0.8, OOI_RGBA),),
+    )
+    sent: list[Any] = []
+    with Simulator(world) as sim:
+        node = RobotNode(0, send=sent.append, config=config)
+        truth = relative(START, np.array([*OOI_XY, 0.0]))[:2]
+        # the GCS's estimate: 0.7 m off the OOI, across the line of approach
+        target = (float(truth[0]), float(truth[1]) + 0.7)
+        node.handle_downlink(NeutralizeTask(1, 0.0, target, 3.5, True))
+        driver = sim.driver(0)
+        end_s = seconds
+        while sim.time_s < end_s:
+            sim.step()
+            for command in node.process(driver.poll(0.0)):
+                driver.send(command)
+            done = any(isinstance(m, TaskStatus) and m.state is TaskState.SUCCEEDED for m in sent)
+            if done and end_s == seconds:
+                end_s = sim.time_s + 1.0  # the simulator's rules see the laser's last step
+        events = [str(e) for e in sim.events]
+    return sent, events
+
+
+def test_the_laser_finds_the_ooi_the_gcs_placed_off_by_its_map_error() -> None:
+    sent, events = _neutralize(RobotNodeConfig())
+    states = [m.state for m in sent if isinstance(m, TaskStatus) and m.task_id == 1]
+    assert TaskState.SUCCEEDED in states, states
+    assert any("neutralized" in e and "static_ooi:1" in e for e in events), events
+    assert not any("detonat" in e or "disabled" in e for e in events), events
+
+
+def test_aiming_at_the_target_itself_misses_it() -> None:
+    """The same task with the aim not snapped (laser_snap_m tiny): the robot holds its laser
+    on the target (line of sight) and reports success, but the ray misses the OOI."""
+    _, events = _neutralize(RobotNodeConfig(laser_snap_m=1e-6))
+    assert not any("neutralized" in e for e in events), events
