@@ -24,7 +24,7 @@ __all__ = ["CameraConfig", "camera_axes", "intrinsics", "pan_angle"]
 
 class CameraConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     hfov_deg: float = 60.0
-    pan_rate_rad_s: float = 0.8
+    pan_rate_rad_s: float = 1.6
     pan_limit_rad: float = 2.6
     tilt_rad: float = -0.12
     history_s: float = 20.0

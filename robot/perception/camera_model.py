@@ -33,7 +33,7 @@ class CameraMountConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
     simulator's robot geometry and camera config, checked equal in the tests)."""
 
     camera_in_base_m: tuple[float, float, float] = (-0.12, 0.0, 0.92)
-    pan_rate_rad_s: float = 0.8
+    pan_rate_rad_s: float = 1.6
     pan_limit_rad: float = 2.6
     tilt_rad: float = -0.12
 

@@ -120,9 +120,12 @@ def _detect(rgb: np.ndarray) -> list[int]:
     return [] if ids is None else sorted(int(i) for i in ids.ravel())
 
 
-@pytest.mark.parametrize("yaw", [math.pi, math.pi / 2, 0.0, -math.pi / 2])
-def test_a_tag_rendered_at_2_m_is_decoded_with_the_right_id(yaw: float) -> None:
-    # robot 1's head face towards robot 0's camera (x = 9.88) is 2 m away, whichever face
+@pytest.mark.parametrize(
+    ("yaw", "face"), [(math.pi, 0), (math.pi / 2, 1), (0.0, 2), (-math.pi / 2, 3)]
+)
+def test_a_tag_rendered_at_2_m_is_decoded_with_the_right_id(yaw: float, face: int) -> None:
+    # robot 1's head face towards robot 0's camera (x = 9.88) is 2 m away, whichever face;
+    # each face has its own id, 4 robot + face (front, left, back, right)
     head_x = 9.88 + 2.0 + 0.1
     robots = [
         (10.0, 10.0, 0.0, "sensor"),
@@ -138,7 +141,7 @@ def test_a_tag_rendered_at_2_m_is_decoded_with_the_right_id(yaw: float) -> None:
         img = images[0]
         assert img.request_id == 5 and img.rgb.shape == (240, 320, 3)
         assert img.fx_px == pytest.approx(160 / math.tan(math.radians(30)))
-        assert _detect(img.rgb) == [1]
+        assert _detect(img.rgb) == [4 * 1 + face]
 
 
 def test_tags_are_found_up_to_about_4_m_at_640x480() -> None:
@@ -149,7 +152,7 @@ def test_tags_are_found_up_to_about_4_m_at_640x480() -> None:
         sim.driver(0).send(ImageRequest(request_id=1, time_s=0.0, width_px=640, height_px=480))
         sim.step()
         img = next(f for f in sim.driver(0).poll(0.0) if isinstance(f, CameraImage))
-        assert _detect(img.rgb) == [1]
+        assert _detect(img.rgb) == [4 * 1 + 0]  # robot 1's front face
 
 
 def test_images_come_from_the_recorded_camera_pose_of_the_requested_time() -> None:
