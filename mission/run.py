@@ -24,10 +24,12 @@ hazard; robots never see the truth.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -757,6 +759,45 @@ def _parser() -> Any:
     return p
 
 
+class _LogCounter(logging.Handler):
+    """Counts the records at WARNING and above (the summary says how many went to the log)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.warnings = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.warnings += 1
+
+
+@contextlib.contextmanager
+def _library_logging(path: Path | None) -> Iterator[_LogCounter]:
+    """During a run, the library's log records (the GCS refusing a message, a robot's bad
+    frame, ...) go to ``path`` (the run directory's ``run.log``), INFO and above, and are
+    counted; stderr keeps the progress alone (a record printed through the live table tore
+    it). ``path`` None: logging is left as it is, and only counted."""
+    root = logging.getLogger()
+    counter = _LogCounter()
+    handlers: list[logging.Handler] = [counter]
+    if path is not None:
+        file = logging.FileHandler(path, encoding="utf-8")
+        file.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        file.setLevel(logging.INFO)
+        handlers.append(file)
+    level = root.level
+    if path is not None and root.getEffectiveLevel() > logging.INFO:
+        root.setLevel(logging.INFO)
+    for h in handlers:
+        root.addHandler(h)
+    try:
+        yield counter
+    finally:
+        for h in handlers:
+            root.removeHandler(h)
+            h.close()
+        root.setLevel(level)
+
+
 class _Terminated(KeyboardInterrupt):
     """SIGTERM, raised like ^C so that the run stops the same way (exit 143)."""
 
@@ -877,11 +918,15 @@ def main(argv: list[str] | None = None) -> int:
             markup=False,
             soft_wrap=True,
         )
+    log_path = None if out_dir is None else out_dir / "run.log"
+    logs = contextlib.ExitStack()
+    logged = logs.enter_context(_library_logging(log_path))
     try:
         if args.quiet:
             report = run_mission(config, out_dir=out_dir)
         elif err.is_terminal:
-            with Live(console=err, refresh_per_second=4) as live:
+            # transient: the final table is printed once, below, not left here as well
+            with Live(console=err, refresh_per_second=4, transient=True) as live:
                 report = run_mission(
                     config,
                     on_progress=lambda r: live.update(format_progress(r, total_s)),
@@ -916,9 +961,15 @@ def main(argv: list[str] | None = None) -> int:
         return fail(exc)
     finally:
         signal.signal(signal.SIGTERM, previous)
+        logs.close()
     out.print(format_progress(report, total_s))
     if report.run_dir:
         out.print(_headline(report), soft_wrap=True, markup=False)
+    if log_path is not None:
+        where = f"log: {logged.warnings} warnings and errors in {log_path}"
+        out.print(where, soft_wrap=True, markup=False)
+    elif logged.warnings:
+        out.print(f"log: {logged.warnings} warnings and errors", soft_wrap=True, markup=False)
     if report.interrupted is not None:
         status, name = _exit_status(report.interrupted)
         err.print(

@@ -148,7 +148,29 @@ def test_a_signal_mid_run_ends_it_with_the_summary_so_far(sig, status, name, tmp
     assert any(line.startswith("mode: deterministic lockstep") for line in lines), out
     # the report is written from what ran
     assert (run_dir / "report.json").is_file() and (run_dir / "report.md").is_file()
+    # the library's log went to the run directory, counted in the summary
+    assert (run_dir / "run.log").is_file()
+    assert any(line.startswith("log: ") and "run.log" in line for line in lines), out
     assert any(line.startswith("report: explored ") for line in lines), out
+
+
+def test_library_logging_goes_to_the_run_log_not_to_stderr(tmp_path, capsys) -> None:
+    """During a run a library warning (the GCS refusing a detection, say) is written to the
+    run directory's log and counted; nothing reaches stderr, where the progress is."""
+    import logging
+
+    from mission.run import _library_logging
+
+    path = tmp_path / "run.log"
+    with _library_logging(path) as counter:
+        logging.getLogger("gcs.ground_station").warning("rejected robot 2 Detection 17")
+        logging.getLogger("robot.node").info("robot 1: deadlock")
+    logging.getLogger("gcs.ground_station").warning("after the run")  # not in the file
+    assert counter.warnings == 1
+    text = path.read_text()
+    assert "rejected robot 2 Detection 17" in text and "robot 1: deadlock" in text
+    assert "after the run" not in text
+    assert "rejected robot 2" not in capsys.readouterr().err
 
 
 def test_run_help_gives_defaults_units_outputs_and_terms(capsys) -> None:
