@@ -11,7 +11,10 @@ same state (same nodes, edges and poses, given a deterministic run: see below). 
 - ``start_hint``, ``accept_closure``, ``rewind``, ``restart_closer``: the operator primitives
   of the station (paper 6.1) with their arguments;
 - ``operator`` and ``decision``: operator commands and planner decisions as JSON objects, for
-  their owners to rebuild from (the station ignores them).
+  their owners to rebuild from (the station ignores them);
+- ``downlink`` and ``link``: the GCS process's reliable downlink messages (frame bytes with
+  their sequence numbers) and snapshots of its latest-only streams' sequence numbers, from
+  which a resumed ``magic gcs`` continues every robot's streams (the station ignores them).
 
 Storage is SQLite in WAL mode (Python's standard library: no server, one file, readable with
 any SQLite tool, safe against a torn write). :meth:`GcsJournal.commit` makes what was appended
@@ -52,7 +55,10 @@ __all__ = [
     "JournaledStation",
     "Record",
     "ReplaySummary",
+    "ResumedControl",
     "replay_journal",
+    "resume_control",
+    "step_control",
 ]
 
 #: Bumped whenever the record layout changes; a journal of another format is refused.
@@ -79,6 +85,8 @@ _KINDS = frozenset(
         "restart_closer",
         "operator",
         "decision",
+        "downlink",
+        "link",
     }
 )
 
@@ -201,6 +209,18 @@ class GcsJournal:
             return None
         return self.append("uplink", now_s, body, robot_id=robot_id)
 
+    def downlink(self, robot_id: int, msg: object, seq: int, now_s: float) -> int | None:
+        """Journal a downlink message the GCS queued for ``robot_id`` with its stream sequence
+        number ``seq`` (a resumed GCS continues the stream from it); ``None`` (counted) if
+        ``msg`` is no downlink message."""
+        try:
+            stream_of(Direction.DOWN, msg)
+            body = encode_frame(seq, msg)
+        except ProtocolError:
+            self.unencodable += 1
+            return None
+        return self.append("downlink", now_s, body, robot_id=robot_id)
+
     def event(self, kind: str, time_s: float, fields: dict[str, Any], *, robot_id: int = -1) -> int:
         """Journal a non-uplink record whose body is ``fields`` as JSON (finite numbers only)."""
         try:
@@ -219,6 +239,12 @@ class GcsJournal:
         if now - self._last_sync_wall_s >= self.sync_period_s:
             self._last_sync_wall_s = now
             self._conn.execute("PRAGMA wal_checkpoint(PASSIVE)")
+
+    def abandon(self) -> None:
+        """Close without committing: what a killed process leaves (tests and the chaos
+        bench's simulated crash); what was not committed is gone."""
+        self._conn.rollback()
+        self._conn.close()
 
     def close(self) -> None:
         """Commit and close (a closed journal can be opened again)."""
@@ -280,6 +306,9 @@ def replay_journal(
     record means a damaged file, not bad robot input."""
     summary = ReplaySummary()
     for rec in journal.records(after_seq=after_seq):
+        if rec.kind in ("operator", "decision", "downlink", "link"):
+            summary.records[rec.kind] = summary.records.get(rec.kind, 0) + 1
+            continue
         try:
             _apply(rec, station)
         except (ProtocolError, ValueError, KeyError, TypeError) as err:
@@ -416,3 +445,89 @@ class JournaledStation:
     def _now(self) -> float:
         # the operator primitives take no time: they happen at the latest time handed in
         return self._now_s
+
+
+def step_control(
+    control: Any, journal: GcsJournal | None, *, now_s: float, budget_s: float
+) -> list[tuple[int, Any]]:
+    """:meth:`MissionControl.step <gcs.mission_control.MissionControl.step>` with its journal
+    records: the ``step`` first (what replays the station), then one ``decision`` record per
+    planner event and per task sent (what rebuilds the allocator's bookkeeping on resume:
+    tasks sent per robot, the task ids used). Not committed: the caller commits once per
+    batch, before its link acknowledges."""
+    if journal is None:
+        return list(control.step(now_s=now_s, budget_s=budget_s))
+    journal.event("step", now_s, {"budget_s": None if math.isinf(budget_s) else float(budget_s)})
+    plans = control.allocator.stats.plans
+    out = list(control.step(now_s=now_s, budget_s=budget_s))
+    if control.allocator.stats.plans != plans:
+        for ev in control.allocator.events:
+            journal.event(
+                "decision",
+                ev.time_s,
+                {"event": ev.kind, "text": ev.text, "hazard_id": ev.hazard_id},
+                robot_id=-1 if ev.robot_id is None else int(ev.robot_id),
+            )
+    for rid, msg in out:
+        task_id = getattr(msg, "task_id", None)
+        if isinstance(task_id, int):
+            journal.event(
+                "decision",
+                now_s,
+                {"task": type(msg).__name__, "task_id": task_id},
+                robot_id=int(rid),
+            )
+    return out
+
+
+@dataclass
+class ResumedControl:
+    """What :func:`resume_control` rebuilt: the mission control (station replayed, allocator
+    fresh but past every journaled task id), the journal to keep appending to, and what the
+    replay fed (``rebuild_s``: wall seconds it took)."""
+
+    control: Any
+    journal: GcsJournal
+    summary: ReplaySummary
+    rebuild_s: float
+
+
+def resume_control(path: str | Path, mission: Any = None) -> ResumedControl:
+    """A :class:`~gcs.mission_control.MissionControl` rebuilt from the journal at ``path``.
+
+    The station is replayed record by record (:func:`replay_journal`: same nodes, edges and
+    poses as the one that was killed, given a deterministic run). The allocator is *not*
+    replayed: it re-plans from the rebuilt estimate at its next step (its plan is a function of
+    the station's state, the robots' last reports and its own assignments; the assignments
+    would need every plan replayed with the same map, which costs a rasterization per plan).
+    What the journal's ``decision`` records give it back: the tasks sent per robot and the
+    task ids used (new ids start past them, so no robot sees an id twice)."""
+    import msgspec
+
+    from gcs.ground_station import GroundStation
+    from gcs.mission_control import MissionControl, MissionControlConfig
+
+    t0 = time.perf_counter()
+    journal = GcsJournal.open(path)
+    try:
+        station = GroundStation(journal.station_config())
+        summary = replay_journal(journal, station)
+        sent: dict[int, int] = {}
+        last_id = 0
+        for rec in journal.records():
+            if rec.kind != "decision":
+                continue
+            f = rec.json()
+            if "task_id" in f:
+                sent[rec.robot_id] = sent.get(rec.robot_id, 0) + 1
+                last_id = max(last_id, int(f["task_id"]))
+    except BaseException:
+        journal.close()
+        raise
+    mc = mission or MissionControlConfig()
+    if last_id >= mc.tasking.first_task_id:
+        tasking = msgspec.structs.replace(mc.tasking, first_task_id=last_id + 1)
+        mc = msgspec.structs.replace(mc, tasking=tasking)
+    control = MissionControl(station, mc)
+    control.tasks_sent.update(sent)
+    return ResumedControl(control, journal, summary, time.perf_counter() - t0)

@@ -13,11 +13,13 @@ wall``) on real robots.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import queue
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -25,6 +27,13 @@ from typing import Any
 import msgspec
 
 from gcs.ground_station import GroundStation, GroundStationConfig
+from gcs.journal import (
+    GcsJournal,
+    JournalError,
+    ResumedControl,
+    resume_control,
+    step_control,
+)
 from gcs.mission_control import MissionControl, MissionControlConfig
 from gcs.operator.node_hooks import (  # operator (issue 15): views and console commands
     add_operator_arguments,
@@ -36,6 +45,7 @@ from protocol import keys
 from protocol.clock import ManualClock, WallClock
 from protocol.config import ConfigError, load_config
 from protocol.link import Link
+from protocol.messages import STREAMS, Direction, Reliability, stream_of
 from protocol.process_cli import (
     add_link_arguments,
     follow_sim_clock,
@@ -46,13 +56,119 @@ from protocol.process_cli import (
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
 
-__all__ = ["GcsProcess", "check_endpoint", "main", "summary_line"]
+__all__ = ["GcsProcess", "check_endpoint", "main", "restore_link_state", "summary_line"]
+
+#: Sequence numbers a resumed GCS skips on its latest-only downlink streams (acks, hazard
+#: updates, broadcasts) past the last journaled snapshot: more than a second of them can
+#: have gone out between two snapshots, and a robot drops anything not newer than what it has.
+LATEST_SEQ_MARGIN = 100_000
+#: Reliable downlink messages per robot and stream a resumed GCS sends again (with their
+#: sequence numbers: a robot that had them drops them as duplicates).
+RESEND_TAIL = 32
+_LATEST_DOWN = [
+    name
+    for name, spec in STREAMS[Direction.DOWN].items()
+    if spec.reliability is not Reliability.RELIABLE and not spec.broadcast
+]
+
+
+def link_snapshot(radio: Any) -> dict[str, Any]:
+    """The next sequence numbers of the GCS endpoint's latest-only downlink streams, per robot
+    and for the broadcast (for the journal's ``link`` records). Reads the channels' private
+    state: the link has no public accessor yet."""
+    robots = {}
+    for rid in radio.robots():
+        ch = radio.channel(rid)
+        robots[str(rid)] = {n: ch._send[n].next_seq for n in _LATEST_DOWN if n in ch._send}
+    bc = radio.broadcast_channel
+    return {"robots": robots, "broadcast": {n: st.next_seq for n, st in bc._send.items()}}
+
+
+def restore_link_state(radio: Any, journal: GcsJournal) -> dict[str, int]:
+    """Give a fresh GCS endpoint the sequence state of the one that was killed, from the
+    journal, so that robots notice nothing but a pause and nothing is delivered twice:
+
+    * each robot's reliable uplink streams continue after the last message journaled (the
+      link delivers them in order, exactly once, from 1, and the GCS acknowledges only what
+      it committed: the count is the last sequence number), and the stream decoders of pose
+      nodes and grids get their reference back (the last two nodes, the last grid);
+    * each reliable downlink stream continues after its last journaled message, and the last
+      ``RESEND_TAIL`` go out again with their numbers (one the robot never got would stall
+      its stream; those it had it drops);
+    * latest-only downlink streams (acks, hazard updates, broadcasts) jump
+      ``LATEST_SEQ_MARGIN`` past the last ``link`` snapshot.
+
+    Writes the channels' private state (the link has no public API for it yet). Returns
+    counts: robots, uplink streams restored, downlink messages resent."""
+    from protocol.messages import PoseNode, TerrainGrid, decode_frame
+
+    up: dict[tuple[int, str], int] = {}
+    nodes: dict[int, list[Any]] = {}
+    grids: dict[int, Any] = {}
+    down: dict[tuple[int, str], list[tuple[int, Any]]] = {}
+    snapshot: dict[str, Any] | None = None
+    for rec in journal.records():
+        if rec.kind == "uplink":
+            msg = decode_frame(rec.body, Direction.UP).msg
+            spec = stream_of(Direction.UP, msg)
+            if spec.reliability is Reliability.RELIABLE:
+                key = (rec.robot_id, spec.name)
+                up[key] = up.get(key, 0) + 1
+            if isinstance(msg, PoseNode):
+                nodes.setdefault(rec.robot_id, []).append(msg)
+                del nodes[rec.robot_id][:-2]
+            elif isinstance(msg, TerrainGrid):
+                grids[rec.robot_id] = msg
+        elif rec.kind == "downlink":
+            frame = decode_frame(rec.body, Direction.DOWN)
+            tail = down.setdefault((rec.robot_id, stream_of(Direction.DOWN, frame.msg).name), [])
+            tail.append((frame.seq, frame.msg))
+            del tail[:-RESEND_TAIL]
+        elif rec.kind == "link":
+            snapshot = rec.json()
+    robots = {r for r, _ in up} | {r for r, _ in down}
+    if snapshot is not None:
+        robots |= {int(r) for r in snapshot["robots"]}
+    resent = 0
+    for rid in sorted(robots):
+        ch = radio.channel(rid)
+        for (r, stream), count in up.items():
+            if r == rid:
+                ch._recv[stream].delivered_through = count
+        for node in nodes.get(rid, []):
+            ch._coders_in["pose_node"].decode(node)
+        if rid in grids:
+            ch._coders_in["terrain_grid"].decode(grids[rid])
+        if snapshot is not None:
+            for name, nxt in snapshot["robots"].get(str(rid), {}).items():
+                ch._send[name].next_seq = int(nxt) + LATEST_SEQ_MARGIN
+        for (r, stream), tail in down.items():
+            if r != rid or not tail:
+                continue
+            ch._send[stream].next_seq = tail[0][0]
+            for _, msg in tail:
+                radio.send(rid, msg)
+                resent += 1
+    if snapshot is not None:
+        bc = radio.broadcast_channel
+        for name, nxt in snapshot["broadcast"].items():
+            bc._send[name].next_seq = int(nxt) + LATEST_SEQ_MARGIN
+    return {"robots": len(robots), "uplink_streams": len(up), "downlink_resent": resent}
 
 
 class GcsProcess:
     """A :class:`GroundStation` and its planners (:class:`MissionControl`) wired to the robots'
     radios over ``link``. ``mission``: the planners' configuration (default: sensor robots
-    only, planning every 2 s; ``MissionControlConfig(enabled=False)``: estimation only)."""
+    only, planning every 2 s; ``MissionControlConfig(enabled=False)``: estimation only).
+
+    ``journal`` (:mod:`gcs.journal`): every uplink message before the station takes it, every
+    step and the planners' decisions are appended, and committed once per spin. With a
+    journal the radio's arrivals are held and processed on this loop's thread
+    (:meth:`GcsEndpoint.hold_arrivals`), and when the link has no pump thread
+    (``pump_period_s`` 0, as ``magic gcs`` opens it) this loop pumps it after the commit: the
+    link acknowledges only what the journal holds. ``control``: a mission control rebuilt
+    from a journal (``--resume``) instead of a new one; ``resumed``: what that rebuild fed,
+    whose receive state the radio takes back (:func:`restore_link_state`)."""
 
     def __init__(
         self,
@@ -63,10 +179,17 @@ class GcsProcess:
         step_period_s: float = 0.5,
         budget_s: float = 0.2,
         mission: MissionControlConfig | None = None,
+        journal: GcsJournal | None = None,
+        resumed: ResumedControl | None = None,
     ) -> None:
         self.link = link
         self.clock = clock
-        self.control = MissionControl(GroundStation(config), mission)
+        if resumed is not None:
+            self.control = resumed.control
+            journal = resumed.journal
+        else:
+            self.control = MissionControl(GroundStation(config), mission)
+        self.journal = journal
         self.station = self.control.station
         self.step_period_s = step_period_s
         self.budget_s = budget_s
@@ -75,6 +198,14 @@ class GcsProcess:
         self.radio = link.gcs_endpoint(
             on_message=lambda rid, msg: self._inbox.put((rid, msg)), follow_radio=True
         )
+        self._pump_here = journal is not None and link.config.pump_period_s <= 0
+        self._processed_arrivals = 0
+        self._last_snapshot_wall_s = -math.inf
+        self.link_state: dict[str, int] = {}
+        if journal is not None:
+            self.radio.hold_arrivals()
+        if resumed is not None:
+            self.link_state = restore_link_state(self.radio, resumed.journal)
         self._clock_sub = None
         if isinstance(clock, ManualClock):
             self._clock_sub = follow_sim_clock(link, clock)
@@ -83,14 +214,23 @@ class GcsProcess:
         self.operator: OperatorService | None = None  # operator (issue 15): set by main
 
     def spin_once(self, timeout_s: float = 0.05) -> int:
-        """Hand the queued messages to the station; step it when due. Returns messages taken."""
+        """Hand the queued messages to the station; step it when due; with a journal, commit
+        it, then let the link acknowledge (see the class docstring). Returns messages taken."""
         n = 0
+        item: tuple[int, Any] | None = None
+        if self.journal is not None:
+            self.radio.wait_packets_in(self._processed_arrivals + 1, timeout_s)
+            self._processed_arrivals = self.radio.packets_in
+            self.radio.deliver_held()  # on_message, on this thread, into the inbox
+            timeout_s = 0.0
         try:
-            item: tuple[int, Any] | None = self._inbox.get(timeout=timeout_s)
+            item = self._inbox.get(timeout=timeout_s) if timeout_s > 0 else self._inbox.get_nowait()
         except queue.Empty:
             item = None
         now = self.clock.now()
         while item is not None:
+            if self.journal is not None:
+                self.journal.uplink(item[0], item[1], now)
             self.control.handle(item[0], item[1], now_s=now)
             if self.operator is not None:  # operator (issue 15)
                 self.operator.observe(item[0], item[1], now_s=now, station=self.station)
@@ -101,14 +241,34 @@ class GcsProcess:
                 item = None
         if now - self._last_step_s >= self.step_period_s:
             self._last_step_s = now
-            for robot_id, msg in self.control.step(now_s=now, budget_s=self.budget_s):
+            out = step_control(self.control, self.journal, now_s=now, budget_s=self.budget_s)
+            for robot_id, msg in out:
                 try:
-                    self.radio.send(robot_id, msg)
+                    self.send(robot_id, msg)
                 except LinkBackpressure:
                     self.refused += 1  # the next periodic update supersedes it
         if self.operator is not None:  # operator (issue 15): commands, status, views
-            self.operator.after_step(now_s=now, station=self.station, send=self.radio.send)
+            self.operator.after_step(now_s=now, station=self.station, send=self.send)
+        if self.journal is not None:
+            wall = time.monotonic()
+            if wall - self._last_snapshot_wall_s >= 1.0:
+                self._last_snapshot_wall_s = wall
+                self.journal.event("link", now, link_snapshot(self.radio))
+            self.journal.commit()
+            if self._pump_here:
+                self.link.pump()  # acknowledgements of what the journal now holds
         return n
+
+    def send(self, robot_id: int, msg: Any) -> int:
+        """Queue a downlink message; with a journal, a message on a reliable stream (tasks,
+        parameters) is journaled with its sequence number, so a resumed GCS continues the
+        robot's stream where it was (:func:`restore_link_state`)."""
+        seq = self.radio.send(robot_id, msg)
+        if self.journal is not None:
+            spec = stream_of(Direction.DOWN, msg)
+            if spec.reliability is Reliability.RELIABLE:
+                self.journal.downlink(robot_id, msg, seq, self.clock.now())
+        return seq
 
     def run(
         self,
@@ -272,6 +432,23 @@ def _parser() -> argparse.ArgumentParser:
         "(default: the planners task every robot)",
     )
     p.add_argument(
+        "--out",
+        type=Path,
+        metavar="RUN_DIR",
+        help="run directory: the GCS journal (journal.sqlite: every uplink message, step, "
+        "planner decision and operator command) and gcs.json (the resolved configuration); "
+        "must not hold a journal yet (default: runs/<UTC date-time>-gcs-<mission>/)",
+    )
+    p.add_argument(
+        "--resume",
+        type=Path,
+        metavar="RUN_DIR",
+        help="carry on a GCS that was killed: rebuild the station from RUN_DIR/journal.sqlite "
+        "(graph, closures, hazards, OOIs), re-plan from it, continue every robot's radio "
+        "streams where the journal left them, and keep journaling there (its configuration "
+        "is the journal's: no --config)",
+    )
+    p.add_argument(
         "--progress-s",
         type=float,
         metavar="S",
@@ -312,6 +489,54 @@ def _short(err: BaseException) -> str:
     text = " ".join(str(err).split())
     text = text.split(" at /", 1)[0]
     return text if len(text) <= 150 else text[:147] + "..."
+
+
+def _check_journal_arguments(args: argparse.Namespace) -> None:
+    """``--out``/``--resume`` checked before anything opens (ValueError naming the problem)."""
+    if args.resume is not None:
+        if args.out is not None:
+            raise ValueError("--resume RUN_DIR journals there: no --out with it")
+        if args.config is not None:
+            raise ValueError("--resume: the station's configuration is the journal's: no --config")
+        if not (args.resume / "journal.sqlite").is_file():
+            raise ValueError(f"--resume {args.resume}: no journal.sqlite there")
+    elif args.out is not None:
+        if (args.out / "journal.sqlite").exists():
+            raise ValueError(
+                f"--out {args.out}: holds a journal already (--resume {args.out} carries it on)"
+            )
+        if args.out.exists() and not args.out.is_dir():
+            raise ValueError(f"--out {args.out}: not a directory")
+
+
+def _open_journal(
+    args: argparse.Namespace,
+    config: GroundStationConfig | None,
+    mission: MissionControlConfig,
+) -> tuple[GcsJournal | None, ResumedControl | None]:
+    """``--resume RUN_DIR``: the mission control rebuilt from its journal; else a new journal
+    in ``--out`` (or the default run directory). ValueError/JournalError naming the problem."""
+    if args.resume is not None:
+        return None, resume_control(args.resume / "journal.sqlite", mission)
+    out = args.out
+    if out is None:
+        stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+        out = Path("runs") / f"{stamp}-gcs-{args.mission}"
+    if (out / "journal.sqlite").exists():
+        raise ValueError(f"--out {out}: holds a journal already (--resume {out} carries it on)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"--out {out}: cannot create it: {err.strerror}") from None
+    station_config = config or GroundStationConfig()
+    resolved = {
+        "station": msgspec.to_builtins(station_config),
+        "mission": msgspec.to_builtins(mission),
+        "argv": sys.argv[1:],
+    }
+    (out / "gcs.json").write_text(json.dumps(resolved, indent=1, sort_keys=True) + "\n")
+    meta = {"source": "magic gcs", "mission": str(args.mission)}
+    return GcsJournal.create(out / "journal.sqlite", station_config, meta=meta), None
 
 
 class _Stopped(BaseException):
@@ -372,20 +597,52 @@ def _main(argv: list[str]) -> int:
         mission = msgspec.structs.replace(mission, **overrides)
         radio = load_config(args.radio, RadioConfig)
         check_operator_arguments(args)  # operator (issue 15)
+        _check_journal_arguments(args)
     except (ConfigError, ValueError) as err:
         print(f"magic gcs: {err}", file=sys.stderr)
         return 2
     clock: Any = ManualClock() if args.clock == "sim" else WallClock()
     try:
-        link = Link(link_config(radio, args), mission=args.mission, clock=clock)
+        # no pump thread: the GCS loop pumps after each journal commit (ack what is kept)
+        cfg = msgspec.structs.replace(link_config(radio, args), pump_period_s=0.0)
+        link = Link(cfg, mission=args.mission, clock=clock)
     except Exception as err:  # zenoh refuses the endpoints (unresolvable, in use, ...)
         print(f"magic gcs: cannot open the zenoh link: {_short(err)}", file=sys.stderr)
         return 2
+    try:
+        journal, resumed = _open_journal(args, config, mission)
+    except (ValueError, JournalError) as err:
+        print(f"magic gcs: {err}", file=sys.stderr)
+        link.close()
+        return 2
     proc = GcsProcess(
-        link, clock, config, step_period_s=args.step_s, budget_s=args.budget_s, mission=mission
+        link,
+        clock,
+        config,
+        step_period_s=args.step_s,
+        budget_s=args.budget_s,
+        mission=mission,
+        journal=journal,
+        resumed=resumed,
     )
     proc.operator = operator_service(args, link, getattr(proc, "control", None))  # operator (15)
-    print(f"magic gcs: mission {args.mission!r}, waiting for robots", flush=True)
+    if proc.operator is not None and proc.operator.journal is None:
+        proc.operator.journal = proc.journal  # operator commands into the GCS journal
+    assert proc.journal is not None
+    if resumed is not None:
+        st = proc.link_state
+        print(
+            f"magic gcs: resumed from {proc.journal.path} in {resumed.rebuild_s:.2f} s: "
+            f"{resumed.summary.records.get('uplink', 0)} uplink messages, nodes "
+            f"{proc.station.stats.pose_nodes}, edges {len(proc.station.graph.edges())}; "
+            f"radio streams of {st['robots']} robots continued, {st['downlink_resent']} "
+            "downlink messages resent",
+            flush=True,
+        )
+    print(
+        f"magic gcs: mission {args.mission!r}, journal {proc.journal.path}, waiting for robots",
+        flush=True,
+    )
     stopped_by: list[int] = []
 
     def on_signal(signum: int) -> None:
@@ -404,6 +661,7 @@ def _main(argv: list[str]) -> int:
     finally:
         proc.close()
         link.close()
+        proc.journal.close()
     signame = signal.Signals(stopped_by[0]).name if stopped_by else None
     print(summary_line(proc, signame), flush=True)
     return 128 + stopped_by[0] if stopped_by else 0

@@ -36,15 +36,18 @@ import queue
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Protocol
 
 import msgspec
 import numpy as np
 
 from gcs.ground_station import GroundStation, GroundStationConfig
+from gcs.journal import GcsJournal, JournaledStation, resume_control, step_control
 from gcs.mission_control import MissionControl, MissionControlConfig
 from gcs.tasking.allocator import Role
 from mission.lockstep import RunSeeds, TeamInLockstep, TeamOverProcesses
+from protocol.messages import HazardUpdate
 from protocol.radio import RadioConfig
 from protocol.se2 import compose, inverse, relative, transform_points
 from robot.node import RobotNodeConfig
@@ -91,6 +94,9 @@ class GcsGround:
     ``taps``: callables ``(robot_id, message, accepted)`` told of every uplink message after the
     station took it (progress tables, scoring, a script beside the GCS). ``lockstep``: no
     wall-clock budget for loop closing (deterministic); otherwise ``budget_s`` wall seconds.
+    ``journal``: the GCS journal (:mod:`gcs.journal`): every uplink message before the station
+    takes it, every step and the planners' decisions, committed at the end of each turn,
+    before the radio exchange acknowledges what the turn took.
     """
 
     def __init__(
@@ -101,6 +107,7 @@ class GcsGround:
         step_period_s: float = 1.0,
         budget_s: float = 0.2,
         taps: list[Callable[[int, Any, bool], None]] | None = None,
+        journal: GcsJournal | None = None,
     ) -> None:
         if not (math.isfinite(step_period_s) and step_period_s > 0):
             raise ValueError(f"gcs step_period_s: expected seconds > 0, got {step_period_s}")
@@ -110,6 +117,7 @@ class GcsGround:
         self.step_period_s = step_period_s
         self.budget_s = budget_s
         self.taps = list(taps or [])
+        self.journal = journal
         self.messages = 0
         self._inbox: queue.SimpleQueue[tuple[int, Any]] = queue.SimpleQueue()
         self._last_step_s = -math.inf
@@ -126,6 +134,8 @@ class GcsGround:
                 rid, msg = self._inbox.get_nowait()
             except queue.Empty:
                 return n
+            if self.journal is not None:
+                self.journal.uplink(rid, msg, now_s)
             accepted = self.control.handle(rid, msg, now_s=now_s)
             for tap in self.taps:
                 tap(rid, msg, accepted)
@@ -135,11 +145,38 @@ class GcsGround:
     def turn(self, now_s: float) -> Downlink:
         """The inbox, then (when due) the station's step and a plan: the downlink."""
         self.drain(now_s)
-        if now_s - self._last_step_s < self.step_period_s:
-            return []
-        self._last_step_s = now_s
-        budget = math.inf if self.lockstep else self.budget_s
-        return self.control.step(now_s=now_s, budget_s=budget)
+        out: Downlink = []
+        if now_s - self._last_step_s >= self.step_period_s:
+            self._last_step_s = now_s
+            budget = math.inf if self.lockstep else self.budget_s
+            out = step_control(self.control, self.journal, now_s=now_s, budget_s=budget)
+        if self.journal is not None:
+            self.journal.commit()
+        return out
+
+    def crash_and_resume(self) -> tuple[GcsGround, float]:
+        """Simulate a crash of the GCS process and its restart (the chaos bench): this ground
+        side is dropped without committing anything more, and a new one is rebuilt from its
+        journal (:func:`gcs.journal.resume_control`): same station, allocator re-planning from
+        it. Returns the new ground side and the wall seconds the rebuild took. The radio
+        link is not rebuilt: in one process it survives, as the link's sequence state must."""
+        if self.journal is None:
+            raise ValueError("crash_and_resume needs a journaled GCS (assemble(journal_path=...))")
+        path = self.journal.path
+        self.journal.abandon()
+        self.journal = None
+        resumed = resume_control(path, self.control.config)
+        resumed.control.on_event = self.control.on_event
+        ground = GcsGround(
+            resumed.control,
+            lockstep=self.lockstep,
+            step_period_s=self.step_period_s,
+            budget_s=self.budget_s,
+            taps=self.taps,
+            journal=resumed.journal,
+        )
+        ground.messages = self.messages
+        return ground, resumed.rebuild_s
 
 
 @dataclass
@@ -152,6 +189,8 @@ class Assembly:
     roles: dict[int, Role]
     gcs: GcsGround | None = None
     downlink_sent: dict[int, int] = field(default_factory=dict)
+    broadcast_hazards: bool = True
+    broadcasts: int = 0
 
     def step(self) -> None:
         """One simulator step with the robots' answers, every ground side's turn (its
@@ -161,9 +200,36 @@ class Assembly:
     def _ground_turn(self) -> None:
         now = self.sim.time_s
         for ground in self.grounds:
-            for rid, msg in ground.turn(now):
-                self.team.ground.send(rid, msg)
+            out = ground.turn(now)
+            # the station hands every due robot the same HazardUpdate object: one broadcast
+            # (paper 4.1) instead of one copy per robot, when two or more robots are due
+            shared: dict[int, int] = {}
+            if self.broadcast_hazards:
+                for _, msg in out:
+                    if isinstance(msg, HazardUpdate):
+                        shared[id(msg)] = shared.get(id(msg), 0) + 1
+            sent: set[int] = set()
+            for rid, msg in out:
+                if shared.get(id(msg), 0) > 1:
+                    if id(msg) not in sent:
+                        sent.add(id(msg))
+                        self.team.ground.broadcast(msg)
+                        self.broadcasts += 1
+                else:
+                    self.team.ground.send(rid, msg)
                 self.downlink_sent[rid] = self.downlink_sent.get(rid, 0) + 1
+
+    def restart_gcs(self) -> float:
+        """The GCS killed and restarted from its journal at the end of a ground turn
+        (:meth:`GcsGround.crash_and_resume`); returns the rebuild's wall seconds. Call it
+        from a step's ``on_step`` hook or between steps."""
+        if self.gcs is None:
+            raise ValueError("no GCS on this team's ground side")
+        k = self.grounds.index(self.gcs)
+        ground, rebuild_s = self.gcs.crash_and_resume()
+        self.grounds[k] = ground
+        self.gcs = ground
+        return rebuild_s
 
     def link_bytes(self) -> dict[tuple[int, str, str], int]:
         """Radio bytes so far by ``(robot_id, direction, stream)`` (``up``/``down``)."""
@@ -192,7 +258,7 @@ def area_of_operations(sim: Simulator, map_robot: int) -> tuple[tuple[float, flo
 
 
 def give_start_hints(
-    station: GroundStation,
+    station: GroundStation | JournaledStation,
     sim: Simulator,
     *,
     sigma_xy_m: float,
@@ -202,7 +268,8 @@ def give_start_hints(
     """The deployment plan as start hints (module docstring): each robot's planned start
     relative to the map robot's, with a seeded placement error of the stated size."""
     plan = staging_plan(sim.world)
-    map_robot = station.config.graph.map_robot_id
+    core = station.station if isinstance(station, JournaledStation) else station
+    map_robot = core.config.graph.map_robot_id
     origin = plan[map_robot]
     for rid in sim.robot_ids:
         if rid == map_robot:
@@ -236,12 +303,17 @@ def assemble(
     hint_sigma_yaw_rad: float = 0.05,
     robot_processes: bool = False,
     realtime: bool = False,
+    journal_path: str | Path | None = None,
+    broadcast_hazards: bool = True,
 ) -> Iterator[Assembly]:
     """Bring a team up (module docstring); closes everything on exit (links, processes, the
     simulator). ``with_gcs``: the real GCS on the ground side (roles as disruptors from the
     world's roster added to ``mission``); ``scripts(sim)``: further ground sides (after the
     GCS in each turn). ``radio_path``: the radio file robot processes load (needed with
-    ``robot_processes``). Deterministic unless ``realtime`` (see :mod:`mission.lockstep`)."""
+    ``robot_processes``). Deterministic unless ``realtime`` (see :mod:`mission.lockstep`).
+    ``journal_path``: the GCS journal's file (a new one; ``RUN_DIR/journal.sqlite`` for a
+    run), closed on exit. ``broadcast_hazards``: the station's HazardUpdate goes out as one
+    broadcast when several robots are due (else one copy per robot)."""
     sim_cfg = msgspec.structs.replace(simulator or SimulatorConfig(), seed=seeds.simulator)
     with Simulator(world, config=sim_cfg) as sim:
         roles = roles_of(sim)
@@ -250,8 +322,15 @@ def assemble(
         if with_gcs:
             ids = list(sim.robot_ids)
             station = GroundStation(_gcs_config(gcs or GroundStationConfig(), ids, ids[0]))
+            journal = None
+            if journal_path is not None:
+                journal = GcsJournal.create(
+                    journal_path,
+                    station.config,
+                    meta={"source": "magic run", "seed": str(seeds.seed)},
+                )
             give_start_hints(
-                station,
+                station if journal is None else JournaledStation(station, journal),
                 sim,
                 sigma_xy_m=hint_sigma_xy_m,
                 sigma_yaw_rad=hint_sigma_yaw_rad,
@@ -267,6 +346,7 @@ def assemble(
                 step_period_s=gcs_step_period_s,
                 budget_s=gcs_budget_s,
                 taps=taps,
+                journal=journal,
             )
             grounds.append(gcs_ground)
         if scripts is not None:
@@ -302,4 +382,11 @@ def assemble(
                 realtime=realtime,
             )
         with team:
-            yield Assembly(sim, team, grounds, roles, gcs_ground)
+            asm = Assembly(
+                sim, team, grounds, roles, gcs_ground, broadcast_hazards=broadcast_hazards
+            )
+            try:
+                yield asm
+            finally:
+                if asm.gcs is not None and asm.gcs.journal is not None:
+                    asm.gcs.journal.close()

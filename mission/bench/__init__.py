@@ -58,6 +58,7 @@ SUITES: dict[str, str] = {
     "operator": "mission.bench.operator",
     "radio": "mission.bench.radio_scale",
     "fuzz": "mission.bench.fuzz",
+    "chaos": "mission.bench.chaos",
 }
 
 

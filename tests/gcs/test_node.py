@@ -217,7 +217,7 @@ def test_magic_gcs_help_states_defaults_units_and_what_it_produces(capsys) -> No
         assert text in out, text
 
 
-def test_magic_gcs_bad_endpoints_fail_in_one_line_with_status_2(capsys) -> None:  # type: ignore[no-untyped-def]
+def test_magic_gcs_bad_endpoints_fail_in_one_line_with_status_2(capsys, tmp_path) -> None:  # type: ignore[no-untyped-def]
     for argv, what in (
         (["--listen", "bogus"], "expected <protocol>/<address>"),
         (["--connect", "tcp/10.0.0.1"], "expected tcp/<host>:<port"),
@@ -228,17 +228,26 @@ def test_magic_gcs_bad_endpoints_fail_in_one_line_with_status_2(capsys) -> None:
         (["--plan-s", "-1"], "--plan-s"),
     ):
         t0 = time.monotonic()
-        assert main(argv) == 2
+        assert main([*argv, "--out", str(tmp_path / "run")]) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and len(err) < 200 and what in err, err
         assert time.monotonic() - t0 < 5.0
 
 
 @pytest.mark.parametrize(("sig", "status"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
-def test_magic_gcs_ends_on_a_signal_with_a_summary_and_no_traceback(sig, status) -> None:  # type: ignore[no-untyped-def]
+def test_magic_gcs_ends_on_a_signal_with_a_summary_and_no_traceback(sig, status, tmp_path) -> None:  # type: ignore[no-untyped-def]
     magic = Path(sys.executable).parent / "magic"
     proc = subprocess.Popen(
-        [str(magic), "gcs", "--listen", "tcp/127.0.0.1:0", "--mission", f"sig{os.getpid()}"],
+        [
+            str(magic),
+            "gcs",
+            "--listen",
+            "tcp/127.0.0.1:0",
+            "--mission",
+            f"sig{os.getpid()}",
+            "--out",
+            str(tmp_path / "run"),
+        ],  # fmt: skip
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -1,0 +1,258 @@
+"""``magic bench chaos``: the mission under faults keeps its promises (issue 17).
+
+The small world's team (:func:`mission.assembly.assemble`, deterministic lockstep) runs twice
+with the same seed: once clean, once with
+
+* every radio grant's message loss raised to at least ``loss`` (30 %; the simulator's radio
+  model only loses messages near the edge of range, so the grant is floored here);
+* two blackouts per robot (:func:`sim.radio_model.blackout_schedule`, 60 s each in a 600
+  mission-s run; ``--quick``: 10 s each in a 60 mission-s run, so that both runs take about
+  80 s of wall time on the 2-core machine);
+* the GCS killed and restarted once, mid-mission: a *simulated* crash in this process
+  (:meth:`mission.assembly.Assembly.restart_gcs`): the ground side is dropped at the end of a
+  ground turn, after its journal commit, without closing anything, and a new one is rebuilt
+  from ``journal.sqlite``. The radio link is not rebuilt (in one process it survives, as its
+  sequence state must across a real restart).
+
+Metrics: ``accepted_lost`` (messages on the robots' reliable uplink streams that their link
+accepted, that never reached the station (neither taken nor refused with a reason) and are
+not still in flight at the end), ``duplicates_in_graph`` (pose nodes and grids the station
+saw twice: it counts them and keeps one), ``mission_completed`` (the run reached its
+duration with the GCS serving), ``explored_frac`` and ``explored_frac_clean`` (the same seed
+without faults) and their difference ``explored_frac_drop``, ``gcs_restart_s`` (wall seconds
+from the kill to a serving GCS: the journal replayed), ``replay_pose_diff_max_m`` (the whole
+journal replayed through a fresh station, :mod:`mission.mission_replay`, against the live
+one) and ``replay_edges_equal``.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from mission.assembly import Assembly, assemble, staging_plan
+from mission.config import config_path, load_config
+from mission.lockstep import seed_streams
+from mission.report.map_scoring import cell_centres, explored_frac
+from protocol.messages import STREAMS, Direction, Reliability, stream_of
+from protocol.radio import RadioConfig
+from protocol.se2 import inverse, transform_points
+from sim.radio_model import blackout_schedule
+from sim.simulator import Simulator, SimulatorConfig, load_world_config
+
+__all__ = ["run"]
+
+_RELIABLE_UP = {
+    name for name, spec in STREAMS[Direction.UP].items() if spec.reliability is Reliability.RELIABLE
+}
+
+
+def _floor_loss(sim: Simulator, loss: float) -> None:
+    """Every grant the team applies carries at least ``loss`` (fault injection)."""
+    grants = sim.radio_grants
+
+    def lossy() -> dict[int, Any]:
+        return {
+            rid: msgspec.structs.replace(g, loss=max(g.loss, loss)) for rid, g in grants().items()
+        }
+
+    sim.radio_grants = lossy  # type: ignore[method-assign]
+
+
+class _Ledger:
+    """What the robots' links accepted on reliable streams, by ``(robot, stream, seq)``, and
+    what reached the station (taken or refused), by the message's identity."""
+
+    def __init__(self) -> None:
+        self.sent: dict[tuple[int, str, int], tuple[int, str, tuple[Any, ...]]] = {}
+        self.handed: set[tuple[int, str, tuple[Any, ...]]] = set()
+
+    @staticmethod
+    def ident(robot_id: int, msg: Any) -> tuple[int, str, tuple[Any, ...]]:
+        """The message's integer key fields among its first three (node index, detection
+        id, task id and state, ...): the stream codings quantize its floats (times)."""
+        fields = [v for v in msgspec.structs.astuple(msg)[:3] if isinstance(v, int)]
+        return (robot_id, type(msg).__name__, tuple(fields))
+
+    def wrap(self, asm: Assembly) -> None:
+        for rid, ep in asm.team.radios.items():  # type: ignore[union-attr]
+            send = ep.send
+
+            def counted(msg: Any, _rid: int = rid, _send: Callable[[Any], int] = send) -> int:
+                seq = _send(msg)  # raises LinkBackpressure: refused, not accepted
+                stream = stream_of(Direction.UP, msg).name
+                if stream in _RELIABLE_UP:
+                    self.sent[(_rid, stream, seq)] = self.ident(_rid, msg)
+                return seq
+
+            ep.send = counted  # type: ignore[method-assign]
+
+    def tap(self, robot_id: int, msg: Any, accepted: bool) -> None:
+        self.handed.add(self.ident(robot_id, msg))
+
+    def lost(self, asm: Assembly) -> tuple[int, int]:
+        """``(accepted_lost, in_flight)`` at the end of the run."""
+        in_flight: set[tuple[int, str, int]] = set()
+        for rid, ep in asm.team.radios.items():  # type: ignore[union-attr]
+            # the channel's unacknowledged messages: still on their way, not lost
+            for stream, st in ep.channel._send.items():
+                in_flight.update((rid, stream, seq) for seq in st.unacked)
+        lost = flying = 0
+        for key, ident in self.sent.items():
+            if ident in self.handed:
+                continue
+            if key in in_flight:
+                flying += 1
+            else:
+                lost += 1
+        return lost, flying
+
+
+def _mission(
+    *,
+    duration_s: float,
+    seed: int,
+    faults: bool,
+    blackout_s: float,
+    loss: float,
+    run_dir: Path,
+    progress: Callable[[str], None],
+) -> dict[str, float]:
+    world = load_world_config(config_path("world/small.yaml", "world"))
+    radio = load_config(config_path("radio/magic2010.yaml", "radio"), RadioConfig)
+    n = world.robots.sensors + world.robots.disruptors
+    blackouts: tuple[tuple[int, float, float], ...] = ()
+    if faults:
+        blackouts = blackout_schedule(
+            list(range(n)),
+            per_robot=2,
+            duration_s=blackout_s,
+            start_s=0.1 * duration_s,
+            end_s=0.9 * duration_s,
+            seed=seed,
+        )
+    sim_cfg = SimulatorConfig(radio_blackouts=blackouts)
+    ledger = _Ledger()
+    journal = run_dir / "journal.sqlite"
+    out: dict[str, float] = {}
+    with assemble(
+        world,
+        seeds=seed_streams(seed),
+        radio=radio,
+        simulator=sim_cfg,
+        taps=[ledger.tap],
+        journal_path=journal,
+    ) as asm:
+        if faults:
+            _floor_loss(asm.sim, loss)
+        ledger.wrap(asm)
+        steps = int(round(duration_s / asm.sim.config.step_s))
+        kill_at = steps // 2
+        restart_s = 0.0
+        t0 = time.perf_counter()
+        for k in range(steps):
+            if faults and k == kill_at:
+
+                def kill(a: Assembly = asm) -> None:
+                    nonlocal restart_s
+                    a._ground_turn()
+                    restart_s = a.restart_gcs()
+
+                asm.team.step(kill)
+                progress(
+                    f"chaos: GCS killed at {asm.sim.time_s:.1f} s, rebuilt in {restart_s:.2f} s"
+                )
+            else:
+                asm.step()
+        assert asm.gcs is not None
+        station = asm.gcs.station
+        plan = staging_plan(asm.sim.world)
+        map_robot = station.config.graph.map_robot_id
+        reach = cell_centres(asm.sim.truth.reachable, asm.sim.truth.resolution_m)
+        frac, _ = explored_frac(
+            station.rasterize(), transform_points(inverse(plan[map_robot]), reach)
+        )
+        lost, flying = ledger.lost(asm)
+        out = {
+            "explored_frac": float(frac),
+            "accepted_lost": float(lost),
+            "in_flight_at_end": float(flying),
+            "duplicates_in_graph": float(_graph_duplicates(station)),
+            "station_duplicates_dropped": float(station.stats.duplicates),
+            "mission_completed": 1.0 if asm.sim.time_s >= duration_s - 1e-6 else 0.0,
+            "gcs_restart_s": restart_s,
+            "wall_s": time.perf_counter() - t0,
+            "pose_nodes": float(station.stats.pose_nodes),
+            "downlink_bytes": float(
+                sum(b for (_, d, _), b in asm.link_bytes().items() if d == "down")
+            ),
+        }
+        live = station
+    if faults:
+        from mission.mission_replay import compare_replay
+
+        diff = compare_replay(journal, live)
+        out["replay_pose_diff_max_m"] = diff.pose_diff_max_m
+        out["replay_edges_equal"] = 1.0 if diff.edges_equal and diff.nodes_equal else 0.0
+    return out
+
+
+def _graph_duplicates(station: Any) -> int:
+    """Pose nodes in the graph twice: the same ``(robot, node index)`` under two keys."""
+    seen: set[tuple[int, int]] = set()
+    dup = 0
+    for rid in station.graph.robots:
+        track = station._tracks.get(rid)
+        if track is None:
+            continue
+        keys = list(track.keys.values())
+        dup += len(keys) - len(set(keys))
+        for idx in track.keys:
+            if (rid, idx) in seen:
+                dup += 1
+            seen.add((rid, idx))
+    return dup
+
+
+def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
+    duration_s, blackout_s = (60.0, 10.0) if quick else (600.0, 60.0)
+    seed = 7
+    with tempfile.TemporaryDirectory(prefix="magic-chaos-") as tmp:
+        progress(f"chaos: clean run, {duration_s:g} mission-s")
+        clean_dir = Path(tmp) / "clean"
+        clean_dir.mkdir()
+        clean = _mission(
+            duration_s=duration_s,
+            seed=seed,
+            faults=False,
+            blackout_s=blackout_s,
+            loss=0.3,
+            run_dir=clean_dir,
+            progress=progress,
+        )
+        progress(f"chaos: faulted run (loss 30 %, 2 x {blackout_s:g} s blackouts, GCS restart)")
+        chaos_dir = Path(tmp) / "chaos"
+        chaos_dir.mkdir()
+        faulted = _mission(
+            duration_s=duration_s,
+            seed=seed,
+            faults=True,
+            blackout_s=blackout_s,
+            loss=0.3,
+            run_dir=chaos_dir,
+            progress=progress,
+        )
+    out = dict(faulted)
+    out["explored_frac_clean"] = clean["explored_frac"]
+    out["explored_frac_drop"] = clean["explored_frac"] - faulted["explored_frac"]
+    out["wall_s_clean"] = clean["wall_s"]
+    out["downlink_bytes_clean"] = clean["downlink_bytes"]
+    out["mission_s"] = duration_s
+    out["blackout_s"] = blackout_s
+    return {k: float(v) for k, v in out.items() if np.isfinite(v)}
