@@ -853,6 +853,10 @@ def main(argv: list[str] | None = None) -> int:
     from gcs.replay.relations import RelationsFileError, read_relations
     from mission.config import ConfigError, load_config
 
+    if argv and not argv[0].startswith("-"):  # magic replay RUN_DIR: a mission's GCS journal
+        from mission.mission_replay import main as replay_run_dir
+
+        return replay_run_dir(argv)
     args = _parser().parse_args(argv)
     err = sys.stderr
     try:
