@@ -155,10 +155,12 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     # a detection refers to a pose node sent at least this long ago: the detection stream
     # drains before the pose-node stream, and the GCS refuses a detection of an unknown node
     detection_node_lag_s: float = 1.5
-    # a neutralization's target comes from the GCS's map, off by its error (0.5-0.8 m in the
+    # a neutralization's target comes from the GCS's map, off by its error (0.5-2 m in the
     # small-world mission) while the OOI is 0.25 m in radius: the laser aims at this robot's
-    # own static-OOI detection nearest the target, if one lies this close to it
-    laser_snap_m: float = 1.5
+    # own static-OOI detection nearest the target within laser_snap_m; with none there the
+    # laser stays off (a hold on empty ground was reported neutralized), unless perception
+    # is off (then the target itself)
+    laser_snap_m: float = 2.5
 
 
 @dataclass
@@ -857,7 +859,8 @@ class RobotNode:
         """Where the laser points for a neutralization aimed at ``target`` (odom): this
         robot's own static-OOI detection nearest it within ``laser_snap_m`` (fused from its
         sweeps in its own frame: centimetres, where the GCS's target carries the global map's
-        error), else ``target`` itself."""
+        error); None (laser off, the hold does not count) when it has none there; ``target``
+        itself without perception."""
         if target is None or self.perception is None:
             return target
         best: tuple[float, float] | None = None
@@ -869,7 +872,7 @@ class RobotNode:
             d = math.hypot(x - target[0], y - target[1])
             if d <= best_d:
                 best, best_d = (x, y), d
-        return target if best is None else best
+        return best
 
     def _laser(self, pose: np.ndarray, target: tuple[float, float] | None) -> list[RobotCommand]:
         if target is None:

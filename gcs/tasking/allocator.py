@@ -107,6 +107,10 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     frontier_gone_m: float = 1.5
     goal_failures_global: int = 3
     keepout_margin_m: float = 1.0
+    # a disruptor that failed an OOI's neutralization (it saw no OOI near the GCS's target,
+    # say) is not sent to that OOI again for this long; then it may be (a lone disruptor
+    # would otherwise leave the OOI for good)
+    neutralize_retry_s: float = 60.0
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
     highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
@@ -122,6 +126,7 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "goal_timeout_base_s",
             "assumed_speed_m_s",
             "frontier_gone_m",
+            "neutralize_retry_s",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -250,7 +255,8 @@ class TaskAllocator:
         self._next_id = self.config.first_task_id
         self._failed_goals: dict[int, list[tuple[float, float]]] = {}
         self._goal_failures: list[tuple[tuple[float, float], int]] = []
-        self._dispatch_excluded: dict[int, set[int]] = {}  # hazard -> robots that failed it
+        # hazard -> robot -> when it failed that hazard's neutralization
+        self._dispatch_excluded: dict[int, dict[int, float]] = {}
         self._silent: set[int] = set()
         self._no_start: set[int] = set()
         self._lost: set[int] = set()
@@ -507,7 +513,7 @@ class TaskAllocator:
                 self._failed_goals.setdefault(r.robot_id, []).append(a.goal_in_map)
                 self._goal_failures.append((a.goal_in_map, r.robot_id))
             if purpose in ("neutralize_go", "neutralize") and a.hazard_id is not None:
-                self._dispatch_excluded.setdefault(a.hazard_id, set()).add(r.robot_id)
+                self._dispatch_excluded.setdefault(a.hazard_id, {})[r.robot_id] = ctx.now_s
         if purpose == "hostile_view" and ok:
             a.timeout_s = math.inf  # at its view position: it holds there
             return
@@ -708,7 +714,8 @@ class TaskAllocator:
                 for rid, r in mine.items()
                 if self._purpose(rid)
                 not in ("neutralize_go", "neutralize_wait", "neutralize", "evade")
-                and rid not in self._dispatch_excluded.get(hid, set())
+                and ctx.now_s - self._dispatch_excluded.get(hid, {}).get(rid, -math.inf)
+                >= self.config.neutralize_retry_s
             }
             d = dispatch_disruptor(
                 ctx.grid,

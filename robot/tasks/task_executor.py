@@ -49,6 +49,9 @@ class TaskExecutorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     waypoint_tolerance_m: float = 0.5
     standoff_tolerance_m: float = 0.75
     laser_hold_s: float = 15.0  # paper 2: the disruptor's laser must stay on for 15 s
+    # at the stand-off and approved, the laser never on target this long: the task fails
+    # (the robot sees no OOI near the GCS's target; the GCS may send another)
+    laser_search_s: float = 40.0
     no_path_timeout_s: float = 30.0
     max_teleop_linear_m_s: float = 1.5
     max_teleop_angular_rad_s: float = 2.0
@@ -82,6 +85,7 @@ class _Active:
     approved: bool = False
     los_since_s: float | None = None
     no_path_since_s: float | None = None
+    ready_since_s: float | None = None  # at the stand-off and approved (neutralization)
 
 
 def _finite(name: str, values: Any) -> str | None:
@@ -265,6 +269,12 @@ class TaskExecutor:
                     self._status(tid, TaskState.FAILED, now_s, "no path to the next waypoint"),
                 ]
         if isinstance(task, NeutralizeTask) and act.arrived and act.approved:
+            if act.ready_since_s is None or laser_on_target:
+                act.ready_since_s = now_s
+            if not laser_on_target and now_s - act.ready_since_s >= cfg.laser_search_s:
+                self._active = None
+                detail = f"laser not on the target for {cfg.laser_search_s:g} s"
+                return [*out, self._status(tid, TaskState.FAILED, now_s, detail)]
             if not laser_on_target:
                 act.los_since_s = None
             elif act.los_since_s is None:

@@ -56,8 +56,12 @@ def test_the_laser_finds_the_ooi_the_gcs_placed_off_by_its_map_error() -> None:
     assert not any("detonat" in e or "disabled" in e for e in events), events
 
 
-def test_aiming_at_the_target_itself_misses_it() -> None:
-    """The same task with the aim not snapped (laser_snap_m tiny): the robot holds its laser
-    on the target (line of sight) and reports success, but the ray misses the OOI."""
-    _, events = _neutralize(RobotNodeConfig(laser_snap_m=1e-6))
+def test_with_no_ooi_of_its_own_near_the_target_it_does_not_fire_and_fails() -> None:
+    """The same task with no own detection close enough (laser_snap_m tiny): the laser stays
+    off (a hold on the GCS's target, empty ground, was reported a success) and the task fails
+    after ``laser_search_s``."""
+    sent, events = _neutralize(RobotNodeConfig(laser_snap_m=1e-6))
     assert not any("neutralized" in e for e in events), events
+    reports = [m for m in sent if isinstance(m, TaskStatus) and m.task_id == 1]
+    assert reports[-1].state is TaskState.FAILED, reports
+    assert "laser not on the target" in reports[-1].detail

@@ -196,6 +196,33 @@ def test_disruptor_dispatch_then_auto_approved_neutralization() -> None:
     assert 3 in alloc.neutralized and alloc.stats.neutralized == 1
 
 
+def test_a_lone_disruptor_that_failed_a_neutralization_is_sent_again_later() -> None:
+    """A neutralization that fails (the robot saw no OOI near the target) is not given to the
+    same disruptor at once, but after ``neutralize_retry_s`` it is (the only one there is)."""
+    state, d1, _ = _dispatch_world()
+    state.robots = [d1]
+    alloc = TaskAllocator(TaskingConfig(neutralize_retry_s=30.0))
+    sent = dict(alloc.plan(state, now_s=0.0))
+    report(d1, sent[11], TaskState.SUCCEEDED, 5.0)
+    d1.pose_in_map = (*alloc.assignments[11].goal_in_map, 0.0)  # type: ignore[misc]
+    d1.last_heard_s = 5.0
+    (neut,) = [m for i, m in alloc.plan(state, now_s=5.0) if isinstance(m, NeutralizeTask)]
+    report(d1, neut, TaskState.FAILED, 50.0, "laser not on the target for 40 s")
+    d1.last_heard_s = 50.0
+    out = alloc.plan(state, now_s=50.0)
+    assert not any(e.kind == "dispatch" for e in alloc.events)
+    assert any(e.kind == "task_failed" for e in alloc.events)
+    assert 3 not in alloc.neutralized
+    for t in (60.0, 79.0):
+        d1.last_heard_s = t
+        alloc.plan(state, now_s=t)
+        assert not any(e.kind == "dispatch" for e in alloc.events), t
+    d1.last_heard_s = 81.0
+    out = alloc.plan(state, now_s=81.0)
+    assert any(e.kind == "dispatch" for e in alloc.events)
+    assert alloc.assignments[11].purpose == "neutralize_go" and [i for i, _ in out] == [11]
+
+
 def test_operator_approval_is_waited_for_and_counted() -> None:
     state, d1, d2 = _dispatch_world()
     cfg = TaskingConfig(disruptor=DisruptorConfig(approval="operator"))

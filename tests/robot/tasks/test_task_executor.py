@@ -18,7 +18,7 @@ from protocol.messages import (
     TaskState,
     TeleopTask,
 )
-from robot.tasks.task_executor import TaskExecutor
+from robot.tasks.task_executor import TaskExecutor, TaskExecutorConfig
 
 ORIGIN = np.zeros(3)
 
@@ -117,6 +117,21 @@ def test_neutralize_needs_approval_and_15_s_of_line_of_sight() -> None:
     ex.update(41.0, at, laser_on_target=True)
     assert ex.update(55.0, at, laser_on_target=True) == []  # 14 s since the restart
     assert states(ex.update(56.0, at, laser_on_target=True)) == [(7, TaskState.SUCCEEDED)]
+
+
+def test_neutralize_fails_when_the_laser_never_finds_its_target() -> None:
+    """At the stand-off and approved, ``laser_search_s`` without the laser on target: FAILED
+    (the robot sees no OOI there); a moment on target restarts the wait."""
+    ex = TaskExecutor(TaskExecutorConfig(laser_search_s=20.0))
+    ex.submit(NeutralizeTask(8, 0.0, (10.0, 0.0), 4.0, True), 0.0, ORIGIN)
+    at = np.array([6.0, 0.0, 0.0])
+    assert ex.update(5.0, at) == []  # arrived, approved: the search starts
+    assert ex.update(15.0, at, laser_on_target=True) == []  # on target: restarts
+    assert ex.update(16.0, at) == []
+    assert ex.update(34.9, at) == []  # 19.9 s off target since
+    (report,) = ex.update(35.0, at)
+    assert report.state is TaskState.FAILED and "laser not on the target" in report.detail
+    assert ex.intent.laser_target_in_odom is None
 
 
 def test_teleop_runs_for_its_duration() -> None:
