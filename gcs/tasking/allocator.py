@@ -111,6 +111,11 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # say) is not sent to that OOI again for this long; then it may be (a lone disruptor
     # would otherwise leave the OOI for good)
     neutralize_retry_s: float = 60.0
+    # a sensor robot that fell silent on its way to an exploration goal or a hostile's view
+    # (radio shadow: MAGIC's robots lost the radio behind buildings) is not given that goal
+    # again, nor that hostile to watch for this long: back in contact it was re-sent into the
+    # same shadow, over and over (small world: one robot silent 60% of a mission)
+    shadow_retry_s: float = 90.0
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
     highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
@@ -127,6 +132,7 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "assumed_speed_m_s",
             "frontier_gone_m",
             "neutralize_retry_s",
+            "shadow_retry_s",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -258,6 +264,8 @@ class TaskAllocator:
         # hazard -> robot -> when it failed that hazard's neutralization
         self._dispatch_excluded: dict[int, dict[int, float]] = {}
         self._silent: set[int] = set()
+        # hostile -> robot -> when it fell silent on its way to watch that hostile
+        self._view_shadowed: dict[int, dict[int, float]] = {}
         self._no_start: set[int] = set()
         self._lost: set[int] = set()
         self._lock = HostileLock(self.config.hostile)
@@ -440,6 +448,8 @@ class TaskAllocator:
                 self._event(
                     ctx, "robot_silent", rid, f"robot {rid} silent {quiet_s:.0f} s: not counted on"
                 )
+            if silent and rid not in self._silent and not r.lost:
+                self._shadowed(ctx, rid)  # it fell silent just now (not disabled)
             if (silent or lost) and rid in self.assignments:
                 self.assignments[rid].purpose += (
                     ":released" if ":released" not in self.assignments[rid].purpose else ""
@@ -468,6 +478,31 @@ class TaskAllocator:
             if cell is not None:
                 ctx.cells[rid] = cell
             self._close_task(ctx, r)
+
+    def _shadowed(self, ctx: _Ctx, rid: int) -> None:
+        """Robot ``rid`` just fell silent: the exploration goal it was on counts as failed for
+        it (and towards the global count), the hostile it was to watch is not given it for
+        ``shadow_retry_s``."""
+        a = self.assignments.get(rid)
+        if a is None or a.goal_in_map is None:
+            return
+        purpose = a.purpose.split(":")[0]
+        if purpose == "explore":
+            self._failed_goals.setdefault(rid, []).append(a.goal_in_map)
+            self._goal_failures.append((a.goal_in_map, rid))
+        elif purpose == "hostile_view" and a.hazard_id is not None:
+            self._view_shadowed.setdefault(a.hazard_id, {})[rid] = ctx.now_s
+        else:
+            return
+        x, y = a.goal_in_map
+        self._event(
+            ctx,
+            "goal_in_shadow",
+            rid,
+            f"robot {rid} fell silent on its way to ({x:.1f}, {y:.1f}) ({purpose}): not sent "
+            "there again soon",
+            a.hazard_id,
+        )
 
     def _close_task(self, ctx: _Ctx, r: RobotInfo) -> None:
         a = self.assignments.get(r.robot_id)
@@ -615,11 +650,13 @@ class TaskAllocator:
             moved = math.dist(self._hostile_at.get(hid, h.position_in_map), h.position_in_map)
             if len(viewers) >= cfg.viewers and moved < cfg.replan_move_m:
                 continue
+            shadowed = self._view_shadowed.get(hid, {})
             pool = {
                 rid: self._position(r)
                 for rid, r in ctx.available.items()
                 if r.role == Role.SENSOR
                 and (rid in viewers or self._purpose(rid) not in ("hostile_view", "evade"))
+                and ctx.now_s - shadowed.get(rid, -math.inf) >= self.config.shadow_retry_s
             }
             views = view_positions(ctx.grid, h.position_in_map, pool, cfg)
             self._hostile_at[hid] = h.position_in_map

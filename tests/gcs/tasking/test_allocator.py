@@ -139,6 +139,25 @@ def test_a_silent_robots_goal_goes_to_another() -> None:
     assert alloc.assignments[2].purpose.endswith(":released")  # it keeps its last task
 
 
+def test_a_robot_that_fell_silent_on_its_goal_is_not_sent_there_again() -> None:
+    """Radio shadow: the robot falls silent on its way to a goal and comes back (its comms
+    watchdog returns it to where it last heard the GCS); it is sent elsewhere, not back into
+    the same shadow (a mission looped so, one robot silent 60% of the time)."""
+    occ = occupancy(corridor())  # two frontiers, west and east
+    r = robot(1, (12.0, 3.0))
+    alloc = TaskAllocator()
+    alloc.plan(TaskingState(occ, [r]), now_s=0.0)
+    first = alloc.assignments[1].goal_in_map
+    assert first is not None
+    out = alloc.plan(TaskingState(occ, [r]), now_s=12.0)  # silent 12 s
+    assert out == [] and {e.kind for e in alloc.events} == {"robot_silent", "goal_in_shadow"}
+    r.last_heard_s = 40.0
+    out = alloc.plan(TaskingState(occ, [r]), now_s=40.0)
+    assert any(e.kind == "robot_back" for e in alloc.events)
+    (goal,) = goals_in_map(out, {1: r}).values()
+    assert math.dist(goal[-1], first) > 10.0  # the other frontier
+
+
 def _dispatch_world() -> tuple[TaskingState, RobotInfo, RobotInfo]:
     v = blank(30, 30, FREE)
     xs = np.arange(1.0, 21.0, 0.5)
@@ -343,7 +362,7 @@ def test_operator_controlled_robots_are_left_alone_and_silent_ones_come_back() -
     assert [rid for rid, _ in out] == [1]
     r2.operator_controlled = False
     out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=15.0)  # both silent for 15 s
-    assert out == [] and {e.kind for e in alloc.events} == {"robot_silent"}
+    assert out == [] and {e.kind for e in alloc.events} == {"robot_silent", "goal_in_shadow"}
     r1.last_heard_s = r2.last_heard_s = 16.0
     out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=16.0)
     assert sorted(rid for rid, _ in out) == [1, 2]
