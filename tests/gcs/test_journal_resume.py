@@ -90,3 +90,80 @@ def test_magic_replay_of_a_run_directory(
     assert main([str(tmp_path / "empty")]) == 2
     assert "no journal there" in capsys.readouterr().err
     np.testing.assert_equal(ground.station.stats.rejected_total, 0)
+
+
+def test_magic_gcs_killed_and_resumed_continues_the_robots_radio_streams(tmp_path: Path) -> None:
+    """``magic gcs --resume`` over real zenoh: the robot keeps its link (and its sequence
+    numbers); the new GCS takes the next nodes, acknowledges them (the robot's queue drains),
+    sends it HazardUpdates it accepts, and a node the robot sends again is a duplicate."""
+    from gcs.journal import resume_control
+    from gcs.node import GcsProcess
+    from protocol.clock import ManualClock
+    from protocol.link import Link, LinkConfig
+    from protocol.loopback import free_loopback_port, unique_mission
+    from protocol.messages import HazardUpdate
+    from tests.gcs.test_ground_station import nodes_along, straight
+
+    clock = ManualClock()
+    mission = unique_mission("resume")
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    robot_link = Link(
+        LinkConfig(listen=(endpoint,), pump_period_s=0.0), mission=mission, clock=clock
+    )
+    gcs_cfg = LinkConfig(listen=(), connect=(endpoint,), pump_period_s=0.0)
+    updates: list[float] = []
+    robot = robot_link.robot_endpoint(
+        0, on_message=lambda m: updates.append(m.time_s) if isinstance(m, HazardUpdate) else None
+    )
+    nodes = nodes_along(straight(12))
+    config = GroundStationConfig(robots=(0,))
+    path = tmp_path / "journal.sqlite"
+    links = [Link(gcs_cfg, mission=mission, clock=clock)]
+    try:
+        proc = GcsProcess(links[0], clock, config, journal=GcsJournal.create(path, config))
+
+        def spin(until) -> None:  # type: ignore[no-untyped-def]
+            for _ in range(400):
+                if until():
+                    return
+                clock.set(clock.now() + 0.25)
+                robot_link.pump()
+                proc.spin_once(timeout_s=0.02)
+            raise AssertionError(f"timed out: {proc.status_line()}, {robot.channel.pending()}")
+
+        assert proc.radio.wait_for_robot(0, 10.0) and robot.wait_for_gcs(10.0)
+        for node in nodes[:6]:
+            robot.send(node)
+        s1 = proc.station.stats
+        spin(lambda: s1.pose_nodes == 6 and robot.channel.pending() == 0 and updates)
+        # killed: nothing closed, nothing more committed; its link goes with the process
+        assert proc.journal is not None
+        proc.journal.abandon()
+        proc.close()
+        links[0].close()
+        killed_s = clock.now()
+
+        links.append(Link(gcs_cfg, mission=mission, clock=clock))
+        proc = GcsProcess(links[1], clock, resumed=resume_control(path))
+        assert proc.link_state["robots"] == 1 and proc.station.stats.pose_nodes == 6
+        assert proc.radio.wait_for_robot(0, 10.0)
+        for node in nodes[6:]:
+            robot.send(node)
+        robot.send(nodes[3])  # the robot sends an old node again
+        s2 = proc.station.stats
+        spin(
+            lambda: (
+                s2.pose_nodes == 12
+                and s2.duplicates == 1
+                and robot.channel.pending() == 0
+                and updates[-1] > killed_s
+            )
+        )
+        keys, _ = proc.station.poses_in_map()
+        assert len(set(keys.tolist())) == 12 and s2.rejected_total == 0
+        assert robot.channel.stats.duplicates_dropped == 0  # nothing delivered twice to it
+        proc.close()
+    finally:
+        for link in links:
+            link.close()
+        robot_link.close()
