@@ -122,6 +122,9 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     ``max_pending_grids``: grids held per robot while their pose node has not arrived.
     ``max_pending_sightings``: detections and fiducials held per robot while their pose node
     has not arrived (a radio backlog drains the detection stream before the pose nodes).
+    ``fiducial_wait_s``: station mission-seconds a fiducial waits for the teammate's pose node
+    of its time (the robots' streams race); then the teammate's latest node stands in (it
+    has not moved far enough for a new node).
     ``max_grid_resolution_m`` / ``min_grid_resolution_m``: accepted grid cell sizes.
     ``gap_covariance_scale``: inflation of the odometry covariance across a bridged gap.
     ``hazard_merge_m``: detections of one kind closer than this are the same hazard.
@@ -147,6 +150,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     max_pending_nodes: int = 32
     max_pending_grids: int = 64
     max_pending_sightings: int = 512
+    fiducial_wait_s: float = 5.0
     min_grid_resolution_m: float = 0.02
     max_grid_resolution_m: float = 1.0
     gap_covariance_scale: float = 4.0
@@ -294,7 +298,9 @@ class _Track:
     pending_nodes: dict[int, PoseNode] = field(default_factory=dict)
     pending_grids: dict[int, TerrainGrid] = field(default_factory=dict)
     # detections and fiducials that came before their pose node, in arrival order
-    pending_sightings: list[Detection | FiducialObservation] = field(default_factory=list)
+    pending_sightings: list[tuple[Detection | FiducialObservation, float]] = field(
+        default_factory=list
+    )  # (message, station time it was held)
     deltas: dict[int, Any] = field(default_factory=dict)  # node_index -> odom_delta
     # recent decoded grids (references of inter-frame grids): index -> grid, origin cells, res
     decoded: dict[int, tuple[np.ndarray, tuple[int, int], float]] = field(default_factory=dict)
@@ -369,6 +375,7 @@ class GroundStation:
         # moving hazards: hazard id -> robot id -> mission time of that robot's latest sighting
         self._hostile_seen: dict[int, dict[int, float]] = {}
         self._handle_now_s = 0.0
+        self._waited = False  # draining sightings that waited their time (fiducial_wait_s)
         self._tracks: dict[int, _Track] = {}
         self._dirty = False
         self._last_frames_s: dict[int, float] = {}
@@ -542,7 +549,7 @@ class GroundStation:
             if len(track.graph_keys) == 1:
                 self._apply_hints()
         self._drain_grids(robot_id, track)
-        self._drain_sightings(robot_id, track)
+        self._drain_sightings()
 
     def add_start_hint(
         self,
@@ -710,16 +717,19 @@ class GroundStation:
             self._hold_sighting(track, msg, "orphan_fiducial", f"{what}: pose node not received")
             return
         other = self._tracks.get(msg.observed_robot_id)
-        if msg.observed_robot_id == robot_id or other is None or not other.graph_keys:
-            raise _Rejected(
-                "unknown_robot",
-                f"{what}: observed robot {msg.observed_robot_id} has no pose nodes here",
-            )
-        # the observation's time on the observer's substitute clock (its node's, if the stamp
-        # is implausibly far from the node's own)
-        raw_node_s, node_s = track.raw_times[msg.node_index]
-        offset_s = float(msg.time_s) - raw_node_s
-        seen_s = node_s + offset_s if abs(offset_s) <= self.config.max_node_interval_s else node_s
+        roster = self.config.robots
+        if msg.observed_robot_id == robot_id or (roster and msg.observed_robot_id not in roster):
+            raise _Rejected("unknown_robot", f"{what}: observed robot {msg.observed_robot_id}")
+        if other is None or not other.graph_keys:
+            why = f"{what}: observed robot {msg.observed_robot_id} has no pose nodes here"
+            self._hold_sighting(track, msg, "unknown_robot", why, own_node=False)
+            return
+        seen_s = self._seen_s(track, msg)
+        if other.times[-1] < seen_s and not self._waited:
+            # the teammate's pose node of that time is still on its way: wait for it
+            why = f"{what}: robot {msg.observed_robot_id}'s pose node of t={seen_s:.1f} s not here"
+            self._hold_sighting(track, msg, "unknown_robot", why, own_node=False)
+            return
         i = int(np.argmin(np.abs(np.asarray(other.times) - seen_s)))
         self.graph.add_edge(
             key_a,
@@ -733,26 +743,64 @@ class GroundStation:
         self._dirty = True
 
     def _hold_sighting(
-        self, track: _Track, msg: Detection | FiducialObservation, reason: str, why: str
+        self,
+        track: _Track,
+        msg: Detection | FiducialObservation,
+        reason: str,
+        why: str,
+        *,
+        own_node: bool = True,
     ) -> None:
-        """Keep a sighting whose pose node is still to come (its node index is ahead of the
-        robot's stream); one whose node was lost or passed is refused with ``reason``."""
-        if msg.node_index < track.next_index:
+        """Keep a sighting that came too early: its own pose node is still to come (its index
+        is ahead of the robot's stream) or, ``own_node=False``, the teammate a fiducial saw has
+        no pose node here yet (the robots' streams race). One whose node was lost or passed is
+        refused with ``reason``."""
+        if own_node and msg.node_index < track.next_index:
             raise _Rejected(reason, why)
         if len(track.pending_sightings) >= self.config.max_pending_sightings:
             raise _Rejected(reason, f"{why}; too many sightings wait for pose nodes")
-        track.pending_sightings.append(msg)
+        track.pending_sightings.append((msg, self._handle_now_s))
         self.stats.sightings_held += 1
 
-    def _drain_sightings(self, robot_id: int, track: _Track) -> None:
-        """Sightings held for pose nodes that have now arrived (or were passed: refused)."""
-        if not track.pending_sightings:
-            return
-        waiting = [m for m in track.pending_sightings if m.node_index >= track.next_index]
-        due = [m for m in track.pending_sightings if m.node_index < track.next_index]
-        track.pending_sightings = waiting
-        for msg in due:  # arrival order: a refined detection still follows its first report
-            self.handle(robot_id, msg, now_s=self._handle_now_s)
+    def _sighting_ready(
+        self, track: _Track, msg: Detection | FiducialObservation, held_s: float
+    ) -> bool:
+        if msg.node_index >= track.next_index:
+            return False
+        if isinstance(msg, FiducialObservation):
+            other = self._tracks.get(msg.observed_robot_id)
+            if other is None or not other.graph_keys:
+                return False
+            if msg.node_index in track.keys and other.times[-1] < self._seen_s(track, msg):
+                return self._handle_now_s - held_s >= self.config.fiducial_wait_s
+        return True
+
+    def _seen_s(self, track: _Track, msg: FiducialObservation) -> float:
+        """A fiducial's time on the observer's substitute clock (its node's, if the stamp is
+        implausibly far from the node's own)."""
+        raw_node_s, node_s = track.raw_times[msg.node_index]
+        offset_s = float(msg.time_s) - raw_node_s
+        return node_s + offset_s if abs(offset_s) <= self.config.max_node_interval_s else node_s
+
+    def _drain_sightings(self) -> None:
+        """Sightings held until now whose pose nodes have arrived (every robot's: a fiducial
+        waits for its teammate too); one whose own node was passed for good is refused."""
+        for robot_id, track in list(self._tracks.items()):
+            if not track.pending_sightings:
+                continue
+            ready = [self._sighting_ready(track, m, t) for m, t in track.pending_sightings]
+            if not any(ready):
+                continue
+            due = [m for (m, _), r in zip(track.pending_sightings, ready, strict=True) if r]
+            track.pending_sightings = [
+                item for item, r in zip(track.pending_sightings, ready, strict=True) if not r
+            ]
+            self._waited = True  # a fiducial that waited its time takes the latest teammate node
+            try:
+                for msg in due:  # arrival order: a refined detection follows its first report
+                    self.handle(robot_id, msg, now_s=self._handle_now_s)
+            finally:
+                self._waited = False
 
     def _on_detection(self, robot_id: int, track: _Track, msg: Detection) -> None:
         what = f"detection {msg.detection_id}"
@@ -898,6 +946,9 @@ class GroundStation:
         the frames go out at the last good estimate either way."""
         try:
             now = self._station_now(now_s)
+            if math.isfinite(now_s) and now_s > self._handle_now_s:
+                self._handle_now_s = float(now_s)
+            self._drain_sightings()  # fiducials whose wait for a teammate's node is over
             budget = self.config.loop_budget_s if budget_s is None else budget_s
             self._close_loops(now, budget)
             if self._dirty:

@@ -489,3 +489,31 @@ def test_sightings_before_their_pose_node_wait_for_it() -> None:
         gs2.handle(0, msgs[i], now_s=0.0)
     assert gs2.stats.gaps_bridged == 1 and gs2.key_of(0, 9) is None
     assert gs2.stats.rejected["orphan_detection"] == 1
+
+
+def test_a_fiducial_waits_for_the_teammate_node_of_its_time() -> None:
+    # the robots' streams race: robot 1's tag of t=6 s may come before robot 0's node 6
+    path0, path1 = straight(8), straight(8, heading=0.3)
+    seen = relative(compose(np.array([2.0, -1.0, 0.3]), path1[6]), path0[6])
+    tag = FiducialObservation(6, 6.0, 0, 7, tuple(seen), COV)  # type: ignore[arg-type]
+    gs = GroundStation(GroundStationConfig(robots=(0, 1)))
+    n0, n1 = nodes_along(path0), nodes_along(path1)
+    for m in n0[:3] + n1[:7]:
+        gs.handle(0 if m in n0[:3] else 1, m, now_s=6.0)
+    assert gs.handle(1, tag, now_s=6.0) and gs.stats.fiducials == 0  # waits for node 6 of 0
+    for m in n0[3:7]:
+        gs.handle(0, m, now_s=6.5)
+    assert gs.stats.fiducials == 1
+    (edge,) = gs.graph.edges(Provenance.FIDUCIAL)
+    assert edge.key_b == gs.key_of(0, 6)  # the node of its time, not the latest of t=2 s
+    # a teammate standing still makes no new node: after fiducial_wait_s its latest one serves
+    gs2 = GroundStation(GroundStationConfig(robots=(0, 1), fiducial_wait_s=5.0))
+    for m in n0[:3]:
+        gs2.handle(0, m, now_s=6.0)
+    for m in n1[:7]:
+        gs2.handle(1, m, now_s=6.0)
+    gs2.handle(1, tag, now_s=6.0)
+    gs2.step(now_s=9.0)
+    assert gs2.stats.fiducials == 0
+    gs2.step(now_s=11.5)
+    assert gs2.stats.fiducials == 1 and gs2.stats.rejected_total == 0
