@@ -90,7 +90,13 @@ class RasterConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
 
     ``resolution_m`` of the map; ``free_range_m`` how far from a node its rays mark free space
     (half the 15 m local window) and ``free_fov_rad`` within which angle around the base's +x
-    axis (``2 pi``: an all-round sensor; ``pi`` for a forward 180-degree laser); ``cover``
+    axis: the robot's nodding Hokuyo UTM-30LX scans 270 degrees (paper 3.1, ``sim.lidar``), so
+    the 90 degrees behind it are never seen and a wall there is missing from the grid (with
+    ``2 pi`` the rays ran through it: free space outside the perimeter and into buildings, and
+    walls other nodes saw erased by latest-wins); ``2 pi`` for an all-round sensor, ``pi`` for
+    a forward 180-degree laser; ``wall_gap_m`` rays do not pass gaps in a wall narrower than
+    this (sparse returns at range or at grazing angles leave such holes; a robot cannot
+    drive through them either, and doorways are wider); ``cover``
     skip nodes that are the latest observer of no cell; ``cache`` reuse submaps of
     ``submap_nodes`` nodes while their poses hold still within ``pose_tolerance_m`` /
     ``pose_tolerance_rad`` (0: exact; an incremental smoother that nudges every pose a little
@@ -101,7 +107,8 @@ class RasterConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
 
     resolution_m: float = 0.1
     free_range_m: float = 7.5
-    free_fov_rad: float = 2.0 * math.pi
+    free_fov_rad: float = 1.5 * math.pi
+    wall_gap_m: float = 0.4
     cover: bool = True
     cache: bool = True
     submap_nodes: int = 32
@@ -117,6 +124,8 @@ class RasterConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
             raise ValueError(f"free_range_m must be in [0, 1000], got {self.free_range_m}")
         if not (math.isfinite(self.free_fov_rad) and 0 <= self.free_fov_rad <= 2 * math.pi):
             raise ValueError(f"free_fov_rad must be in [0, 2 pi], got {self.free_fov_rad}")
+        if not (math.isfinite(self.wall_gap_m) and 0 <= self.wall_gap_m <= 10):
+            raise ValueError(f"wall_gap_m must be in [0, 10], got {self.wall_gap_m}")
         if not 1 <= self.submap_nodes <= MAX_SUBMAP_NODES:
             raise ValueError(
                 f"submap_nodes must be in [1, {MAX_SUBMAP_NODES}], got {self.submap_nodes}"
@@ -610,6 +619,7 @@ class Rasterizer:
             resolution_m,
             free_range_m=self.config.free_range_m,
             free_fov_rad=self.config.free_fov_rad,
+            wall_gap_m=self.config.wall_gap_m,
             where=where,
         )
         robot = int(robot_id) if robot_id is not None else (key >> 32 if key >= 0 else -1)

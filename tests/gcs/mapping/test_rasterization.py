@@ -141,10 +141,35 @@ def test_geometry_of_one_node() -> None:
     assert m.values[row, col] == FREE
     ((row, col),) = m.cells_of([[10.0 - 0.05, 5.0 + 1.6]])  # behind the obstacle
     assert m.values[row, col] == UNKNOWN
-    ((row, col),) = m.cells_of([[11.5, 5.0]])  # within range, in the open
+    ((row, col),) = m.cells_of([[11.5, 5.0]])  # within range, in the open, to its right
     assert m.values[row, col] == FREE
+    ((row, col),) = m.cells_of([[10.0, 5.0 - 1.5]])  # behind: the 270-degree laser's blind side
+    assert m.values[row, col] == UNKNOWN
     free = np.count_nonzero(m.values == FREE) * 0.01
-    assert math.pi * 2.0**2 * 0.9 < free < math.pi * 2.1**2
+    assert 0.75 * math.pi * 2.0**2 * 0.9 < free < 0.75 * math.pi * 2.1**2
+
+
+def test_a_wall_behind_a_later_node_is_not_erased_by_its_blind_side() -> None:
+    """Node 1 faces a wall 2 m ahead; node 2, later, stands 1 m before the wall with its back
+    to it: its 270-degree laser never saw the wall, so its grid is empty there. The wall
+    stays occupied and the far side unknown; an all-round sensor model (``2 pi``) would have
+    painted both free (the leak this default prevents)."""
+    wall = np.ones((40, 1), dtype=bool)  # x in [2.0, 2.1), y in [-2, 2) of node 1's base
+    nothing = np.zeros((0, 0), dtype=bool)
+    poses = {1: (0.0, 0.0, 0.0), 2: (1.0, 0.0, math.pi)}
+    probes = np.array([[2.05, 0.05], [3.0, 0.05]])  # on the wall, behind it
+    expected = {1.5 * math.pi: (OCCUPIED, UNKNOWN), 2.0 * math.pi: (FREE, FREE)}
+    for fov, (on_wall, behind) in expected.items():
+        for config in (
+            RasterConfig(free_fov_rad=fov),
+            RasterConfig(free_fov_rad=fov, cover=False, cache=False),
+        ):
+            raster = Rasterizer(config)
+            raster.add_node(1, 0.0, wall, (2.0, -2.0), 0.1)
+            raster.add_node(2, 1.0, nothing, (0.0, 0.0), 0.1)
+            m = raster.rasterize(poses)
+            (a, b) = m.cells_of(probes)
+            assert (m.values[a[0], a[1]], m.values[b[0], b[1]]) == (on_wall, behind), fov
 
 
 def test_poses_as_dict_or_arrays_give_the_same_map_and_unknown_keys_are_counted() -> None:

@@ -147,3 +147,51 @@ def test_a_forward_laser_sees_nothing_behind() -> None:
         assert value_at(r, x, y) == UNKNOWN, (x, y)
     with pytest.raises(ValueError, match="free_fov_rad"):
         local_raster(empty, (0.0, 0.0), RES, free_range_m=3.0, free_fov_rad=7.0)
+
+
+def _wall_with_holes(holes: list[tuple[int, int]]) -> np.ndarray:
+    """A 1-cell wall at x in [2.0, 2.1), y in [-3, 3) (60 cells) with holes ``[r0, r1)``."""
+    grid = np.ones((60, 1), dtype=bool)
+    for r0, r1 in holes:
+        grid[r0:r1, 0] = False
+    return grid
+
+
+def test_narrow_holes_in_a_wall_stop_rays_but_doorways_do_not() -> None:
+    # holes of 2 and 4 cells (0.2, 0.4 m) and a 0.9 m doorway, at y = -2.0, -0.5 and 1.0
+    grid = _wall_with_holes([(10, 12), (25, 29), (40, 49)])
+    origin = (2.0, -3.0)
+    leaky = local_raster(grid, origin, RES, free_range_m=6.0)
+    closed = local_raster(grid, origin, RES, free_range_m=6.0, wall_gap_m=0.4)
+    # straight through each narrow hole: free without closing, unknown with it
+    for y in (-1.85, -0.25):
+        assert value_at(leaky, 2.05, y) == FREE
+        assert value_at(leaky, 4.0, 2 * y) == FREE
+        assert value_at(closed, 2.05, y) == UNKNOWN  # the hole stops rays, stays unknown
+        assert value_at(closed, 4.0, 2 * y) == UNKNOWN
+    # the doorway still lets the robot see through
+    assert value_at(closed, 2.05, 1.45) == FREE
+    assert value_at(closed, 4.0, 2.9) == FREE
+    # walls are not thickened: the cells in front of the wall stay free, the wall occupied
+    for y in (-2.45, -1.05, 0.35):
+        assert value_at(closed, 1.95, y) == FREE
+        assert value_at(closed, 2.05, y) == OCCUPIED
+    assert np.count_nonzero(closed.cells == OCCUPIED) == np.count_nonzero(grid)
+
+
+def test_a_robot_inside_closed_gaps_still_sees() -> None:
+    # four posts 0.5 m apart around the robot (a table): the closing joins them into a square
+    # 0.2 m from the robot, yet rays leave the robot's own neighbourhood
+    grid = np.zeros((6, 6), dtype=bool)  # x, y in [-0.3, 0.3)
+    grid[0, 0] = grid[0, 5] = grid[5, 0] = grid[5, 5] = True
+    r = local_raster(grid, (-0.3, -0.3), RES, free_range_m=2.0, wall_gap_m=0.4)
+    assert value_at(r, 0.05, 0.05) == FREE
+    for x, y in ((0.05, 1.5), (0.05, -1.5), (1.5, 0.05), (-1.5, 0.05)):
+        assert value_at(r, x, y) == FREE, (x, y)
+    assert value_at(r, -0.25, -0.25) == OCCUPIED
+
+
+def test_bad_wall_gap_is_rejected() -> None:
+    for gap in (-0.1, math.nan, 11.0):
+        with pytest.raises(ValueError, match="wall_gap_m"):
+            local_raster(np.ones((2, 2), bool), (0.0, 0.0), RES, free_range_m=1.0, wall_gap_m=gap)
