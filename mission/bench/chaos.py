@@ -16,8 +16,10 @@ with the same seed: once clean, once with
 
 Metrics: ``accepted_lost`` (messages on the robots' reliable uplink streams that their link
 accepted, that never reached the station (neither taken nor refused with a reason) and are
-not still in flight at the end), ``duplicates_in_graph`` (pose nodes and grids the station
-saw twice: it counts them and keeps one), ``mission_completed`` (the run reached its
+not still in flight at the end: unacknowledged by the GCS, or held in its reorder buffer
+behind a gap; ``in_flight_at_end`` counts those), ``duplicates_in_graph`` (a pose node in
+the graph twice), ``station_duplicates_dropped`` (nodes and grids the station saw again and
+dropped), ``mission_completed`` (the run reached its
 duration with the GCS serving), ``explored_frac`` and ``explored_frac_clean`` (the same seed
 without faults) and their difference ``explored_frac_drop``, ``gcs_restart_s`` (wall seconds
 from the kill to a serving GCS: the journal replayed), ``replay_pose_diff_max_m`` (the whole
@@ -96,14 +98,19 @@ class _Ledger:
     def tap(self, robot_id: int, msg: Any, accepted: bool) -> None:
         self.handed.add(self.ident(robot_id, msg))
 
-    def lost(self, asm: Assembly) -> tuple[int, int]:
-        """``(accepted_lost, in_flight)`` at the end of the run."""
+    def lost(self, asm: Assembly) -> tuple[int, int, list[Any]]:
+        """``(accepted_lost, in_flight, the first lost)`` at the end of the run."""
         in_flight: set[tuple[int, str, int]] = set()
         for rid, ep in asm.team.radios.items():  # type: ignore[union-attr]
-            # the channel's unacknowledged messages: still on their way, not lost
+            # private state of the radio channels (no public accessor): the robot's
+            # unacknowledged messages are still on their way, not lost
             for stream, st in ep.channel._send.items():
                 in_flight.update((rid, stream, seq) for seq in st.unacked)
+            # selectively acknowledged, in the GCS's reorder buffer behind a gap
+            for stream, rs in asm.team.ground.channel(rid)._recv.items():
+                in_flight.update((rid, stream, seq) for seq in rs.buffer)
         lost = flying = 0
+        first: list[Any] = []
         for key, ident in self.sent.items():
             if ident in self.handed:
                 continue
@@ -111,7 +118,9 @@ class _Ledger:
                 flying += 1
             else:
                 lost += 1
-        return lost, flying
+                if len(first) < 5:
+                    first.append((key, ident))
+        return lost, flying, first
 
 
 def _mission(
@@ -171,6 +180,8 @@ def _mission(
             else:
                 asm.step()
         assert asm.gcs is not None
+        # the last exchange's uplink waits in the ground side's inbox for the next turn
+        asm.gcs.drain(asm.sim.time_s)
         station = asm.gcs.station
         plan = staging_plan(asm.sim.world)
         map_robot = station.config.graph.map_robot_id
@@ -178,7 +189,9 @@ def _mission(
         frac, _ = explored_frac(
             station.rasterize(), transform_points(inverse(plan[map_robot]), reach)
         )
-        lost, flying = ledger.lost(asm)
+        lost, flying, first = ledger.lost(asm)
+        if lost:
+            progress(f"chaos: accepted and lost, e.g. {first}")
         out = {
             "explored_frac": float(frac),
             "accepted_lost": float(lost),
