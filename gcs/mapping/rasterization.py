@@ -93,8 +93,10 @@ class RasterConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     axis: the robot's nodding Hokuyo UTM-30LX scans 270 degrees (paper 3.1, ``sim.lidar``), so
     the 90 degrees behind it are never seen and a wall there is missing from the grid (with
     ``2 pi`` the rays ran through it: free space outside the perimeter and into buildings, and
-    walls other nodes saw erased by latest-wins); ``2 pi`` for an all-round sensor, ``pi`` for
-    a forward 180-degree laser; ``wall_gap_m`` rays do not pass gaps in a wall narrower than
+    walls other nodes saw erased by latest-wins); the default 240 degrees leaves 15 degrees at
+    each edge for the robot turning during the 1.25 s sweep (a wall near the edge is then
+    seen by too few scan lines to count as vertical); ``2 pi`` for an all-round sensor, ``pi``
+    for a forward 180-degree laser; ``wall_gap_m`` rays do not pass gaps in a wall narrower than
     this (sparse returns at range or at grazing angles leave such holes; a robot cannot
     drive through them either, and doorways are wider); ``cover``
     skip nodes that are the latest observer of no cell; ``cache`` reuse submaps of
@@ -107,7 +109,7 @@ class RasterConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
 
     resolution_m: float = 0.1
     free_range_m: float = 7.5
-    free_fov_rad: float = 1.5 * math.pi
+    free_fov_rad: float = 4.0 * math.pi / 3.0
     wall_gap_m: float = 0.4
     cover: bool = True
     cache: bool = True

@@ -143,22 +143,23 @@ def test_geometry_of_one_node() -> None:
     assert m.values[row, col] == UNKNOWN
     ((row, col),) = m.cells_of([[11.5, 5.0]])  # within range, in the open, to its right
     assert m.values[row, col] == FREE
-    ((row, col),) = m.cells_of([[10.0, 5.0 - 1.5]])  # behind: the 270-degree laser's blind side
+    ((row, col),) = m.cells_of([[10.0, 5.0 - 1.5]])  # behind: the laser's blind side
     assert m.values[row, col] == UNKNOWN
     free = np.count_nonzero(m.values == FREE) * 0.01
-    assert 0.75 * math.pi * 2.0**2 * 0.9 < free < 0.75 * math.pi * 2.1**2
+    sector = RasterConfig().free_fov_rad / 2  # the area of the default 240-degree sector
+    assert sector * 2.0**2 * 0.9 < free < sector * 2.1**2
 
 
 def test_a_wall_behind_a_later_node_is_not_erased_by_its_blind_side() -> None:
     """Node 1 faces a wall 2 m ahead; node 2, later, stands 1 m before the wall with its back
-    to it: its 270-degree laser never saw the wall, so its grid is empty there. The wall
-    stays occupied and the far side unknown; an all-round sensor model (``2 pi``) would have
-    painted both free (the leak this default prevents)."""
+    to it: its 270-degree laser never saw the wall, so its grid is empty there. With the
+    default field of view the wall stays occupied and the far side unknown; an all-round
+    sensor model (``2 pi``) would have painted both free (the leak the default prevents)."""
     wall = np.ones((40, 1), dtype=bool)  # x in [2.0, 2.1), y in [-2, 2) of node 1's base
     nothing = np.zeros((0, 0), dtype=bool)
     poses = {1: (0.0, 0.0, 0.0), 2: (1.0, 0.0, math.pi)}
     probes = np.array([[2.05, 0.05], [3.0, 0.05]])  # on the wall, behind it
-    expected = {1.5 * math.pi: (OCCUPIED, UNKNOWN), 2.0 * math.pi: (FREE, FREE)}
+    expected = {RasterConfig().free_fov_rad: (OCCUPIED, UNKNOWN), 2.0 * math.pi: (FREE, FREE)}
     for fov, (on_wall, behind) in expected.items():
         for config in (
             RasterConfig(free_fov_rad=fov),
