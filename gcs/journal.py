@@ -438,6 +438,11 @@ class JournaledStation:
     def close(self) -> None:
         self.journal.close()
 
+    def __getattr__(self, name: str) -> Any:
+        # everything else (graph, frames(), hazards, suggest_closure, ...) is the station's:
+        # an operator's command handler can take this in place of the station
+        return getattr(self.station, name)
+
     def _seen(self, now_s: float) -> None:
         if math.isfinite(now_s):
             self._now_s = max(self._now_s, float(now_s))

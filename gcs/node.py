@@ -29,6 +29,7 @@ import msgspec
 from gcs.ground_station import GroundStation, GroundStationConfig
 from gcs.journal import (
     GcsJournal,
+    JournaledStation,
     JournalError,
     ResumedControl,
     resume_control,
@@ -248,7 +249,11 @@ class GcsProcess:
                 except LinkBackpressure:
                     self.refused += 1  # the next periodic update supersedes it
         if self.operator is not None:  # operator (issue 15): commands, status, views
-            self.operator.after_step(now_s=now, station=self.station, send=self.send)
+            station: Any = self.station
+            if self.journal is not None:  # the operator primitives (accept, rewind) journaled
+                station = JournaledStation(self.station, self.journal)
+                station._seen(now)
+            self.operator.after_step(now_s=now, station=station, send=self.send)
         if self.journal is not None:
             wall = time.monotonic()
             if wall - self._last_snapshot_wall_s >= 1.0:
