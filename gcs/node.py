@@ -13,6 +13,7 @@ wall``) on real robots.
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import math
 import queue
@@ -46,7 +47,7 @@ from protocol import keys
 from protocol.clock import ManualClock, WallClock
 from protocol.config import ConfigError, load_config
 from protocol.link import Link
-from protocol.messages import STREAMS, Direction, Reliability, stream_of
+from protocol.messages import STREAMS, Direction, HazardUpdate, Reliability, stream_of
 from protocol.process_cli import (
     add_link_arguments,
     follow_sim_clock,
@@ -243,9 +244,18 @@ class GcsProcess:
         if now - self._last_step_s >= self.step_period_s:
             self._last_step_s = now
             out = step_control(self.control, self.journal, now_s=now, budget_s=self.budget_s)
+            # the station hands every due robot the same HazardUpdate: one broadcast (paper
+            # 4.1) when two or more robots are due, instead of one copy per robot
+            copies = collections.Counter(id(m) for _, m in out if isinstance(m, HazardUpdate))
+            broadcast: set[int] = set()
             for robot_id, msg in out:
                 try:
-                    self.send(robot_id, msg)
+                    if copies.get(id(msg), 0) > 1:
+                        if id(msg) not in broadcast:
+                            broadcast.add(id(msg))
+                            self.radio.broadcast(msg)
+                    else:
+                        self.send(robot_id, msg)
                 except LinkBackpressure:
                     self.refused += 1  # the next periodic update supersedes it
         if self.operator is not None:  # operator (issue 15): commands, status, views
