@@ -83,7 +83,9 @@ def test_magic_replay_of_a_run_directory(
     _turns(ground, _mission(seed=5), 0, 30)
     assert ground.journal is not None
     ground.journal.close()
-    assert main([str(tmp_path)]) == 0
+    from mission.replay import main as magic_replay
+
+    assert magic_replay([str(tmp_path)]) == 0  # magic replay RUN_DIR
     out = capsys.readouterr().out
     assert "replay_pose_diff_max_m 0" in out and "replay_edges_equal 1" in out
     (tmp_path / "empty").mkdir()
