@@ -111,10 +111,10 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # say) is not sent to that OOI again for this long; then it may be (a lone disruptor
     # would otherwise leave the OOI for good)
     neutralize_retry_s: float = 60.0
-    # a sensor robot that fell silent on its way to an exploration goal or a hostile's view
-    # (radio shadow: MAGIC's robots lost the radio behind buildings) is not given that goal
-    # again, nor that hostile to watch for this long: back in contact it was re-sent into the
-    # same shadow, over and over (small world: one robot silent 60% of a mission)
+    # a sensor robot that fell silent on its way to watch a hostile (radio shadow: MAGIC's
+    # robots lost the radio behind buildings) is not sent to watch it for this long: back in
+    # contact it was re-sent into the same shadow, over and over (small world seed 0: robots
+    # 0 and 1 took turns, robot_back -> hostile_view -> robot_silent, from 95 s to the end)
     shadow_retry_s: float = 90.0
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
@@ -480,27 +480,24 @@ class TaskAllocator:
             self._close_task(ctx, r)
 
     def _shadowed(self, ctx: _Ctx, rid: int) -> None:
-        """Robot ``rid`` just fell silent: the exploration goal it was on counts as failed for
-        it (and towards the global count), the hostile it was to watch is not given it for
-        ``shadow_retry_s``."""
+        """Robot ``rid`` just fell silent: the hostile it was on its way to watch is not given
+        it for ``shadow_retry_s`` (the lock needs the watchers heard, paper 2: a watcher in a
+        radio shadow cannot hold it). An exploration goal is given again: what the robot saw
+        in the shadow arrives when it is back in contact (store and forward), so the shadow
+        gets explored; a goal whose frontier that closed is replaced anyway."""
         a = self.assignments.get(rid)
-        if a is None or a.goal_in_map is None:
+        if a is None or a.goal_in_map is None or a.hazard_id is None:
             return
-        purpose = a.purpose.split(":")[0]
-        if purpose == "explore":
-            self._failed_goals.setdefault(rid, []).append(a.goal_in_map)
-            self._goal_failures.append((a.goal_in_map, rid))
-        elif purpose == "hostile_view" and a.hazard_id is not None:
-            self._view_shadowed.setdefault(a.hazard_id, {})[rid] = ctx.now_s
-        else:
+        if a.purpose.split(":")[0] != "hostile_view":
             return
+        self._view_shadowed.setdefault(a.hazard_id, {})[rid] = ctx.now_s
         x, y = a.goal_in_map
         self._event(
             ctx,
             "goal_in_shadow",
             rid,
-            f"robot {rid} fell silent on its way to ({x:.1f}, {y:.1f}) ({purpose}): not sent "
-            "there again soon",
+            f"robot {rid} fell silent on its way to watch hostile {a.hazard_id} from "
+            f"({x:.1f}, {y:.1f}): not sent to watch it for {self.config.shadow_retry_s:g} s",
             a.hazard_id,
         )
 

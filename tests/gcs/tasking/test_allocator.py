@@ -139,23 +139,36 @@ def test_a_silent_robots_goal_goes_to_another() -> None:
     assert alloc.assignments[2].purpose.endswith(":released")  # it keeps its last task
 
 
-def test_a_robot_that_fell_silent_on_its_goal_is_not_sent_there_again() -> None:
-    """Radio shadow: the robot falls silent on its way to a goal and comes back (its comms
-    watchdog returns it to where it last heard the GCS); it is sent elsewhere, not back into
-    the same shadow (a mission looped so, one robot silent 60% of the time)."""
-    occ = occupancy(corridor())  # two frontiers, west and east
-    r = robot(1, (12.0, 3.0))
-    alloc = TaskAllocator()
-    alloc.plan(TaskingState(occ, [r]), now_s=0.0)
-    first = alloc.assignments[1].goal_in_map
-    assert first is not None
-    out = alloc.plan(TaskingState(occ, [r]), now_s=12.0)  # silent 12 s
-    assert out == [] and {e.kind for e in alloc.events} == {"robot_silent", "goal_in_shadow"}
-    r.last_heard_s = 40.0
-    out = alloc.plan(TaskingState(occ, [r]), now_s=40.0)
-    assert any(e.kind == "robot_back" for e in alloc.events)
-    (goal,) = goals_in_map(out, {1: r}).values()
-    assert math.dist(goal[-1], first) > 10.0  # the other frontier
+def test_a_robot_that_fell_silent_watching_a_hostile_is_not_sent_to_watch_it_again_soon() -> None:
+    """Radio shadow: a watcher falls silent on its way to its view of a hostile and comes
+    back (its comms watchdog returns it to where it last heard the GCS); it is not sent to
+    watch that hostile again for ``shadow_retry_s`` (a mission looped so from 95 s to the
+    end), then it is."""
+    occ = occupancy(blank(20, 20, FREE))
+    hostile = Hazard(9, ObjectKind.HOSTILE, (15.0, 15.0), 5.0)
+    r1, r2 = robot(1, (3.0, 3.0)), robot(2, (3.0, 5.0))
+    alloc = TaskAllocator(TaskingConfig(shadow_retry_s=60.0))
+
+    def plan(t: float) -> None:
+        state = TaskingState(occ, [r1, r2], hazards=[hostile])
+        alloc.plan(state, now_s=t)
+
+    def watching(rid: int) -> bool:
+        a = alloc.assignments.get(rid)
+        return a is not None and a.purpose == "hostile_view"
+
+    plan(0.0)
+    assert watching(1) and watching(2)
+    r1.last_heard_s = 12.0  # robot 2 falls silent
+    plan(12.0)
+    assert any(e.kind == "goal_in_shadow" and e.robot_id == 2 for e in alloc.events)
+    for t in (30.0, 50.0):  # back in contact: not sent to watch it
+        r1.last_heard_s = r2.last_heard_s = t
+        plan(t)
+        assert not watching(2), t
+    r1.last_heard_s = r2.last_heard_s = 74.0
+    plan(74.0)
+    assert watching(2)  # the shadow is 60 s old: it may try again
 
 
 def _dispatch_world() -> tuple[TaskingState, RobotInfo, RobotInfo]:
@@ -362,7 +375,7 @@ def test_operator_controlled_robots_are_left_alone_and_silent_ones_come_back() -
     assert [rid for rid, _ in out] == [1]
     r2.operator_controlled = False
     out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=15.0)  # both silent for 15 s
-    assert out == [] and {e.kind for e in alloc.events} == {"robot_silent", "goal_in_shadow"}
+    assert out == [] and {e.kind for e in alloc.events} == {"robot_silent"}
     r1.last_heard_s = r2.last_heard_s = 16.0
     out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=16.0)
     assert sorted(rid for rid, _ in out) == [1, 2]
