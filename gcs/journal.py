@@ -283,6 +283,11 @@ class GcsJournal:
         for seq, time_s, kind, robot_id, body in cur:
             yield Record(int(seq), float(time_s), str(kind), int(robot_id), bytes(body))
 
+    def last_time_s(self) -> float:
+        """The latest mission time of any record (0 for an empty journal)."""
+        row = self._conn.execute("SELECT MAX(time_s) FROM records").fetchone()
+        return float(row[0] or 0.0)
+
     def counts(self) -> dict[str, int]:
         rows = self._conn.execute("SELECT kind, COUNT(*) FROM records GROUP BY kind").fetchall()
         return {str(k): int(n) for k, n in rows}

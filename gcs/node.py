@@ -44,7 +44,7 @@ from gcs.operator.node_hooks import (  # operator (issue 15): views and console 
 )
 from gcs.operator.service import OperatorService  # operator (issue 15)
 from protocol import keys
-from protocol.clock import ManualClock, WallClock
+from protocol.clock import ManualClock, ScaledClock, WallClock
 from protocol.config import ConfigError, load_config
 from protocol.link import Link
 from protocol.messages import STREAMS, Direction, HazardUpdate, Reliability, stream_of
@@ -617,6 +617,15 @@ def _main(argv: list[str]) -> int:
         print(f"magic gcs: {err}", file=sys.stderr)
         return 2
     clock: Any = ManualClock() if args.clock == "sim" else WallClock()
+    if args.resume is not None and args.clock == "wall":
+        # mission time goes on from the journal's last record, never backwards
+        try:
+            reader = GcsJournal.open(args.resume / "journal.sqlite")
+        except JournalError as err:
+            print(f"magic gcs: {err}", file=sys.stderr)
+            return 2
+        clock = ScaledClock(1.0, start_s=reader.last_time_s())
+        reader.close()
     try:
         # no pump thread: the GCS loop pumps after each journal commit (ack what is kept)
         cfg = msgspec.structs.replace(link_config(radio, args), pump_period_s=0.0)

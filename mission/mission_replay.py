@@ -29,7 +29,8 @@ JOURNAL_NAME = "journal.sqlite"
 @dataclass(frozen=True)
 class ReplayDiff:
     """How two stations differ: node keys equal, edges equal (ends, kind, measurement to
-    1e-9), the largest pose difference (m, over common keys; inf when none)."""
+    1e-9), the largest pose difference (m, over common keys; 0 when neither has a pose, inf
+    when only one has)."""
 
     nodes_equal: bool
     edges_equal: bool
@@ -73,11 +74,10 @@ def compare_stations(a: GroundStation, b: GroundStation) -> ReplayDiff:
     nodes_equal = bool(np.array_equal(np.sort(keys_a), np.sort(keys_b)))
     edges_a, edges_b = _edges(a), _edges(b)
     common, ia, ib = np.intersect1d(keys_a, keys_b, return_indices=True)
-    diff = (
-        float(np.max(np.hypot(*(poses_a[ia, :2] - poses_b[ib, :2]).T)))
-        if len(common)
-        else float("inf")
-    )
+    if len(common):
+        diff = float(np.max(np.hypot(*(poses_a[ia, :2] - poses_b[ib, :2]).T)))
+    else:  # no pose in common: equal only when both have none
+        diff = 0.0 if len(keys_a) == len(keys_b) == 0 else float("inf")
     return ReplayDiff(nodes_equal, edges_a == edges_b, diff, len(keys_a), len(edges_a))
 
 
