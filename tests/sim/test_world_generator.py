@@ -137,8 +137,8 @@ def test_invalid_world_configs_name_the_file_and_key(text: str, key: str, proble
 
 
 def test_team_too_big_for_the_phase_is_a_clear_error() -> None:
-    cfg = load_config_text("size_m: [20.0, 20.0]\nrobots:\n  sensors: 300\n", WorldConfig)
-    with pytest.raises(ValueError, match="too small for 301 robots"):
+    cfg = load_config_text("size_m: [20.0, 20.0]\nrobots:\n  sensors: 140\n", WorldConfig)
+    with pytest.raises(ValueError, match="too small for 141 robots"):
         generate_world(cfg)
 
 
