@@ -674,7 +674,8 @@ class TaskAllocator:
     def _disruptors(self, ctx: _Ctx) -> None:
         cfg = self.config.disruptor
         mine = {rid: r for rid, r in ctx.available.items() if r.role == Role.DISRUPTOR}
-        live = {h.hazard_id: h for h in ctx.static_live}
+        # not one neutralized in this plan's bookkeeping (static_live was taken before it)
+        live = {h.hazard_id: h for h in ctx.static_live if h.hazard_id not in self.neutralized}
         # approvals for disruptors at their pose
         for rid, r in mine.items():
             a = self.assignments.get(rid)

@@ -226,6 +226,8 @@ def test_disruptor_dispatch_then_auto_approved_neutralization() -> None:
     r.last_heard_s = d1.last_heard_s = d2.last_heard_s = 21.0
     alloc.plan(state, now_s=21.0)
     assert 3 in alloc.neutralized and alloc.stats.neutralized == 1
+    # not dispatched to it again in the plan that learnt it was done (a mission did so)
+    assert not [e for e in alloc.events if e.kind == "dispatch"]
 
 
 def test_a_lone_disruptor_that_failed_a_neutralization_is_sent_again_later() -> None:
