@@ -20,7 +20,8 @@ Metrics (all floats; NaN where the record cannot say, e.g. no pose node yet):
   hints and accepted suggestions); ``ate_rmse_m``, ``occupancy_f1`` / ``_precision`` /
   ``_recall``;
 * radio: ``uplink_bps``, ``downlink_bps`` (team) and per robot ``robot<id>.uplink_bps``,
-  ``robot<id>.downlink_bps``, ``robot<id>.radio_share``; ``radio_use_frac`` (all traffic over
+  ``robot<id>.downlink_bps``, ``robot<id>.radio_share``; ``broadcast_radio_share`` (the
+  GCS's broadcasts to the team, metered once); ``radio_use_frac`` (all traffic over
   the shared capacity);
 * autonomy (paper Tables 4-5): ``mode_<mode>_s``, ``mode_<mode>_m``; ``interactions``,
   ``interactions_per_min`` (paper Fig. 24);
@@ -312,6 +313,11 @@ def _radio(
         both = per_robot[r]["uplink_bps"] + per_robot[r]["downlink_bps"]
         per_robot[r]["radio_share"] = both / capacity
     metrics["radio_use_frac"] = total_bits / (capacity * span) if span > 0 else math.nan
+    # what the GCS sent the whole team at once (the hazard/frames broadcast, coalesced acks:
+    # metered once under robot id -1), beside the robots' own shares
+    cols = [i for (rr, _, _), i in index.items() if rr < 0]
+    bits = cum[-1, cols].sum() * 8.0 if len(samples) and cols else 0.0
+    metrics["broadcast_radio_share"] = bits / (capacity * span) if span > 0 else math.nan
     metrics["radio_capacity_bps"] = capacity
     # rates between samples (bps), by key
     if len(samples) >= 2:

@@ -100,7 +100,7 @@ def test_radio_metrics_add_up_from_the_metered_bytes(run: tuple[Path, dict[str, 
     assert m["uplink_bps"] == pytest.approx(up * 8 / span)
     assert m["downlink_bps"] == pytest.approx(down * 8 / span)
     assert m["radio_use_frac"] == pytest.approx((up + down) * 8 / span / 115_200.0)
-    shares = sum(m[f"robot{r}.radio_share"] for r in range(4))
+    shares = sum(m[f"robot{r}.radio_share"] for r in range(4)) + m["broadcast_radio_share"]
     assert shares == pytest.approx(m["radio_use_frac"])
     streams = {s for _, _, s, _ in last["link_bytes"]}
     assert {"pose_node", "terrain_grid", "telemetry"} <= streams
