@@ -668,11 +668,12 @@ def format_progress(report: RunReport, duration_s: float | None = None) -> Any:
 _HELP_EPILOG = """\
 what a run produces: a run directory (--out; default runs/<UTC date-time>-<world>-<seed>/):
 the record, the final global map, report.json and report.md with plots, scored against the
-ground truth (magic report RUN_DIR rebuilds it). Progress goes to stderr (a live table on a
-terminal, else one line per tenth of the run), the final summary table and the report's
-headline to stdout; status 0 when the run completes, 2 on bad input (one line on stderr), 130
-after ^C and 143 after SIGTERM (the run stops at once, its links are closed, the report is
-written from what ran and the summary so far is printed).
+ground truth (magic report RUN_DIR rebuilds it), and run.log: the GCS's and robots' log
+(warnings counted in the summary; never printed through the progress). Progress goes to
+stderr (a live table on a terminal, else one line per tenth of the run), the final summary
+table and the report's headline to stdout; status 0 when the run completes, 2 on bad input
+(one line on stderr), 130 after ^C and 143 after SIGTERM (the run stops at once, its links
+are closed, the report is written from what ran and the summary so far is printed).
 
 deterministic by default: a run is fixed by its world, seed, duration and configuration;
 running it twice (on a loaded machine too) gives the same poses, events and figures, bit for
