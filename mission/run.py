@@ -363,6 +363,15 @@ class _ProgressTap:
             p.mode = msg.mode.name.lower()
 
 
+def _journal_path(out_dir: str | Path | None, config: RunConfig) -> Path | None:
+    """The GCS journal of a run with a run directory (DESIGN 8): ``RUN_DIR/journal.sqlite``,
+    what ``magic replay RUN_DIR`` replays; a scripted run has no GCS to journal."""
+    if out_dir is None or config.scripted:
+        return None
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    return Path(out_dir) / "journal.sqlite"
+
+
 def run_mission(
     config: RunConfig,
     *,
@@ -412,6 +421,7 @@ def run_mission(
         gcs_budget_s=config.gcs_budget_s,
         robot_processes=config.robot_processes,
         realtime=config.realtime,
+        journal_path=_journal_path(out_dir, config),
     ) as asm:
         recorder = None
         if out_dir is not None and asm.gcs is not None:
@@ -835,8 +845,10 @@ def _run_dir(out: str | None, config: RunConfig) -> Path:
     else:
         stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
         path = Path("runs") / f"{stamp}-{Path(config.world).stem}-{config.seed}"
-    if (path / "record").exists():
-        raise ValueError(f"--out {path}: already holds a run (record/); give another directory")
+    if (path / "record").exists() or (path / "journal.sqlite").exists():
+        raise ValueError(
+            f"--out {path}: already holds a run (record/, journal.sqlite); give another directory"
+        )
     if path.exists() and not path.is_dir():
         raise ValueError(f"--out {path}: not a directory")
     try:

@@ -196,7 +196,7 @@ def test_run_command_refuses_a_run_directory_that_holds_a_run(capsys, tmp_path) 
     (tmp_path / "record").mkdir()
     assert main(["run", "--out", str(tmp_path), "--duration", "1", "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert "already holds a run (record/)" in err and err.count("\n") == 1
+    assert "already holds a run (record/, journal.sqlite)" in err and err.count("\n") == 1
 
 
 def test_run_command_refuses_a_negative_seed_in_one_line(capsys) -> None:
