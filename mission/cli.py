@@ -26,8 +26,8 @@ _OWN_PARSERS = {
     "robot": "one robot node, fed by a simulator (or hardware) over zenoh: a summary line",
     "gcs": "the ground-control station (pose graph, loop closing, maps) over zenoh: status "
     "lines and a summary line",
-    "replay": "replay a CARMEN laser log through the GCS and evaluate it (--carmen FILE): "
-    "the evaluation, and the map and summary files in --out",
+    "replay": "replay a CARMEN laser log through the GCS and evaluate it (--carmen FILE: the "
+    "evaluation, map and summary in --out), or a run's GCS journal (RUN_DIR: the same graph?)",
     "console": "the operators' console: signed commands to a running GCS over zenoh, with "
     "completion, robot subsets, macros (-c CMD, --script FILE without a terminal)",
     "perception": "learn the robots' perception thresholds in simulated worlds: LIDAR shape "
