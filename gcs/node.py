@@ -312,7 +312,20 @@ class GcsProcess:
             f"solver recoveries {s.solver_recoveries}/{s.solver_faults} "
             f"tasks {sum(self.control.tasks_sent.values())}"
             + (" explored" if self.control.explored else "")
+            + self._waiting_hint()
         )
+
+    def _waiting_hint(self) -> str:
+        """What to check while nothing arrives: the simulator's clock never ticked (``--clock
+        sim``), or no robot has been heard."""
+        if self._clock_sub is not None and self.clock.now() == 0.0:
+            return (
+                " (no simulator clock yet: is --connect pointing at magic sim, with the same "
+                "--mission?)"
+            )
+        if not self.station.graph.robots:
+            return " (no robot heard yet: do the robots --connect to this GCS or its simulator?)"
+        return ""
 
     def stop(self) -> None:
         self._stop.set()
