@@ -71,6 +71,32 @@ SWEEP_PERIOD_S = 1.25
 MATCH_M = 0.5
 
 
+def _save_world(
+    path: Path,
+    pts_all: list[Any],
+    times_all: list[Any],
+    meta: list[Any],
+    ooi_xy: Any,
+    ooi_info: Any,
+    human_xy: list[Any],
+    visible: list[Any],
+    world: Any,
+) -> None:
+    """One recorded world's sweeps and labels as the ``.npz`` the trainer reads."""
+    np.savez_compressed(
+        path,
+        points=np.concatenate(pts_all) if pts_all else np.zeros((0, 3), np.float32),
+        counts=np.array([len(p) for p in pts_all]),
+        meta=np.array(meta).reshape(-1, 5),
+        ooi_xy=ooi_xy,
+        ooi_info=ooi_info,
+        human_xy=np.array(human_xy).reshape(len(meta), -1, 2),
+        visible=np.array(visible).reshape(len(meta), -1),
+        human_kind=np.array([2 if h.kind == "hostile" else 1 for h in world.humans]),
+        point_time_s=np.concatenate(times_all) if times_all else np.zeros(0, np.float32),
+    )
+
+
 def _sensor_xy(pose: NDArray[np.float64]) -> NDArray[np.float64]:
     c, s = math.cos(pose[2]), math.sin(pose[2])
     x, y = LIDAR_IN_BASE_M[0], LIDAR_IN_BASE_M[1]
@@ -189,19 +215,10 @@ def record(
                         meta.append((k, fr.time_s, sensor[0], sensor[1], pose[2]))
                         human_xy.append(hxy)
                         visible.append(vis)
-        n = np.array([len(p) for p in pts_all])
-        np.savez_compressed(
+        _save_world(
             out_dir / f"world_{seed}.npz",
-            points=np.concatenate(pts_all) if pts_all else np.zeros((0, 3), np.float32),
-            counts=n,
-            meta=np.array(meta).reshape(-1, 5),
-            ooi_xy=ooi_xy,
-            ooi_info=ooi_info,
-            human_xy=np.array(human_xy).reshape(len(meta), -1, 2),
-            visible=np.array(visible).reshape(len(meta), -1),
-            human_kind=np.array([2 if h.kind == "hostile" else 1 for h in world.humans]),
-            point_time_s=np.concatenate(times_all) if times_all else np.zeros(0, np.float32),
-        )
+            pts_all, times_all, meta, ooi_xy, ooi_info, human_xy, visible, world
+        )  # fmt: skip
         print(
             f"world {seed}: {len(robots)} robots, {len(meta)} sweeps, "
             f"{len(world.oois)} OOIs, {len(world.humans)} people, {time.perf_counter() - t0:.1f} s",
@@ -344,19 +361,10 @@ def record_drive(
                     human_xy.append(hxy)
                     visible.append(vis)
                 pending = keep
-        n = np.array([len(p) for p in pts_all])
-        np.savez_compressed(
+        _save_world(
             out_dir / f"world_{seed}.npz",
-            points=np.concatenate(pts_all) if pts_all else np.zeros((0, 3), np.float32),
-            counts=n,
-            meta=np.array(meta).reshape(-1, 5),
-            ooi_xy=ooi_xy,
-            ooi_info=ooi_info,
-            human_xy=np.array(human_xy).reshape(len(meta), -1, 2),
-            visible=np.array(visible).reshape(len(meta), -1),
-            human_kind=np.array([2 if h.kind == "hostile" else 1 for h in world.humans]),
-            point_time_s=np.concatenate(times_all) if times_all else np.zeros(0, np.float32),
-        )
+            pts_all, times_all, meta, ooi_xy, ooi_info, human_xy, visible, world
+        )  # fmt: skip
         print(
             f"world {seed}: {len(robots)} driving robots, {len(meta)} sweeps, "
             f"{time.perf_counter() - t0:.1f} s",
