@@ -23,7 +23,7 @@ def test_ate_is_invariant_to_a_rigid_motion_and_sees_distortion() -> None:
 
 
 def test_four_robots_close_loops_across_robots_without_false_positives() -> None:
-    report, station = run_team_mapping(TeamMappingConfig(duration_s=150.0))
+    report, station = run_team_mapping(TeamMappingConfig(duration_s=100.0))
     assert report.robots == 4 and report.nodes > 200 and report.robots_lost == 0
     assert report.cross_robot_closures >= 3, report
     assert report.false_closures == 0, report.closure_errors_m
