@@ -80,6 +80,28 @@ log = logging.getLogger(__name__)
 _TERMINAL = (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.REJECTED, TaskState.CANCELED)
 
 
+def _duplicates_of(hazards: list[Hazard], done: set[int], radius_m: float) -> list[Hazard]:
+    """Static hazards (static OOIs, vats) not in ``done`` within ``radius_m`` of a ``done``
+    hazard of their kind: the same object placed apart by two robots' maps. Transitive: a
+    chain of sightings each within ``radius_m`` of the next is one object."""
+    kinds = (ObjectKind.STATIC_OOI, ObjectKind.TOXIC_VAT)
+    static = [h for h in hazards if h.kind in kinds]
+    covered = [h for h in static if h.hazard_id in done]
+    out: list[Hazard] = []
+    rest = [h for h in static if h.hazard_id not in done]
+    while covered:
+        c = covered.pop()
+        near = [
+            h
+            for h in rest
+            if h.kind == c.kind and math.dist(h.position_in_map, c.position_in_map) < radius_m
+        ]
+        rest = [h for h in rest if h not in near]
+        out.extend(near)
+        covered.extend(near)
+    return out
+
+
 class Role(enum.Enum):
     SENSOR = "sensor"
     DISRUPTOR = "disruptor"
@@ -116,6 +138,11 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # contact it was re-sent into the same shadow, over and over (small world seed 0: robots
     # 0 and 1 took turns, robot_back -> hostile_view -> robot_silent, from 95 s to the end)
     shadow_retry_s: float = 90.0
+    # static hazards of one kind closer than this are one object seen from robots whose map
+    # positions disagree (small world seed 0: one OOI as hazards 0.9, 1.1 and 3.3 m from it,
+    # the station merges at 1.5 m): once one is neutralized the others are too, and only one
+    # of them has a disruptor at a time (the robot's laser snaps to its own detection)
+    duplicate_m: float = 4.0
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
     highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
@@ -133,6 +160,7 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "frontier_gone_m",
             "neutralize_retry_s",
             "shadow_retry_s",
+            "duplicate_m",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -371,11 +399,31 @@ class TaskAllocator:
             )
         )
 
+    def _mark_duplicates(self, state: TaskingState, now_s: float) -> set[int]:
+        """Hazards done: neutralized, and the static ones within ``duplicate_m`` of a
+        neutralized one (the same object; added to :attr:`neutralized`, with an event)."""
+        cfg = self.config
+        done = self.neutralized | set(state.neutralized_hazard_ids)
+        for h in _duplicates_of(state.hazards, done, cfg.duplicate_m):
+            self.neutralized.add(h.hazard_id)
+            done.add(h.hazard_id)
+            self.events.append(
+                TaskingEvent(
+                    now_s,
+                    "duplicate",
+                    None,
+                    f"hazard {h.hazard_id}: within {cfg.duplicate_m:g} m of a neutralized one, "
+                    "the same object: neutralized",
+                    h.hazard_id,
+                )
+            )
+        return done
+
     # ---- 0: the picture ---------------------------------------------------------------------
 
     def _context(self, state: TaskingState, now_s: float) -> _Ctx:
         cfg = self.config
-        done = self.neutralized | set(state.neutralized_hazard_ids)
+        done = self._mark_duplicates(state, now_s)
         bad = [h for h in state.hazards if not np.isfinite(h.position_in_map).all()]
         for h in bad:
             self.events.append(
@@ -674,7 +722,9 @@ class TaskAllocator:
     def _disruptors(self, ctx: _Ctx) -> None:
         cfg = self.config.disruptor
         mine = {rid: r for rid, r in ctx.available.items() if r.role == Role.DISRUPTOR}
-        # not one neutralized in this plan's bookkeeping (static_live was taken before it)
+        # not one neutralized in this plan's bookkeeping (static_live was taken before it),
+        # nor another sighting of it
+        self._mark_duplicates(ctx.state, ctx.now_s)
         live = {h.hazard_id: h for h in ctx.static_live if h.hazard_id not in self.neutralized}
         # approvals for disruptors at their pose
         for rid, r in mine.items():
@@ -741,9 +791,24 @@ class TaskAllocator:
         static_xy = np.asarray(
             [h.position_in_map for h in ctx.static_live], dtype=np.float64
         ).reshape(-1, 2)
-        for hid in sorted(live):
+        free_xy = [self._position(r) for rid, r in mine.items()]
+
+        def nearest_m(hid: int) -> float:
+            xy = live[hid].position_in_map
+            return min((math.dist(xy, p) for p in free_xy), default=0.0)
+
+        # nearest first (a lone disruptor takes them in the order it can reach them)
+        for hid in sorted(live, key=lambda k: (nearest_m(k), k)):
             if hid in handled:
                 continue
+            if any(
+                live[o].kind == live[hid].kind
+                and math.dist(live[o].position_in_map, live[hid].position_in_map)
+                < self.config.duplicate_m
+                for o in handled
+                if o in live
+            ):
+                continue  # the same object as one a disruptor is already on
             free = {
                 rid: self._position(r)
                 for rid, r in mine.items()
@@ -829,10 +894,16 @@ class TaskAllocator:
     def _explore(self, ctx: _Ctx) -> None:
         cfg = self.config
         sensors = {rid: r for rid, r in ctx.available.items() if r.role == Role.SENSOR}
+        # reachable from any sensor robot or from anywhere a robot has driven (the highway):
+        # a robot whose cell lies in a pocket of the map (a room whose doorway the dilation
+        # closed, say) does not make the rest of the frontier unreachable (small world seed
+        # 0: the only sensor heard sat in such a room and the planner said 'explored' at 199 s
+        # with 22% of the site unseen); far goals go through the highway
+        seeds = [ctx.cells[r] for r in sensors if r in ctx.cells]
+        if sensors and ctx.highway.size:
+            seeds += [tuple(c) for c in ctx.grid.cells_of(ctx.highway.nodes_in_map).tolist()]
         frontiers = find_frontiers(
-            ctx.grid,
-            [ctx.cells[r] for r in sensors if r in ctx.cells],
-            goal_spacing_m=cfg.exploration.goal_separation_m / 3.0,
+            ctx.grid, seeds, goal_spacing_m=cfg.exploration.goal_separation_m / 3.0
         )
         self.frontiers = frontiers
         waiting: list[Explorer] = []

@@ -416,3 +416,81 @@ def test_a_planning_failure_sends_nothing_and_keeps_the_memory() -> None:
     assert "2-D" in alloc.events[0].text
     assert alloc.assignments.keys() == before.keys()
     assert alloc.plan(TaskingState(occupancy(v), [r]), now_s=2.0) == []  # still on its way
+
+
+def test_sightings_of_one_ooi_get_one_disruptor_and_are_done_together() -> None:
+    """Two robots' maps put one OOI 2 m apart (two hazards; the station merges at 1.5 m):
+    only one disruptor is sent, and once it is neutralized the other sighting is too (a
+    mission sent its lone disruptor to each copy in turn, 40 s each)."""
+    state, d1, d2 = _dispatch_world()
+    state.hazards = [
+        Hazard(3, ObjectKind.STATIC_OOI, (14.0, 10.0), 2.5),
+        Hazard(4, ObjectKind.STATIC_OOI, (15.6, 11.2), 2.5),
+    ]
+    alloc = TaskAllocator()
+    sent = dict(alloc.plan(state, now_s=0.0))
+    go = [rid for rid, a in alloc.assignments.items() if a.purpose == "neutralize_go"]
+    assert len(go) == 1  # not one disruptor per sighting
+    rid = go[0]
+    r = d1 if rid == 11 else d2
+    report(r, sent[rid], TaskState.SUCCEEDED, 5.0)
+    r.pose_in_map = (*alloc.assignments[rid].goal_in_map, 0.0)  # type: ignore[misc]
+    d1.last_heard_s = d2.last_heard_s = 5.0
+    (neut,) = [m for i, m in alloc.plan(state, now_s=5.0) if isinstance(m, NeutralizeTask)]
+    report(r, neut, TaskState.SUCCEEDED, 21.0)
+    d1.last_heard_s = d2.last_heard_s = 21.0
+    alloc.plan(state, now_s=21.0)
+    assert alloc.neutralized == {3, 4}
+    assert [e.hazard_id for e in alloc.events if e.kind == "duplicate"] == [4]
+    for t in (23.0, 25.0):
+        d1.last_heard_s = d2.last_heard_s = t
+        alloc.plan(state, now_s=t)
+        assert not [e for e in alloc.events if e.kind == "dispatch"], t
+    # a second OOI farther than duplicate_m is a different object: it gets a disruptor
+    state.hazards = [*state.hazards, Hazard(5, ObjectKind.STATIC_OOI, (14.0, 16.0), 2.5)]
+    d1.last_heard_s = d2.last_heard_s = 27.0
+    alloc.plan(state, now_s=27.0)
+    assert [e.hazard_id for e in alloc.events if e.kind == "dispatch"] == [5]
+
+
+def test_a_lone_disruptor_goes_to_the_nearest_ooi_first() -> None:
+    state, d1, _ = _dispatch_world()
+    state.robots = [d1]
+    # the lower id lies far away, the higher id close to the disruptor at (1, 1)
+    state.hazards = [
+        Hazard(3, ObjectKind.STATIC_OOI, (14.0, 10.0), 2.5),
+        Hazard(9, ObjectKind.STATIC_OOI, (6.0, 5.0), 2.5),
+    ]
+    alloc = TaskAllocator()
+    alloc.plan(state, now_s=0.0)
+    assert [e.hazard_id for e in alloc.events if e.kind == "dispatch"] == [9]
+
+
+def test_a_frontier_reached_through_the_highway_is_not_explored_away() -> None:
+    """The only sensor robot heard sits in a pocket of the map (a room whose door the map
+    does not show open) while the frontier lies off the highway robots drove outside it: the
+    area is not explored; the robot is sent through the highway (a mission parked its robots
+    as 'explored' with a fifth of the site unseen)."""
+    v = blank(40, 12)
+    box(v, 0, 0, 30, 12, FREE)
+    room(v, 0, 0, 8, 12)  # closed: the robot's own component holds no frontier
+    xs = np.arange(6.0, 28.0, 0.5)
+    road = np.stack([xs, np.full_like(xs, 6.0)], 1)  # driven out of the room and east
+    r = robot(1, (4.0, 6.0))
+    state = TaskingState(
+        occupancy(v),
+        [r],
+        trajectory_robot_ids=np.ones(len(road), dtype=np.int64),
+        trajectory_keys=np.arange(len(road)),
+        trajectory_xy_in_map=road,
+    )
+    alloc = TaskAllocator()
+    out = alloc.plan(state, now_s=0.0)
+    assert not alloc.stats.explored
+    assert not [e for e in alloc.events if e.kind in ("explored", "park")]
+    wps = goals_in_map(out, {1: r})[1]
+    assert wps[-1][0] > 28.0  # the east frontier at x = 30
+    # without the highway the pocket is all the robot can reach: explored, parked
+    alloc = TaskAllocator()
+    out = alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)
+    assert alloc.stats.explored and isinstance(out[0][1], IdleTask)
