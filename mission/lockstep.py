@@ -21,12 +21,13 @@ noise and slip, the radio channels' loss draws, each robot node's back-off draws
 ground side's own (``seeds.ground``). The same world, team, seed, duration and configuration
 give the same poses, events and messages, bit for bit.
 
-:class:`TeamOverProcesses` is the same team with each robot node in its own process
-(``magic robot --lockstep``; ``magic run --robot-processes``) and gives the same run, bit for
-bit: the per-step counts of :mod:`mission.lockstep_protocol` stand in for the ordering zenoh
-keeps only within one key. Not covered yet: the simulator and the ground side in separate
-processes (``magic sim`` + ``magic gcs``), which needs the ground side to send the step's
-downlink counts and the simulator to wait for them.
+:class:`TeamOverProcesses` is the same team with the robot nodes in worker processes, a group
+of nodes per process (``magic robot --lockstep --id 0-7``; ``magic run --robot-processes``:
+one worker per core), on this host or others (zenoh endpoints, a router), and gives the same
+run, bit for bit: the per-step counts of :mod:`mission.lockstep_protocol` stand in for the
+ordering zenoh keeps only within one key. Not covered yet: the simulator and the ground side
+in separate processes (``magic sim`` + ``magic gcs``), which needs the ground side to send the
+step's downlink counts and the simulator to wait for them.
 
 ``realtime=True`` (hardware in the loop; ``magic run --realtime``) keeps wall-clock delivery:
 links pumped by their own threads every ``pump_period_s`` wall seconds, messages delivered on
@@ -58,7 +59,14 @@ from protocol.radio_channel import LinkBackpressure
 from robot.node import RobotNode, RobotNodeConfig
 from sim.simulator import SimDriver, Simulator
 
-__all__ = ["RunSeeds", "TeamInLockstep", "TeamOverProcesses", "seed_streams"]
+__all__ = [
+    "RunSeeds",
+    "TeamInLockstep",
+    "TeamOverProcesses",
+    "WorkerDied",
+    "seed_streams",
+    "worker_groups",
+]
 
 
 class TeamInLockstep:
@@ -203,10 +211,58 @@ class TeamInLockstep:
         self.close()
 
 
+class WorkerDied(RuntimeError):
+    """A robot worker process ended during a run: which one, its robots, its exit status and
+    the last line it wrote on stderr."""
+
+
+def worker_groups(robot_ids: list[int], workers: int) -> list[list[int]]:
+    """``robot_ids`` split into ``workers`` groups of consecutive ids, sizes differing by at
+    most one (fewer groups when there are fewer robots)."""
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    ids = sorted(robot_ids)
+    n = min(workers, len(ids))
+    if n == 0:
+        return []
+    size, extra = divmod(len(ids), n)
+    out, i = [], 0
+    for g in range(n):
+        k = size + (1 if g < extra else 0)
+        out.append(ids[i : i + k])
+        i += k
+    return out
+
+
+def _ids_text(ids: list[int]) -> str:
+    """``[0, 1, 2, 5]`` -> ``"0-2,5"`` (``magic robot --id``)."""
+    parts: list[str] = []
+    i = 0
+    while i < len(ids):
+        j = i
+        while j + 1 < len(ids) and ids[j + 1] == ids[j] + 1:
+            j += 1
+        parts.append(str(ids[i]) if i == j else f"{ids[i]}-{ids[j]}")
+        i = j + 1
+    return ",".join(parts)
+
+
 class TeamOverProcesses:
-    """The same team with each robot node in its own process (``magic robot --lockstep``),
-    the simulator and the ground side in this one; same interface as :class:`TeamInLockstep`
-    except ``nodes`` (empty: the nodes live elsewhere) and ``uplink_bytes`` (metered there).
+    """The same team with its robot nodes in worker processes (``magic robot --lockstep
+    --id 0-7``: a group of nodes per process, :class:`~mission.robot_process.LockstepGroup`),
+    the simulator and the ground side in this one; same interface as
+    :class:`TeamInLockstep` except ``nodes`` (empty: the nodes live elsewhere) and
+    ``uplink_bytes`` (metered there).
+
+    ``workers``: how many worker processes to start, robots split among them in consecutive
+    id groups (default: one per core; ``len(robots)``: one per robot). ``remote_robots``:
+    robots this process does not start: their workers run elsewhere (other hosts:
+    ``magic robot --lockstep --id ... --mission M --seed S`` with endpoints reaching this
+    process's) and are waited for. ``link``: this process's zenoh endpoints and mode (default:
+    listen on a free loopback port); ``worker_link_args``: the endpoint options the started
+    workers get (default: ``--connect`` to what ``link`` connects to, in its mode, when it
+    connects anywhere, e.g. a router; else to ``link``'s listen endpoints). ``mission``: the
+    zenoh mission name (default: a fresh one; name it when workers start elsewhere).
 
     Each :meth:`step` mirrors the in-process one (see :mod:`mission.lockstep_protocol`): the
     simulator steps and the ground end gets the grants; the step's frames, each robot's
@@ -214,6 +270,9 @@ class TeamOverProcesses:
     then this process waits for every robot's :class:`StepDone` and for the uplink packets
     and commands it counts, processes the uplink in canonical order and pumps the downlink.
     A robot processes that downlink at its next step, at this step's time, as in one process.
+    A worker that ends raises :class:`WorkerDied` (which, its robots, exit status, last
+    stderr line); a robot that does not answer within ``step_timeout_s`` a TimeoutError naming
+    it; two processes answering for one robot a ValueError naming the robot and both.
     """
 
     def __init__(
@@ -227,7 +286,13 @@ class TeamOverProcesses:
         robot_config: RobotNodeConfig | None = None,
         connect_timeout_s: float = 60.0,
         step_timeout_s: float = 30.0,
+        workers: int | None = None,
+        remote_robots: tuple[int, ...] = (),
+        link: LinkConfig | None = None,
+        worker_link_args: list[str] | None = None,
+        mission: str | None = None,
     ) -> None:
+        import os
         import subprocess
         import sys
         import tempfile
@@ -241,50 +306,129 @@ class TeamOverProcesses:
         self.step_timeout_s = step_timeout_s
         self.clock = sim.clock  # the simulator's mission clock
         self.nodes: dict[int, RobotNode] = {}
-        endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-        self.mission = mission = unique_mission("run")
-        cfg = LinkConfig(listen=(endpoint,), radio=radio, pump_period_s=0.0)
-        self.ground_link = Link(cfg, mission=mission, clock=self.clock, seed=seeds.ground_link)
+        unknown = sorted(set(remote_robots) - set(sim.robot_ids))
+        if unknown:
+            raise ValueError(f"remote robots {unknown} are not in the simulator's team")
+        self.mission = mission = mission or unique_mission("run")
+        if link is None:
+            endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+            link = LinkConfig(listen=(endpoint,))
+        cfg = msgspec.structs.replace(link, radio=radio, pump_period_s=0.0)
+        where = ", ".join(cfg.connect or cfg.listen)
+        if worker_link_args is None:
+            if cfg.connect:
+                worker_link_args = [a for e in cfg.connect for a in ("--connect", e)]
+                worker_link_args += ["--mode", "client" if cfg.mode == "client" else "peer"]
+            else:
+                worker_link_args = [a for e in cfg.listen for a in ("--connect", e)]
+            if "client" not in worker_link_args:
+                worker_link_args += ["--listen", "tcp/127.0.0.1:0"]
+        try:
+            self.ground_link = Link(cfg, mission=mission, clock=self.clock, seed=seeds.ground_link)
+        except Exception as err:  # noqa: BLE001 - zenoh's ZError: an endpoint in use, ...
+            from protocol.process_cli import zenoh_error_text
+
+            raise ValueError(
+                f"cannot open the ground side's zenoh link on {where}: {zenoh_error_text(err)}"
+            ) from None
         self._procs: list[subprocess.Popen[bytes]] = []
+        self._groups: list[list[int]] = []
+        self._stderr: list[str] = []
         self._tmp = tempfile.TemporaryDirectory(prefix="magic-run-")
         self.server: SimServer | None = None
         self._done: dict[int, StepDone] = {}
+        self._hosts: dict[int, str] = {}
+        self._twice: str | None = None
         self._done_cond = threading.Condition()
         self._decode_done = msgspec.msgpack.Decoder(StepDone)
         self._encode = msgspec.msgpack.Encoder()
         try:
+            if cfg.connect and not self.ground_link.wait_reachable(min(connect_timeout_s, 10.0)):
+                raise ValueError(
+                    f"cannot reach {where} (no zenoh router or peer answered within "
+                    f"{min(connect_timeout_s, 10.0):g} s)"
+                )
             self.ground: GcsEndpoint = self.ground_link.gcs_endpoint(on_message=on_ground_message)
             self.ground.hold_arrivals()
             self.server = SimServer(sim, link=self.ground_link, mission=mission, rtf=0.0)
             self.server.end_of_step_ticks = True
             for rid in sim.robot_ids:
                 self.ground_link.subscribe(step_done_key(mission, rid), self._on_done(rid))
-            argv = ["--mission", mission, "--connect", endpoint, "--radio", radio_path]
-            argv += ["--listen", "tcp/127.0.0.1:0", "--lockstep", "--seed", str(seeds.seed)]
+            argv = ["--mission", mission, *worker_link_args, "--radio", radio_path]
+            argv += ["--lockstep", "--seed", str(seeds.seed), "--progress-s", "1e9"]
             if robot_config is not None and robot_config != RobotNodeConfig():
                 path = f"{self._tmp.name}/robot.json"  # JSON is YAML
                 with open(path, "wb") as f:
                     f.write(msgspec.json.encode(robot_config))
                 argv += ["--config", path]
-            for rid in sim.robot_ids:
-                self._procs.append(
-                    subprocess.Popen(
-                        [sys.executable, "-m", "mission.cli", "robot", "--id", str(rid), *argv],
-                        stdout=subprocess.DEVNULL,
+            local = [r for r in sim.robot_ids if r not in set(remote_robots)]
+            n = workers if workers is not None else (os.cpu_count() or 1)
+            self._groups = worker_groups(local, n)
+            for i, group in enumerate(self._groups):
+                err_path = f"{self._tmp.name}/worker{i}.err"
+                self._stderr.append(err_path)
+                with open(err_path, "wb") as err_file:
+                    self._procs.append(
+                        subprocess.Popen(
+                            [sys.executable, "-m", "mission.cli", "robot"]
+                            + ["--id", _ids_text(group), *argv],
+                            stdout=subprocess.DEVNULL,
+                            stderr=err_file,
+                        )
                     )
-                )
+            deadline = _time.monotonic() + connect_timeout_s
             for rid in sim.robot_ids:
-                if not self.ground.wait_for_robot(rid, connect_timeout_s):
-                    raise TimeoutError(f"robot {rid}'s process did not come up on {endpoint}")
-            self._wait_done(0.0, connect_timeout_s)  # every robot said hello
+                while not self.ground.wait_for_robot(rid, 0.5):
+                    self._check_workers()
+                    if _time.monotonic() > deadline:
+                        who = "started elsewhere" if rid in remote_robots else "a worker here"
+                        raise TimeoutError(
+                            f"robot {rid} ({who}) did not come up on {where} within "
+                            f"{connect_timeout_s:g} s"
+                        )
+            self._wait_done(0.0, max(1.0, deadline - _time.monotonic()))  # every robot hello
         except BaseException:
             self.close()
             raise
+
+    @property
+    def worker_pids(self) -> list[int]:
+        """The started workers' process ids, in group order (:attr:`groups`)."""
+        return [p.pid for p in self._procs]
+
+    @property
+    def groups(self) -> list[list[int]]:
+        """The robot ids of each started worker."""
+        return [list(g) for g in self._groups]
+
+    def _check_workers(self) -> None:
+        """Raise :class:`WorkerDied` for the first worker that has ended."""
+        for i, p in enumerate(self._procs):
+            status = p.poll()
+            if status is None:
+                continue
+            last = ""
+            try:
+                with open(self._stderr[i], "rb") as f:
+                    lines = [x for x in f.read().decode(errors="replace").splitlines() if x]
+                last = lines[-1].strip() if lines else ""
+            except OSError:
+                pass
+            what = f"signal {-status}" if status < 0 else f"status {status}"
+            raise WorkerDied(
+                f"robot worker {i} (robots {_ids_text(self._groups[i])}, pid {p.pid}) exited "
+                f"with {what}" + (f": {last}" if last else "")
+            )
 
     def _on_done(self, robot_id: int) -> Callable[[str, bytes], None]:
         def handle(_key: str, payload: bytes) -> None:
             done = self._decode_done.decode(payload)
             with self._done_cond:
+                host = self._hosts.setdefault(robot_id, done.worker)
+                if done.worker != host and self._twice is None:
+                    self._twice = (
+                        f"robot {robot_id} is hosted twice: by {host} and by {done.worker}"
+                    )
                 last = self._done.get(robot_id)
                 if last is None or done.time_s >= last.time_s:
                     self._done[robot_id] = done
@@ -301,11 +445,21 @@ class TeamOverProcesses:
         deadline = _time.monotonic() + timeout_s
         with self._done_cond:
             while not self._done_cond.wait_for(all_done, 0.5):
-                if _time.monotonic() > deadline or any(p.poll() is not None for p in self._procs):
-                    late = [r for r in self.sim.robot_ids if r not in self._done]
+                if self._twice is not None:
+                    raise ValueError(self._twice)
+                self._check_workers()
+                if _time.monotonic() > deadline:
+                    late = [
+                        r
+                        for r in self.sim.robot_ids
+                        if r not in self._done or self._done[r].time_s < time_s
+                    ]
                     raise TimeoutError(
-                        f"robots did not answer mission time {time_s:.2f} s (none yet from {late})"
+                        f"robots {_ids_text(late)} did not answer mission time {time_s:.2f} s "
+                        f"within {timeout_s:g} s"
                     )
+            if self._twice is not None:
+                raise ValueError(self._twice)
             return dict(self._done)
 
     def _send_go(self) -> None:

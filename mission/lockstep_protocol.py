@@ -11,7 +11,8 @@ the step with a ``ClockTick`` on the robot's sensor key; the robot answers with
 :class:`StepDone`: how many uplink packets and simulator commands it has sent so far. Each
 side waits until that much has arrived before it goes on.
 
-The keys are ``magic/<mission>/gcs/lockstep/{go,done}/<robot id>`` (``keys.gcs``).
+The keys are ``magic/<mission>/gcs/lockstep/{go,done}/<robot id>`` (``keys.gcs``); a process
+hosting robot nodes declares ``.../lockstep/host/<robot id>`` for each (:func:`robot_host_key`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ __all__ = [
     "RunSeeds",
     "StepDone",
     "StepGo",
+    "parse_robot_ids",
+    "robot_host_key",
     "seed_streams",
     "step_done_key",
     "step_go_key",
@@ -47,7 +50,8 @@ class StepGo(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields
 class StepDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
     """Robot -> ground side: step ``time_s`` answered; totals since the start of the uplink
     radio packets it put on the air and of the commands it sent the simulator; for the run's
-    report, the radio bytes it sent (metered) and its node's counters."""
+    report, the radio bytes it sent (metered) and its node's counters; ``worker``: which
+    process hosts it (two processes answering for one robot is an error the ground names)."""
 
     time_s: float
     uplink_packets: int
@@ -56,6 +60,7 @@ class StepDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fiel
     deadlocks: int = 0
     stuck_recoveries: int = 0
     plan_failures: int = 0
+    worker: str = ""  # "<host>:<pid>" of the process hosting the robot (a robot hosted twice)
 
 
 def step_go_key(mission: str, robot_id: int) -> str:
@@ -64,6 +69,35 @@ def step_go_key(mission: str, robot_id: int) -> str:
 
 def step_done_key(mission: str, robot_id: int) -> str:
     return keys.gcs(mission, f"lockstep/done/{robot_id}")
+
+
+def robot_host_key(mission: str, robot_id: int) -> str:
+    """The presence key a process hosting robot ``robot_id``'s node declares (a second
+    process for the same id sees it and refuses to start)."""
+    return keys.gcs(mission, f"lockstep/host/{robot_id}")
+
+
+def parse_robot_ids(text: str) -> list[int]:
+    """``"0,1,4-7"`` -> ``[0, 1, 4, 5, 6, 7]`` (``magic robot --id``); ValueError naming the
+    part at fault: not an id, a range backwards, an id given twice."""
+    ids: list[int] = []
+    seen: set[int] = set()
+    for part in text.split(","):
+        part = part.strip()
+        lo_text, sep, hi_text = part.partition("-")
+        try:
+            lo = int(lo_text)
+            hi = int(hi_text) if sep else lo
+        except ValueError:
+            raise ValueError(f"robot ids {text!r}: {part!r} is not an id or a range") from None
+        if lo < 0 or hi < lo:
+            raise ValueError(f"robot ids {text!r}: {part!r} is not an id >= 0 or a range a-b")
+        for rid in range(lo, hi + 1):
+            if rid in seen:
+                raise ValueError(f"robot ids {text!r}: robot id {rid} given twice")
+            seen.add(rid)
+            ids.append(rid)
+    return ids
 
 
 def _draw(ss: np.random.SeedSequence) -> int:

@@ -11,8 +11,10 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import os
 import queue
 import signal
+import socket
 import sys
 import threading
 import time
@@ -23,7 +25,15 @@ from typing import Any
 import msgspec
 
 from mission.config import ConfigError, load_config
-from mission.lockstep_protocol import StepDone, StepGo, seed_streams, step_done_key, step_go_key
+from mission.lockstep_protocol import (
+    StepDone,
+    StepGo,
+    parse_robot_ids,
+    robot_host_key,
+    seed_streams,
+    step_done_key,
+    step_go_key,
+)
 from protocol import keys
 from protocol.clock import ManualClock
 from protocol.link import Link
@@ -32,6 +42,7 @@ from protocol.process_cli import (
     add_link_arguments,
     follow_sim_clock,
     link_config,
+    open_link,
     spin_until,
 )
 from protocol.radio import RadioConfig
@@ -39,9 +50,20 @@ from protocol.radio_channel import LinkBackpressure
 from protocol.sensors import ClockTick
 from robot.node import RobotNode, RobotNodeConfig
 
-__all__ = ["LockstepRobot", "NotServed", "RobotProcess", "main", "simulator_robots"]
+__all__ = [
+    "WORKER_NAME",
+    "LockstepGroup",
+    "LockstepRobot",
+    "NotServed",
+    "RobotProcess",
+    "main",
+    "simulator_robots",
+]
 
 log = logging.getLogger(__name__)
+
+#: Which process this is, for the ground side's reports: ``<host>:<pid>``.
+WORKER_NAME = f"{socket.gethostname()}:{os.getpid()}"
 
 
 class NotServed(RuntimeError):
@@ -209,6 +231,7 @@ class LockstepRobot:
             stats.deadlocks,
             stats.stuck_recoveries,
             stats.plan_failures,
+            WORKER_NAME,
         )
         self.link.publish(self._done_key, self._encoder.encode(done))
 
@@ -228,32 +251,57 @@ class LockstepRobot:
                 raise TimeoutError(f"robot {self.robot_id}: frames of {t:.2f} s never ended")
             self._frames += self.driver.poll(0.5)
 
-    def step_once(self, timeout_s: float = 0.1) -> bool:
-        """Answer the next step (False if none came within ``timeout_s``)."""
+    def take_go(self, timeout_s: float) -> StepGo | None:
+        """The next step's :class:`StepGo`, None if none came within ``timeout_s`` (before
+        the first step, the hello is repeated meanwhile) or it repeats a step answered."""
         try:
             go = self._go.get(timeout=timeout_s)
         except queue.Empty:
             if self.steps == 0 and time.monotonic() >= self._next_hello:
                 self.hello()
-            return False
-        t = go.time_s
-        if t <= self._last_t and self.steps > 0:
-            return True  # a repeated step: answered already
-        frames = self._frames_until(t)
+            return None
+        if go.time_s <= self._last_t and self.steps > 0:
+            return None  # a repeated step: answered already
+        return go
+
+    def receive(self, go: StepGo) -> list[Any]:
+        """The step's first half, before the clock moves to ``go.time_s``: wait for its frames
+        and the downlink counted, process that downlink (at the previous step's time) and
+        apply the grant; returns the frames."""
+        frames = self._frames_until(go.time_s)
         if not self.radio.wait_packets_in(go.downlink_packets, self.timeout_s):
-            raise TimeoutError(f"robot {self.robot_id}: downlink of {t:.2f} s not delivered")
+            raise TimeoutError(
+                f"robot {self.robot_id}: downlink of {go.time_s:.2f} s not delivered"
+            )
         self.radio.deliver_held()  # at the previous step's time
         self.radio.set_grant(go.grant)
-        if t > self.clock.now():
-            self.clock.set(t)
+        return frames
+
+    def act(self, frames: list[Any]) -> None:
+        """The step's second half, at its time: the node processes the frames and its
+        commands go to the simulator (the radio is pumped by the caller, then :meth:`answer`)."""
         self.frames_seen += len(frames)
         for command in self.node.process(frames):
             self.driver.send(command)
             self.commands_sent += 1
-        self.link.pump()
+
+    def answer(self, t: float) -> None:
+        """Say step ``t`` is done (after the link was pumped)."""
         self._done(t)
         self._last_t = t
         self.steps += 1
+
+    def step_once(self, timeout_s: float = 0.1) -> bool:
+        """Answer the next step (False if none came within ``timeout_s``)."""
+        go = self.take_go(timeout_s)
+        if go is None:
+            return False
+        frames = self.receive(go)
+        if go.time_s > self.clock.now():
+            self.clock.set(go.time_s)
+        self.act(frames)
+        self.link.pump()
+        self.answer(go.time_s)
         return True
 
     def status_line(self) -> str:
@@ -268,6 +316,92 @@ class LockstepRobot:
     def close(self) -> None:
         self._sub.close()
         self.driver.close()
+
+
+class LockstepGroup:
+    """Several robot nodes of a lockstep team in one process (a worker of ``magic run``; the
+    robot ids of ``magic robot --lockstep --id 0-7``), on one link and one clock: each step
+    is what their own processes would do, in three phases so that the shared clock holds the
+    previous step's time while every robot's downlink is processed: every robot receives
+    (frames, downlink, grant), the clock moves, every robot acts in id order, the link is
+    pumped once, every robot answers. Each robot's channels, draws and messages are its own,
+    so the run is the one in one process, bit for bit."""
+
+    def __init__(
+        self,
+        link: Link,
+        robot_ids: list[int],
+        clock: ManualClock,
+        config: RobotNodeConfig,
+        seeds: Callable[[int], int],
+        *,
+        timeout_s: float = 30.0,
+    ) -> None:
+        if not robot_ids:
+            raise ValueError("a lockstep group needs at least one robot id")
+        self.link = link
+        self.clock = clock
+        self.timeout_s = timeout_s
+        self.robots = [
+            LockstepRobot(link, rid, clock, config, seeds(rid), timeout_s=timeout_s)
+            for rid in sorted(robot_ids)
+        ]
+        self.steps = 0
+
+    @property
+    def frames_seen(self) -> int:
+        return sum(r.frames_seen for r in self.robots)
+
+    def hello(self) -> None:
+        for r in self.robots:
+            r.hello()
+
+    def step_once(self, timeout_s: float = 0.1) -> bool:
+        """Answer the next step for every robot of the group (False if none came within
+        ``timeout_s``). The ground side sends every robot's go at once: after the first,
+        the others are waited for up to the group's timeout."""
+        first = self.robots[0].take_go(timeout_s)
+        if first is None:
+            for r in self.robots[1:]:
+                if r.steps == 0:
+                    r.take_go(0.0)  # keeps the hellos going
+            return False
+        gos = [first]
+        for r in self.robots[1:]:
+            go = r.take_go(self.timeout_s)
+            if go is None or go.time_s != first.time_s:
+                got = "none" if go is None else f"{go.time_s:.2f} s"
+                raise TimeoutError(
+                    f"robot {r.robot_id}: no step {first.time_s:.2f} s with its group ({got})"
+                )
+            gos.append(go)
+        frames = [r.receive(go) for r, go in zip(self.robots, gos, strict=True)]
+        t = first.time_s
+        if t > self.clock.now():
+            self.clock.set(t)
+        for r, f in zip(self.robots, frames, strict=True):
+            r.act(f)
+        self.link.pump()
+        for r in self.robots:
+            r.answer(t)
+        self.steps += 1
+        return True
+
+    def status_line(self) -> str:
+        nodes = sum(r.node.stats.pose_nodes for r in self.robots)
+        up = sum(
+            self.link.meter.total_bytes(robot_id=r.robot_id, direction=Direction.UP)
+            for r in self.robots
+        )
+        ids = ",".join(str(r.robot_id) for r in self.robots)
+        return (
+            f"robots {ids} t={self.clock.now():7.1f}s lockstep steps {self.steps} "
+            f"nodes {nodes} uplink bytes {up}"
+        )
+
+    def close(self) -> None:
+        for r in self.robots:
+            r.close()
 
 
 @contextlib.contextmanager
@@ -293,8 +427,14 @@ def _stop_on_signals(stop: Callable[[], None]) -> Iterator[list[int]]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="magic robot", description="Run one robot node.")
-    p.add_argument("--id", type=int, required=True, help="robot id (as the simulator numbers them)")
+    p = argparse.ArgumentParser(prog="magic robot", description="Run robot nodes.")
+    p.add_argument(
+        "--id",
+        required=True,
+        metavar="IDS",
+        help="robot id (as the simulator numbers them), or several hosted by this one process "
+        "(a worker): 0,1,2 or 0-31",
+    )
     add_link_arguments(p)
     p.add_argument("--config", type=Path, help="robot node config YAML (RobotNodeConfig)")
     p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
@@ -303,8 +443,9 @@ def _parser() -> argparse.ArgumentParser:
         "--lockstep",
         action="store_true",
         help="be stepped by the ground side of `magic run --robot-processes` (it starts these "
-        "processes): every step answered, radio pumped per step, the same mission as in one "
-        "process (default: process frames as they come, wall-clock radio)",
+        "processes, or waits for them when they run on other hosts): every step answered, "
+        "radio pumped per step, the same mission as in one process (default: process frames "
+        "as they come, wall-clock radio)",
     )
     p.add_argument(
         "--seed",
@@ -312,62 +453,138 @@ def _parser() -> argparse.ArgumentParser:
         default=0,
         help="the run's seed (the node's draws derive from it and the id; default: 0)",
     )
+    p.add_argument(
+        "--connect-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="wall seconds to wait for a --connect endpoint to answer before giving up with "
+        "one line naming it (default: 10)",
+    )
     return p
 
 
+def _robot_ids(text: str) -> list[int]:
+    text = text.strip()
+    if text.startswith("-") and text[1:].isdigit():
+        raise ValueError(f"--id must be >= 0, got {text}")
+    return parse_robot_ids(text)
+
+
+def _check_not_hosted(link: Link, robot_ids: list[int]) -> None:
+    """ValueError naming a robot id that another live process already hosts."""
+    for rid in robot_ids:
+        if link.present(robot_host_key(link.mission, rid), 0.5):
+            raise ValueError(
+                f"robot {rid} of mission {link.mission!r} already runs in another process "
+                "(a robot id given twice)"
+            )
+
+
+class _FreeGroup:
+    """Several free-running robot nodes in one process (``magic robot --id 0,1`` without
+    ``--lockstep``): each spun in turn."""
+
+    def __init__(self, procs: list[RobotProcess]) -> None:
+        self.procs = procs
+        self.clock = procs[0].clock
+
+    @property
+    def frames_seen(self) -> int:
+        return sum(p.frames_seen for p in self.procs)
+
+    def spin_once(self) -> None:
+        for i, p in enumerate(self.procs):
+            p.spin_once(0.05 if i == 0 else 0.0)
+
+    def status_line(self) -> str:
+        return "\n".join(p.status_line() for p in self.procs)
+
+    def close(self) -> None:
+        for p in self.procs:
+            p.close()
+
+
 def main(argv: list[str]) -> int:
-    """``magic robot``: 0 at the end, 2 on bad arguments or configuration or an id the
-    simulator does not have (one line on stderr), 130 / 143 on SIGINT / SIGTERM."""
+    """``magic robot``: 0 at the end, 2 on bad arguments or configuration, an id the
+    simulator does not have or that another process hosts, an endpoint in use or that does
+    not answer (one line on stderr), 130 / 143 on SIGINT / SIGTERM."""
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exit_:
         return int(exit_.code or 0)
     try:
-        if args.id < 0:
-            raise ValueError(f"--id must be >= 0, got {args.id}")
+        robot_ids = _robot_ids(args.id)
         if args.seed < 0:
             raise ValueError(f"--seed must be >= 0, got {args.seed}")
         keys.sim_clock(args.mission)
         config = load_config(args.config, RobotNodeConfig) if args.config else RobotNodeConfig()
         radio = load_config(args.radio, RadioConfig)
+        link_cfg = link_config(radio, args)
     except (ConfigError, ValueError) as err:
         print(f"magic robot: {err}", file=sys.stderr)
         return 2
     clock = ManualClock()
-    link_cfg = link_config(radio, args)
-    proc: RobotProcess | LockstepRobot
+    seeds = seed_streams(args.seed)
     if args.lockstep:
-        seeds = seed_streams(args.seed)
-        link = Link(
-            msgspec.structs.replace(link_cfg, pump_period_s=0.0),
+        link_cfg = msgspec.structs.replace(link_cfg, pump_period_s=0.0)
+    try:
+        link = open_link(
+            link_cfg,
             mission=args.mission,
             clock=clock,
-            seed=seeds.robot_link,
+            seed=seeds.robot_link if args.lockstep else 0,
+            reach_timeout_s=args.connect_timeout,
         )
-        proc = LockstepRobot(link, args.id, clock, config, seeds.robot(args.id))
+    except ValueError as err:
+        print(f"magic robot: {err}", file=sys.stderr)
+        return 2
+    try:
+        _check_not_hosted(link, robot_ids)
+    except ValueError as err:
+        link.close()
+        print(f"magic robot: {err}", file=sys.stderr)
+        return 2
+    for rid in robot_ids:
+        link.declare_presence(robot_host_key(link.mission, rid))
+    proc: RobotProcess | LockstepRobot | LockstepGroup | _FreeGroup
+    if args.lockstep and len(robot_ids) == 1:
+        proc = LockstepRobot(link, robot_ids[0], clock, config, seeds.robot(robot_ids[0]))
+    elif args.lockstep:
+        proc = LockstepGroup(link, robot_ids, clock, config, seeds.robot)
+    elif len(robot_ids) == 1:
+        proc = RobotProcess(link, robot_ids[0], clock, config)
     else:
-        link = Link(link_cfg, mission=args.mission, clock=clock)
-        proc = RobotProcess(link, args.id, clock, config)
+        proc = _FreeGroup([RobotProcess(link, rid, clock, config) for rid in robot_ids])
     stop = threading.Event()
     next_check = [0.0]
+    who = (
+        f"robot {robot_ids[0]}"
+        if len(robot_ids) == 1
+        else f"robots {','.join(map(str, robot_ids))}"
+    )
+
+    def check_served() -> None:
+        for rid in robot_ids:
+            _check_served(link, rid)
 
     def spin_once() -> None:
-        # until frames flow, check now and then that a simulator that is up has this robot
+        # until frames flow, check now and then that a simulator that is up has these robots
         if proc.frames_seen == 0 and time.monotonic() >= next_check[0]:
-            _check_served(link, args.id)
+            check_served()
             next_check[0] = time.monotonic() + 1.0
-        if isinstance(proc, LockstepRobot):
+        if isinstance(proc, LockstepRobot | LockstepGroup):
             proc.step_once()
         else:
             proc.spin_once()
 
     try:
         with _stop_on_signals(stop.set) as stopped_by:
-            _check_served(link, args.id)
-            if isinstance(proc, LockstepRobot):
+            check_served()
+            if isinstance(proc, LockstepRobot | LockstepGroup):
                 proc.hello()
             print(
-                f"magic robot: robot {args.id} of mission {args.mission!r} waiting for sensor "
+                f"magic robot: {who} of mission {args.mission!r} waiting for sensor "
                 "frames" + (" (lockstep)" if args.lockstep else ""),
                 flush=True,
             )

@@ -37,6 +37,7 @@ import logging
 import math
 import queue
 import threading
+import time
 import weakref
 from collections.abc import Callable
 from typing import Any, Literal
@@ -100,7 +101,11 @@ _GRANT_ENCODER = msgspec.msgpack.Encoder()
 class LinkConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """How a process joins the zenoh network, and the radio link's tunables.
 
-    ``listen``/``connect``: zenoh endpoints such as ``tcp/127.0.0.1:7447``. ``pump_period_s``:
+    ``listen``/``connect``: zenoh endpoints such as ``tcp/127.0.0.1:7447``. ``mode``: ``peer``
+    (the default: listens, connects, and meets the peers it learns of directly), ``client``
+    (talks only through the router or peer it connects to: processes on hosts that reach each
+    other only through a router) or ``router`` (routes for the clients and peers that connect
+    to it: one process per site can be the team's router). ``pump_period_s``:
     wall seconds between queue drains by the pump thread; 0 means no thread (call
     :meth:`Link.pump` yourself, e.g. in lockstep simulation). ``initial_grant_bps``: the rate
     each radio channel uses until a radio model grants one (``.inf`` in YAML: unlimited).
@@ -109,7 +114,7 @@ class LinkConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_onl
     (the default): plain zenoh, as on loopback.
     """
 
-    mode: Literal["peer", "client"] = "peer"
+    mode: Literal["peer", "client", "router"] = "peer"
     listen: tuple[str, ...] = ("tcp/127.0.0.1:0",)
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = False
@@ -131,7 +136,9 @@ def _zenoh_config(cfg: LinkConfig, mission: str) -> zenoh.Config:
     zc.insert_json5("mode", json.dumps(cfg.mode))
     zc.insert_json5("scouting/multicast/enabled", json.dumps(cfg.multicast_scouting))
     zc.insert_json5("transport/shared_memory/enabled", "false")
-    zc.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+    # a client talks only through what it connects to: it listens on nothing
+    listen = [] if cfg.mode == "client" else list(cfg.listen)
+    zc.insert_json5("listen/endpoints", json.dumps(listen))
     zc.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
     if cfg.security_file:
         from protocol.transport_security import apply_to, load_security, zenoh_entries
@@ -809,6 +816,23 @@ class Link:
             if reply.ok is not None:
                 found.add(str(reply.ok.key_expr))
         return sorted(found)
+
+    def neighbours(self) -> int:
+        """How many zenoh routers and peers this session is connected to now (0: whatever it
+        was told to connect to has not answered)."""
+        info = self._session.info
+        return len(list(info.routers_zid())) + len(list(info.peers_zid()))
+
+    def wait_reachable(self, timeout_s: float) -> bool:
+        """Block until this session has a router or peer (True) or ``timeout_s`` passes: a
+        peer told to connect to a host that cannot be reached opens anyway and keeps trying,
+        so a process checks here before it waits for anyone."""
+        deadline = time.monotonic() + timeout_s
+        while self.neighbours() == 0:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.05)
+        return True
 
     # -- lifetime
 

@@ -24,6 +24,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import msgspec
+
 from protocol.config import CONFIGS_DIR
 from protocol.radio import RadioConfig
 
@@ -40,6 +42,8 @@ __all__ = [
     "exit_code_for",
     "follow_sim_clock",
     "one_line",
+    "open_link",
+    "zenoh_error_text",
     "install_sigterm_handler",
     "install_stop_handlers",
     "link_config",
@@ -252,7 +256,8 @@ def _security_file(text: str) -> str:
 
 
 def add_link_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--mission``, ``--radio``, ``--connect``, ``--listen`` and ``--security``."""
+    """``--mission``, ``--radio``, ``--connect``, ``--listen``, ``--mode``, ``--link-config``
+    and ``--security``."""
     parser.add_argument(
         "--mission",
         default="default",
@@ -282,6 +287,22 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: tcp/127.0.0.1:0, loopback, any free port)",
     )
     parser.add_argument(
+        "--mode",
+        choices=("peer", "client", "router"),
+        default=None,
+        help="zenoh mode: peer (meets the peers it learns of directly), client (only through "
+        "the router it connects to: hosts that reach each other through a router) or router "
+        "(routes for the others); default: peer, or the --link-config file's",
+    )
+    parser.add_argument(
+        "--link-config",
+        type=Path,
+        default=None,
+        metavar="YAML",
+        help="a protocol.link.LinkConfig YAML (mode, listen, connect, ...): the endpoints of a "
+        "deployment in one file; --mode, --connect and --listen override it",
+    )
+    parser.add_argument(
         "--security",
         type=_security_file,
         default=None,
@@ -291,33 +312,63 @@ def add_link_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def open_link(config: LinkConfig, *, mission: str, clock: Any = None) -> Link:
+def open_link(
+    config: LinkConfig,
+    *,
+    mission: str,
+    clock: Any = None,
+    seed: int = 0,
+    reach_timeout_s: float = 0.0,
+) -> Link:
     """A :class:`~protocol.link.Link`, or ``ValueError("cannot open the zenoh link: ...")``
     on one line (an endpoint in use or unresolvable, a TLS file zenoh refuses), without
-    zenoh's source locations: every command reports it as bad input (status 2)."""
+    zenoh's source locations: every command reports it as bad input (status 2).
+    ``reach_timeout_s`` > 0 and endpoints to connect to: also wait that long for one of them
+    to answer (a peer opens without it and keeps trying), else ValueError naming them."""
     from protocol.link import Link as _Link
 
     try:
-        return _Link(config, mission=mission, clock=clock)
+        link = _Link(config, mission=mission, clock=clock, seed=seed)
     except Exception as err:  # noqa: BLE001 - zenoh raises its own ZError (and others)
-        text = " ".join(str(err).split()).split(" at /", 1)[0]
-        if len(text) > 150:
-            text = text[:147] + "..."
-        raise ValueError(f"cannot open the zenoh link: {text}") from None
+        raise ValueError(f"cannot open the zenoh link: {zenoh_error_text(err)}") from None
+    if reach_timeout_s > 0 and config.connect and not link.wait_reachable(reach_timeout_s):
+        link.close()
+        raise ValueError(
+            f"cannot reach {', '.join(config.connect)} (no zenoh router or peer answered "
+            f"within {reach_timeout_s:g} s)"
+        )
+    return link
+
+
+def zenoh_error_text(err: BaseException) -> str:
+    """A zenoh error on one line without its source locations (at most 150 characters):
+    ``Can not create a new TCP listener bound to tcp/127.0.0.1:7447: [...Address already in
+    use (os error 98)``."""
+    text = " ".join(str(err).split()).split(" at /", 1)[0]
+    return text if len(text) <= 150 else text[:147] + "..."
 
 
 def link_config(radio: RadioConfig, args: argparse.Namespace) -> LinkConfig:
-    """The link configuration the parsed options ask for (defaults where none were given)."""
+    """The link configuration the parsed options ask for: ``--link-config``'s file (or the
+    defaults) with ``--mode``, ``--connect``, ``--listen`` and ``--security`` over it; the
+    radio is always ``radio``. A bad file raises ConfigError naming it and the key."""
     from protocol.link import LinkConfig  # zenoh loads only for processes that serve it
 
     fields: dict[str, object] = {"radio": radio}
+    base = LinkConfig()
+    if getattr(args, "link_config", None) is not None:
+        from protocol.config import load_config
+
+        base = load_config(args.link_config, LinkConfig)  # ConfigError naming file and key
+    if getattr(args, "mode", None):
+        fields["mode"] = args.mode
     if args.connect:
         fields["connect"] = tuple(args.connect)
     if args.listen:
         fields["listen"] = tuple(args.listen)
     if getattr(args, "security", ""):
         fields["security_file"] = str(args.security)
-    return LinkConfig(**fields)  # type: ignore[arg-type]
+    return msgspec.structs.replace(base, **fields)
 
 
 @contextlib.contextmanager
