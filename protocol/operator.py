@@ -45,6 +45,7 @@ from protocol import keys
 __all__ = [
     "DEFAULT_KEY_ENV",
     "OPERATOR_PROTOCOL_VERSION",
+    "OPERATOR_TASK_IDS_FROM",
     "Command",
     "CommandReply",
     "CommandVerifier",
@@ -60,6 +61,7 @@ __all__ = [
     "decode_status",
     "default_key_path",
     "encode",
+    "is_operator_task",
     "load_or_create_key",
     "presence_key",
     "reply_key",
@@ -74,7 +76,18 @@ OPERATOR_PROTOCOL_VERSION = 1
 #: Environment variable naming the operator key file (default: ~/.config/magic/operator.key).
 DEFAULT_KEY_ENV = "MAGIC_OPERATOR_KEY"
 
+#: Task ids from here up are the operators' (gcs.operator.handler); the planners' count up
+#: from 1,000,000 (gcs.tasking). A robot driving an operator's task reports
+#: ``SEMI_AUTONOMOUS``: an operator chose the goal, the robot plans and drives there (paper 6.2,
+#: and the time and distance per autonomy mode of paper 7, Tables 4-5).
+OPERATOR_TASK_IDS_FROM = 2_000_000_000
+
 _KEY_BYTES = 32
+
+
+def is_operator_task(task_id: int) -> bool:
+    """Whether ``task_id`` is in the operators' range (:data:`OPERATOR_TASK_IDS_FROM`)."""
+    return int(task_id) >= OPERATOR_TASK_IDS_FROM
 
 
 # ----------------------------------------------------------------------------- keys

@@ -57,7 +57,7 @@ from protocol.messages import (
     TaskStatus,
     Telemetry,
 )
-from protocol.operator import Command
+from protocol.operator import OPERATOR_TASK_IDS_FROM, Command, is_operator_task
 from protocol.se2 import inverse, transform_points
 
 if TYPE_CHECKING:
@@ -134,7 +134,12 @@ class CommandHandler:
 
     def __init__(self, *, first_task_id: int | None = None) -> None:
         if first_task_id is None:
-            first_task_id = 2_000_000_000 + (time.time_ns() // 1_000_000) % 1_000_000_000
+            first_task_id = OPERATOR_TASK_IDS_FROM + (time.time_ns() // 1_000_000) % 1_000_000_000
+        if not is_operator_task(first_task_id):
+            raise ValueError(
+                f"first_task_id {first_task_id}: operator task ids start at "
+                f"{OPERATOR_TASK_IDS_FROM} (robots report those tasks as semi-autonomous)"
+            )
         self._next_id = int(first_task_id)
         self.operator_controlled: set[int] = set()
         self.paused: dict[int, bool] = {}  # robot -> was operator-controlled before the pause
@@ -154,6 +159,22 @@ class CommandHandler:
         if robot_id in self.paused:
             return "paused"
         return "operator" if robot_id in self.operator_controlled else "planner"
+
+    def task_text(self, robot_id: int, report: RobotReport | None, allocator: Any) -> str:
+        """What the robot is doing: the operator's task with how it stands (``goto 4,4:
+        succeeded``, from the robot's report on it), the planners' task, or the task id its
+        telemetry names."""
+        tid, what = self.operator_tasks.get(robot_id, (0, ""))
+        if what:
+            st = report.status if report is not None else None
+            if st is not None and st.task_id == tid:
+                state = TaskState(st.state).name.lower()
+                return f"{what}: {state}" + (f" ({st.detail})" if st.detail else "")
+            return what
+        tele = report.telemetry if report is not None else None
+        return planner_task(allocator, robot_id) or (
+            f"task {tele.task_id}" if tele is not None and tele.task_id else "none"
+        )
 
     def interactions_per_minute(self, now_s: float, window_s: float = 600.0) -> float:
         """Accepted interactions in the last ``window_s`` mission seconds, per minute."""
@@ -486,11 +507,7 @@ class CommandHandler:
             rep = ctx.reports.get(r, RobotReport())
             tele = rep.telemetry
             mode = AutonomyMode(tele.mode).name.lower() if tele is not None else "unknown"
-            task = (
-                self.operator_tasks.get(r, (0, ""))[1]
-                or planner_task(ctx.allocator, r)
-                or (f"task {tele.task_id}" if tele is not None and tele.task_id else "none")
-            )
+            task = self.task_text(r, rep, ctx.allocator)
             pose = "not linked"
             if r in ctx.station.graph.robots and r in frames:
                 x, y, t = ctx.station.graph.pose(ctx.station.graph.last_key(r))

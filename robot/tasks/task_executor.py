@@ -41,6 +41,7 @@ from protocol.messages import (
     TaskStatus,
     TeleopTask,
 )
+from protocol.operator import is_operator_task
 
 __all__ = ["Intent", "TaskExecutor", "TaskExecutorConfig"]
 
@@ -303,8 +304,12 @@ class TaskExecutor:
         laser = None
         if isinstance(task, NeutralizeTask) and act.arrived and act.approved:
             laser = (float(task.target_in_odom[0]), float(task.target_in_odom[1]))
+        # an operator's task (its id in the operators' range): the operator chose the goal,
+        # the robot drives there on its own (semi-autonomous, paper 6.2 and 7)
         return Intent(
-            mode=AutonomyMode.AUTONOMOUS,
+            mode=AutonomyMode.SEMI_AUTONOMOUS
+            if is_operator_task(task.task_id)
+            else AutonomyMode.AUTONOMOUS,
             task_id=task.task_id,
             waypoints_in_odom=act.waypoints.copy(),
             laser_target_in_odom=laser,

@@ -22,8 +22,11 @@ from protocol.messages import (
     PauseTask,
     RelayTask,
     ResumeTask,
+    TaskState,
+    TaskStatus,
     Telemetry,
 )
+from protocol.operator import OPERATOR_TASK_IDS_FROM
 from protocol.se2 import transform_points
 from tests.gcs.test_ground_station import nodes_along, straight
 
@@ -53,11 +56,11 @@ def _ctx(gs: GroundStation, **kw: object) -> OperatorContext:
 
 def test_goto_goes_out_in_the_robots_private_frame_and_holds_the_robot() -> None:
     gs = _station()
-    h = CommandHandler(first_task_id=100)
+    h = CommandHandler(first_task_id=OPERATOR_TASK_IDS_FROM + 100)
     out = h.handle(parse_line("goto 0 12 -3"), _ctx(gs))
     assert out.status == "ok" and out.interaction, out.text
     ((rid, task),) = out.downlink
-    assert rid == 0 and isinstance(task, GoToTask) and task.task_id == 100
+    assert rid == 0 and isinstance(task, GoToTask) and task.task_id == OPERATOR_TASK_IDS_FROM + 100
     mfo = np.asarray(gs.graph.map_from_odom(0))
     back = transform_points(mfo, np.asarray([task.waypoints_in_odom[0]]))[0]
     np.testing.assert_allclose(back, (12.0, -3.0), atol=1e-3)
@@ -70,7 +73,7 @@ def test_goto_goes_out_in_the_robots_private_frame_and_holds_the_robot() -> None
 
 def test_pause_resume_auto_and_who_controls() -> None:
     gs = _station()
-    h = CommandHandler(first_task_id=1)
+    h = CommandHandler(first_task_id=OPERATOR_TASK_IDS_FROM + 1)
     out = h.handle(parse_line("pause all"), _ctx(gs))
     assert [type(m) for _, m in out.downlink] == [PauseTask, PauseTask]
     assert "robot(s) 1 had no task" in out.text
@@ -96,7 +99,7 @@ def test_pause_resume_auto_and_who_controls() -> None:
 def test_neutralize_needs_a_disruptor_and_a_static_ooi_then_approves() -> None:
     gs = _station()
     (hz,) = gs.hazards
-    h = CommandHandler(first_task_id=1)
+    h = CommandHandler(first_task_id=OPERATOR_TASK_IDS_FROM + 1)
     roles = {0: "disruptor", 1: "sensor"}
     out = h.handle(parse_line(f"neutralize {hz.hazard_id} 1"), _ctx(gs, roles=roles))
     assert out.status == "invalid" and "not a disruptor" in out.text and "disruptors: 0" in out.text
@@ -115,7 +118,7 @@ def test_neutralize_needs_a_disruptor_and_a_static_ooi_then_approves() -> None:
 def test_reclassify_relay_set_and_graph_commands() -> None:
     gs = _station()
     (hz,) = gs.hazards
-    h = CommandHandler(first_task_id=1)
+    h = CommandHandler(first_task_id=OPERATOR_TASK_IDS_FROM + 1)
     out = h.handle(parse_line(f"reclassify {hz.hazard_id} civilian"), _ctx(gs))
     assert out.status == "ok" and gs.hazards[0].kind == ObjectKind.CIVILIAN
     assert gs.hazards[0].radius_m == 0.0
@@ -179,7 +182,7 @@ def test_goto_several_robots_spreads_them_around_the_point() -> None:
         for msg in nodes_along(straight(4)):
             gs.handle(rid, msg, now_s=1.0)
     gs.step(now_s=2.0)
-    h = CommandHandler(first_task_id=1)
+    h = CommandHandler(first_task_id=OPERATOR_TASK_IDS_FROM + 1)
     out = h.handle(parse_line("goto 0,1 10 10"), _ctx(gs))
     assert out.status == "ok" and "spread 1.5 m" in out.text, out.text
     goals = []
@@ -189,3 +192,21 @@ def test_goto_several_robots_spreads_them_around_the_point() -> None:
     for g in goals:
         assert math.dist(g, (10.0, 10.0)) == pytest.approx(1.5, abs=1e-3)
     assert math.dist(goals[0], goals[1]) == pytest.approx(3.0, abs=1e-3)
+
+
+def test_status_says_how_the_operators_task_stands() -> None:
+    """The robot's report on the operator's task is in the status (not just "goto 12,-3")."""
+    gs = _station()
+    h = CommandHandler(first_task_id=OPERATOR_TASK_IDS_FROM + 5)
+    ctx = _ctx(gs)
+    assert h.handle(parse_line("goto 0 12 -3"), ctx).status == "ok"
+    assert "goto 12,-3 " in h.handle(parse_line("status 0"), ctx).text
+    ctx.reports[0].status = TaskStatus(OPERATOR_TASK_IDS_FROM + 5, TaskState.SUCCEEDED, 9.0, "")
+    assert "goto 12,-3: succeeded" in h.handle(parse_line("status 0"), ctx).text
+    ctx.reports[0].status = TaskStatus(
+        OPERATOR_TASK_IDS_FROM + 5, TaskState.FAILED, 9.0, "no path to the next waypoint"
+    )
+    text = h.task_text(0, ctx.reports[0], None)
+    assert text == "goto 12,-3: failed (no path to the next waypoint)"
+    assert h.handle(parse_line("auto 0"), ctx).status == "ok"
+    assert h.task_text(0, ctx.reports[0], None) == "task 7"  # its telemetry's task

@@ -18,6 +18,7 @@ from protocol.messages import (
     TaskState,
     TeleopTask,
 )
+from protocol.operator import OPERATOR_TASK_IDS_FROM
 from robot.tasks.task_executor import TaskExecutor, TaskExecutorConfig
 
 ORIGIN = np.zeros(3)
@@ -151,3 +152,20 @@ def test_relay_holds_position() -> None:
     assert holding.state is TaskState.ACTIVE and "relay" in holding.detail
     assert ex.update(100.0, np.array([5.0, 5.2, 0.0])) == []
     assert ex.current_task_id == 9
+
+
+def test_operator_tasks_drive_semi_autonomously_until_the_planners_task_again() -> None:
+    """An operator's goto (its id in the operators' range) is semi-autonomous (paper 6.2, 7);
+    paused is paused; the planners' next task is autonomous again."""
+    ex = TaskExecutor()
+    op_id = OPERATOR_TASK_IDS_FROM + 7
+    ex.submit(GoToTask(op_id, 0.0, [(10.0, 0.0)]), 0.0, ORIGIN)
+    assert ex.intent.mode is AutonomyMode.SEMI_AUTONOMOUS and ex.intent.task_id == op_id
+    ex.submit(PauseTask(op_id + 1, 1.0), 1.0, ORIGIN)
+    assert ex.intent.mode is AutonomyMode.PAUSED
+    ex.submit(ResumeTask(op_id + 2, 2.0), 2.0, ORIGIN)
+    assert ex.intent.mode is AutonomyMode.SEMI_AUTONOMOUS
+    ex.submit(RelayTask(op_id + 3, 3.0, (3.0, 3.0)), 3.0, ORIGIN)
+    assert ex.intent.mode is AutonomyMode.SEMI_AUTONOMOUS
+    ex.submit(GoToTask(1_000_001, 4.0, [(5.0, 0.0)]), 4.0, ORIGIN)  # the planners' again
+    assert ex.intent.mode is AutonomyMode.AUTONOMOUS
