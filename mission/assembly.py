@@ -97,6 +97,10 @@ class GcsGround:
     ``journal``: the GCS journal (:mod:`gcs.journal`): every uplink message before the station
     takes it, every step and the planners' decisions, committed at the end of each turn,
     before the radio exchange acknowledges what the turn took.
+    ``operator``: the operator station (:class:`gcs.operator.service.OperatorService`, set
+    with :meth:`attach_operator`): it sees every uplink message after the station, and at
+    the end of each turn carries out the consoles' commands (their tasks join the turn's
+    downlink) and publishes status and views. With no command it changes nothing in the run.
     """
 
     def __init__(
@@ -121,6 +125,14 @@ class GcsGround:
         self.messages = 0
         self._inbox: queue.SimpleQueue[tuple[int, Any]] = queue.SimpleQueue()
         self._last_step_s = -math.inf
+        self.operator: Any = None
+
+    def attach_operator(self, service: Any) -> None:
+        """Serve consoles and views with ``service`` (an ``OperatorService`` on this GCS's
+        link); its commands are journaled with the run's when there is a journal."""
+        if service.journal is None:
+            service.journal = self.journal
+        self.operator = service
 
     def on_message(self, robot_id: int, msg: Any) -> None:
         """The radio's delivery (any thread): queued for the next turn."""
@@ -139,6 +151,8 @@ class GcsGround:
             accepted = self.control.handle(rid, msg, now_s=now_s)
             for tap in self.taps:
                 tap(rid, msg, accepted)
+            if self.operator is not None:
+                self.operator.observe(rid, msg, now_s=now_s, station=self.station)
             n += 1
             self.messages += 1
 
@@ -150,6 +164,15 @@ class GcsGround:
             self._last_step_s = now_s
             budget = math.inf if self.lockstep else self.budget_s
             out = step_control(self.control, self.journal, now_s=now_s, budget_s=budget)
+        if self.operator is not None:
+            # the operators' primitives (accept a closure, rewind) journaled like magic gcs's
+            station: Any = self.station
+            if self.journal is not None:
+                station = JournaledStation(self.station, self.journal)
+                station._seen(now_s)
+            self.operator.after_step(
+                now_s=now_s, station=station, send=lambda rid, msg: out.append((rid, msg))
+            )
         if self.journal is not None:
             self.journal.commit()
         return out
@@ -176,6 +199,10 @@ class GcsGround:
             journal=resumed.journal,
         )
         ground.messages = self.messages
+        if self.operator is not None:  # the consoles' session survives the restart
+            self.operator.control = resumed.control
+            self.operator.journal = resumed.journal
+            ground.operator = self.operator
         return ground, resumed.rebuild_s
 
 

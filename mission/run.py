@@ -379,6 +379,8 @@ def run_mission(
     progress_period_s: float = 0.5,
     on_step: Callable[[Assembly], None] | None = None,
     out_dir: str | Path | None = None,
+    operator: Callable[[Any, Any], Any] | None = None,
+    on_console: Callable[[str], None] | None = None,
 ) -> RunReport:
     """Run the team for ``config.duration_s`` mission-seconds; returns what happened.
 
@@ -386,7 +388,10 @@ def run_mission(
     script instead). ``on_step(assembly)`` is called after every step (tests). ``out_dir``:
     the run directory the mission recorder (:mod:`mission.report`) writes (record, map,
     ``report.json``, ``report.md``, plots; the metrics in :attr:`RunReport.metrics`); a
-    scripted run has no GCS and writes none.
+    scripted run has no GCS and writes none. ``operator(link, control)``: the operator station
+    (:class:`gcs.operator.service.OperatorService`) on the GCS's link, for consoles and views
+    (``magic run`` always has one); ``on_console(line)`` is told the ``magic console`` command
+    that reaches it; its interactions and the robots' autonomy modes go into the report.
     Deterministic unless ``config.realtime`` (see :mod:`mission.lockstep`). ^C or SIGTERM
     (any ``KeyboardInterrupt``) ends the run early: links are closed and the report so far is
     returned with ``interrupted`` set to the exception; an interrupt before the team is up
@@ -423,6 +428,12 @@ def run_mission(
         realtime=config.realtime,
         journal_path=_journal_path(out_dir, config),
     ) as asm:
+        if operator is not None and asm.gcs is not None:  # consoles and views (issue 15)
+            asm.gcs.attach_operator(operator(asm.team.ground_link, asm.gcs.control))
+            if on_console is not None:
+                from gcs.operator.node_hooks import console_command
+
+                on_console(console_command(asm.team.ground_link))
         recorder = None
         if out_dir is not None and asm.gcs is not None:
             recorder = _Recording(Path(out_dir), config, asm)
@@ -436,6 +447,9 @@ def run_mission(
             _run_steps(config, asm, report, on_progress, progress_period_s, steps)
         except KeyboardInterrupt as exc:
             report.interrupted = exc
+        finally:
+            if asm.gcs is not None and asm.gcs.operator is not None:
+                asm.gcs.operator.close(asm.gcs.station)  # last picture, views flushed
         _fill_bytes(report, asm)
         _fill_poses(report, asm.sim)
         _fill_gcs(report, asm)
@@ -468,8 +482,16 @@ class _Recording:
         self._next_sample_s = 0.0
         self.gcs.taps.append(self._on_uplink)
         self.gcs.control.on_event = self._on_planner_event
+        if self.gcs.operator is not None:  # operator commands: interactions (paper Fig. 24)
+            self.gcs.operator.on_interaction = self._on_interaction
+
+    def _on_interaction(self, t_s: float, who: str, text: str, robots: tuple[int, ...]) -> None:
+        self.rec.event(t_s, "interaction", operator=who, command=text, robots=list(robots))
 
     def _on_uplink(self, robot_id: int, msg: Any, accepted: bool) -> None:
+        if isinstance(msg, Telemetry):  # mode changes: time and distance per autonomy mode
+            t = float(msg.time_s)
+            self.rec.mode(t if math.isfinite(t) else self.asm.sim.time_s, robot_id, msg.mode)
         if not (accepted and isinstance(msg, Detection)):
             return
         station = self.gcs.station
@@ -685,6 +707,12 @@ table and the report's headline to stdout; status 0 when the run completes, 2 on
 (one line on stderr), 130 after ^C and 143 after SIGTERM (the run stops at once, its links
 are closed, the report is written from what ran and the summary so far is printed).
 
+operators (paper 6): the run's GCS serves consoles over zenoh; the start prints the command
+that reaches it ("magic run: operators: magic console --connect ... --mission ..."). Their
+commands are interactions in the report (per minute, paper Fig. 24), and a robot on an
+operator's goal reports itself semi-autonomous (time and distance per autonomy mode). A run
+no console talks to is the same run as without. --rerun / --rerun-save: the operator views.
+
 deterministic by default: a run is fixed by its world, seed, duration and configuration;
 running it twice (on a loaded machine too) gives the same poses, events and figures, bit for
 bit. --realtime delivers radio traffic on wall-clock threads instead: not repeatable.
@@ -767,6 +795,9 @@ def _parser() -> Any:
     p.add_argument(
         "--quiet", action="store_true", help="no progress, only the summary (default: progress)"
     )
+    from gcs.operator.node_hooks import add_operator_arguments
+
+    add_operator_arguments(p)  # consoles and views on the run's GCS (issue 15)
     return p
 
 
@@ -914,6 +945,18 @@ def main(argv: list[str] | None = None) -> int:
         if overrides:
             config = msgspec.structs.replace(config, **overrides)
         _check_inputs(config)
+        from gcs.operator.node_hooks import check_operator_arguments, operator_service
+
+        no_consoles = ""
+        try:
+            check_operator_arguments(args)
+        except ValueError as exc:
+            if args.operator_key is not None or not str(exc).startswith("--operator-key"):
+                raise
+            # the default key file is unusable: the run goes on, without consoles
+            no_consoles = f"no consoles for this run: the default {exc}"
+        if config.scripted and (args.rerun or args.rerun_save):
+            raise ValueError("--rerun/--rerun-save: a --scripted run has no GCS to show")
         out_dir = None if config.scripted else _run_dir(args.out, config)
     except (ConfigError, ValueError) as exc:
         return fail(exc)
@@ -934,9 +977,21 @@ def main(argv: list[str] | None = None) -> int:
     log_path = None if out_dir is None else out_dir / "run.log"
     logs = contextlib.ExitStack()
     logged = logs.enter_context(_library_logging(log_path))
+
+    def operators(link: Any, control: Any) -> Any:  # consoles and views (issue 15)
+        return operator_service(args, link, control)
+
+    def console_line(command: str, console: Any = err) -> None:
+        if args.operator_key is not None:
+            command += f" --operator-key {args.operator_key}"
+        console.print(f"magic run: operators: {command}", markup=False, soft_wrap=True)
+
+    ops: dict[str, Any] = {} if config.scripted or no_consoles else {"operator": operators}
+    if no_consoles:
+        err.print(f"magic run: {no_consoles}", markup=False, soft_wrap=True)
     try:
         if args.quiet:
-            report = run_mission(config, out_dir=out_dir)
+            report = run_mission(config, out_dir=out_dir, on_console=console_line, **ops)
         elif err.is_terminal:
             # transient: the final table is printed once, below, not left here as well
             with Live(console=err, refresh_per_second=4, transient=True) as live:
@@ -944,6 +999,8 @@ def main(argv: list[str] | None = None) -> int:
                     config,
                     on_progress=lambda r: live.update(format_progress(r, total_s)),
                     out_dir=out_dir,
+                    on_console=lambda c: console_line(c, live.console),
+                    **ops,
                 )
         else:  # a log or a pipe: a line every tenth of the run, not a redrawn table
             next_s = [0.0]
@@ -965,7 +1022,9 @@ def main(argv: list[str] | None = None) -> int:
                         soft_wrap=True,
                     )
 
-            report = run_mission(config, on_progress=line, out_dir=out_dir)
+            report = run_mission(
+                config, on_progress=line, out_dir=out_dir, on_console=console_line, **ops
+            )
     except KeyboardInterrupt as exc:  # before the team was up: nothing ran
         status, name = _exit_status(exc)
         err.print(f"magic run: stopped by {name} before the run started", soft_wrap=True)

@@ -53,6 +53,7 @@ class ConsoleClient:
         self._waiting: set[int] = set()
         self._was_connected = False
         self.bad_messages = 0
+        self.commands_sent = 0  # published by send / send_raw
         self._subs = [
             link.subscribe(op.reply_key(self.mission, operator_id), self._on_reply),
             link.subscribe(op.status_key(self.mission), self._on_status),
@@ -153,6 +154,7 @@ class ConsoleClient:
         """Send an already signed (or deliberately unsigned, forged) command; wait for it."""
         with self._cv:
             self._waiting.add(signed.seq)
+            self.commands_sent += 1
         try:
             self.link.publish(op.command_key(self.mission), op.encode(signed))
             deadline = time.monotonic() + timeout_s

@@ -168,9 +168,7 @@ class Console:
             return f"{verb.usage()}\n  {verb.help}"
         lines = ["commands (TAB completes; `help COMMAND` for details; `;` separates):"]
         for v in VERBS.values():
-            # the first sentence (an abbreviation's "e.g." is no sentence end)
-            first = re.split(r"(?<!e\.g)(?<!i\.e)\. ", v.help)[0].rstrip(".")
-            lines.append(f"  {v.usage():38} {first}")
+            lines.append(f"  {v.usage():38} {_first_sentence(v.help)}")
         lines.append(
             "ROBOTS: an id (3), a range (2-5), " + ", ".join(GROUPS) + ", or a comma list "
             "(1,4-6,disruptors). Positions are metres in the map frame."
@@ -180,22 +178,35 @@ class Console:
             lines.append("function keys:\n" + self.macros_text())
         return "\n".join(lines)
 
-    def toolbar(self) -> str:
+    def toolbar(self, typing: str = "") -> str:
+        """The status bar; ``typing`` (the line being typed): its command's usage and what it
+        does on a second line, so arguments completion cannot offer (numbers) are named."""
         c = self.client
         s = c.status
         if s is None or not c.connected:
             silent = "never heard" if s is None else f"silent {c.silent_for_s():.0f} s"
-            return (
+            bar = (
                 f" GCS {c.mission}: NOT CONNECTED ({silent}); reconnecting | operator "
                 f"{c.operator_id}"
             )
-        by_operator = sum(1 for r in s.robots if r.control != "planner")
-        return (
-            f" GCS {s.mission} t={s.time_s:.0f} s | robots {len(s.robots)} "
-            f"({by_operator} operator-controlled) | "
-            f"OOIs {len(s.hazards)} | interactions {s.interactions} | planner "
-            f"{'on' if s.planner else 'off'} | operator {c.operator_id}"
-        )
+        else:
+            by_operator = sum(1 for r in s.robots if r.control != "planner")
+            bar = (
+                f" GCS {s.mission} t={s.time_s:.0f} s | robots {len(s.robots)} "
+                f"({by_operator} operator-controlled) | "
+                f"OOIs {len(s.hazards)} | interactions {s.interactions} | planner "
+                f"{'on' if s.planner else 'off'} | operator {c.operator_id}"
+            )
+        last = typing.split(";")[-1].split()
+        verb = VERBS.get(last[0].lower()) if last else None
+        if verb is not None:
+            bar += f"\n {verb.usage()}: {_first_sentence(verb.help)}"
+        return bar
+
+
+def _first_sentence(text: str) -> str:
+    """The first sentence (an abbreviation's "e.g." is no sentence end)."""
+    return re.split(r"(?<!e\.g)(?<!i\.e)\. ", text)[0].rstrip(".")
 
 
 # ---- the command ----------------------------------------------------------------------------
@@ -394,6 +405,7 @@ def main(argv: list[str]) -> int:
 
 def _interactive(console: Console, history: Path, printer: list[Callable[[str], None]]) -> int:
     from prompt_toolkit import PromptSession
+    from prompt_toolkit.application.current import get_app
     from prompt_toolkit.history import FileHistory, InMemoryHistory
     from prompt_toolkit.key_binding import KeyBindings
     from prompt_toolkit.patch_stdout import patch_stdout
@@ -421,18 +433,15 @@ def _interactive(console: Console, history: Path, printer: list[Callable[[str], 
         complete_while_typing=True,
         history=hist,
         key_bindings=kb,
-        bottom_toolbar=console.toolbar,
+        bottom_toolbar=lambda: console.toolbar(get_app().current_buffer.text),
         refresh_interval=1.0,
     )
     print(
         f"magic console: operator {console.client.operator_id}, mission "
-        f"{console.client.mission!r}. `help` lists the commands; TAB completes; "
-        + (
-            "F-keys: " + ", ".join(f"{k.upper()} {m.help}" for k, m in console.macros.items())
-            if console.macros
-            else "no macros"
-        )
+        f"{console.client.mission!r}: `help` lists the commands, TAB completes, ^D leaves;\n"
+        "the bar below shows the GCS and what the command being typed takes."
     )
+    print("function keys:\n" + console.macros_text() if console.macros else "no macros")
     if not console.client.wait_for_gcs(2.0):
         print("[console] no GCS yet; commands wait for it (see the bar below)")
     with patch_stdout(raw=True):

@@ -18,7 +18,12 @@ from typing import Any
 from gcs.operator.service import OperatorService
 from protocol.operator import KeyFileError, default_key_path, load_or_create_key
 
-__all__ = ["add_operator_arguments", "check_operator_arguments", "operator_service"]
+__all__ = [
+    "add_operator_arguments",
+    "check_operator_arguments",
+    "console_command",
+    "operator_service",
+]
 
 
 def add_operator_arguments(p: argparse.ArgumentParser) -> None:
@@ -92,3 +97,13 @@ def operator_service(args: argparse.Namespace, link: Any, control: Any = None) -
         views=_sinks(args) or None,
         control=control,
     )
+
+
+def console_command(link: Any) -> str:
+    """The ``magic console`` command line that reaches the GCS on ``link`` (its listening
+    endpoints and mission name; ``0.0.0.0`` as loopback), for a person to paste."""
+    parts = ["magic console"]
+    for ep in getattr(link.config, "listen", ()) or ():
+        parts.append(f"--connect {str(ep).replace('/0.0.0.0:', '/127.0.0.1:')}")
+    parts.append(f"--mission {link.mission}")
+    return " ".join(parts)

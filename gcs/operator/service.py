@@ -45,7 +45,6 @@ from gcs.operator.handler import (
     OperatorContext,
     Outcome,
     RobotReport,
-    planner_task,
 )
 from protocol import operator as op
 from protocol.messages import AutonomyMode, ObjectKind, TaskStatus, Telemetry, encode_frame
@@ -141,6 +140,7 @@ class OperatorService:
         self.refused_log: collections.deque[str] = collections.deque(maxlen=200)
         self.replies_sent = 0
         self.commands_done = 0
+        self.commands_received = 0  # samples on the command key, kept or refused
         self.command_wall_s: list[float] = []  # wall seconds from arrival to reply
         self._pending: queue.SimpleQueue[tuple[float, op.SignedCommand | None, str, str]] = (
             queue.SimpleQueue()
@@ -153,6 +153,9 @@ class OperatorService:
         self.views: RerunViews | None = None
         self._meter_views_bytes = meter_views_bytes
         self._closed = False
+        # told of every interaction (an accepted command that changed something), on the
+        # node's thread: ``(mission s, operator id, command text, robots sent a task)``
+        self.on_interaction: Callable[[float, str, str, tuple[int, ...]], None] | None = None
         if views:
             from gcs.views.operator_picture import PictureBuilder
             from gcs.views.rerun_views import RerunViews
@@ -209,6 +212,7 @@ class OperatorService:
     # ---- zenoh thread --------------------------------------------------------------------
 
     def _on_command(self, _key: str, payload: bytes) -> None:
+        self.commands_received += 1  # one zenoh callback thread: no lock needed
         verifier = self._get_verifier()
         if verifier is None:
             try:
@@ -323,6 +327,12 @@ class OperatorService:
             )
             self.commands_done += 1
             self._reply(cmd, outcome.status, "", outcome.text, now_s, outcome)
+            if outcome.interaction and self.on_interaction is not None:
+                robots = tuple(sorted({int(r) for r, _ in outcome.downlink}))
+                try:
+                    self.on_interaction(now_s, cmd.operator_id, cmd.command.text(), robots)
+                except Exception:
+                    log.exception("on_interaction failed (the GCS goes on)")
             self.command_wall_s.append(time.perf_counter() - t0)
 
     def _send(self, outcome: Outcome, send: Callable[[int, Any], object]) -> list[int]:
@@ -423,9 +433,7 @@ class OperatorService:
             if r in graph.robots and r in frames:
                 x, y, t = graph.pose(graph.last_key(r))
                 pose = (float(x), float(y), float(t))
-            task = self.handler.operator_tasks.get(r, (0, ""))[1] or planner_task(alloc, r)
-            if not task:
-                task = f"task {tele.task_id}" if tele is not None and tele.task_id else "none"
+            task = self.handler.task_text(r, rep, alloc)
             rows.append(
                 op.RobotRow(
                     r,

@@ -49,37 +49,18 @@ INTEL = (
 
 
 class OperatorGround:
-    """A ground side (``mission.assembly.GroundSide``) that runs the operator service beside
-    the GCS: ``observe`` is the GCS's tap (after the station took each message), ``turn`` hands
-    the commands that arrived to the service and returns their downlink."""
+    """What the bench watches beside the GCS (whose ground side runs the operator service,
+    :meth:`mission.assembly.GcsGround.attach_operator`, as in ``magic run``): its tap notes
+    when each task was first acknowledged and the steps record the true poses."""
 
     def __init__(self) -> None:
-        self.service: OperatorService | None = None
-        self.station: Any = None
         self.acks: dict[int, tuple[float, float]] = {}  # task id -> (wall s, mission s)
         self.truth: list[tuple[float, np.ndarray]] = []  # (mission s, robot poses (N, 3))
 
     def tap(self, robot_id: int, msg: Any, accepted: bool) -> None:
         if isinstance(msg, TaskStatus) and msg.task_id not in self.acks:
-            self.acks[msg.task_id] = (time.perf_counter(), float(msg.time_s))
-        if self.service is not None and self.station is not None:
-            self.service.observe(robot_id, msg, now_s=float(msg_time(msg)), station=self.station)
-
-    def on_message(self, robot_id: int, msg: Any) -> None:
-        pass  # the tap sees every message after the station
-
-    def turn(self, now_s: float) -> list[tuple[int, Any]]:
-        out: list[tuple[int, Any]] = []
-        if self.service is not None and self.station is not None:
-            self.service.after_step(
-                now_s=now_s, station=self.station, send=lambda r, m: out.append((r, m))
-            )
-        return out
-
-
-def msg_time(msg: Any) -> float:
-    t = getattr(msg, "time_s", None)
-    return float(t) if t is not None and math.isfinite(float(t)) else 0.0
+            t = float(msg.time_s)
+            self.acks[msg.task_id] = (time.perf_counter(), t if math.isfinite(t) else 0.0)
 
 
 @dataclass
@@ -136,16 +117,14 @@ def operator_team(
         load_world_config(config_path(world, "world")),
         seeds=seed_streams(seed),
         radio=load_config(radio_path, RadioConfig),
-        scripts=lambda sim: [ground],
         taps=[ground.tap],
     ) as asm:
         assert asm.gcs is not None
-        ground.station = asm.gcs.station
         link = asm.team.ground_link
         service = OperatorService(
             link, key=key, control=asm.gcs.control, status_period_s=0.5, views=views
         )
-        ground.service = service
+        asm.gcs.attach_operator(service)  # as magic run does
         console_link = Link(
             LinkConfig(connect=tuple(link.config.listen), pump_period_s=0.0),
             mission=link.mission,
@@ -156,6 +135,7 @@ def operator_team(
         def loop() -> None:
             try:
                 while not team.stop.is_set():
+                    _await_commands(client, service, team.stop)
                     asm.step()
                     team.steps += 1
                     ground.truth.append((asm.sim.time_s, np.asarray(asm.sim.robot_poses()).copy()))
@@ -174,6 +154,22 @@ def operator_team(
             client.close()
             service.close(asm.gcs.station)
             console_link.close()
+
+
+def _await_commands(
+    client: ConsoleClient, service: OperatorService, stop: threading.Event, wait_s: float = 30.0
+) -> None:
+    """Hold the mission while a console command is on its way to the GCS (zenoh, wall time),
+    so that it is carried out at the ground turn after it was sent whatever the machine's
+    load: a mission that steps faster than real time would otherwise run on for a varying
+    number of steps meanwhile. A command lost on the way holds it ``wait_s`` wall seconds."""
+    deadline = None
+    while client.commands_sent > service.commands_received and not stop.is_set():
+        if deadline is None:
+            deadline = time.monotonic() + wait_s
+        elif time.monotonic() > deadline:
+            return
+        time.sleep(0.0005)
 
 
 # ---- the suite ------------------------------------------------------------------------------

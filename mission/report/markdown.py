@@ -110,6 +110,9 @@ def write_markdown(record: RunRecord, scored: Scored, plots: list[Path], path: P
         for r in record.robot_ids:
             row = table.get(r, {})
             lines.append(f"| {r} | " + " | ".join(_fmt(row.get(k, 0.0), how) for k in modes) + " |")
+        team = [sum(table.get(r, {}).get(k, 0.0) for r in record.robot_ids) for k in modes]
+        lines.append("| team | " + " | ".join(_fmt(v, how) for v in team) + " |")
+    lines += _interaction_lines(record, scored)
     lines += ["", "## Objects of interest (truth)", "",
               "| object | id | detected at (s) | neutralized at (s) | detonated at (s) |",
               "| --- | ---: | ---: | ---: | ---: |"]  # fmt: skip
@@ -165,3 +168,29 @@ def write_markdown(record: RunRecord, scored: Scored, plots: list[Path], path: P
         lines.append("")
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
+
+
+def _interaction_lines(record: RunRecord, scored: Scored, limit: int = 50) -> list[str]:
+    """The operators' accepted commands (``interaction`` events), if any: count, rate, list."""
+    events = [e for e in record.events if e.get("kind") == "interaction"]
+    if not events:
+        return []
+    per_min = scored.metrics.get("interactions_per_min", math.nan)
+    lines = [
+        "",
+        "## Operator interactions (cf. paper Fig. 24)",
+        "",
+        f"{len(events)} accepted commands, {_fmt(per_min, 'f2')} per minute.",
+        "",
+        "| t (s) | operator | command | robots tasked |",
+        "| ---: | --- | --- | --- |",
+    ]
+    for e in events[:limit]:
+        robots = ",".join(str(r) for r in e.get("robots", []) or []) or "-"
+        command = str(e.get("command", "?")).replace("|", "/")
+        lines.append(
+            f"| {_fmt(e.get('t_s'), 'f1')} | {e.get('operator', '?')} | `{command}` | {robots} |"
+        )
+    if len(events) > limit:
+        lines.append(f"| ... | | {len(events) - limit} more | |")
+    return lines

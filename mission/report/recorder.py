@@ -35,6 +35,7 @@ Run directory (everything ``magic report RUN_DIR`` needs to rebuild the report, 
 Events: ``kind`` is free text; these are understood by the report:
 ``detection`` (``object_kind``: ``static_ooi`` / ``toxic_vat`` / ``hostile`` / ...,
 ``position_in_map``: (x, y)), ``interaction`` (an operator command: interactions per minute),
+``mode`` (``robot_id``, ``mode``: a robot's reported autonomy mode changed, :meth:`mode`),
 ``neutralization``, ``blast``, ``robot_lost``, ``closure``. The simulator's own rule events
 (``detonation``, ``neutralized``, ``robot_lost``, ``civilian_harmed``) are read from ``sim`` at
 each sample and are what the scores count (truth), with ``source: sim``.
@@ -174,6 +175,7 @@ class MissionRecorder:
         self._truth_pose: list[np.ndarray] = []
         self._truth_alive: list[np.ndarray] = []
         self._distance_m: np.ndarray | None = None  # truth distance driven per robot
+        self._modes: dict[int, str] = {}  # each robot's latest reported autonomy mode
         self._last_xy: np.ndarray | None = None
         self._sim_events_seen = 0
         self._robot_ids: list[int] = []
@@ -400,6 +402,20 @@ class MissionRecorder:
             self._events.write(json.dumps(line) + "\n")
         except Exception:
             self._fault(f"event {kind!r}", t_s)
+
+    def mode(self, t_s: float, robot_id: int, mode: Any) -> None:
+        """A robot's autonomy mode as its telemetry reports it (call with every telemetry);
+        a change is kept as a ``mode`` event, from which the report charges time and truth
+        distance per mode at the truth track's resolution (paper Tables 4-5) instead of at
+        the samples'. Never raises."""
+        try:
+            name = _mode_name(mode)
+            rid = int(robot_id)
+            if self._modes.get(rid) != name and math.isfinite(float(t_s)):
+                self._modes[rid] = name
+                self.event(t_s, "mode", robot_id=rid, mode=name)
+        except Exception:
+            self._fault("mode", t_s)
 
     # ---- at the end ----------------------------------------------------------------------
 

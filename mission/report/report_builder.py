@@ -335,8 +335,15 @@ def _radio(
 
 
 def _modes(record: RunRecord) -> tuple[dict[int, dict[str, float]], dict[int, dict[str, float]]]:
-    """Time (s) and truth distance (m) per robot and autonomy mode: the interval up to each
-    sample goes to the mode reported at that sample (paper Tables 4-5)."""
+    """Time (s) and truth distance (m) per robot and autonomy mode (paper Tables 4-5). With the
+    robots' mode changes recorded (``mode`` events) and a truth track: each track interval
+    goes to the mode reported at its start (``unknown`` before the first report, ``disabled``
+    from the robot's loss on), at the track's resolution. Otherwise the interval up to each
+    sample goes to the mode reported at that sample."""
+    changes = [e for e in record.events if e.get("kind") == "mode"]
+    track_t = record.track_t
+    if changes and track_t is not None and record.track_pose is not None and len(track_t) >= 2:
+        return _modes_from_changes(record, changes, track_t, record.track_pose)
     time_s: dict[int, dict[str, float]] = {r: defaultdict(float) for r in record.robot_ids}
     dist_m: dict[int, dict[str, float]] = {r: defaultdict(float) for r in record.robot_ids}
     prev_t = 0.0
@@ -353,6 +360,44 @@ def _modes(record: RunRecord) -> tuple[dict[int, dict[str, float]], dict[int, di
             prev_d[r] = d
         prev_t = t
     return {r: dict(v) for r, v in time_s.items()}, {r: dict(v) for r, v in dist_m.items()}
+
+
+def _modes_from_changes(
+    record: RunRecord,
+    changes: list[dict[str, Any]],
+    t: NDArray[np.float64],
+    pose: NDArray[np.float64],
+) -> tuple[dict[int, dict[str, float]], dict[int, dict[str, float]]]:
+    """:func:`_modes` from ``mode`` events over the truth track ``t`` (T,), ``pose`` (T, N, 3)."""
+    lost_s: dict[int, float] = {}
+    for e in record.events:
+        if e.get("source") == "sim" and e.get("kind") == "robot_lost":
+            for r in e.get("robots", []):
+                lost_s[int(r)] = min(lost_s.get(int(r), math.inf), float(e["t_s"]))
+    time_s: dict[int, dict[str, float]] = {}
+    dist_m: dict[int, dict[str, float]] = {}
+    dt = np.diff(t)
+    for k, r in enumerate(record.robot_ids):
+        mine = sorted(
+            (float(e["t_s"]), str(e.get("mode", "unknown")))
+            for e in changes
+            if int(e.get("robot_id", -1)) == r
+        )
+        step_m = np.hypot(*np.diff(pose[:, k, :2], axis=0).T)
+        names = ["unknown"] + [m for _, m in mine]
+        at = np.searchsorted(np.array([c for c, _ in mine]), t[:-1], side="right")
+        label = np.array(names, dtype=object)[at]
+        label[t[:-1] >= lost_s.get(r, math.inf)] = "disabled"
+        per_t: dict[str, float] = defaultdict(float)
+        per_d: dict[str, float] = defaultdict(float)
+        if t[0] > 0:  # before the track began (it starts with the first step)
+            per_t["unknown"] += float(t[0])
+        for name in set(label.tolist()):
+            sel = label == name
+            per_t[name] += float(dt[sel].sum())
+            per_d[name] += float(step_m[sel].sum())
+        time_s[r], dist_m[r] = dict(per_t), dict(per_d)
+    return time_s, dist_m
 
 
 def _score_edges(

@@ -73,3 +73,23 @@ def test_shipped_macros_load_and_bad_ones_are_named(tmp_path: Path) -> None:
     bad.write_text("f2:\n  command: ['status']\n")
     with pytest.raises(ConfigError, match="command"):
         load_macros(bad)
+
+
+def test_the_bar_names_the_usage_of_the_command_being_typed() -> None:
+    """Numbers cannot be completed: the status bar's second line says what comes next."""
+    from gcs.console.client import ConsoleClient
+    from gcs.console.repl import Console
+    from protocol.link import Link, LinkConfig
+
+    link = Link(LinkConfig(listen=("tcp/127.0.0.1:0",), pump_period_s=0.0), mission="bar")
+    client = ConsoleClient(link, "tester", bytes(32))
+    try:
+        console = Console(client)
+        bar = console.toolbar("")
+        assert "NOT CONNECTED" in bar and "\n" not in bar
+        bar = console.toolbar("pause all; goto 0 3")
+        assert bar.splitlines()[1].startswith(" goto ROBOTS X_M Y_M: "), bar
+        assert "\n" not in console.toolbar("paus")  # not a command (yet): no usage line
+    finally:
+        client.close()
+        link.close()
