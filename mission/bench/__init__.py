@@ -43,7 +43,7 @@ __all__ = [
 BENCH_DIR_ENV = "MAGIC_BENCH_DIR"
 
 #: Suite name -> module that implements it (``radio``: the radio half of issue 16's scale
-#: suite, 100 synthetic robots through the real link).
+#: suite, 100 synthetic robots through the real link; ``scale``: the whole of it).
 SUITES: dict[str, str] = {
     "link": "mission.bench.link",
     "graph": "mission.bench.graph",
@@ -57,6 +57,7 @@ SUITES: dict[str, str] = {
     "perception": "mission.bench.perception",
     "operator": "mission.bench.operator",
     "radio": "mission.bench.radio_scale",
+    "scale": "mission.bench.scale",
     "fuzz": "mission.bench.fuzz",
     "chaos": "mission.bench.chaos",
 }
