@@ -14,7 +14,24 @@ same state (same nodes, edges and poses, given a deterministic run: see below). 
   their owners to rebuild from (the station ignores them);
 - ``downlink`` and ``link``: the GCS process's reliable downlink messages (frame bytes with
   their sequence numbers) and snapshots of its latest-only streams' sequence numbers, from
-  which a resumed ``magic gcs`` continues every robot's streams (the station ignores them).
+  which a resumed ``magic gcs`` continues every robot's streams (the station ignores them);
+- ``checkpoint``: the station's whole state was saved here (table ``checkpoints``, below).
+
+Checkpoints bound a restart. Replaying every record repeats every station step (its loop
+closing): 6.3 s for 300 mission-s of the small world, growing with the mission. So every
+``checkpoint_period_s`` mission seconds (:func:`step_control`, after a step) the station is
+saved whole (:func:`save_station`: pickled, with a SHA-256 of the bytes; only the latest is
+kept), and a resume loads the latest and replays only the records after it
+(:func:`resume_control`). The one part of the station that cannot be saved is GTSAM's iSAM2
+(its Bayes tree has no serialization in the bindings): a checkpoint is therefore also a
+*barrier* where the live station's iSAM2 is re-seeded from its graph and estimate
+(:meth:`PoseGraph.restore` of its own snapshot), which the loaded copy does too, and which
+:func:`replay_journal` repeats at the ``checkpoint`` record. The live station, one resumed
+from the checkpoint and a full replay then compute the same thing from the same state, bit
+for bit. Loading unpickles only classes of this project, numpy, msgspec, GTSAM and a few
+standard containers (:class:`_CheckpointUnpickler`), after checking the digest: the journal
+is the GCS's own file, and a damaged checkpoint is refused (the resume then replays the
+whole journal) instead of run.
 
 Storage is SQLite in WAL mode (Python's standard library: no server, one file, readable with
 any SQLite tool, safe against a torn write). :meth:`GcsJournal.commit` makes what was appended
@@ -30,11 +47,16 @@ exactly.
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
+import logging
 import math
+import pickle
 import sqlite3
 import time
-from collections.abc import Iterator
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -56,13 +78,20 @@ __all__ = [
     "Record",
     "ReplaySummary",
     "ResumedControl",
+    "load_station",
+    "rebuild_station",
     "replay_journal",
     "resume_control",
+    "save_station",
     "step_control",
 ]
 
 #: Bumped whenever the record layout changes; a journal of another format is refused.
-JOURNAL_FORMAT = 1
+#: Format 2 added ``checkpoint`` records and the ``checkpoints`` table; format 1 still reads.
+JOURNAL_FORMAT = 2
+_READS_FORMATS = ("1", "2")
+
+log = logging.getLogger(__name__)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -72,6 +101,12 @@ CREATE TABLE IF NOT EXISTS records (
     kind TEXT NOT NULL,
     robot_id INTEGER NOT NULL,
     body BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS checkpoints (
+    seq INTEGER PRIMARY KEY,
+    time_s REAL NOT NULL,
+    sha256 BLOB NOT NULL,
+    state BLOB NOT NULL
 );
 """
 
@@ -87,6 +122,7 @@ _KINDS = frozenset(
         "decision",
         "downlink",
         "link",
+        "checkpoint",
     }
 )
 
@@ -118,10 +154,27 @@ class Record:
 class GcsJournal:
     """An append-only journal file (SQLite, WAL). Not thread-safe: one writer, the GCS loop."""
 
-    def __init__(self, path: Path, conn: sqlite3.Connection, *, sync_period_s: float) -> None:
+    def __init__(
+        self,
+        path: Path,
+        conn: sqlite3.Connection,
+        *,
+        sync_period_s: float,
+        checkpoint_period_s: float = 30.0,
+    ) -> None:
+        if not checkpoint_period_s > 0:  # inf: never
+            raise JournalError(
+                f"{path}: checkpoint_period_s must be > 0 (inf: none), got {checkpoint_period_s}"
+            )
         self.path = path
         self._conn = conn
         self.sync_period_s = sync_period_s
+        #: mission seconds between two station checkpoints (module docstring)
+        self.checkpoint_period_s = float(checkpoint_period_s)
+        row = conn.execute("SELECT MAX(time_s) FROM checkpoints").fetchone()
+        self._last_checkpoint_s = -math.inf if row[0] is None else float(row[0])
+        self.checkpoint_bytes = 0  # the latest checkpoint's size
+        self.checkpoint_wall_s = 0.0  # wall seconds the checkpoints took, summed
         row = conn.execute("SELECT MAX(seq) FROM records").fetchone()
         self._seq = int(row[0] or 0)
         self._committed_seq = self._seq
@@ -138,8 +191,10 @@ class GcsJournal:
         *,
         meta: dict[str, str] | None = None,
         sync_period_s: float = 1.0,
+        checkpoint_period_s: float = 30.0,
     ) -> GcsJournal:
-        """A new journal at ``path`` (which must not exist) for a station of ``station_config``."""
+        """A new journal at ``path`` (which must not exist) for a station of ``station_config``;
+        the station is checkpointed every ``checkpoint_period_s`` mission seconds (inf: never)."""
         p = Path(path)
         if p.exists():
             raise JournalError(f"{p}: a journal exists already (resume it, or choose a new run)")
@@ -150,26 +205,45 @@ class GcsJournal:
             "format": str(JOURNAL_FORMAT),
             "protocol_version": str(PROTOCOL_VERSION),
             "station_config": msgspec.json.encode(station_config).decode(),
+            "checkpoint_period_s": repr(float(checkpoint_period_s)),
             **(meta or {}),
         }
         with conn:
             conn.executemany("INSERT INTO meta VALUES (?, ?)", sorted(entries.items()))
-        return cls(p, conn, sync_period_s=sync_period_s)
+        return cls(p, conn, sync_period_s=sync_period_s, checkpoint_period_s=checkpoint_period_s)
 
     @classmethod
-    def open(cls, path: str | Path, *, sync_period_s: float = 1.0) -> GcsJournal:
-        """An existing journal, to read or to append to (a resumed GCS)."""
+    def open(
+        cls,
+        path: str | Path,
+        *,
+        sync_period_s: float = 1.0,
+        checkpoint_period_s: float | None = None,
+    ) -> GcsJournal:
+        """An existing journal, to read or to append to (a resumed GCS); checkpoints every
+        ``checkpoint_period_s`` (None: as the journal's creator chose, else 30 s)."""
         p = Path(path)
         if not p.is_file():
             raise JournalError(f"{p}: no journal there")
         conn = cls._connect(p)
-        journal = cls(p, conn, sync_period_s=sync_period_s)
+        period = checkpoint_period_s
+        if period is None:
+            row = conn.execute(
+                "SELECT value FROM meta WHERE key = 'checkpoint_period_s'"
+            ).fetchone()
+            try:
+                period = 30.0 if row is None else float(row[0])
+            except ValueError:
+                conn.close()
+                raise JournalError(f"{p}: meta checkpoint_period_s {row[0]!r}") from None
+        journal = cls(p, conn, sync_period_s=sync_period_s, checkpoint_period_s=period)
         meta = journal.meta()
-        for key, want in (("format", JOURNAL_FORMAT), ("protocol_version", PROTOCOL_VERSION)):
-            if meta.get(key) != str(want):
+        checks = (("format", _READS_FORMATS), ("protocol_version", (str(PROTOCOL_VERSION),)))
+        for key, want in checks:
+            if meta.get(key) not in want:
                 conn.close()
                 raise JournalError(
-                    f"{p}: journal {key} {meta.get(key)!r}, this GCS reads {want}"
+                    f"{p}: journal {key} {meta.get(key)!r}, this GCS reads {' or '.join(want)}"
                     + (" (is it a journal?)" if not meta else "")
                 )
         return journal
@@ -240,6 +314,56 @@ class GcsJournal:
             self._last_sync_wall_s = now
             self._conn.execute("PRAGMA wal_checkpoint(PASSIVE)")
 
+    def checkpoint_due(self, now_s: float) -> bool:
+        """Whether a station checkpoint is due at mission time ``now_s``."""
+        return now_s - self._last_checkpoint_s >= self.checkpoint_period_s
+
+    def checkpoint(self, station: GroundStation, now_s: float) -> int:
+        """Save ``station`` whole at mission time ``now_s`` (module docstring: its iSAM2 is
+        re-seeded at its next solve, as the loaded copy's will be); returns the ``checkpoint``
+        record's sequence number. Older checkpoints are deleted (a resume needs the latest).
+        Durable with the next :meth:`commit`, together with the records before it. A station
+        that cannot be saved is logged and checkpoints stop (the record still marks the
+        barrier); the journal goes on."""
+        t0 = time.perf_counter()
+        try:
+            state = save_station(station)
+        except JournalError as err:
+            # the barrier was made: journal it (a replay repeats it), and take no more
+            log.error("%s: %s; no more checkpoints (a resume replays the journal)", self.path, err)
+            self.checkpoint_period_s = math.inf
+            self._last_checkpoint_s = float(now_s)
+            return self.event("checkpoint", now_s, {"bytes": 0, "error": str(err)})
+        digest = hashlib.sha256(state).digest()
+        seq = self.event("checkpoint", now_s, {"bytes": len(state), "sha256": digest.hex()})
+        self._conn.execute("DELETE FROM checkpoints")
+        self._conn.execute(
+            "INSERT INTO checkpoints VALUES (?, ?, ?, ?)", (seq, float(now_s), digest, state)
+        )
+        self._last_checkpoint_s = float(now_s)
+        self.checkpoint_bytes = len(state)
+        self.checkpoint_wall_s += time.perf_counter() - t0
+        return seq
+
+    def latest_checkpoint(self) -> tuple[int, float, GroundStation] | None:
+        """``(record seq, mission time, the station as saved)`` of the latest checkpoint, or
+        None when there is none. A checkpoint whose digest does not match or that does not
+        load raises :class:`JournalError` naming it."""
+        row = self._conn.execute(
+            "SELECT seq, time_s, sha256, state FROM checkpoints ORDER BY seq DESC LIMIT 1"
+        ).fetchone()
+        if row is None:
+            return None
+        seq, time_s, digest, state = int(row[0]), float(row[1]), bytes(row[2]), bytes(row[3])
+        where = f"{self.path}: checkpoint at record {seq} (t={time_s:.3f} s)"
+        if hashlib.sha256(state).digest() != digest:
+            raise JournalError(f"{where}: SHA-256 mismatch, the saved state is damaged")
+        try:
+            station = load_station(state)
+        except JournalError as err:
+            raise JournalError(f"{where}: {err}") from None
+        return seq, time_s, station
+
     def abandon(self) -> None:
         """Close without committing: what a killed process leaves (tests and the chaos
         bench's simulated crash); what was not committed is gone."""
@@ -274,12 +398,20 @@ class GcsJournal:
         except (msgspec.ValidationError, msgspec.DecodeError) as err:
             raise JournalError(f"{self.path}: station_config: {err}") from None
 
-    def records(self, *, after_seq: int = 0) -> Iterator[Record]:
-        """Committed and appended records with ``seq > after_seq``, in order."""
-        cur = self._conn.execute(
-            "SELECT seq, time_s, kind, robot_id, body FROM records WHERE seq > ? ORDER BY seq",
-            (after_seq,),
-        )
+    def records(self, *, after_seq: int = 0, kind: str | None = None) -> Iterator[Record]:
+        """Committed and appended records with ``seq > after_seq`` (of ``kind`` only, when
+        given), in order."""
+        if kind is None:
+            cur = self._conn.execute(
+                "SELECT seq, time_s, kind, robot_id, body FROM records WHERE seq > ? ORDER BY seq",
+                (after_seq,),
+            )
+        else:
+            cur = self._conn.execute(
+                "SELECT seq, time_s, kind, robot_id, body FROM records "
+                "WHERE seq > ? AND kind = ? ORDER BY seq",
+                (after_seq, kind),
+            )
         for seq, time_s, kind, robot_id, body in cur:
             yield Record(int(seq), float(time_s), str(kind), int(robot_id), bytes(body))
 
@@ -300,6 +432,9 @@ class ReplaySummary:
     records: dict[str, int] = field(default_factory=dict)
     last_time_s: float = -math.inf
     last_seq: int = 0
+    #: the checkpoint the replay started from (:func:`rebuild_station`; 0: none, from scratch)
+    checkpoint_seq: int = 0
+    checkpoint_time_s: float = -math.inf
 
 
 def replay_journal(
@@ -324,6 +459,32 @@ def replay_journal(
         summary.last_time_s = max(summary.last_time_s, rec.time_s)
         summary.last_seq = rec.seq
     return summary
+
+
+def rebuild_station(
+    journal: GcsJournal, *, from_checkpoint: bool = True
+) -> tuple[GroundStation, ReplaySummary]:
+    """The station the journal's writer had at its last record: the latest checkpoint loaded
+    and the records after it replayed (``from_checkpoint``; module docstring), else (none, or
+    ``from_checkpoint`` false, or a damaged one: logged) a fresh station fed every record."""
+    from gcs.ground_station import GroundStation
+
+    saved = None
+    if from_checkpoint:
+        try:
+            saved = journal.latest_checkpoint()
+        except JournalError as err:
+            log.warning("%s; replaying the whole journal instead", err)
+    if saved is None:
+        station = GroundStation(journal.station_config())
+        return station, replay_journal(journal, station)
+    seq, time_s, station = saved
+    summary = replay_journal(journal, station, after_seq=seq)
+    summary.checkpoint_seq = seq
+    summary.checkpoint_time_s = time_s
+    summary.last_time_s = max(summary.last_time_s, time_s)
+    summary.last_seq = max(summary.last_seq, seq)
+    return station, summary
 
 
 def _apply(rec: Record, station: GroundStation) -> None:
@@ -357,6 +518,163 @@ def _apply(rec: Record, station: GroundStation) -> None:
         station.rewind_closures(float(rec.json()["since_s"]))
     elif rec.kind == "restart_closer":
         station.restart_loop_closer()
+    elif rec.kind == "checkpoint":
+        _checkpoint_barrier(station)
+
+
+def _checkpoint_barrier(station: GroundStation) -> None:
+    """What a checkpoint does to the live station, repeated by a replay (module docstring):
+    the graph restored from its own snapshot (same nodes, edges and estimate), so its next
+    solve re-seeds iSAM2 from them, as a station loaded from the checkpoint does."""
+    graph = station.graph
+    graph.restore(graph.snapshot())
+
+
+def _no_solver() -> None:
+    """What a saved station's iSAM2 loads as (re-seeded at the next solve)."""
+    return None
+
+
+#: The rasterizer's numba typed lists (no pickling in numba) and the Python objects whose
+#: arrays each holds, item for item (the same buffers: drawing into a submap's codes writes
+#: through both), from which :func:`_load_rasterizer` rebuilds them.
+_RASTER_TYPED_LISTS = (("_cells", "_rasters", "cells"), ("_sub_codes", "_submaps", "codes"))
+
+
+def _rasterizer_state(obj: Any) -> dict[str, Any]:
+    """The rasterizer's ``__dict__`` without its typed lists, after checking that they hold
+    exactly the arrays :func:`_load_rasterizer` rebuilds them from (a layout change in
+    :mod:`gcs.mapping.rasterization` is refused here, not silently diverged from)."""
+    state = dict(obj.__dict__)
+    for name, owners, attr in _RASTER_TYPED_LISTS:
+        typed = state.pop(name)
+        arrays = [getattr(o, attr) for o in state[owners]]
+        if len(typed) != len(arrays) or any(
+            typed[i].ctypes.data != a.ctypes.data or typed[i].shape != a.shape
+            for i, a in enumerate(arrays)
+        ):
+            raise JournalError(
+                f"the rasterizer's {name} is not its {owners}' {attr} (the layout of "
+                "gcs/mapping/rasterization.py changed: update gcs/journal.py's checkpoints)"
+            )
+    return state
+
+
+def _load_rasterizer(state: dict[str, Any]) -> Any:
+    import numba
+    from numba.typed import List as TypedList
+
+    from gcs.mapping.rasterization import Rasterizer
+
+    obj = Rasterizer.__new__(Rasterizer)
+    obj.__dict__.update(state)
+    item = {"_cells": numba.types.int8[:, ::1], "_sub_codes": numba.types.uint8[:, ::1]}
+    for name, owners, attr in _RASTER_TYPED_LISTS:
+        typed = TypedList.empty_list(item[name])
+        for o in state[owners]:
+            typed.append(getattr(o, attr))
+        setattr(obj, name, typed)
+    return obj
+
+
+#: The loop closer's caches (pure functions of its scans, rebuilt on demand): its reference
+#: tables (tens of MB: 18 of a 21 MB checkpoint after 20 s of two robots) and a flag array
+#: stamped with an object's ``id()``, which a loaded copy could meet again by chance.
+_CLOSER_CACHES: dict[str, Callable[[], Any]] = {
+    "_tables": OrderedDict,
+    "_has_scan_cache": lambda: None,
+}
+
+
+def _load_loop_closer(state: dict[str, Any]) -> Any:
+    from gcs.loops.loop_closer import LoopCloser
+
+    obj = LoopCloser.__new__(LoopCloser)
+    obj.__dict__.update(state)
+    for name, empty in _CLOSER_CACHES.items():
+        setattr(obj, name, empty())
+    return obj
+
+
+class _CheckpointPickler(pickle.Pickler):
+    def reducer_override(self, obj: Any) -> Any:
+        from gcs.graph.optimization import Isam2Solver
+        from gcs.loops.loop_closer import LoopCloser
+        from gcs.mapping.rasterization import Rasterizer
+
+        if isinstance(obj, Isam2Solver):
+            return (_no_solver, ())
+        if type(obj) is Rasterizer:
+            return (_load_rasterizer, (_rasterizer_state(obj),))
+        if type(obj) is LoopCloser:
+            state = {k: v for k, v in obj.__dict__.items() if k not in _CLOSER_CACHES}
+            return (_load_loop_closer, (state,))
+        return NotImplemented
+
+
+#: Top-level modules a checkpoint may name classes and functions of.
+_CHECKPOINT_MODULES = frozenset(
+    {"gcs", "protocol", "compression", "numpy", "msgspec", "gtsam", "collections", "copyreg"}
+)
+#: Builtins a checkpoint may name (containers and numbers: nothing that runs code).
+_CHECKPOINT_BUILTINS = frozenset(
+    {
+        "set",
+        "frozenset",
+        "dict",
+        "list",
+        "tuple",
+        "slice",
+        "complex",
+        "bytearray",
+        "range",
+        "float",
+        "int",
+        "bool",
+        "str",
+        "bytes",
+        "object",
+    }
+)
+
+
+class _CheckpointUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str) -> Any:
+        top = module.partition(".")[0]
+        if (module == "builtins" and name in _CHECKPOINT_BUILTINS) or (top in _CHECKPOINT_MODULES):
+            return super().find_class(module, name)
+        if module == "logging" and name == "getLogger":
+            return super().find_class(module, name)
+        raise JournalError(f"names {module}.{name}, which no saved station holds")
+
+
+def save_station(station: GroundStation) -> bytes:
+    """The station's whole state as bytes for :func:`load_station`, after the checkpoint
+    barrier (module docstring: this re-seeds the live station's iSAM2 at its next solve)."""
+    station = getattr(station, "station", station)  # a JournaledStation's own
+    _checkpoint_barrier(station)
+    buf = io.BytesIO()
+    try:
+        _CheckpointPickler(buf, protocol=5).dump(station)
+    except Exception as err:  # whatever a member raises: named, the GCS goes on
+        raise JournalError(f"the station cannot be saved: {err}") from None
+    return buf.getvalue()
+
+
+def load_station(state: bytes) -> GroundStation:
+    """The station :func:`save_station` saved; :class:`JournalError` if ``state`` is not one
+    (only this project's, numpy's, msgspec's and GTSAM's classes load)."""
+    from gcs.ground_station import GroundStation
+
+    try:
+        station = _CheckpointUnpickler(io.BytesIO(state)).load()
+    except JournalError:
+        raise
+    except Exception as err:  # a damaged pickle raises anything: name it, do not run on
+        raise JournalError(f"not a saved station ({type(err).__name__}: {err})") from None
+    if not isinstance(station, GroundStation):
+        raise JournalError(f"not a saved station (a {type(station).__name__})")
+    return station
 
 
 class JournaledStation:
@@ -375,12 +693,10 @@ class JournaledStation:
 
     @classmethod
     def resume(cls, path: str | Path) -> tuple[JournaledStation, ReplaySummary]:
-        """Rebuild a station from the journal at ``path`` and keep appending to it."""
-        from gcs.ground_station import GroundStation
-
+        """Rebuild a station from the journal at ``path`` (:func:`rebuild_station`) and keep
+        appending to it."""
         journal = GcsJournal.open(path)
-        station = GroundStation(journal.station_config())
-        summary = replay_journal(journal, station)
+        station, summary = rebuild_station(journal)
         resumed = cls(station, journal)
         resumed._seen(summary.last_time_s)
         return resumed, summary
@@ -463,8 +779,9 @@ def step_control(
     """:meth:`MissionControl.step <gcs.mission_control.MissionControl.step>` with its journal
     records: the ``step`` first (what replays the station), then one ``decision`` record per
     planner event and per task sent (what rebuilds the allocator's bookkeeping on resume:
-    tasks sent per robot, the task ids used). Not committed: the caller commits once per
-    batch, before its link acknowledges."""
+    tasks sent per robot, the task ids used), then, when one is due, a station checkpoint
+    (:meth:`GcsJournal.checkpoint`). Not committed: the caller commits once per batch, before
+    its link acknowledges."""
     if journal is None:
         return list(control.step(now_s=now_s, budget_s=budget_s))
     journal.event("step", now_s, {"budget_s": None if math.isinf(budget_s) else float(budget_s)})
@@ -487,6 +804,8 @@ def step_control(
                 {"task": type(msg).__name__, "task_id": task_id},
                 robot_id=int(rid),
             )
+    if journal.checkpoint_due(now_s):
+        journal.checkpoint(control.station, now_s)
     return out
 
 
@@ -502,31 +821,31 @@ class ResumedControl:
     rebuild_s: float
 
 
-def resume_control(path: str | Path, mission: Any = None) -> ResumedControl:
+def resume_control(
+    path: str | Path, mission: Any = None, *, from_checkpoint: bool = True
+) -> ResumedControl:
     """A :class:`~gcs.mission_control.MissionControl` rebuilt from the journal at ``path``.
 
-    The station is replayed record by record (:func:`replay_journal`: same nodes, edges and
-    poses as the one that was killed, given a deterministic run). The allocator is *not*
-    replayed: it re-plans from the rebuilt estimate at its next step (its plan is a function of
-    the station's state, the robots' last reports and its own assignments; the assignments
-    would need every plan replayed with the same map, which costs a rasterization per plan).
-    What the journal's ``decision`` records give it back: the tasks sent per robot and the
-    task ids used (new ids start past them, so no robot sees an id twice)."""
+    The station is loaded from the latest checkpoint and the records after it are replayed
+    (:func:`rebuild_station`; ``from_checkpoint=False``: every record from scratch): same
+    nodes, edges and poses as the one that was killed, given a deterministic run. The
+    allocator is *not* replayed: it re-plans from the rebuilt estimate at its next step (its
+    plan is a function of the station's state, the robots' last reports and its own
+    assignments; the assignments would need every plan replayed with the same map, which
+    costs a rasterization per plan). What the journal's ``decision`` records give it back:
+    the tasks sent per robot and the task ids used (new ids start past them, so no robot
+    sees an id twice)."""
     import msgspec
 
-    from gcs.ground_station import GroundStation
     from gcs.mission_control import MissionControl, MissionControlConfig
 
     t0 = time.perf_counter()
     journal = GcsJournal.open(path)
     try:
-        station = GroundStation(journal.station_config())
-        summary = replay_journal(journal, station)
+        station, summary = rebuild_station(journal, from_checkpoint=from_checkpoint)
         sent: dict[int, int] = {}
         last_id = 0
-        for rec in journal.records():
-            if rec.kind != "decision":
-                continue
+        for rec in journal.records(kind="decision"):
             f = rec.json()
             if "task_id" in f:
                 sent[rec.robot_id] = sent.get(rec.robot_id, 0) + 1

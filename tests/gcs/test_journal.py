@@ -191,7 +191,7 @@ def test_bad_journals_are_refused_with_the_file_named(tmp_path: Path) -> None:
     with conn:
         conn.execute("UPDATE meta SET value = '99' WHERE key = 'format'")
     conn.close()
-    with pytest.raises(JournalError, match="journal format '99', this GCS reads 1"):
+    with pytest.raises(JournalError, match="journal format '99', this GCS reads 1 or 2"):
         GcsJournal.open(path)
 
 
