@@ -24,11 +24,29 @@ duration with the GCS serving), ``explored_frac`` and ``explored_frac_clean`` (t
 without faults) and their difference ``explored_frac_drop``, ``gcs_restart_s`` (wall seconds
 from the kill to a serving GCS: the journal replayed), ``replay_pose_diff_max_m`` (the whole
 journal replayed through a fresh station, :mod:`mission.mission_replay`, against the live
-one) and ``replay_edges_equal``.
+one) and ``replay_edges_equal``; ``robot_suspended_s`` and ``robot_returning_s`` (robot-seconds
+the comms watchdog held or drove robots back, :mod:`robot.comms_watchdog`: what the blackouts
+cost in exploring time) and ``checkpoint_s`` (wall seconds the live GCS spent saving its
+checkpoints, :mod:`gcs.journal`).
+
+Secured transport (:func:`unauthenticated_attempts`, issue 17 item 5): real zenoh sessions
+over mutual TLS on loopback, the enforcing GCS with its access control, a certified robot 1
+and an operator, against three kinds of peer: *unauthenticated* ones (certificates of another
+CA, one named ``gcs``, one ``robot-1``), an authenticated *stranger* (the mission's CA, on no
+roster) and the certified robot 1 out of its grants. Each publishes tasks to robot 1, uplink
+as robot 1 and 2, and the map topic, and subscribes to everything of the mission, while the
+GCS publishes tasks and the map. Metrics: ``unauthenticated_publishes_accepted`` (forged
+messages of unauthenticated peers that reached the GCS, the robot or the operator: 0),
+``unauthorized_publishes_accepted`` (the same from authenticated peers outside their grants:
+0), ``unauthenticated_reads`` / ``unauthorized_reads`` (the GCS's tasks and map heard by
+them: 0), ``security_attempts`` (forged publishes made) and ``authorized_delivered_frac``
+(the legitimate traffic that arrived: the control that the setup delivers at all, 1).
 """
 
 from __future__ import annotations
 
+import json
+import socket
 import tempfile
 import time
 from collections.abc import Callable
@@ -45,10 +63,11 @@ from mission.report.map_scoring import cell_centres, explored_frac
 from protocol.messages import STREAMS, Direction, Reliability, stream_of
 from protocol.radio import RadioConfig
 from protocol.se2 import inverse, transform_points
+from robot.comms_watchdog import LinkState
 from sim.radio_model import blackout_schedule
 from sim.simulator import Simulator, SimulatorConfig, load_world_config
 
-__all__ = ["run"]
+__all__ = ["run", "unauthenticated_attempts"]
 
 _RELIABLE_UP = {
     name for name, spec in STREAMS[Direction.UP].items() if spec.reliability is Reliability.RELIABLE
@@ -132,12 +151,16 @@ def _mission(
     loss: float,
     run_dir: Path,
     progress: Callable[[str], None],
+    restart: bool | None = None,
 ) -> dict[str, float]:
+    """One run; ``faults`` turns on all three faults, or (for finding what each costs) a zero
+    ``loss``, a zero ``blackout_s`` and ``restart=False`` leave one out."""
+    restart = faults if restart is None else restart
     world = load_world_config(config_path("world/small.yaml", "world"))
     radio = load_config(config_path("radio/magic2010.yaml", "radio"), RadioConfig)
     n = world.robots.sensors + world.robots.disruptors
     blackouts: tuple[tuple[int, float, float], ...] = ()
-    if faults:
+    if faults and blackout_s > 0:
         blackouts = blackout_schedule(
             list(range(n)),
             per_robot=2,
@@ -158,19 +181,25 @@ def _mission(
         taps=[ledger.tap],
         journal_path=journal,
     ) as asm:
-        if faults:
+        if faults and loss > 0:
             _floor_loss(asm.sim, loss)
         ledger.wrap(asm)
         steps = int(round(duration_s / asm.sim.config.step_s))
         kill_at = steps // 2
         restart_s = 0.0
+        checkpoint_s = 0.0
+        suspended_s = returning_s = 0.0
+        step_s = asm.sim.config.step_s
+        nodes = getattr(asm.team, "nodes", {})
         t0 = time.perf_counter()
         for k in range(steps):
-            if faults and k == kill_at:
+            if restart and k == kill_at:
 
                 def kill(a: Assembly = asm) -> None:
-                    nonlocal restart_s
+                    nonlocal restart_s, checkpoint_s
                     a._ground_turn()
+                    if a.gcs is not None and a.gcs.journal is not None:
+                        checkpoint_s += a.gcs.journal.checkpoint_wall_s
                     restart_s = a.restart_gcs()
 
                 asm.team.step(kill)
@@ -179,7 +208,14 @@ def _mission(
                 )
             else:
                 asm.step()
+            for node in nodes.values():
+                state = node.tasks.state
+                if state in (LinkState.HOLDING, LinkState.RETURNING):
+                    suspended_s += step_s
+                    returning_s += step_s if state is LinkState.RETURNING else 0.0
         assert asm.gcs is not None
+        if asm.gcs.journal is not None:
+            checkpoint_s += asm.gcs.journal.checkpoint_wall_s
         # the last exchange's uplink waits in the ground side's inbox for the next turn
         asm.gcs.drain(asm.sim.time_s)
         station = asm.gcs.station
@@ -200,6 +236,9 @@ def _mission(
             "station_duplicates_dropped": float(station.stats.duplicates),
             "mission_completed": 1.0 if asm.sim.time_s >= duration_s - 1e-6 else 0.0,
             "gcs_restart_s": restart_s,
+            "checkpoint_s": checkpoint_s,
+            "robot_suspended_s": suspended_s,
+            "robot_returning_s": returning_s,
             "wall_s": time.perf_counter() - t0,
             "pose_nodes": float(station.stats.pose_nodes),
             "downlink_bytes": float(
@@ -231,6 +270,164 @@ def _graph_duplicates(station: Any) -> int:
                 dup += 1
             seen.add((rid, idx))
     return dup
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def unauthenticated_attempts(
+    work_dir: Path,
+    *,
+    attempts: int,
+    progress: Callable[[str], None] = lambda _: None,
+    enforce: bool = True,
+) -> dict[str, float]:
+    """The secured-transport metrics (module docstring): ``attempts`` forged publishes per
+    peer and key, over real zenoh sessions with certificates made in ``work_dir``.
+    ``enforce=False``: the GCS without its access control (TLS only), the control that the
+    metrics see a breach when there is one."""
+    import zenoh
+
+    from protocol import keys
+    from protocol.transport_security import (
+        AccessConfig,
+        SecurityConfig,
+        apply_to,
+        generate_pki,
+        zenoh_entries,
+    )
+
+    mission = "chaos"
+    pki = generate_pki(work_dir / "mission", ["gcs", "robot-1", "operator-a", "stranger"])
+    other = generate_pki(work_dir / "other", ["gcs", "robot-1"], ca_name="another CA")
+    access = AccessConfig(robots={"robot-1": 1}, operators=("operator-a",))
+    endpoint = f"tls/127.0.0.1:{_free_port()}"
+
+    def session(pki_: Any, cn: str, *, listen: bool = False) -> Any:
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", '"peer"')
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("listen/endpoints", json.dumps([endpoint] if listen else []))
+        cfg.insert_json5("connect/endpoints", json.dumps([] if listen else [endpoint]))
+        sec = SecurityConfig(tls=pki_.tls(cn), access=access if listen and enforce else None)
+        apply_to(cfg, zenoh_entries(sec, base_dir=work_dir, mission=mission))
+        return zenoh.open(cfg)
+
+    task = keys.radio(mission, 1, Direction.DOWN, "task")
+    up1 = keys.radio(mission, 1, Direction.UP, "pose_node")
+    up2 = keys.radio(mission, 2, Direction.UP, "pose_node")
+    map_key = keys.gcs(mission, "state/map")
+    heard: dict[str, list[bytes]] = {"gcs": [], "robot": [], "operator": []}
+    opened: list[Any] = []
+    try:
+        gcs = session(pki, "gcs", listen=True)
+        opened.append(gcs)
+        subs = [
+            gcs.declare_subscriber(
+                keys.radio_wildcard(mission, Direction.UP),
+                lambda smp: heard["gcs"].append(smp.payload.to_bytes()),
+            )
+        ]
+        robot = session(pki, "robot-1")
+        operator = session(pki, "operator-a")
+        opened += [robot, operator]
+        subs.append(
+            robot.declare_subscriber(
+                keys.radio_wildcard(mission, Direction.DOWN, 1),
+                lambda smp: heard["robot"].append(smp.payload.to_bytes()),
+            )
+        )
+        subs.append(
+            operator.declare_subscriber(
+                map_key, lambda smp: heard["operator"].append(smp.payload.to_bytes())
+            )
+        )
+        peers = {
+            "unauthenticated": [(other, "gcs"), (other, "robot-1")],
+            "unauthorized": [(pki, "stranger"), (pki, "robot-1")],
+        }
+        spies_flat: list[list[bytes]] = []  # what each forger heard, in forgers' order
+        forgers: list[tuple[str, str, Any]] = []
+        for kind, who in peers.items():
+            for pki_, cn in who:
+                # robot 1's certificate in a second process (a compromised one): what the
+                # robot's own session hears of itself is no route through the GCS
+                s = session(pki_, cn)
+                opened.append(s)
+                got: list[bytes] = []
+                spies_flat.append(got)
+                subs.append(
+                    s.declare_subscriber(
+                        f"magic/{mission}/**", lambda smp, g=got: g.append(smp.payload.to_bytes())
+                    )
+                )
+                forgers.append((kind, cn, s))
+
+        # the legitimate traffic flows (the control), until every receiver has heard some
+        def legit(i: int) -> None:
+            gcs.put(task, b"gcs task %d" % i)
+            gcs.put(map_key, b"gcs map %d" % i)
+            robot.put(up1, b"robot-1 node %d" % i)
+
+        deadline = time.monotonic() + 20.0
+        i = 0
+        while time.monotonic() < deadline and not all(heard.values()):
+            legit(i)
+            i += 1
+            time.sleep(0.05)
+        if not all(heard.values()):
+            raise RuntimeError(f"secured transport: legitimate traffic did not flow ({heard})")
+        for v in heard.values():
+            v.clear()
+        progress(f"chaos: TLS mission up after {i} rounds; {len(forgers)} forging peers")
+        made = 0
+        legit_sent = 0
+        for k in range(attempts):
+            for kind, cn, s in forgers:
+                for key in (task, up1, up2, map_key):
+                    if kind == "unauthorized" and cn == "robot-1" and key == up1:
+                        continue  # its own uplink: allowed, not a forgery
+                    s.put(key, f"forged {kind} {cn} {k}".encode())
+                    made += 1
+            legit(k)
+            legit_sent += 1
+            if k % 50 == 49:
+                time.sleep(0.02)  # let the routes drain
+        time.sleep(1.0)
+        all_heard = [p for v in heard.values() for p in v]
+
+        def forged(kind: str) -> int:
+            return sum(1 for p in all_heard if p.startswith(f"forged {kind} ".encode()))
+
+        def reads(kind: str) -> int:
+            # robot 1's tasks are its own to hear: out of its grants is only the map
+            return sum(
+                1
+                for (k, cn, _), got in zip(forgers, spies_flat, strict=True)
+                if k == kind
+                for p in got
+                if p.startswith(b"gcs map") or (p.startswith(b"gcs task") and cn != "robot-1")
+            )
+
+        delivered = (
+            sum(1 for p in heard["robot"] if p.startswith(b"gcs task"))
+            + sum(1 for p in heard["operator"] if p.startswith(b"gcs map"))
+            + sum(1 for p in heard["gcs"] if p.startswith(b"robot-1 node"))
+        )
+        return {
+            "unauthenticated_publishes_accepted": float(forged("unauthenticated")),
+            "unauthorized_publishes_accepted": float(forged("unauthorized")),
+            "unauthenticated_reads": float(reads("unauthenticated")),
+            "unauthorized_reads": float(reads("unauthorized")),
+            "security_attempts": float(made),
+            "authorized_delivered_frac": delivered / (3.0 * legit_sent),
+        }
+    finally:
+        for s in reversed(opened):
+            s.close()
 
 
 def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
@@ -268,4 +465,10 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     out["downlink_bytes_clean"] = clean["downlink_bytes"]
     out["mission_s"] = duration_s
     out["blackout_s"] = blackout_s
+    out["robot_suspended_s_clean"] = clean["robot_suspended_s"]
+    progress("chaos: secured transport, forged publishes and reads against mutual TLS")
+    with tempfile.TemporaryDirectory(prefix="magic-chaos-tls-") as tmp:
+        out.update(
+            unauthenticated_attempts(Path(tmp), attempts=100 if quick else 1000, progress=progress)
+        )
     return {k: float(v) for k, v in out.items() if np.isfinite(v)}
