@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from mission.bench.fuzz import EntryPoint, entry_points, fuzz_entry
+from mission.bench.fuzz import EntryPoint, entry_points, fuzz_entry, grid_body_garbage
 
 
 @pytest.fixture(scope="module")
@@ -43,3 +43,13 @@ def test_a_crash_is_counted_with_its_input() -> None:
     assert res.crashes > 0 and res.crash_examples
     data, tb = res.crash_examples[0]
     assert len(data) > 3 and "IndexError: boom" in tb
+
+
+def test_codecs_are_measured_for_what_they_can_refuse(points: dict[str, EntryPoint]) -> None:
+    """A range coder has no redundancy: its accepted garbage is reported apart, and how much
+    of it a codec decodes under a valid header is measured, not assumed."""
+    grids = {n for n, ep in points.items() if not ep.redundant}
+    assert grids == {n for n in points if n.startswith("grids_")}
+    frac = grid_body_garbage(100)
+    assert frac["magic4"] == 0.0  # its stream's end is checked
+    assert frac["ctx16a"] > 0.5  # a context-model range coder decodes most random bodies
