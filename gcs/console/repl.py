@@ -373,7 +373,10 @@ def main(argv: list[str]) -> int:
         link = Link(config, mission=args.mission)
     except Exception as err:
         return fail(f"cannot open the zenoh link: {str(err).split(' at /')[0]}")
-    printer: list[Callable[[str], None]] = [print]
+    # interactive: notices wait until the introduction is printed (a GCS heard at once
+    # was announced above it)
+    held: list[str] = []
+    printer: list[Callable[[str], None]] = [held.append if interactive else print]
     client = ConsoleClient(
         link, args.operator, key, on_notice=lambda t: printer[0](f"[console] {t}")
     )
@@ -394,7 +397,7 @@ def main(argv: list[str]) -> int:
                 if console.done:
                     break
             return 0 if ok else 1
-        return _interactive(console, args.history, printer)
+        return _interactive(console, args.history, printer, held)
     except KeyboardInterrupt:
         print("magic console: stopped by SIGINT", file=sys.stderr)
         return 130
@@ -403,7 +406,12 @@ def main(argv: list[str]) -> int:
         link.close()
 
 
-def _interactive(console: Console, history: Path, printer: list[Callable[[str], None]]) -> int:
+def _interactive(
+    console: Console,
+    history: Path,
+    printer: list[Callable[[str], None]],
+    held: list[str] | None = None,
+) -> int:
     from prompt_toolkit import PromptSession
     from prompt_toolkit.application.current import get_app
     from prompt_toolkit.history import FileHistory, InMemoryHistory
@@ -442,6 +450,9 @@ def _interactive(console: Console, history: Path, printer: list[Callable[[str], 
         "the bar below shows the GCS and what the command being typed takes."
     )
     print("function keys:\n" + console.macros_text() if console.macros else "no macros")
+    printer[0] = print
+    for notice in held or []:
+        print(notice)
     if not console.client.wait_for_gcs(2.0):
         print("[console] no GCS yet; commands wait for it (see the bar below)")
     with patch_stdout(raw=True):
