@@ -101,6 +101,7 @@ from gcs.loops.loop_closer import (
     LoopClosingReport,
     vector_to_body_covariance,
 )
+from gcs.mapping.overlay import overlay
 from gcs.mapping.rasterization import OccupancyMap, RasterConfig, Rasterizer
 from protocol.messages import (
     Detection,
@@ -131,6 +132,10 @@ log = logging.getLogger("magic.gcs")
 
 #: Decoded grids kept per robot as possible references of inter-frame grids.
 _REFERENCE_MEMORY = 8
+
+#: Telemetry poses kept per robot (about a minute at the default 1 s period): a fiducial
+#: waits at most ``fiducial_wait_s`` for the teammate, so older ones are never needed.
+_TELEMETRY_MEMORY = 64
 
 #: Dangerous objects and the keep-out radius robots must respect (paper section 2: trigger
 #: radius 2.5 m for static OOIs and hostiles, plus a margin the robot adds itself).
@@ -221,6 +226,11 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     ``max_covariance_condition``: largest condition number of an input covariance.
     ``max_node_interval_s``: largest plausible step (s) between a robot's consecutive node
     times; ``clock_fallback_step_s``: the substitute step (s) before a robot has plausible ones.
+    ``fiducial_standin_sigma_*``: added to a fiducial's covariance when the teammate's latest
+    node stands in for where it was (:meth:`GroundStation._teammate_node`).
+    ``odometry_check``: the scan check of odometry edges (:class:`OdometryCheckConfig`).
+    ``raster`` / ``near_raster``: the global map is the near map laid over the far one
+    (:mod:`gcs.mapping.overlay`; ``near_raster`` None: the far one alone).
     """
 
     robots: tuple[int, ...] = ()
@@ -230,6 +240,13 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     # reuse submaps (the map is then exact to within it)
     raster: RasterConfig = msgspec.field(
         default_factory=lambda: RasterConfig(pose_tolerance_m=0.005, pose_tolerance_rad=0.001)
+    )
+    # the near map laid over it (gcs.mapping.overlay): walls erased only by free space seen
+    # from close by; None: the one map
+    near_raster: RasterConfig | None = msgspec.field(
+        default_factory=lambda: RasterConfig(
+            pose_tolerance_m=0.005, pose_tolerance_rad=0.001, free_range_m=4.0, wall_gap_m=0.8
+        )
     )
     loop_budget_s: float = 0.2
     frames_period_s: float = 2.0
@@ -407,6 +424,14 @@ class _Track:
     last_heard_s: float | None = None  # station time of the latest message, accepted or not
     last_pose_in_odom: np.ndarray | None = None  # of the latest node added to the graph
     poses_in_odom: list[np.ndarray] = field(default_factory=list)  # reported, graph order
+    # recent telemetry poses (robot time, pose_in_odom), increasing time: where it was between
+    # its nodes when a teammate saw it
+    telemetry_times: collections.deque[float] = field(
+        default_factory=lambda: collections.deque(maxlen=_TELEMETRY_MEMORY)
+    )
+    telemetry_poses: collections.deque[np.ndarray] = field(
+        default_factory=lambda: collections.deque(maxlen=_TELEMETRY_MEMORY)
+    )
 
 
 class _Rejected(Exception):
@@ -466,6 +491,8 @@ class GroundStation:
         self.stats = GroundStationStats(errors=collections.deque(maxlen=self.config.error_log_size))
         self.grids: dict[int, GridRecord] = {}
         self.rasterizer = Rasterizer(self.config.raster)
+        near = self.config.near_raster
+        self.near_rasterizer = None if near is None else Rasterizer(near)
         self.loop_closer = LoopCloser(self.graph, self.config.loops)
         self.last_loop_report: LoopClosingReport | None = None
         self.hazards: list[Hazard] = []
@@ -514,6 +541,7 @@ class GroundStation:
                 self._on_detection(robot_id, track, msg)
             elif isinstance(msg, Telemetry):
                 track.telemetry = msg
+                self._keep_telemetry_pose(track, msg)
             elif isinstance(msg, TaskStatus):
                 track.last_status = msg
             elif isinstance(msg, DetectionImage):
@@ -810,6 +838,10 @@ class GroundStation:
         origin = (header.origin_cells[0] * res, header.origin_cells[1] * res)
         record = GridRecord(key, time_s, grid, origin, res)
         self.rasterizer.add_node(key, time_s, grid, record.origin_in_base, record.resolution_m)
+        if self.near_rasterizer is not None:
+            self.near_rasterizer.add_node(
+                key, time_s, grid, record.origin_in_base, record.resolution_m
+            )
         points = grid_points(grid, origin_m=record.origin_in_base, resolution_m=record.resolution_m)
         self.loop_closer.add_scan(key, points)
         self.grids[key] = record
@@ -867,20 +899,30 @@ class GroundStation:
         self.stats.fiducials += 1
         self._dirty = True
 
+    def _keep_telemetry_pose(self, track: _Track, msg: Telemetry) -> None:
+        t = float(msg.time_s)
+        pose = np.asarray(msg.pose_in_odom, dtype=float)
+        if not (math.isfinite(t) and np.all(np.isfinite(pose))):
+            return
+        if track.telemetry_times and t <= track.telemetry_times[-1]:
+            return  # latest-only stream: an older one adds nothing
+        track.telemetry_times.append(t)
+        track.telemetry_poses.append(pose)
+
     def _teammate_node(
         self, other: _Track, seen_s: float, z: np.ndarray, cov: np.ndarray
     ) -> tuple[int, np.ndarray, np.ndarray]:
         """``(graph index i, a_from_node_i, covariance)`` of a fiducial ``z`` (the teammate's
         ``base`` at ``seen_s`` in the observer node's ``base``; module docstring, "Fiducials").
 
-        The teammate was somewhere on its step from node ``i`` (the last one not after
-        ``seen_s``) to the next node (or, when there is none yet, to its latest telemetry pose
-        if that is newer than ``seen_s``). Robots start and stop between nodes (nodes are made
-        by distance), so time says little about where on the step it was: the edge puts it
-        half way, with the variance of a uniform position along the step (``d d^T / 12``)
-        added to the covariance. With nothing after ``seen_s`` the latest node stands in and
-        the covariance grows by ``fiducial_standin_sigma_*`` (it may have moved up to a node
-        spacing since)."""
+        The teammate's odometry is known at its pose nodes and at its telemetry times: it was
+        somewhere on its motion between the last of those not after ``seen_s`` and the first
+        not before it. Robots start, stop and turn in place between them, so time says little
+        about where: the edge to node ``i`` (the last node not after ``seen_s``) puts the
+        teammate half way along that step, with the variance of a uniform position along it
+        (``d d^T / 12``) added to the covariance (exact when the two agree: a teammate
+        standing still). With nothing after ``seen_s`` the latest node stands in and the
+        covariance grows by ``fiducial_standin_sigma_*``."""
         times = other.times
         poses = other.poses_in_odom
         j = bisect.bisect_right(times, seen_s)
@@ -890,25 +932,30 @@ class GroundStation:
         )
         if j == 0:
             return 0, z, cov + standin
+        node = poses[j - 1]
         if seen_s <= times[j - 1]:  # seen at the node's own time
             return j - 1, z, cov
-        p0 = poses[j - 1]
-        if j < len(times):
-            p1 = poses[j]
+        t0, p0 = times[j - 1], node
+        t1, p1 = (times[j], poses[j]) if j < len(times) else (math.inf, None)
+        tt = other.telemetry_times
+        k = bisect.bisect_right(tt, seen_s)
+        if k > 0 and tt[k - 1] > t0:
+            t0, p0 = tt[k - 1], other.telemetry_poses[k - 1]
+        if k < len(tt) and tt[k] < t1:
+            t1, p1 = tt[k], other.telemetry_poses[k]
+        if p1 is None:
+            return j - 1, z, cov + standin
+        if seen_s <= t0:
+            d = np.zeros(3)
         else:
-            tel = other.telemetry
-            if (
-                tel is None
-                or not (math.isfinite(tel.time_s) and tel.time_s >= seen_s)
-                or not np.all(np.isfinite(tel.pose_in_odom))
-            ):
-                return j - 1, z, cov + standin
-            p1 = np.asarray(tel.pose_in_odom, dtype=float)
-        d = np.asarray(relative(p0, p1), dtype=float)
-        d[2] = float(wrap_angle(d[2]))
-        node_from_seen = 0.5 * d  # half way along the step
+            d = np.asarray(relative(p0, p1), dtype=float)
+            d[2] = float(wrap_angle(d[2]))
+        node_from_p0 = np.asarray(relative(node, p0), dtype=float)
+        node_from_seen = compose(node_from_p0, 0.5 * d)  # half way along the step
+        c, s_ = math.cos(node_from_p0[2]), math.sin(node_from_p0[2])
+        v = np.array([c * d[0] - s_ * d[1], s_ * d[0] + c * d[1], d[2]])  # the step, node axes
         a_from_node = np.asarray(compose(z, inverse(node_from_seen)), dtype=float)
-        return j - 1, a_from_node, cov + np.outer(d, d) / 12.0
+        return j - 1, a_from_node, cov + np.outer(v, v) / 12.0
 
     def _hold_sighting(
         self,
@@ -1279,8 +1326,13 @@ class GroundStation:
         return np.concatenate([k for k, _ in parts]), np.concatenate([p for _, p in parts])
 
     def rasterize(self) -> OccupancyMap:
-        """The global occupancy map at the current posterior (paper 4.8; cover and cache)."""
-        return self.rasterizer.rasterize(self.poses_in_map())
+        """The global occupancy map at the current posterior (paper 4.8; cover and cache): the
+        near map (``near_raster``) laid over the far one (:mod:`gcs.mapping.overlay`)."""
+        poses = self.poses_in_map()
+        far = self.rasterizer.rasterize(poses)
+        if self.near_rasterizer is None:
+            return far
+        return overlay(self.near_rasterizer.rasterize(poses), far)
 
     def frames(self) -> list[RobotFrame]:
         """``map_from_odom`` of every robot whose trajectory is linked to ``map``."""

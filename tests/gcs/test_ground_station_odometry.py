@@ -139,3 +139,35 @@ def test_a_fiducial_at_the_teammate_node_time_is_exact() -> None:
     (edge,) = gs.graph.edges(Provenance.FIDUCIAL)
     assert edge.key_b == gs.key_of(1, 3)
     np.testing.assert_allclose(edge.covariance, tag_cov, atol=1e-9)
+
+
+def test_a_fiducial_between_telemetry_poses_of_a_standing_teammate_is_exact() -> None:
+    """Robot 1 stands at its node 2 from t=2 s to t=2.9 s (its telemetry says so), then
+    drives on: a sighting at 2.5 s is carried to node 2 exactly, with the tag's covariance."""
+    from protocol.messages import AutonomyMode, Telemetry
+
+    gs = GroundStation(GroundStationConfig(robots=(0, 1), fiducials_link_only=False))
+    gs.add_start_hint(1, map_from_odom=(2.0, -1.0, 0.0), sigma_xy_m=0.3, sigma_yaw_rad=0.05)
+    path0 = np.zeros((6, 3))
+    path1 = np.array([(1.2 * k, 0.0, 0.0) for k in range(6)])
+    cov = covariance_to_upper(ODOM_COV)
+    for i in range(6):
+        for rid, path in ((0, path0), (1, path1)):
+            delta = (0.0, 0.0, 0.0) if i == 0 else tuple(relative(path[i - 1], path[i]))
+            node = PoseNode(i, float(i), tuple(path[i]), delta, (0.0,) * 6 if i == 0 else cov)  # type: ignore[arg-type]
+            assert gs.handle(rid, node, now_s=float(i))
+        if i == 2:
+            for t in (2.3, 2.9):  # standing at node 2's place
+                tel = Telemetry(
+                    t, tuple(path1[2]), (0.0, 0.0), (0.0, 0.0), 1.0, AutonomyMode.IDLE, 0
+                )  # type: ignore[arg-type]
+                assert gs.handle(1, tel, now_s=t)
+    seen = relative(path0[0], compose(np.array([2.0, -1.0, 0.0]), path1[2]))
+    tag_cov = np.diag([0.02**2, 0.02**2, 0.01**2])
+    tag = FiducialObservation(0, 2.5, 1, 5, tuple(seen), covariance_to_upper(tag_cov))  # type: ignore[arg-type]
+    assert gs.handle(0, tag, now_s=6.0)
+    gs.step(now_s=6.0)
+    (edge,) = gs.graph.edges(Provenance.FIDUCIAL)
+    assert edge.key_b == gs.key_of(1, 2)
+    np.testing.assert_allclose(edge.z, seen, atol=1e-6)
+    np.testing.assert_allclose(edge.covariance, tag_cov, atol=1e-9)
