@@ -130,6 +130,10 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     max_report_sigma_m: float = 0.7
     hostile_report_period_s: float = 2.0
     hostile_lookahead_s: float = 1.0  # the keep-out disk sits where the hostile will be
+    # a track once labelled hostile keeps its keep-out disk this long after losing the label
+    # (it drops when the walker turns at a corner of its route, off its own line: small world
+    # seed 0, the robot drove on to 5 m of the unlabelled hostile, whose disk had vanished)
+    hostile_memory_s: float = 20.0
     pos_sigma_m: float = 0.06  # a cylinder centre's error at 0 m ...
     pos_sigma_per_m: float = 0.012  # ... growing with range
     thumbnail_max_bytes: int = 2000
@@ -302,6 +306,7 @@ class OnboardPerception:
         self._civilians_seen: list[tuple[NDArray[np.float64], float]] = []
         self._reported_at: dict[int, float] = {}  # detection id of people -> last report
         self._had_hostiles = False
+        self._hostile_until: dict[int, float] = {}  # track -> end of its hostile keep-out
         self._detections: list[OdomDetection] = []
         self._fiducials: list[FiducialSighting] = []
         self._thumbs: dict[int, _Thumb] = {}
@@ -350,10 +355,17 @@ class OnboardPerception:
                 )
         la = self.config.hostile_lookahead_s
         for t in self.lidar.tracker.tracks:
-            if t.kind == ObjectKind.HOSTILE:
+            if self._hostile(t):
                 p = t.position_m + la * _track_velocity(t, self.config.velocity_window_s)
                 out.append((ObjectKind.HOSTILE, float(p[0]), float(p[1])))
         return out
+
+    def _hostile(self, track: PersonTrack) -> bool:
+        """Labelled hostile, or was within ``hostile_memory_s`` (for the keep-out only)."""
+        return (
+            track.kind == ObjectKind.HOSTILE
+            or self._hostile_until.get(track.track_id, -math.inf) >= self._now
+        )
 
     # ------------------------------------------------------------------ control period
 
@@ -483,7 +495,7 @@ class OnboardPerception:
         for t in out.people:
             self._person_jobs(t, time_s, jobs)
         self._report_people(max(self._now, time_s))
-        hostile_now = any(t.kind == ObjectKind.HOSTILE for t in self.lidar.tracker.tracks)
+        hostile_now = any(self._hostile(t) for t in self.lidar.tracker.tracks)
         if hostile_now or self._had_hostiles:
             self._hazards_changed = True  # hostiles move: their disks move with them
         self._had_hostiles = hostile_now
@@ -539,7 +551,13 @@ class OnboardPerception:
             if t.kind == ObjectKind.CIVILIAN
         ]
         self._civilians_seen = civilians[-64:]
+        live = {t.track_id for t in self.lidar.tracker.tracks}
+        self._hostile_until = {
+            k: v for k, v in self._hostile_until.items() if k in live and v >= time_s
+        }
         for t in self.lidar.tracker.tracks:
+            if t.kind == ObjectKind.HOSTILE:
+                self._hostile_until[t.track_id] = time_s + cfg.hostile_memory_s
             swapped = t.kind != 0 and _jumped(t, cfg.velocity_window_s, cfg.label_jump_m)
             # a hostile where a civilian stands: the labels conflict; look again
             conflict = t.kind == ObjectKind.HOSTILE and any(

@@ -100,3 +100,32 @@ def test_own_hazards_hold_static_oois_not_vats_and_thumbnails_need_an_image() ->
     assert [d.kind for d in dets] == [ObjectKind.STATIC_OOI, ObjectKind.TOXIC_VAT]
     assert p.on_thumbnail_request(ThumbnailRequest(1, dets[0].detection_id)) is None
     assert p.stats.thumbnail_unknown == 1
+
+
+def test_a_hostile_that_turns_keeps_its_keep_out_while_it_is_re_coloured() -> None:
+    """The walker turns at a corner of its route: the newest measurement leaves the track's
+    line, the label goes (the tracker may have swapped people), but the track keeps its
+    hostile keep-out for ``hostile_memory_s`` (a robot once drove on to 5 m of such a
+    hostile, whose disk had vanished with the label); then it goes."""
+    from robot.perception.person_tracker import PersonTrack
+
+    cfg = PerceptionConfig(hostile_memory_s=10.0)
+    p = OnboardPerception(0, cfg)
+    # walked east at 0.6 m/s for 3 s, then 1.5 m north of that line: a turn
+    hist = [(t, 5.0 + 0.6 * t, 2.0) for t in np.arange(0.0, 3.01, 0.5)]
+    hist.append((3.5, 5.0 + 0.6 * 3.5, 3.5))
+    x = np.array([hist[-1][1], hist[-1][2], 0.0, 0.0])
+    track = PersonTrack(7, x, np.eye(4) * 0.01, 3.5, hits=8, confirmed=True, history=hist)
+    track.kind = int(ObjectKind.HOSTILE)
+    p.lidar.tracker.tracks.append(track)
+    p.on_control(3.0, np.zeros(3))
+    p._report_people(3.0)  # labelled: remembered as hostile
+    p.on_control(3.5, np.zeros(3))
+    p._report_people(3.5)
+    assert track.kind == 0  # jumped off its line: re-coloured
+    disks = [(k, x, y) for k, x, y in p.own_hazards_in_odom() if k == ObjectKind.HOSTILE]
+    assert len(disks) == 1 and math.dist(disks[0][1:], (x[0], x[1])) < 1.0  # 1 s ahead
+    p.on_control(12.9, np.zeros(3))
+    assert len(p.own_hazards_in_odom()) == 1  # 9.4 s after its last hostile label
+    p.on_control(13.6, np.zeros(3))
+    assert p.own_hazards_in_odom() == []
