@@ -586,11 +586,23 @@ class RobotNode:
         return (self._with_keepout(classes, geometry) if keepout else classes), geometry
 
     def _with_keepout(self, classes: np.ndarray, geometry: GridGeometry) -> np.ndarray:
+        """``classes`` with the keep-out disks as obstacles. A disk the robot is already
+        inside (a hazard reported where it stands, a hostile that came closer) shrinks to
+        just within the robot's distance from its centre: the robot may drive out, never
+        deeper (as the path follower allows), where the whole disk would leave it no start
+        cell and no path (small world seed 0: a robot sat 100 s inside a disk 1.6 m away)."""
         if not len(self._keepout):
             return classes
+        disks = self._keepout
+        xy = self.odometry.pose_in_odom[:2]
+        d = np.hypot(disks[:, 0] - xy[0], disks[:, 1] - xy[1])
+        inside = d < disks[:, 2]
+        if inside.any():
+            disks = disks.copy()
+            disks[inside, 2] = np.maximum(d[inside] - 2.0 * geometry.resolution_m, 0.0)
         blocked = rasterize_disks(
             classes == OBSTACLE,
-            self._keepout,
+            disks,
             origin_in_odom=geometry.origin_m,
             resolution_m=geometry.resolution_m,
         )

@@ -124,3 +124,37 @@ def test_never_enters_a_hazard_keepout_disk(sim: Simulator) -> None:
             break
     assert closest >= 2.5 + 0.75  # the trigger distance plus the margin
     assert statuses(sent, 3)[-1] is TaskState.SUCCEEDED  # it went around, not home
+
+
+def test_a_robot_inside_a_keepout_disk_drives_out_never_deeper(sim: Simulator) -> None:
+    """A hazard reported 1.5 m from where the robot stands (inside its 3.25 m disk): the
+    robot leaves for a goal on the far side of it, never closer than it started (the
+    whole disk as an obstacle left it no start cell: it sat there, goal after goal)."""
+    rid = sim.robot_ids[3]
+    k = sim.robot_ids.index(rid)
+    start = sim.robot_poses()[k].copy()
+    sent: list = []
+    node = RobotNode(rid, send=sent.append)
+    run(sim, node, 0.5)
+    here = sim.robot_poses()[k].copy()
+    ooi_world = compose(here, np.array([0.0, 1.5, 0.0]))[:2]
+    node.handle_downlink(
+        HazardUpdate(
+            sim.time_s,
+            [Hazard(1, ObjectKind.STATIC_OOI, (float(ooi_world[0]), float(ooi_world[1])), 2.5)],
+            [RobotFrame(rid, (float(start[0]), float(start[1]), float(start[2])))],
+        )
+    )
+    goal_odom = relative(start, compose(here, np.array([4.0, -3.0, 0.0])))[:2]
+    node.handle_downlink(GoToTask(4, sim.time_s, [(float(goal_odom[0]), float(goal_odom[1]))]))
+    closest = math.inf
+    driver = sim.driver(rid)
+    for _ in range(int(40.0 / sim.config.step_s)):
+        sim.step()
+        for command in node.process(driver.poll(0.0)):
+            driver.send(command)
+        closest = min(closest, float(np.hypot(*(sim.robot_poses()[k][:2] - ooi_world))))
+        if TaskState.SUCCEEDED in statuses(sent, 4):
+            break
+    assert statuses(sent, 4)[-1] is TaskState.SUCCEEDED
+    assert closest >= 1.5 - 0.2  # odometry and control error, not a step towards it
