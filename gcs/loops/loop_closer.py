@@ -44,6 +44,12 @@
    from what it reported, later ones as they come); then the graph is re-solved in batch, the
    closures that contradict the corrected odometry (or the re-solved estimate) are removed
    (``prune_chi2``) and every pair is matched again (:meth:`LoopCloser.restart`).
+   **Bent grids.** A node's grid that joins several scans (``grid_window_m``) was joined by
+   the reported odometry, so a turn-scale error ``s - 1`` bends it by up to ``(s - 1) W``
+   (``W`` the turning within the window: a robot spinning in place). Matches between bent
+   grids agree with one another and with the biased odometry, so cycles cannot catch them;
+   they are held back until the turn-scale fit bounds the bend below
+   ``max_grid_distortion_rad`` (never, for a biased robot's spins; soon, for a true one's).
 3. Operator primitives (paper 6.1): :meth:`LoopCloser.suggest` (run the matcher between two
    poses, return pose and score), :meth:`LoopCloser.rewind` (remove automatic closures since
    a time), :meth:`LoopCloser.restart` (forget hypotheses and candidates).
@@ -128,6 +134,14 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     ``prune_chi2`` (3 dof) are removed, and the latest
     ``max_rejected_kept`` hypotheses the graph check rejected are checked again.
 
+    ``grid_window_m``: how much of the robot's travel each node's grid spans (0: one sweep,
+    as the project's robots send; a logger with a 180-degree laser joins its last metres of
+    scans, e.g. the replay's 2 m). Those scans were joined by the odometry the robot reported,
+    so a turn-scale error bends the grid; a match whose grids' bend bound exceeds
+    ``max_grid_distortion_rad`` waits for a tighter turn-scale fit (at most
+    ``max_deferred_kept``), and an admitted one carries the bend in its heading variance
+    (:meth:`LoopCloser._grid_distortion_rad`).
+
     ``matches_per_s``, ``candidate_max_age_s`` and ``validation.expiry_s`` are in nominal
     seconds of the progress clock: ``nominal_s_per_node`` per pose node added (module
     docstring), never message time.
@@ -143,6 +157,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     prune_chi2: float = 16.27
     prune_heading_chi2: float = 6.63
     max_rejected_kept: int = 200
+    max_deferred_kept: int = 400
     min_score: float = 0.5
     max_match_sigma_xy_m: float = 0.25
     wide_min_score: float = 0.6
@@ -162,6 +177,8 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     edge_floor_sigma_xy_m: float = 0.02
     edge_floor_sigma_yaw_rad: float = math.radians(0.5)
     min_scan_points: int = 20
+    grid_window_m: float = 0.0
+    max_grid_distortion_rad: float = math.radians(4.0)
     # long-loop candidate source (gcs.loops.long_loop_search, issue 19 item 5)
     long_loops: LongLoopConfig = msgspec.field(default_factory=LongLoopConfig)
 
@@ -207,8 +224,14 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
-        if self.max_rejected_kept < 0:
-            raise ValueError(f"max_rejected_kept: expected >= 0, got {self.max_rejected_kept}")
+        if not (math.isfinite(self.grid_window_m) and self.grid_window_m >= 0):
+            raise ValueError(f"grid_window_m: expected >= 0, got {self.grid_window_m}")
+        if not (math.isfinite(self.max_grid_distortion_rad) and self.max_grid_distortion_rad > 0):
+            raise ValueError(
+                f"max_grid_distortion_rad: expected > 0, got {self.max_grid_distortion_rad}"
+            )
+        if self.max_rejected_kept < 0 or self.max_deferred_kept < 0:
+            raise ValueError("max_rejected_kept and max_deferred_kept must be >= 0")
         if self.max_wide_per_step < 0 or self.min_scan_points < 1:
             raise ValueError("need max_wide_per_step >= 0 and min_scan_points >= 1")
         if not (self.edge_floor_sigma_xy_m >= 0 and self.edge_floor_sigma_yaw_rad >= 0):
@@ -234,6 +257,7 @@ class LoopCloserStats:
     dropped_candidates: int = 0
     odometry_recalibrations: int = 0
     closures_pruned: int = 0
+    distorted: int = 0
 
 
 @dataclass
@@ -308,9 +332,12 @@ class LoopCloser:
         self._bias_applied_at: dict[int, int] = {}
         self._turn_scales: dict[int, TurnScale] = {}
         self._applied_scales: dict[int, TurnScale] = {}
-        self._chains: dict[int, tuple[int, tuple[int, FloatArray, FloatArray] | None]] = {}
+        self._chains: dict[
+            int, tuple[int, tuple[int, FloatArray, FloatArray, FloatArray] | None]
+        ] = {}
         self._rejected: dict[int, Hypothesis] = {}  # by the graph check, latest last
         self._restarted_at: dict[int, TurnScale] = {}  # per robot: the scale of the last restart
+        self._deferred: dict[int, Hypothesis] = {}  # matches on grids bent too far (_admit)
         self.long_loops = (
             LongLoopSearch(cfg.long_loops, matcher=cfg.matcher, resolution_m=cfg.resolution_m)
             if cfg.long_loops.enabled
@@ -548,6 +575,7 @@ class LoopCloser:
         """Forget hypotheses, queued candidates and the pairs already tried (so every pair may
         be matched again, against the new prior); accepted edges stay."""
         self._validator.clear()
+        self._deferred.clear()
         self._queue.clear()
         self._tried.clear()
         self._sources = sorted(self._scans)
@@ -703,7 +731,7 @@ class LoopCloser:
                 continue
             self._next_hyp += 1
             self.stats.hypotheses += 1
-            self._validator.add(
+            admitted = self._admit(  # its grids' bend, as in _match
                 Hypothesis(
                     hyp_id=self._next_hyp,
                     key_a=m.key_a,
@@ -714,6 +742,8 @@ class LoopCloser:
                     time_s=progress_s,
                 )
             )
+            if admitted is not None:
+                self._validator.add(admitted)
         # ---- end of the long-loop candidate source ----
 
     def _matcher_for(self, wide_xy: bool, yaw_rad: float) -> CorrelativeMatcher:
@@ -786,18 +816,50 @@ class LoopCloser:
         if np.linalg.eigvalsh(cov[:2, :2])[-1] > cfg.max_match_sigma_xy_m**2:
             self.stats.ambiguous += 1
             return None
+        # a sample of the turn scale whatever its grids' bend: the bend bound comes from the
+        # fit, so widening the samples by it would keep the fit as uncertain as its prior
+        self._record_bias_sample(a, b, result.a_from_b, cov, guess, cand.window_yaw_rad)
         self.stats.hypotheses += 1
         self._next_hyp += 1
-        self._record_bias_sample(a, b, result.a_from_b, cov, guess, cand.window_yaw_rad)
-        return Hypothesis(
-            hyp_id=self._next_hyp,
-            key_a=a,
-            key_b=b,
-            a_from_b=result.a_from_b,
-            covariance=cov,
-            score=result.normalized_score,
-            time_s=progress_s,
+        return self._admit(
+            Hypothesis(
+                hyp_id=self._next_hyp,
+                key_a=a,
+                key_b=b,
+                a_from_b=result.a_from_b,
+                covariance=cov,
+                score=result.normalized_score,
+                time_s=progress_s,
+            )
         )
+
+    def _admit(self, h: Hypothesis) -> Hypothesis | None:
+        """``h`` with its heading variance widened by its grids' bend
+        (:meth:`_grid_distortion_rad`), or None when the bend exceeds
+        ``max_grid_distortion_rad``: such a match is no closure under what is known of the
+        turn scale now, so it waits (at most ``max_deferred_kept``, the oldest dropped) for the
+        next fit, which may bound the scale tighter (:meth:`_release_deferred`)."""
+        bend = self._grid_distortion_rad(h.key_a, h.key_b)
+        if bend > self.config.max_grid_distortion_rad:
+            self.stats.distorted += 1
+            self._deferred[h.hyp_id] = h
+            while len(self._deferred) > self.config.max_deferred_kept:
+                self._deferred.pop(next(iter(self._deferred)))
+            return None
+        cov = np.array(h.covariance, dtype=np.float64, copy=True)
+        cov[2, 2] += bend**2
+        return dataclasses.replace(h, covariance=cov)
+
+    def _release_deferred(self) -> None:
+        """After a new turn-scale fit: the deferred matches whose bend is now within bounds
+        join the validation (stamped now: they wait for their cycles from here)."""
+        for hyp_id, h in list(self._deferred.items()):
+            if self._grid_distortion_rad(h.key_a, h.key_b) > self.config.max_grid_distortion_rad:
+                continue
+            del self._deferred[hyp_id]
+            admitted = self._admit(dataclasses.replace(h, time_s=self._progress_s))
+            assert admitted is not None
+            self._validator.add(admitted)
 
     # ---- odometry self-calibration (paper 4.2 in spirit; module docstring) -----------------
 
@@ -833,6 +895,7 @@ class LoopCloser:
         if not cfg.enabled:
             return
         changed: list[int] = []
+        refitted = False
         for robot, samples in self._bias_samples.items():
             n = len(samples)
             last = self._bias_fitted_at.get(robot, 0)
@@ -845,6 +908,7 @@ class LoopCloser:
             if est is None:
                 continue
             self._turn_scales[robot] = est
+            refitted = True
             in_use = self._applied_scales.get(robot)
             # is there a bias at all (apply_sigma from 1), then: is the better estimate
             # different (reapply_sigma from the one in use)
@@ -857,6 +921,8 @@ class LoopCloser:
             self._applied_scales[robot] = est
             self._bias_applied_at[robot] = n
             changed.append(robot)
+        if refitted:
+            self._release_deferred()
         if not changed:
             return
         self.stats.odometry_recalibrations += len(changed)
@@ -910,29 +976,39 @@ class LoopCloser:
         chain = self._chain(robot)
         if chain is None:
             return None
-        first, turn, var = chain
+        first, turn, var, _dist = chain
         n = len(turn)
         rows = []
         for (a, b), (yaw, yaw_var, guess_yaw, window) in samples.items():
             ia, ib = a - first, b - first
             if 0 <= ia < n and 0 <= ib < n:
+                bend = math.hypot(self._window_turn_rad(a), self._window_turn_rad(b))
                 rows.append(
-                    (turn[ib] - turn[ia], yaw, yaw_var + abs(var[ib] - var[ia]), guess_yaw, window)
+                    (
+                        turn[ib] - turn[ia],
+                        yaw,
+                        yaw_var + abs(var[ib] - var[ia]),
+                        guess_yaw,
+                        window,
+                        bend,
+                    )
                 )
         if not rows:
             return None
-        t, d, v, g, w = np.array(rows).T
+        t, d, v, g, w, bw = np.array(rows).T
         cfg = self.config.odometry_bias
         center, sigma = 1.0, cfg.prior_sigma
         est: TurnScale | None = None
         for it in range(cfg.iterations):
             need = cfg.window_k_sigma * (sigma * np.abs(t) + np.sqrt(v))
             inside = np.abs(se2.wrap_angle(center * t - g)) + need <= w
-            fit = estimate_turn_scale(t[inside], d[inside], v[inside], cfg)
+            fit = estimate_turn_scale(
+                t[inside], d[inside], v[inside], cfg, bend_turn_rad=bw[inside]
+            )
             if it == 0 and fit.used < cfg.min_used:
                 # the prior admits too few (only long turns were revisited): start from all
                 # matches, the fit's own gate against the outliers
-                fit = estimate_turn_scale(t, d, v, cfg)
+                fit = estimate_turn_scale(t, d, v, cfg, bend_turn_rad=bw)
             if fit.used < cfg.min_used:
                 break
             est = fit
@@ -1029,19 +1105,21 @@ class LoopCloser:
         cov[2, 2] += self._turn_scale_variance(key_a, key_b)
         return proj.poses[i], cov
 
-    def _chain(self, robot: int) -> tuple[int, FloatArray, FloatArray] | None:
+    def _chain(self, robot: int) -> tuple[int, FloatArray, FloatArray, FloatArray] | None:
         """A robot's reported odometry as prefix sums: ``(first key, turning (n,), yaw
-        variance (n,))`` (node ``first + i`` at row ``i``); cached until a node is added."""
+        variance (n,), distance travelled (n,))`` (node ``first + i`` at row ``i``); cached
+        until a node is added."""
         n_nodes = self._nodes_seen
         hit = self._chains.get(robot)
         if hit is not None and hit[0] == n_nodes:
             return hit[1]
         _ids, keys_b, z, cov = self.graph.odometry_reported(robot)
-        out: tuple[int, FloatArray, FloatArray] | None = None
+        out: tuple[int, FloatArray, FloatArray, FloatArray] | None = None
         if len(keys_b):
             turn = np.concatenate([[0.0], np.cumsum(se2.wrap_angle(z[:, 2]))])
             var = np.concatenate([[0.0], np.cumsum(cov[:, 2, 2])])
-            out = (int(keys_b[0]) - 1, turn, var)  # keys are consecutive along a chain
+            dist = np.concatenate([[0.0], np.cumsum(np.hypot(z[:, 0], z[:, 1]))])
+            out = (int(keys_b[0]) - 1, turn, var, dist)  # keys are consecutive along a chain
         self._chains[robot] = (n_nodes, out)
         return out
 
@@ -1054,7 +1132,7 @@ class LoopCloser:
         chain = self._chain(ra)
         if chain is None:
             return None
-        first, turn, var = chain
+        first, turn, var, _dist = chain
         ia, ib = key_a - first, key_b - first
         if not (0 <= ia < len(turn) and 0 <= ib < len(turn)):
             return None
@@ -1067,3 +1145,40 @@ class LoopCloser:
         est = self._applied_scales.get(split_key(key_a)[0])
         sigma = est.sigma if est is not None else self.config.odometry_bias.prior_sigma
         return (sigma * got[0]) ** 2
+
+    def _window_turn_rad(self, key: int) -> float:
+        """The largest heading change, by the robot's reported odometry, between node ``key``
+        and the nodes of the last ``grid_window_m`` of travel before it (one node more: the
+        scans between two nodes belong to the window too). 0 for an unknown node."""
+        if self.config.grid_window_m <= 0.0:
+            return 0.0  # one sweep per grid: nothing joined by odometry
+        robot = split_key(key)[0]
+        chain = self._chain(robot)
+        if chain is None:
+            return 0.0
+        first, turn, _var, dist = chain
+        i = key - first
+        if not 0 <= i < len(turn):
+            return 0.0
+        j = int(np.searchsorted(dist, dist[i] - self.config.grid_window_m, side="left"))
+        j = max(0, min(j, i) - 1)
+        return float(np.max(np.abs(turn[j : i + 1] - turn[i])))
+
+    def _grid_distortion_rad(self, key_a: int, key_b: int) -> float:
+        """How far the two nodes' grids may be bent by their robots' turn-scale error: a grid
+        holds the scans of its last ``grid_window_m`` brought into the node's frame by the
+        odometry the robot *reported* (the robot built it on board, before any correction),
+        so a scan taken ``W`` radians of turning before the node lies ``(s - 1) W`` off, for a
+        true turn scale ``s``. The scale is bounded by the robot's latest fit,
+        ``|s_fit - 1| + sigma`` (the prior ``prior_sigma`` before one); the two grids'
+        bends add in quadrature."""
+        prior = self.config.odometry_bias.prior_sigma
+        out = 0.0
+        for key in (key_a, key_b):
+            w = self._window_turn_rad(key)
+            if w == 0.0:
+                continue
+            fit = self._turn_scales.get(split_key(key)[0])
+            bound = prior if fit is None else abs(fit.scale - 1.0) + fit.sigma
+            out = math.hypot(out, bound * w)
+        return out

@@ -125,24 +125,43 @@ def estimate_turn_scale(
     closure_yaw_rad: FloatArray,
     variance_rad2: FloatArray,
     config: OdometryBiasConfig | None = None,
+    *,
+    bend_turn_rad: FloatArray | None = None,
 ) -> TurnScale:
     """Fit ``s`` from closures of one robot (module docstring).
 
     ``turn_rad`` ``(K,)`` the odometry's unwrapped turning ``T`` between each closure's nodes
     (from ``a`` to ``b`` for a closure ``a_from_b``), ``closure_yaw_rad`` the closures'
     measured yaw of ``a_from_b``, ``variance_rad2`` the residual's noise variance (closure plus
-    odometry along the chain). Raises ``ValueError`` on mismatched or non-finite input.
+    odometry along the chain). ``bend_turn_rad`` ``(K,)`` (optional, default 0): the turning
+    ``W`` within the closure's grids (a grid joined by the biased odometry is bent by about
+    ``(s - 1) W``, so the closure's heading is off by as much): the residual's variance then
+    includes ``((|s - 1| + sigma) W)^2`` at the current estimate, in the gate and the weights
+    (not in the single-closure floor: that would tie the fit's uncertainty to its prior).
+    Raises ``ValueError`` on mismatched or non-finite input.
     """
     cfg = config or OdometryBiasConfig()
     t = np.asarray(turn_rad, dtype=np.float64).ravel()
     d = np.asarray(closure_yaw_rad, dtype=np.float64).ravel()
     v = np.asarray(variance_rad2, dtype=np.float64).ravel()
-    if not (len(t) == len(d) == len(v)):
-        raise ValueError(f"estimate_turn_scale: lengths differ ({len(t)}, {len(d)}, {len(v)})")
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(d)) and np.all(v > 0)):
+    bw = (
+        np.zeros(len(t))
+        if bend_turn_rad is None
+        else np.abs(np.asarray(bend_turn_rad, dtype=np.float64).ravel())
+    )
+    if not (len(t) == len(d) == len(v) == len(bw)):
+        raise ValueError(
+            f"estimate_turn_scale: lengths differ ({len(t)}, {len(d)}, {len(v)}, {len(bw)})"
+        )
+    if not (
+        np.all(np.isfinite(t))
+        and np.all(np.isfinite(d))
+        and np.all(v > 0)
+        and np.all(np.isfinite(bw))
+    ):
         raise ValueError("estimate_turn_scale: non-finite turns/yaws or non-positive variances")
     keep = (np.abs(t) >= cfg.min_turn_rad) & (np.abs(t) <= cfg.max_turn_rad)
-    t, d, v = t[keep], d[keep], v[keep]
+    t, d, v, bw = t[keep], d[keep], v[keep], bw[keep]
     if len(t) == 0:
         return TurnScale(sigma=cfg.prior_sigma)
     r = _wrap(d - t)  # (s - 1) T + noise
@@ -151,10 +170,12 @@ def estimate_turn_scale(
     sigma = cfg.prior_sigma
     inlier = np.ones(len(t), dtype=bool)
     for _ in range(cfg.iterations):
-        # the residual's variance includes the current scale uncertainty along T
-        total_v = v + (sigma * t) ** 2
+        # the residual's variance includes the current scale uncertainty along T, and the
+        # grids' bend at the current estimate
+        bent_v = v + ((abs(bias) + sigma) * bw) ** 2
+        total_v = bent_v + (sigma * t) ** 2
         inlier = (r - bias * t) ** 2 <= cfg.gate_sigma**2 * total_v
-        w = inlier / v
+        w = inlier / bent_v
         info = prior_info + float(np.sum(w * t * t))
         bias = float(np.sum(w * t * r)) / info
         # Residuals more scattered than their stated variances (look-alike matches, grids
