@@ -12,9 +12,11 @@ node calls (paper 6; DESIGN section 8: operators are clients of a running GCS).
 * status: a :class:`~protocol.operator.GcsStatus` on ``.../gcs/state/status`` every
   ``status_period_s`` (wall seconds: a console must see a live GCS even when mission time
   stands still) and a liveliness token on ``.../gcs/presence``;
-* metrics: operator interactions (accepted commands that change something) and time and
-  distance per autonomy mode from each robot's telemetry, with operator-controlled robots
-  counted as semi-autonomous (paper 7, Tables 4-5);
+* metrics: operator interactions (accepted commands that change something; ``on_interaction``
+  tells the mission recorder) and time and distance per autonomy mode from each robot's
+  telemetry (paper 7, Tables 4-5): a robot on an operator's task reports itself
+  semi-autonomous (:data:`protocol.operator.OPERATOR_TASK_IDS_FROM`); one the operators hold
+  that still reports autonomous is counted semi-autonomous too;
 * views (optional): a :class:`~gcs.views.operator_picture.PictureBuilder` fed by
   :meth:`observe` and drawn by :class:`~gcs.views.rerun_views.RerunViews` (its own thread,
   never blocking the GCS) when a picture is due. ``cpu_s`` counts the views' CPU on the node
