@@ -77,7 +77,12 @@ from gcs.replay.relations import (
     relations_error,
 )
 from gcs.replay.trajectory_error import TrajectoryError, trajectory_error
-from protocol.messages import PoseNode, TerrainGrid
+from protocol.messages import (
+    PoseNode,
+    TerrainGrid,
+    covariance_from_upper,
+    covariance_to_upper,
+)
 from protocol.se2 import compose, relative, transform_points
 from robot.odometry.inertial_odometry import OdometryIncrement
 from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
@@ -146,8 +151,9 @@ class ScanGridConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
 def _replay_station_config() -> GroundStationConfig:
     # The rasterizer's visibility sweep casts free space all around a node, as the robot's
     # 360-degree sweeps allow; a 180-degree laser saw nothing behind it, so the replay maps
-    # only what was seen: occupied cells.
-    return GroundStationConfig(raster=RasterConfig(free_range_m=0.0))
+    # only what was seen: occupied cells. No near map laid over it (the station's default
+    # since 56b746e): its free rays are the same all-round assumption.
+    return GroundStationConfig(raster=RasterConfig(free_range_m=0.0), near_raster=None)
 
 
 def _replay_node_config() -> PoseNodeConfig:
@@ -287,25 +293,66 @@ def replay_odometry(
 class OdometryGaps:
     """Steps of a log across which scans are missing (:func:`odometry_gaps`): ``steps``
     (index ``k``: scan ``k`` to ``k + 1``), ``widen`` the zero-mean increments added before
-    each such step's own, and ``lines`` one line saying what was found and done."""
+    each such step's own, ``xy_var`` the position variance (m², each axis) added to the node
+    that ends the step, and ``lines`` one line saying what was found and done."""
 
     steps: NDArray[np.int64]
     widen: dict[int, list[OdometryIncrement]]
     lines: list[str]
+    xy_var: dict[int, float] = field(default_factory=dict)
 
 
-def odometry_gaps(log: CarmenLog, config: ReplayConfig, *, factor: float = 8.0) -> OdometryGaps:
+def _node_model(config: ReplayConfig) -> PoseNodeConfig:
+    """The pose-node model the replay's nodes state (:func:`replay_odometry`'s third value)."""
+    model = config.nodes
+    if config.odometry_sigma_scale != 1.0:
+        model = _scaled_model(model, config.odometry_sigma_scale)
+    if config.noise.scale > 0.0:
+        model = _scaled_model(model, config.noise.scale)
+    return model
+
+
+def _window_quantile(cum_x: FloatArray, cum_y: FloatArray, span: float, q: float) -> float:
+    """The ``q`` quantile of ``y`` gathered over the log's stretches at least ``span`` long in
+    ``x`` (``cum_x``, ``cum_y``: running sums from 0 over consecutive steps). A span longer
+    than the whole log: the log's total rate times ``span``."""
+    total_x = float(cum_x[-1])
+    if total_x <= 0.0 or span <= 0.0:
+        return 0.0
+    if span >= total_x:
+        return float(cum_y[-1]) * span / total_x
+    # Stretches start on every step boundary that leaves room for ``span`` and end on the first
+    # boundary at or past ``span``: each covers at least ``span`` (an honest over-cover).
+    last = int(np.searchsorted(cum_x, total_x - span, side="right"))
+    starts = np.arange(last)
+    ends = np.minimum(np.searchsorted(cum_x, cum_x[starts] + span, side="left"), len(cum_x) - 1)
+    return float(np.quantile(cum_y[ends] - cum_y[starts], q))
+
+
+def odometry_gaps(
+    log: CarmenLog, config: ReplayConfig, *, factor: float = 8.0, quantile: float = 0.9
+) -> OdometryGaps:
     """Find gaps in a log and widen the covariance of the steps across them.
 
-    A step is a gap when it is more than ``factor`` times the median step in distance: scans
-    were lost, and the one increment that spans them hides the turning between (its model sees
-    only the net turn, while the odometry's heading error grew with every turn). Time is no
-    evidence (a robot standing still makes long steps: the ACES log pauses up to 38 s), nor
-    does a straight line tell the path driven. The unseen turning is estimated from the rest of
-    the log, its turning per metre; what exceeds the step's own ``|dyaw|`` is added to the node
-    covariance as zero-mean increments (turning ``+u/2`` then ``-u/2`` on the spot), so the
-    step's mean is unchanged and its yaw variance grows by ``turn²·u``, as if the robot had been
-    seen turning.
+    A step is a gap when it is more than ``factor`` times the median step in distance, or (on
+    a clock :func:`log_clock` did not have to repair there) in duration: scans were lost, and
+    the one increment that spans them states only the net motion, while odometry's error grew
+    with the path driven and the turning done in between, which nobody saw. What the robot can
+    have done is taken from the log itself: among the log's own stretches (gaps left out) as
+    long as the gap in distance, and as long in duration, the ``quantile`` (0.9) of the turning
+    and of the path they hold. The turning ``u`` beyond the step's own ``|dyaw|`` is added to the
+    node covariance as zero-mean increments (turning ``+u/2`` then ``-u/2`` on the spot), so the
+    step's mean is unchanged and its yaw variance grows by ``σ_u² = turn²·u``, as if the robot
+    had been seen turning; that heading spreads sideways through the step itself. The path
+    ``p`` beyond the straight line was driven with that unknown heading, in directions nobody
+    saw: each axis of the position gets ``slip²·p + σ_u²·(p² + ds²)/3`` (a heading error
+    ``σ_u`` over a path turning every way), which also keeps the covariance well conditioned
+    (a large yaw variance over a tiny along-track one is near singular: the ground station
+    rejects it). Bounded: the added yaw variance is at most pi²/3, the variance of a heading
+    that could be anything (uniform on a circle); a longer gap says nothing more about it, and
+    the path is the log's own (its stretches, or its rate times the duration).
+    A robot standing still (ACES pauses up to 38 s between scans) is covered too: its stretches
+    of that duration in the log hold little turning, so its steps widen little.
     """
     odom = log.odometry_in_log
     n = len(log)
@@ -315,28 +362,50 @@ def odometry_gaps(log: CarmenLog, config: ReplayConfig, *, factor: float = 8.0) 
     steps = relative(odom[:-1], odom[1:]).reshape(-1, 3)
     ds = np.hypot(steps[:, 0], steps[:, 1])
     dyaw = np.abs(steps[:, 2])
+    clock = log_clock(log, config.period_s)
+    dt = np.maximum(clock.dt_s, 0.0)
+    timed = ~clock.repaired  # a replaced step's duration is no evidence
     moving = ds > 1e-6
     if not moving.any():
         return empty
     med_ds = float(np.median(ds[moving]))
     gap = ds > factor * med_ds
+    positive = timed & (dt > 0)
+    med_dt = float(np.median(dt[positive])) if positive.any() else math.inf
+    gap |= positive & (dt > factor * med_dt)
     if not gap.any():
         return empty
     ok = ~gap
-    path_m = float(ds[ok].sum())
-    turn_per_m = float(dyaw[ok].sum()) / path_m if path_m > 0 else 0.0
+    cum_path = np.r_[0.0, np.cumsum(ds[ok])]
+    cum_turn = np.r_[0.0, np.cumsum(dyaw[ok])]
+    cum_time = np.r_[0.0, np.cumsum(np.where(timed[ok], dt[ok], 0.0))]
+    model = _node_model(config)
+    turn_var = model.turn_std_rad_per_sqrt_rad**2
+    max_turn = math.pi**2 / 3.0 / turn_var if turn_var > 0 else math.inf
     widen: dict[int, list[OdometryIncrement]] = {}
+    xy_var: dict[int, float] = {}
+    most_turn = most_path = 0.0
     for k in np.flatnonzero(gap).tolist():
-        u = max(0.0, turn_per_m * ds[k] - dyaw[k])
+        turn = _window_quantile(cum_path, cum_turn, float(ds[k]), quantile)
+        path = float(ds[k])
+        if timed[k]:
+            turn = max(turn, _window_quantile(cum_time, cum_turn, float(dt[k]), quantile))
+            path = max(path, _window_quantile(cum_time, cum_path, float(dt[k]), quantile))
+        u = min(max(0.0, turn - float(dyaw[k])), max_turn)
+        p = max(0.0, path - float(ds[k]))
         if u > 0:
             widen[k] = [OdometryIncrement(0.0, u / 2, 0.0), OdometryIncrement(0.0, -u / 2, 0.0)]
+        var_u = turn_var * u
+        xy_var[k] = model.slip_std_m_per_sqrt_m**2 * p + var_u * (p**2 + float(ds[k]) ** 2) / 3
+        most_turn, most_path = max(most_turn, u), max(most_path, p)
     idx = np.flatnonzero(gap).astype(np.int64)
     line = (
         f"odometry gap: {len(idx)} step(s) from scan {int(idx[0]) + 1} (largest "
-        f"{float(ds[gap].max()):.3g} m, median step {med_ds:.3g} m); yaw covariance widened "
-        f"by the log's turning, {turn_per_m:.2f} rad/m"
+        f"{float(ds[gap].max()):.3g} m, {float(dt[gap].max()):.3g} s; median step {med_ds:.3g} m, "
+        f"{med_dt:.3g} s); covariance widened by the log's own stretches that long (q "
+        f"{quantile:g}): up to {most_turn:.3g} rad turned, {most_path:.3g} m driven unseen"
     )
-    return OdometryGaps(idx, widen, [line])
+    return OdometryGaps(idx, widen, [line], xy_var)
 
 
 @dataclass(frozen=True)
@@ -360,20 +429,26 @@ def iter_replay_messages(
     cfg = config or ReplayConfig()
     odom, increments, model = replay_odometry(log, cfg)
     times = _scan_times(log, cfg.period_s)
-    widen = odometry_gaps(log, cfg).widen
+    gaps = odometry_gaps(log, cfg)
     maker = PoseNodeMaker(model)
+    xy_var = 0.0  # the gaps' position variance since the last node (odometry_gaps)
     gcfg = cfg.grid
     res = gcfg.resolution_m
     travelled = np.concatenate([[0.0], np.cumsum(np.abs([i.distance_m for i in increments]))])
     points_of: dict[int, FloatArray] = {}  # a scan joins several nodes' grids: convert once
     for k in range(len(log)):
         if k > 0:
-            for extra in widen.get(k - 1, ()):
+            for extra in gaps.widen.get(k - 1, ()):
                 maker.add_increment(extra)
             maker.add_increment(increments[k - 1])
+            xy_var += gaps.xy_var.get(k - 1, 0.0)
         if not maker.due(odom[k], float(times[k])):
             continue
         node = maker.make(odom[k], float(times[k]))
+        if xy_var > 0.0:
+            cov = covariance_from_upper(node.odom_covariance) + np.diag([xy_var, xy_var, 0.0])
+            node = msgspec.structs.replace(node, odom_covariance=covariance_to_upper(cov))
+            xy_var = 0.0
         first = max(0, k - gcfg.aggregate_max_scans + 1)
         recent = np.flatnonzero(travelled[first : k + 1] >= travelled[k] - gcfg.aggregate_m) + first
         # Older scans join the node's frame by the odometry the robot reported, as on board.
