@@ -362,7 +362,7 @@ class TeamOverProcesses:
                     f.write(msgspec.json.encode(robot_config))
                 argv += ["--config", path]
             local = [r for r in sim.robot_ids if r not in set(remote_robots)]
-            n = workers if workers is not None else (os.cpu_count() or 1)
+            n = workers if workers is not None else len(os.sched_getaffinity(0))
             self._groups = worker_groups(local, n)
             for i, group in enumerate(self._groups):
                 err_path = f"{self._tmp.name}/worker{i}.err"

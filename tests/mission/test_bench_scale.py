@@ -40,6 +40,8 @@ def test_gcs_latency_frames_every_node_it_was_fed() -> None:
     # a frame goes out every frames_period_s (2 s) after a step every second: a node waits
     # at least until the next step, and not forever
     assert 0.0 < r["gcs_node_to_frame_s_p50"] <= r["gcs_node_to_frame_s_p95"] < 60.0
+    # a frame never comes before the optimization that includes the node
+    assert 0.0 < r["gcs_node_to_estimate_s_p95"] <= r["gcs_node_to_frame_s_p95"]
     assert r["gcs_peak_rss_mb"] > 50 and "ground_station.py" in r["profile"]
     assert all(math.isfinite(v) for k, v in r.items() if k != "profile")
 
