@@ -19,25 +19,32 @@ away. Metrics:
 - ``long_loop_false_closures``: accepted closures off the reference by more than 0.5 m or
   5 deg, summed over these runs; target 0.
 
-``--quick`` replays ACES only, whole and without the gap (about 30 s on the loaded 2-core
-machine): its first long loop comes after 250 of its 437 nodes, so prefixes would hold none;
-without ``--quick`` all three logs, each whole and with the gap.
+``--quick`` scores ACES only, without the gap, on the replay part's quick run of it
+(:func:`mission.bench.robustness.replay_run`, one run for both parts): its quick prefix (315
+of 440 scans) ends after 30 scans came back to a place left 50 m before, and holds 30 of the
+whole log's 51 long-loop revisits (its first long loop comes after 250 scans). Without
+``--quick`` all three logs, each whole and with the gap (the replay part's clean and gap
+runs again).
 The Duke DP-SLAM log has no reference poses and is skipped with that reason.
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
-from gcs.replay.carmen_log import read_carmen_log
 from mission.bench import BenchError
-from mission.bench.perturbations import drop_scans
-from mission.bench.robustness import LASER, LOGS, NOISE_SCALE, STEP_BUDGET_S, _noisy
-from mission.replay import ReplayConfig, ReplayResult, run_replay
+from mission.bench.robustness import (
+    LASER,
+    LOGS,
+    quick_scans,
+    replay_run,
+)
+from mission.replay import ReplayResult
 
 __all__ = ["LOOP_M", "QUICK_LOGS", "REVISIT_M", "long_loop_revisits", "run"]
 
@@ -75,7 +82,6 @@ def long_loop_revisits(
 
 def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     """Replays and metrics (module docstring)."""
-    config = ReplayConfig(odometry_sigma_scale=NOISE_SCALE, step_budget_s=STEP_BUDGET_S)
     names = QUICK_LOGS if quick else tuple(n for n in LOGS if n != "dpslam_loop5")
     progress("long loops: dpslam_loop5 skipped: no reference poses (raw odometry only)")
     metrics: dict[str, float] = {}
@@ -84,12 +90,17 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
         path = LASER / LOGS[name]
         if not path.is_file():
             raise BenchError(f"dataset {path} not found (long loops need ../shared/datasets)")
-        noisy = _noisy(read_carmen_log(path))
-        gapped = drop_scans(noisy, len(noisy) // 2, max(len(noisy) // 10, 1))
-        runs = [(name, noisy)] if quick else [(name, noisy), (f"{name}_gap", gapped)]
-        for label, log in runs:
+        runs: list[tuple[str, Callable[[], ReplayResult]]] = [
+            (
+                name,
+                functools.partial(replay_run, name, quick_scans(name) if quick else None, "clean"),
+            )
+        ]
+        if not quick:
+            runs.append((f"{name}_gap", functools.partial(replay_run, name, None, "gap")))
+        for label, replay in runs:
             t0 = time.perf_counter()
-            result: ReplayResult = run_replay(log, config=config)
+            result = replay()
             if result.reference is None or result.ate is None:
                 raise BenchError(f"long loops: {label}: no reference poses to evaluate against")
             revisits, closed = long_loop_revisits(result.reference, result.closure_nodes)
