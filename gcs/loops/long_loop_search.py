@@ -22,7 +22,10 @@ open. :class:`LongLoopSearch` is a second candidate source for exactly those pai
    score 0.7, consistently from node to node, where the graph says 20 m +- 4.2 m), at the
    price of the case where the graph is overconfident (across an odometry gap the replay's
    widened yaw sigma was 8 deg for a 28 deg error): that one is for the gap's covariance to
-   state honestly, not for this gate to guess. When the yaw is bounded, a verified match must
+   state honestly, not for this gate to guess (:func:`mission.replay.odometry_gaps` now
+   widens it by the log's own stretches of the gap's length and duration: ACES with a tenth
+   of its scans dropped closes 5 of 36 long-loop revisits, was 0, ATE 0.78 m, was 5.07 m).
+   When the yaw is bounded, a verified match must
    also agree with the projection (chi-square ``confirm_chi2`` on the sum of the two
    covariances): the region gate alone lets in a place 3.8 sigma along a corridor.
    Place recognition then ranks only the nodes that passed (Scan Context's ring key, then
