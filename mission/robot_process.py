@@ -4,6 +4,14 @@ The node's sensors come from a simulator server (``magic sim``) or a hardware pr
 zenoh (:class:`~protocol.link.RemoteDriver`); its radio is a robot endpoint of the link, whose
 rate follows the radio model's grants; mission time follows the simulator's clock ticks, so
 rates and timeouts hold in mission time however fast the simulation runs.
+
+``magic robot --id 0-7`` hosts several nodes in one process (a worker: :class:`LockstepGroup`
+with ``--lockstep``, as ``magic run --robot-processes`` starts one per core). Endpoints come
+from ``--connect``/``--listen``/``--mode`` or ``--link-config`` (a router across hosts:
+``--mode client --connect tcp/<router>:7447``). A process refuses, in one line and status 2,
+an id another live process hosts (:func:`~mission.lockstep_protocol.robot_host_key`), an
+endpoint in use, and a ``--connect`` endpoint that does not answer within
+``--connect-timeout``.
 """
 
 from __future__ import annotations
