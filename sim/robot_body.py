@@ -309,6 +309,9 @@ class SkidSteerBodies:
         new = cand[:, :2]
         n = len(old)
         ok = np.ones(n, dtype=bool)
+        # two footprints cannot overlap farther apart than their circumscribed circles reach:
+        # the oriented-rectangle tests (most of a step's cost) only run when some pair is near
+        reach_m = 2.0 * math.hypot(cfg.length_m / 2, cfg.width_m / 2) + 2.0 * cfg.robot_gap_m
         if n > 1:
             d_new = np.minimum(
                 np.linalg.norm(new[:, None, :] - old[None, :, :], axis=2),
@@ -317,18 +320,19 @@ class SkidSteerBodies:
             d_old = np.linalg.norm(old[:, None, :] - old[None, :, :], axis=2)
             np.fill_diagonal(d_new, np.inf)
             np.fill_diagonal(d_old, np.inf)
-            half = {
-                "half_length_m": cfg.length_m / 2 + cfg.robot_gap_m / 2,
-                "half_width_m": cfg.width_m / 2 + cfg.robot_gap_m / 2,
-            }
-            pose = self.state.pose
-            hit_new = footprints_overlap(cand, pose, **half)
-            hit_new |= footprints_overlap(cand, cand, **half)
-            hit_old = footprints_overlap(pose, pose, **half)
-            np.fill_diagonal(hit_new, False)
-            # disabled robots (wrecks) are obstacles too
-            bad = hit_new & (~hit_old | (d_new < d_old))
-            ok &= ~bad.any(axis=1)
+            if min(float(d_new.min()), float(d_old.min())) <= reach_m:
+                half = {
+                    "half_length_m": cfg.length_m / 2 + cfg.robot_gap_m / 2,
+                    "half_width_m": cfg.width_m / 2 + cfg.robot_gap_m / 2,
+                }
+                pose = self.state.pose
+                hit_new = footprints_overlap(cand, pose, **half)
+                hit_new |= footprints_overlap(cand, cand, **half)
+                hit_old = footprints_overlap(pose, pose, **half)
+                np.fill_diagonal(hit_new, False)
+                # disabled robots (wrecks) are obstacles too
+                bad = hit_new & (~hit_old | (d_new < d_old))
+                ok &= ~bad.any(axis=1)
         if others_xy is not None and len(others_xy):
             rr = np.asarray(others_r, np.float64)[None, :] + r
             d_new = np.linalg.norm(new[:, None, :] - others_xy[None, :, :], axis=2)

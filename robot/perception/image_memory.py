@@ -14,6 +14,7 @@ Pure: no I/O; frames older than ``history_s`` before the newest are forgotten.
 from __future__ import annotations
 
 import bisect
+import functools
 import math
 from dataclasses import dataclass
 
@@ -77,6 +78,16 @@ class Candidate:
     bottom_z_m: float = 0.0
 
 
+@functools.lru_cache(maxsize=8)
+def _rim_angles(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of ``n`` angles around a rim (read-only: shared by every call)."""
+    a = np.linspace(0, 2 * math.pi, n, endpoint=False)
+    cos_a, sin_a = np.cos(a), np.sin(a)
+    cos_a.flags.writeable = False
+    sin_a.flags.writeable = False
+    return cos_a, sin_a
+
+
 def cylinder_outline(
     c: Candidate, pose_in_odom: tuple[float, float, float], n: int = 12
 ) -> np.ndarray:
@@ -85,8 +96,8 @@ def cylinder_outline(
     cy, sy = math.cos(yaw), math.sin(yaw)
     dx, dy = c.xy_in_odom[0] - x, c.xy_in_odom[1] - y
     bx, by = cy * dx + sy * dy, -sy * dx + cy * dy
-    a = np.linspace(0, 2 * math.pi, n, endpoint=False)
-    ring = np.stack([bx + c.radius_m * np.cos(a), by + c.radius_m * np.sin(a)], axis=1)
+    cos_a, sin_a = _rim_angles(n)
+    ring = np.stack([bx + c.radius_m * cos_a, by + c.radius_m * sin_a], axis=1)
     bot = np.column_stack([ring, np.full(n, c.bottom_z_m)])
     top = np.column_stack([ring, np.full(n, c.bottom_z_m + c.height_m)])
     return np.vstack([bot, top])
@@ -97,6 +108,7 @@ class ImageMemory:
 
     def __init__(self, config: ImageMemoryConfig | None = None) -> None:
         self.config = config or ImageMemoryConfig()
+        self._intrinsics = self.config.intrinsics()  # the same every call: computed once
         self._frames: list[RememberedFrame] = []
         self._times: list[float] = []
         self.out_of_order = 0  # frames refused: older than the newest remembered
@@ -131,7 +143,7 @@ class ImageMemory:
         rng = float(np.hypot(pts[:, 0].mean(), pts[:, 1].mean()))
         if rng > cfg.max_range_m:
             return False
-        intr = cfg.intrinsics()
+        intr = self._intrinsics
         uv, depth = project_in_base(
             pts, frame.pan_rad, frame.tilt_rad, intr, cfg.mount.camera_in_base_m
         )

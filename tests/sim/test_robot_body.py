@@ -149,3 +149,41 @@ def test_robots_pass_each_other_side_by_side() -> None:
     _drive(b, 1.0, 0.0, 5.0)
     assert b.state.pose[0, 0] > 11.5 and b.state.pose[1, 0] < 8.5
     assert (b.state.blocked_steps == 0).all()
+
+
+def _clear_of_robots_reference(b: SkidSteerBodies, cand: np.ndarray) -> np.ndarray:
+    """The robot-robot rule of ``_clear_of_others`` with every oriented-rectangle test run
+    (no distance shortcut): the oracle for the shortcut."""
+    cfg = b.config
+    old, new = b.state.pose[:, :2], cand[:, :2]
+    d_new = np.minimum(
+        np.linalg.norm(new[:, None] - old[None], axis=2),
+        np.linalg.norm(new[:, None] - new[None], axis=2),
+    )
+    d_old = np.linalg.norm(old[:, None] - old[None], axis=2)
+    np.fill_diagonal(d_new, np.inf)
+    np.fill_diagonal(d_old, np.inf)
+    half = {
+        "half_length_m": cfg.length_m / 2 + cfg.robot_gap_m / 2,
+        "half_width_m": cfg.width_m / 2 + cfg.robot_gap_m / 2,
+    }
+    pose = b.state.pose
+    hit_new = footprints_overlap(cand, pose, **half) | footprints_overlap(cand, cand, **half)
+    hit_old = footprints_overlap(pose, pose, **half)
+    np.fill_diagonal(hit_new, False)
+    return ~(hit_new & (~hit_old | (d_new < d_old))).any(axis=1)  # type: ignore[no-any-return]
+
+
+@pytest.mark.parametrize("spread_m", [0.6, 1.0, 2.0, 6.0])
+def test_robot_clearance_shortcut_agrees_with_every_rectangle_test(spread_m: float) -> None:
+    """Far-apart robots skip the rectangle tests (a speed-up): the verdicts are those of the
+    full test, for crowds from touching to far apart."""
+    rng = np.random.default_rng(int(spread_m * 10))
+    b = _bodies([], [(20.0, 20.0, 0.0)] * 5)
+    for _ in range(300):
+        b.state.pose = np.column_stack(
+            [20 + rng.uniform(0, spread_m, (5, 2)), rng.uniform(-math.pi, math.pi, 5)]
+        )
+        cand = b.state.pose + rng.normal(0.0, [0.05, 0.05, 0.1], (5, 3))
+        got = b._clear_of_others(cand, None, None)
+        assert np.array_equal(got, _clear_of_robots_reference(b, cand))
