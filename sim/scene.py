@@ -325,6 +325,11 @@ class Scene:
                 b, (float(xy_m[hid, 0]), float(xy_m[hid, 1]), z), (0, 0, 0, 1), physicsClientId=c
             )
 
+    @property
+    def hidden_oois(self) -> frozenset[int]:
+        """The detonated objects, removed from view (:meth:`hide_ooi`)."""
+        return frozenset(self._state.hidden_oois)
+
     def hide_ooi(self, ooi_id: int) -> None:
         """Remove a detonated object from view (it no longer stands there)."""
         self._state.hidden_oois.add(ooi_id)

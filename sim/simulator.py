@@ -41,7 +41,7 @@ import os
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import msgspec
 import numpy as np
@@ -67,6 +67,7 @@ from sim.ground_truth import GroundTruth, rasterize
 from sim.imu import EncoderConfig, ImuConfig, Imus, wheel_ticks
 from sim.lidar import LidarConfig, NoddingLidars
 from sim.radio_model import RadioBlackouts, RadioModel, RadioState
+from sim.render_worker import RenderJob, RenderWorkerProcess
 from sim.robot_body import RobotBodyConfig, SkidSteerBodies
 from sim.rules import Event, Rules, RulesConfig
 from sim.scene import RobotGeometry, Scene
@@ -90,7 +91,11 @@ class SimulatorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     """``step_s``: simulation step; ``seed``: sensor noise and slip (the world has its own);
     ``queue_limit_frames``: per-driver bound on unread frames. ``ray_threads``: PyBullet's
     threads per ray batch; ``ray_workers``: extra processes with a copy of the scene that cast
-    part of each LIDAR batch (-1: one when there are at least ``16`` robots and two cores)."""
+    part of each LIDAR batch (-1: one when there are at least ``16`` robots and two cores).
+    ``render_workers``: a process with a copy of the scene that renders the camera images
+    while the robots and the ground side work, started at the first image request (-1: one
+    when there are two cores; 0: images rendered in this process; the same pixels either
+    way, :mod:`sim.render_worker`)."""
 
     step_s: float = 0.05
     seed: int = 0
@@ -103,6 +108,7 @@ class SimulatorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     radio_period_s: float = 1.0
     ray_threads: int = 2
     ray_workers: int = -1
+    render_workers: int = -1
     queue_limit_frames: int = 4000
     lockstep_ack: Literal["command", "poll"] = "command"
     battery_period_s: float = 1.0
@@ -118,6 +124,8 @@ class SimulatorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
             raise ValueError(f"ray_threads must be in [0, 64], got {self.ray_threads}")
         if not -1 <= self.ray_workers <= 16:
             raise ValueError(f"ray_workers must be in [-1, 16], got {self.ray_workers}")
+        if not -1 <= self.render_workers <= 1:
+            raise ValueError(f"render_workers must be in [-1, 1], got {self.render_workers}")
         if not (math.isfinite(self.battery_period_s) and self.battery_period_s > 0):
             raise ValueError(f"battery_period_s must be > 0, got {self.battery_period_s}")
         if self.queue_limit_frames < 10:
@@ -214,11 +222,21 @@ class SimDriver:
         return out
 
 
+@dataclass(frozen=True)
+class _RenderTicket:
+    """An image request handed to the render worker: the recorded frame it drew and the
+    objects then gone (the worker's image is used only if both still hold at the step)."""
+
+    time_s: float
+    hidden_oois: frozenset[int]
+
+
 @dataclass
 class _Inbox:
     velocity: dict[int, tuple[float, float]] = field(default_factory=dict)
     laser: dict[int, LaserPointerCommand] = field(default_factory=dict)
     images: list[tuple[int, ImageRequest]] = field(default_factory=list)
+    tickets: list[_RenderTicket | None] = field(default_factory=list)  # one per image
 
 
 class Simulator:
@@ -242,6 +260,12 @@ class Simulator:
         self.scene = Scene(
             self.world, geometry=self.geometry, ray_threads=cfg.ray_threads, ray_workers=workers
         )
+        renderers = cfg.render_workers
+        if renderers < 0:
+            renderers = 1 if (os.cpu_count() or 1) >= 2 else 0
+        self._render_wanted = renderers > 0
+        self._render_worker: RenderWorkerProcess | None = None
+        self.worker_renders = 0  # images the render worker drew that were used
         self.clock = ManualClock(0.0)
         self.time_s = 0.0
         self.steps = 0
@@ -342,6 +366,7 @@ class Simulator:
                         f" this step (at most {_MAX_IMAGE_REQUESTS_PER_STEP})"
                     )
                 ib.images.append((robot_id, command))
+                ib.tickets.append(self._submit_render(robot_id, command))
         with self._ready:
             k = self.robot_ids.index(robot_id)
             self._attached[k] = True
@@ -406,6 +431,7 @@ class Simulator:
             self.step()
 
     def close(self) -> None:
+        self._stop_render_worker()
         self.scene.close()
 
     def __enter__(self) -> Simulator:
@@ -499,10 +525,11 @@ class Simulator:
                 out[rid].append(BatteryState(time_s=t_new, charge_frac=charge))
 
         self._record()
-        for rid, req in inbox.images:
+        for (rid, req), ticket in zip(inbox.images, inbox.tickets, strict=True):
+            rgb = self._collect_render(ticket, req)
             if alive[idx[rid]]:
                 try:
-                    out[rid].append(self.render_image(rid, req))
+                    out[rid].append(self.render_image(rid, req, rgb=rgb))
                 except Exception as err:  # noqa: BLE001 - a bad request must not stop the world
                     self.rejected_commands += 1
                     log.warning("robot %d: image request failed: %s", rid, err)
@@ -629,38 +656,122 @@ class Simulator:
         k = self.robot_ids.index(robot_id)
         return pan_angle(time_s, self.config.camera, phase_s=float(self._cam_phase[k]))
 
-    def render_image(self, robot_id: int, request: ImageRequest) -> CameraImage:
-        """Render robot ``robot_id``'s camera at the pose recorded nearest to (not after)
-        ``request.time_s`` (clamped to the recorded history)."""
-        cc = self.config.camera
-        k = self.robot_ids.index(robot_id)
+    def _recorded(self, request: ImageRequest) -> tuple[int, bool]:
+        """The history entry a request draws (nearest not after its time, clamped) and
+        whether it is the newest (the scene as it stands)."""
         times = list(self._history_t)
         j = max(0, min(len(times) - 1, bisect.bisect_right(times, request.time_s + 1e-9) - 1))
+        return j, j == len(times) - 1
+
+    def _render_job(self, robot_id: int, request: ImageRequest) -> tuple[RenderJob, float]:
+        """What :meth:`render_image` will draw for ``request`` at the next step, for the render
+        worker, and the recorded frame's time. The newest frame now (a node asking for the
+        image of now) is a past one by then: the step records another first; a request that
+        is still the newest then is drawn in process (:meth:`_collect_render`)."""
+        j, _ = self._recorded(request)
+        cc = self.config.camera
+        k = self.robot_ids.index(robot_id)
         t_rec, mats, hxy, hidden = self._history[j]
-        current = j == len(times) - 1
-        if not current:
-            self.scene.set_robot_poses(mats)
-            if len(self.routes):
-                z = self.truth.height_at(hxy[:, 0], hxy[:, 1])
-                self.scene.set_human_positions(hxy, z, hidden=hidden)
+        pan = self.camera_pan(robot_id, t_rec)
+        eye, fwd, up = camera_axes(mats[k], np.array(self.geometry.camera_m), pan, cc.tilt_rad)
+        _, fy, _, _ = intrinsics(request.width_px, request.height_px, cc)
+        hz = self.truth.height_at(hxy[:, 0], hxy[:, 1]) if len(self.routes) else np.zeros(0)
+        job = RenderJob(
+            robots=mats,
+            human_xy=hxy if len(self.routes) else np.zeros((0, 2)),
+            human_z=hz,
+            human_hidden=hidden,
+            hidden_oois=self.scene.hidden_oois,
+            eye_m=eye,
+            forward=fwd,
+            up=up,
+            width_px=request.width_px,
+            height_px=request.height_px,
+            fy_px=fy,
+            near_m=cc.near_m,
+            far_m=cc.far_m,
+        )
+        return job, t_rec
+
+    def _submit_render(self, robot_id: int, request: ImageRequest) -> _RenderTicket | None:
+        """Hand an accepted image request to the render worker (started at the first), or
+        None: rendered in process at the step."""
+        if not self._render_wanted:
+            return None
+        job, t_rec = self._render_job(robot_id, request)
+        if self._render_worker is None:
+            try:
+                self._render_worker = RenderWorkerProcess(self.world, self.geometry)
+            except (OSError, RuntimeError) as err:
+                log.warning("render worker unavailable, rendering in process: %s", err)
+                self._render_wanted = False
+                return None
+        self._render_worker.submit(job)
+        return _RenderTicket(t_rec, job.hidden_oois)
+
+    def _collect_render(self, ticket: _RenderTicket | None, request: ImageRequest) -> Any:
+        """The worker's image for a ticket if it drew what :meth:`render_image` would draw
+        now (same recorded frame, same objects gone), else None (rendered in process)."""
+        if ticket is None or self._render_worker is None:
+            return None
         try:
-            pan = self.camera_pan(robot_id, t_rec)
-            eye, fwd, up = camera_axes(mats[k], np.array(self.geometry.camera_m), pan, cc.tilt_rad)
-            w, h = request.width_px, request.height_px
-            fx, fy, cx, cy = intrinsics(w, h, cc)
-            rgb = self.scene.render(
-                eye_m=eye,
-                forward=fwd,
-                up=up,
-                width_px=w,
-                height_px=h,
-                fy_px=fy,
-                near_m=cc.near_m,
-                far_m=cc.far_m,
-            )
-        finally:
+            rgb = self._render_worker.result()
+        except RuntimeError as err:
+            log.warning("render worker failed, rendering in process from now: %s", err)
+            self._stop_render_worker()
+            self._render_wanted = False
+            return None
+        j, current = self._recorded(request)
+        if (
+            current
+            or self._history[j][0] != ticket.time_s
+            or self.scene.hidden_oois != ticket.hidden_oois
+        ):
+            return None
+        self.worker_renders += 1
+        return rgb
+
+    def _stop_render_worker(self) -> None:
+        if self._render_worker is not None:
+            self._render_worker.close()
+            self._render_worker = None
+
+    def render_image(
+        self, robot_id: int, request: ImageRequest, *, rgb: np.ndarray | None = None
+    ) -> CameraImage:
+        """Render robot ``robot_id``'s camera at the pose recorded nearest to (not after)
+        ``request.time_s`` (clamped to the recorded history). ``rgb``: the image already
+        drawn for exactly that (by the render worker): only the metadata is added."""
+        cc = self.config.camera
+        k = self.robot_ids.index(robot_id)
+        j, current = self._recorded(request)
+        t_rec, mats, hxy, hidden = self._history[j]
+        w, h = request.width_px, request.height_px
+        fx, fy, cx, cy = intrinsics(w, h, cc)
+        pan = self.camera_pan(robot_id, t_rec)
+        if rgb is None:
             if not current:
-                self._sync_scene()
+                self.scene.set_robot_poses(mats)
+                if len(self.routes):
+                    z = self.truth.height_at(hxy[:, 0], hxy[:, 1])
+                    self.scene.set_human_positions(hxy, z, hidden=hidden)
+            try:
+                eye, fwd, up = camera_axes(
+                    mats[k], np.array(self.geometry.camera_m), pan, cc.tilt_rad
+                )
+                rgb = self.scene.render(
+                    eye_m=eye,
+                    forward=fwd,
+                    up=up,
+                    width_px=w,
+                    height_px=h,
+                    fy_px=fy,
+                    near_m=cc.near_m,
+                    far_m=cc.far_m,
+                )
+            finally:
+                if not current:
+                    self._sync_scene()
         return CameraImage(
             request_id=request.request_id,
             time_s=t_rec,

@@ -1,0 +1,185 @@
+"""A camera-rendering worker process: a copy of the scene in another process (issue 14: speed).
+
+Rendering a robot's camera image (PyBullet's TinyRenderer, CPU) is the simulator's largest cost
+and PyBullet holds the GIL while it renders, so a thread cannot overlap it with the robots'
+and the GCS's work; a process can. :class:`RenderWorkerProcess` starts ``python -m
+sim.render_worker`` (a plain subprocess, like :mod:`sim.ray_worker`), sends it the world once,
+then for each image the scene state to draw (robot transforms, people, detonated objects) and
+the camera; the worker renders every job as soon as it arrives and sends the images back in
+the order they were asked for. Same geometry, same engine, same state: the pixels are exactly
+those the parent's scene would give (:meth:`sim.simulator.Simulator.render_image`), so runs
+stay repeatable; the simulator checks at collection time that the state it sent is still the
+one it would have rendered with and renders in process otherwise.
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+
+import numpy as np
+
+from sim.scene import RobotGeometry, Scene
+from sim.world_generator import World
+
+__all__ = ["RenderJob", "RenderWorkerProcess"]
+
+
+@dataclass(frozen=True)
+class RenderJob:
+    """One image: the scene state (robots ``(N, 4, 4)`` drawn at ``robots``, people at
+    ``human_xy`` / ``human_z`` unless hidden, objects ``hidden_oois`` gone) and the camera
+    (the keyword arguments of :meth:`sim.scene.Scene.render`)."""
+
+    robots: np.ndarray
+    human_xy: np.ndarray
+    human_z: np.ndarray
+    human_hidden: np.ndarray
+    hidden_oois: frozenset[int]
+    eye_m: np.ndarray
+    forward: np.ndarray
+    up: np.ndarray
+    width_px: int
+    height_px: int
+    fy_px: float
+    near_m: float
+    far_m: float
+
+
+class RenderWorkerProcess:
+    """One worker process holding a scene of ``world``: :meth:`submit` jobs, then
+    :meth:`result` in the same order."""
+
+    def __init__(self, world: World, geometry: RobotGeometry, *, timeout_s: float = 60.0) -> None:
+        to_child_r, to_child_w = os.pipe()
+        from_child_r, from_child_w = os.pipe()
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "sim.render_worker", str(to_child_r), str(from_child_w)],
+            pass_fds=(to_child_r, from_child_w),
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+        )
+        os.close(to_child_r)
+        os.close(from_child_w)
+        self._tx = Connection(to_child_w, readable=False)
+        self._rx = Connection(from_child_r, writable=False)
+        self._lock = threading.Lock()  # commands may arrive on any thread
+        self.pending = 0
+        self._tx.send((world, geometry))
+        if not self._rx.poll(timeout_s):
+            self.close()
+            raise RuntimeError(f"render worker did not start within {timeout_s} s")
+        ready = self._rx.recv()
+        if ready != "ready":
+            self.close()
+            raise RuntimeError(f"render worker failed to start: {ready}")
+
+    def submit(self, job: RenderJob) -> None:
+        """Queue ``job`` (rendered at once, in the worker)."""
+        with self._lock:
+            self._tx.send(job)
+            self.pending += 1
+
+    def result(self, timeout_s: float = 60.0) -> np.ndarray:
+        """The RGB image ``(H, W, 3)`` of the oldest job not yet collected (RuntimeError if
+        the worker failed on it or went away)."""
+        with self._lock:
+            if self.pending <= 0:
+                raise RuntimeError("render worker: no job pending")
+            self.pending -= 1
+        if not self._rx.poll(timeout_s):
+            raise RuntimeError(f"render worker: no image within {timeout_s} s")
+        out = self._rx.recv()
+        if isinstance(out, str):
+            raise RuntimeError(f"render worker: {out}")
+        return out  # type: ignore[no-any-return]
+
+    def close(self) -> None:
+        try:
+            self._tx.send(None)
+        except OSError:
+            pass
+        # images asked for and never collected: the worker's sender gets a broken pipe
+        # instead of waiting for a reader
+        self._rx.close()
+        try:
+            self._proc.wait(5.0)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            self._proc.wait(5.0)
+        self._tx.close()
+
+
+def _draw(scene: Scene, job: RenderJob) -> np.ndarray:
+    """What :meth:`sim.simulator.Simulator.render_image` draws for a recorded frame."""
+    for ooi_id in job.hidden_oois:
+        if ooi_id not in scene.hidden_oois:
+            scene.hide_ooi(ooi_id)
+    scene.set_robot_poses(job.robots)
+    if len(job.human_xy):
+        scene.set_human_positions(job.human_xy, job.human_z, hidden=job.human_hidden)
+    return scene.render(
+        eye_m=job.eye_m,
+        forward=job.forward,
+        up=job.up,
+        width_px=job.width_px,
+        height_px=job.height_px,
+        fy_px=job.fy_px,
+        near_m=job.near_m,
+        far_m=job.far_m,
+    )
+
+
+def _serve(rx: Connection, tx: Connection) -> None:
+    world, geometry = rx.recv()
+    try:
+        scene = Scene(world, geometry=geometry, ray_threads=1)
+    except Exception as err:  # noqa: BLE001 - reported to the parent
+        tx.send(repr(err))
+        return
+    tx.send("ready")
+    # images go back on their own thread: the next job renders while the parent has not yet
+    # read the last image (a pipe holds far less than one image)
+    out: queue.SimpleQueue[object] = queue.SimpleQueue()
+
+    def send() -> None:
+        while True:
+            item = out.get()
+            if item is None:
+                return
+            try:
+                tx.send(item)
+            except OSError:
+                return
+
+    sender = threading.Thread(target=send, daemon=True)
+    sender.start()
+    try:
+        while True:
+            job = rx.recv()
+            if job is None:
+                break
+            try:
+                out.put(_draw(scene, job))
+            except Exception as err:  # noqa: BLE001 - reported to the parent
+                out.put(repr(err))
+    except EOFError:
+        pass
+    finally:
+        out.put(None)
+        sender.join(5.0)
+        scene.close()
+
+
+if __name__ == "__main__":
+    _serve(
+        Connection(int(sys.argv[1]), writable=False), Connection(int(sys.argv[2]), readable=False)
+    )
