@@ -20,7 +20,7 @@ away. Metrics:
   5 deg, summed over these runs; target 0.
 
 ``--quick`` scores ACES only, without the gap, on the replay part's quick run of it
-(:func:`mission.bench.robustness.replay_run`, one run for both parts): its quick prefix (315
+(:func:`mission.bench.robustness.replay_run`, one run for both parts): its quick prefix (316
 of 440 scans) ends after 30 scans came back to a place left 50 m before, and holds 30 of the
 whole log's 51 long-loop revisits (its first long loop comes after 250 scans). Without
 ``--quick`` all three logs, each whole and with the gap (the replay part's clean and gap
