@@ -342,7 +342,7 @@ def assemble(
     run), closed on exit. ``broadcast_hazards``: the station's HazardUpdate goes out as one
     broadcast when several robots are due (else one copy per robot)."""
     sim_cfg = msgspec.structs.replace(simulator or SimulatorConfig(), seed=seeds.simulator)
-    with Simulator(world, config=sim_cfg) as sim:
+    with Simulator(world, config=sim_cfg, radio=radio) as sim:  # its radio model grants
         roles = roles_of(sim)
         grounds: list[GroundSide] = []
         gcs_ground: GcsGround | None = None
