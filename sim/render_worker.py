@@ -180,6 +180,11 @@ def _serve(rx: Connection, tx: Connection) -> None:
 
 
 if __name__ == "__main__":
+    import signal
+
+    # ^C reaches the whole process group: the parent decides when this worker ends (it
+    # closes the pipe), so no second traceback and no image lost mid-run
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _serve(
         Connection(int(sys.argv[1]), writable=False), Connection(int(sys.argv[2]), readable=False)
     )
