@@ -108,12 +108,15 @@ class OdometryBiasConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
 @dataclass(frozen=True)
 class TurnScale:
     """A turn-scale estimate: true turning = ``scale`` times the odometry's; ``sigma`` its
-    standard deviation; ``used`` closures in the fit, ``rejected`` gated out."""
+    standard deviation; ``used`` closures in the fit, ``rejected`` gated out;
+    ``statistical_sigma`` the standard deviation from the closures' scatter alone (Birge
+    ratio, ``min_sigma``), without the single-closure floor (None: as ``sigma``)."""
 
     scale: float = 1.0
     sigma: float = 0.1
     used: int = 0
     rejected: int = 0
+    statistical_sigma: float | None = None
 
 
 def _wrap(a: FloatArray) -> FloatArray:
@@ -127,6 +130,7 @@ def estimate_turn_scale(
     config: OdometryBiasConfig | None = None,
     *,
     bend_turn_rad: FloatArray | None = None,
+    bend_offset_rad: FloatArray | None = None,
 ) -> TurnScale:
     """Fit ``s`` from closures of one robot (module docstring).
 
@@ -136,8 +140,13 @@ def estimate_turn_scale(
     odometry along the chain). ``bend_turn_rad`` ``(K,)`` (optional, default 0): the turning
     ``W`` within the closure's grids (a grid joined by the biased odometry is bent by about
     ``(s - 1) W``, so the closure's heading is off by as much): the residual's variance then
-    includes ``((|s - 1| + sigma) W)^2`` at the current estimate, in the gate and the weights
-    (not in the single-closure floor: that would tie the fit's uncertainty to its prior).
+    includes ``((|s - 1| + sigma) W / 2)^2`` at the current estimate, in the gate and the
+    weights (not in the single-closure floor: that would tie the fit's uncertainty to its
+    prior). ``bend_offset_rad`` ``(K,)`` (optional, default 0): the grids' mean bend per unit
+    of scale error, ``m_a - m_b`` with ``m`` the mean turning from a grid's node back to its
+    scans: a grid's content is turned by ``(1 - s) m`` on average, so the match measures
+    ``s T - (s - 1)(m_a - m_b)`` and the residual is ``(s - 1)(T - m_a + m_b)``: the
+    regressor is ``T`` less the offset (bent grids otherwise pull the fit towards 1).
     Raises ``ValueError`` on mismatched or non-finite input.
     """
     cfg = config or OdometryBiasConfig()
@@ -149,30 +158,39 @@ def estimate_turn_scale(
         if bend_turn_rad is None
         else np.abs(np.asarray(bend_turn_rad, dtype=np.float64).ravel())
     )
-    if not (len(t) == len(d) == len(v) == len(bw)):
+    off = (
+        np.zeros(len(t))
+        if bend_offset_rad is None
+        else np.asarray(bend_offset_rad, dtype=np.float64).ravel()
+    )
+    if not (len(t) == len(d) == len(v) == len(bw) == len(off)):
         raise ValueError(
-            f"estimate_turn_scale: lengths differ ({len(t)}, {len(d)}, {len(v)}, {len(bw)})"
+            f"estimate_turn_scale: lengths differ ({len(t)}, {len(d)}, {len(v)}, {len(bw)}, "
+            f"{len(off)})"
         )
     if not (
         np.all(np.isfinite(t))
         and np.all(np.isfinite(d))
         and np.all(v > 0)
         and np.all(np.isfinite(bw))
+        and np.all(np.isfinite(off))
     ):
         raise ValueError("estimate_turn_scale: non-finite turns/yaws or non-positive variances")
+    r = _wrap(d - t)  # (s - 1) (T - offset) + noise
+    t = t - off  # the regressor
     keep = (np.abs(t) >= cfg.min_turn_rad) & (np.abs(t) <= cfg.max_turn_rad)
-    t, d, v, bw = t[keep], d[keep], v[keep], bw[keep]
+    t, r, v, bw = t[keep], r[keep], v[keep], bw[keep]
     if len(t) == 0:
         return TurnScale(sigma=cfg.prior_sigma)
-    r = _wrap(d - t)  # (s - 1) T + noise
     prior_info = 1.0 / cfg.prior_sigma**2
     bias = 0.0
     sigma = cfg.prior_sigma
+    statistical = sigma
     inlier = np.ones(len(t), dtype=bool)
     for _ in range(cfg.iterations):
         # the residual's variance includes the current scale uncertainty along T, and the
         # grids' bend at the current estimate
-        bent_v = v + ((abs(bias) + sigma) * bw) ** 2
+        bent_v = v + (0.5 * (abs(bias) + sigma) * bw) ** 2
         total_v = bent_v + (sigma * t) ** 2
         inlier = (r - bias * t) ** 2 <= cfg.gate_sigma**2 * total_v
         w = inlier / bent_v
@@ -188,9 +206,14 @@ def estimate_turn_scale(
         # Closures over one stretch share its odometry noise: together they know the scale
         # no better than the best single one does (its noise over its turning).
         single = float(np.min(np.sqrt(v[inlier]) / np.abs(t[inlier]))) if n_in else 0.0
-        sigma = max(birge / math.sqrt(info), cfg.min_sigma, single)
+        statistical = max(birge / math.sqrt(info), cfg.min_sigma)
+        sigma = max(statistical, single)
     return TurnScale(
-        scale=1.0 + bias, sigma=sigma, used=int(inlier.sum()), rejected=int((~inlier).sum())
+        scale=1.0 + bias,
+        sigma=sigma,
+        used=int(inlier.sum()),
+        rejected=int((~inlier).sum()),
+        statistical_sigma=statistical,
     )
 
 

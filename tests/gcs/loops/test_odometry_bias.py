@@ -64,3 +64,28 @@ def test_scatter_beyond_the_stated_noise_widens_the_estimate() -> None:
     assert loose.sigma > 2.5 * honest.sigma
     # and many closures over one stretch know no more than the best one of them
     assert honest.sigma >= stated / np.abs(turn).max() - 1e-12
+
+
+@pytest.mark.parametrize("true_scale", [1 / 0.92, 1 / 1.08])
+def test_bent_grids_are_modelled_not_followed(true_scale: float) -> None:
+    # Closures between grids that join scans by the biased odometry: each grid's content is
+    # turned by (1 - s) m on average (m: its mean turning back to its scans), so the match
+    # measures s T - (s - 1)(m_a - m_b). Robots that turn within their grids (|m| up to
+    # 90 deg) pull a fit that ignores it towards 1; the offset model recovers s.
+    rng = np.random.default_rng(5)
+    n = 300
+    turn = rng.uniform(-3.0, 3.0, n)
+    m_a, m_b = rng.uniform(-1.6, 1.6, n), rng.uniform(-1.6, 1.6, n)
+    m_a[: n // 3] = turn[: n // 3]  # spins: a grid holding the whole turn between the nodes
+    m_b[: n // 3] = 0.0
+    sigma = math.radians(0.5)
+    yaw = true_scale * turn - (true_scale - 1) * (m_a - m_b) + rng.normal(0, sigma, n)
+    yaw = (yaw + math.pi) % (2 * math.pi) - math.pi
+    bend = np.hypot(np.abs(m_a), np.abs(m_b))  # no larger than the window's turning here
+    var = np.full(n, sigma**2)
+    modelled = estimate_turn_scale(turn, yaw, var, bend_turn_rad=bend, bend_offset_rad=m_a - m_b)
+    ignored = estimate_turn_scale(turn, yaw, var)
+    assert modelled.scale == pytest.approx(true_scale, abs=0.01)
+    assert abs(ignored.scale - true_scale) > 2 * abs(modelled.scale - true_scale)
+    with pytest.raises(ValueError, match="lengths differ"):
+        estimate_turn_scale(turn, yaw, var, bend_offset_rad=np.zeros(3))
