@@ -54,6 +54,10 @@ class DisruptorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     spread_tolerance_m: float = 3.0
     spread_period_s: float = 20.0
     path_tolerance_m: float = 0.3
+    # line of sight is checked up to this far short of the OOI: the OOI is an obstacle in the
+    # map itself (small world seed 0: both sightings of one OOI sat on occupied cells, no
+    # highway waypoint could "see" them, and it was never dispatched to)
+    los_clear_m: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("trigger_radius_m", "laser_range_m", "hold_s", "path_tolerance_m"):
@@ -64,6 +68,10 @@ class DisruptorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
             raise ValueError(
                 f"disruptor laser_range_m {self.laser_range_m} must exceed trigger_radius_m + "
                 f"standoff_margin_m ({self.trigger_radius_m + self.standoff_margin_m})"
+            )
+        if not (math.isfinite(self.los_clear_m) and self.los_clear_m >= 0):
+            raise ValueError(
+                f"disruptor los_clear_m must be finite and >= 0, got {self.los_clear_m}"
             )
         if self.spread_iterations < 1 or self.spread_candidates < 1:
             raise ValueError("disruptor spread_iterations and spread_candidates must be >= 1")
@@ -101,7 +109,12 @@ def neutralization_nodes(
     for o in others:
         ok &= np.hypot(*(nodes - o).T) >= safe
     cand = np.flatnonzero(ok)
-    vis = [i for i in cand if line_of_sight(grid, nodes[i], ooi)]
+    vis = []
+    for i in cand:
+        away = nodes[i] - ooi
+        short_of = ooi + away * (min(config.los_clear_m, float(d[i])) / max(float(d[i]), 1e-9))
+        if line_of_sight(grid, nodes[i], short_of):
+            vis.append(i)
     return np.asarray(vis, dtype=np.int64)
 
 

@@ -88,3 +88,20 @@ def test_two_idle_disruptors_spread_to_quarters_of_a_line() -> None:
 def test_bad_config_is_named() -> None:
     with pytest.raises(ValueError, match="laser_range_m"):
         DisruptorConfig(laser_range_m=3.0)
+
+
+def test_an_ooi_that_is_an_obstacle_in_the_map_can_still_be_seen() -> None:
+    """The GCS's map shows the OOI itself as occupied cells (a cylinder the LIDAR hit, under
+    a sighting placed up to a metre off): that does not hide it; a wall in front does."""
+    v = blank(30, 10, FREE)
+    box(v, 15.5, 4.5, 16.75, 5.75, OCCUPIED)  # the OOI and the cells around it
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    hw = _highway(_poly((1, 5), (11, 5)))
+    nodes = neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], CFG)
+    assert nodes.size > 0
+    assert min(math.dist(hw.nodes_in_map[i], (16.0, 5.0)) for i in nodes) >= 3.5
+    strict = DisruptorConfig(los_clear_m=0.0)  # the old check: the OOI's own cells hid it
+    assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], strict).size == 0
+    box(v, 13.0, 0, 13.5, 10, OCCUPIED)  # a wall 3 m in front of it
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], CFG).size == 0
