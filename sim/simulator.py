@@ -706,7 +706,13 @@ class Simulator:
                 log.warning("render worker unavailable, rendering in process: %s", err)
                 self._render_wanted = False
                 return None
-        self._render_worker.submit(job)
+        try:
+            self._render_worker.submit(job)
+        except OSError as err:  # the worker went away (a broken pipe): draw here from now on
+            log.warning("render worker gone, rendering in process from now: %s", err)
+            self._stop_render_worker()
+            self._render_wanted = False
+            return None
         return _RenderTicket(t_rec, job.hidden_oois)
 
     def _collect_render(self, ticket: _RenderTicket | None, request: ImageRequest) -> Any:
@@ -716,7 +722,7 @@ class Simulator:
             return None
         try:
             rgb = self._render_worker.result()
-        except RuntimeError as err:
+        except (RuntimeError, OSError, EOFError) as err:
             log.warning("render worker failed, rendering in process from now: %s", err)
             self._stop_render_worker()
             self._render_wanted = False

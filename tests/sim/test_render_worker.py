@@ -19,15 +19,21 @@ def _world():
     return make_world(oois=[ooi], humans=[walker], robots=robots, solids=[wall])
 
 
-def _images(render_workers: int) -> tuple[list[CameraImage], int, int]:
+def _images(render_workers: int, kill_at: int = -1) -> tuple[list[CameraImage], int, int]:
     """Robot 0 drives into the static object (it detonates at 2.5 m, about 2.5 s in) while
-    both robots ask, every step, for images of now, of 0.5 s and of 3 s ago, some at 640x480."""
+    both robots ask, every step, for images of now, of 0.5 s and of 3 s ago, some at 640x480;
+    the worker process is killed before step ``kill_at`` (never if negative)."""
     cfg = SimulatorConfig(render_workers=render_workers)
     out: list[CameraImage] = []
     with Simulator(_world(), config=cfg) as sim:
         sim.driver(0).send(VelocityCommand(time_s=0.0, linear_m_s=1.0, angular_rad_s=0.4))
         rid = 0
-        for _step in range(70):
+        for step in range(70):
+            if step == kill_at:
+                worker = sim._render_worker
+                assert worker is not None
+                worker._proc.kill()
+                worker._proc.wait(10.0)
             for robot in (0, 1):
                 for back_s in (0.0, 0.5, 3.0):
                     rid += 1
@@ -56,4 +62,14 @@ def test_the_render_worker_draws_the_images_the_simulator_draws() -> None:
             b.camera_pan_rad,
         )
         assert (a.fx_px, a.fy_px, a.cx_px, a.cy_px) == (b.fx_px, b.fy_px, b.cx_px, b.cy_px)
+        assert np.array_equal(a.rgb, b.rgb), a.request_id
+
+
+def test_a_render_worker_that_dies_leaves_the_simulator_drawing_the_same_images() -> None:
+    here, _, _ = _images(0)
+    there, used, asked = _images(1, kill_at=10)
+    assert 0 < used < 0.5 * asked  # the worker drew the first steps' images, then none
+    assert len(here) == len(there)
+    for a, b in zip(here, there, strict=True):
+        assert a.request_id == b.request_id
         assert np.array_equal(a.rgb, b.rgb), a.request_id
