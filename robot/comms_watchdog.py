@@ -13,18 +13,26 @@ States (:class:`LinkState`), with ``quiet = now - last heard``:
   broadcast (:class:`~protocol.messages.HazardUpdate`, every ``frames_period_s``) at
   ``arm_after_broadcasts`` different times. A ground side that never repeats itself (a script
   that hands a robot one task) never arms it, and a robot that never heard a GCS has no task.
-* ``SILENT``: ``silence_s <= quiet < silence_s + task_grace_s``: the link is lost, reported,
-  and the robot keeps executing its task.
-* ``HOLDING`` (``policy: hold``): from ``silence_s + task_grace_s`` the robot stops where it is
-  (its task suspended, not canceled; an approved neutralization keeps its laser on target).
-* ``RETURNING`` (``policy: return``, the default): it drives back, with its own planner, to
-  where it last heard the GCS (the last point of contact, in its private frame ``odom``). Radio
-  coverage has sharp edges (a wall's shadow) and odometry drifts, so if that point is silent
-  too it goes on back along its earlier points of contact (a trail of up to
+* ``SILENT``: ``quiet >= silence_s``: the link is lost, reported, and the robot keeps executing
+  its task: at least ``task_grace_s`` more, and while the task still has waypoints to drive
+  (a goal, a stand-off still to reach) up to ``task_limit_s``. What it explores meanwhile
+  reaches the GCS when the link is back (below), so the task's driving is not wasted.
+* ``HOLDING``: then the robot stops where it is (its task suspended, not canceled; an
+  approved neutralization keeps its laser on target).
+* ``RETURNING`` (``policy: return``, the default): ``return_after_s`` after the link was lost
+  (and not before the task stopped: it holds in between) it drives back, with its own
+  planner, to where it last heard the GCS (the last point of contact, in its private frame
+  ``odom``). Radio coverage has sharp edges (a wall's shadow) and odometry drifts, so if that
+  point is silent too it goes on back along its earlier points of contact (a trail of up to
   ``return_trail_points``, ``return_spacing_m`` apart), and holds (``HOLDING``) at the oldest.
-  Why not hold by default: in a 200 s small-world mission with the real GCS a robot that held
+  Why not hold for good: in a 200 s small-world mission with the real GCS a robot that held
   in a radio shadow stayed there, unheard, to the end; returning along the trail brought two
-  robots out of shadows (41 s and 34 s long) into contact again.
+  robots out of shadows (41 s and 34 s long) into contact again. Why wait first: a silence
+  is as often an outage in time (interference, a relay moving, the GCS restarting) as a
+  shadow in space, and backing out costs the way back and then forth again; the chaos bench
+  (``magic bench chaos``: two 60 s blackouts per robot in 600 mission-s) lost 0.076 of the
+  explored fraction with robots suspending their tasks 20 s into a silence and backing out
+  (see ``magic bench chaos``'s ``robot_suspended_s`` for what the policy costs).
 
 The first message heard again returns it to ``CONNECTED`` and the suspended task resumes (or
 the GCS's next task replaces it). Every transition of a robot with a task is reported as a
@@ -58,15 +66,19 @@ __all__ = ["CommsWatchdog", "CommsWatchdogConfig", "LinkAwareTasks", "LinkState"
 class CommsWatchdogConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """``silence_s``: no downlink this long and the link counts as lost (the GCS broadcasts
     every 2 s: 10 s is five broadcasts in a row lost, ~0.2% at 30% loss); ``task_grace_s``:
-    then keep on the task this much longer; ``policy``: then ``hold`` where it is or
-    ``return`` to the last point of contact (``return_tolerance_m``: close enough there) and
-    further back along the trail of earlier ones if that is silent too."""
+    then keep on the task at least this much longer, and ``task_limit_s`` at most while it
+    still has waypoints to drive; ``policy``: then ``hold`` where it is or, from
+    ``return_after_s`` after the link was lost, ``return`` to the last point of contact
+    (``return_tolerance_m``: close enough there) and further back along the trail of earlier
+    ones if that is silent too (module docstring)."""
 
     enabled: bool = True
     arm_after_broadcasts: int = 2
     silence_s: float = 10.0
     task_grace_s: float = 20.0
+    task_limit_s: float = 120.0
     policy: Literal["hold", "return"] = "return"
+    return_after_s: float = 60.0
     return_tolerance_m: float = 0.75
     return_spacing_m: float = 2.0
     return_trail_points: int = 16
@@ -80,8 +92,15 @@ class CommsWatchdogConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
         if self.arm_after_broadcasts < 1:
             raise ValueError(f"arm_after_broadcasts must be >= 1, got {self.arm_after_broadcasts}")
-        if not (math.isfinite(self.task_grace_s) and self.task_grace_s >= 0):
-            raise ValueError(f"task_grace_s must be finite and >= 0, got {self.task_grace_s}")
+        for name in ("task_grace_s", "return_after_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v}")
+        if not (math.isfinite(self.task_limit_s) and self.task_limit_s >= self.task_grace_s):
+            raise ValueError(
+                f"task_limit_s must be finite and >= task_grace_s ({self.task_grace_s}), "
+                f"got {self.task_limit_s}"
+            )
 
 
 class LinkState(enum.Enum):
@@ -109,6 +128,7 @@ class CommsWatchdog:
         self.silent_since_s: float | None = None  # when the link was declared lost
         self._broadcast_times: set[float] = set()  # until armed
         self.armed = False
+        self._returned = False  # this silence's return was made (then it holds for good)
 
     def heard(self, now_s: float, pose_in_odom: np.ndarray, *, periodic: bool = False) -> LinkState:
         """The GCS was heard at ``now_s`` with the robot at ``pose_in_odom`` (``periodic``:
@@ -124,6 +144,7 @@ class CommsWatchdog:
         if not trail or math.hypot(*(here - trail[-1])) >= self.config.return_spacing_m:
             trail.append(here)
         self._route = []
+        self._returned = False
         self.state = LinkState.CONNECTED
         self.silent_since_s = None
         return before
@@ -132,8 +153,11 @@ class CommsWatchdog:
         """Seconds since the GCS was last heard (0 before it ever was)."""
         return 0.0 if self.last_heard_s is None else max(0.0, now_s - self.last_heard_s)
 
-    def update(self, now_s: float, pose_in_odom: np.ndarray) -> LinkState:
-        """Advance to ``now_s``; returns the new state."""
+    def update(
+        self, now_s: float, pose_in_odom: np.ndarray, *, task_driving: bool = False
+    ) -> LinkState:
+        """Advance to ``now_s``; returns the new state. ``task_driving``: the robot's task
+        still has waypoints to drive (it then goes on up to ``task_limit_s``)."""
         cfg = self.config
         if not cfg.enabled or not self.armed or self.last_heard_s is None:
             return self.state
@@ -141,10 +165,23 @@ class CommsWatchdog:
         if self.state is LinkState.CONNECTED and quiet >= cfg.silence_s:
             self.state = LinkState.SILENT
             self.silent_since_s = self.last_heard_s + cfg.silence_s
-        if self.state is LinkState.SILENT and quiet >= cfg.silence_s + cfg.task_grace_s:
-            self.state = LinkState.HOLDING if cfg.policy == "hold" else LinkState.RETURNING
-            if self.state is LinkState.RETURNING and self.contact_in_odom is not None:
-                self._route = [*self._trail, self.contact_in_odom]
+        lost_s = quiet - cfg.silence_s
+        if (
+            self.state is LinkState.SILENT
+            and lost_s >= cfg.task_grace_s
+            and (not task_driving or lost_s >= cfg.task_limit_s)
+        ):
+            self.state = LinkState.HOLDING
+        if (
+            self.state is LinkState.HOLDING
+            and cfg.policy == "return"
+            and not self._returned
+            and lost_s >= cfg.return_after_s
+            and self.contact_in_odom is not None
+        ):
+            self.state = LinkState.RETURNING
+            self._returned = True
+            self._route = [*self._trail, self.contact_in_odom]
         while self.state is LinkState.RETURNING and self._at(
             self.return_target_in_odom, pose_in_odom
         ):
@@ -225,9 +262,10 @@ class LinkAwareTasks:
         """The watchdog's transitions, then the executor's progress (see the class)."""
         wd = self.watchdog
         before = wd.state
-        state = wd.update(now_s, pose_in_odom)
+        driving = len(self.executor.intent.waypoints_in_odom) > 0
+        state = wd.update(now_s, pose_in_odom, task_driving=driving)
         if state is not before:
-            self._note(now_s, self._describe(state))
+            self._note(now_s, self._describe(state, now_s))
         out, self._pending = self._pending, []
         suspended = wd.suspended
         out += self.executor.update(
@@ -238,17 +276,17 @@ class LinkAwareTasks:
         )
         return out
 
-    def _describe(self, state: LinkState) -> str:
+    def _describe(self, state: LinkState, now_s: float) -> str:
         wd = self.watchdog
         cfg = wd.config
         if state is LinkState.SILENT:
             return f"link silent for {cfg.silence_s:.1f} s: continuing the task"
-        quiet = cfg.silence_s + cfg.task_grace_s
+        quiet = wd.quiet_s(now_s)
         if state is LinkState.RETURNING:
             c = wd.contact_in_odom
             where = "" if c is None else f" ({c[0]:.1f}, {c[1]:.1f}) in odom"
             return f"link silent for {quiet:.1f} s: returning to the last point of contact{where}"
-        if state is LinkState.HOLDING and cfg.policy == "return":
+        if state is LinkState.HOLDING and wd._returned:
             return "link silent: holding at the oldest point of contact it kept"
         return f"link silent for {quiet:.1f} s: holding"
 

@@ -44,7 +44,8 @@ def test_unarmed_watchdog_never_declares_silence() -> None:
 
 
 def test_hold_suspends_the_task_reports_it_and_resumes_it() -> None:
-    cfg = CommsWatchdogConfig(silence_s=5.0, task_grace_s=5.0, policy="hold")
+    # a robot stuck without a path is still given waypoints: hold at the grace, not the limit
+    cfg = CommsWatchdogConfig(silence_s=5.0, task_grace_s=5.0, task_limit_s=5.0, policy="hold")
     tasks = LinkAwareTasks(config=cfg)
     _beat(tasks, 0.0)
     _beat(tasks, 2.0)
@@ -76,7 +77,9 @@ def test_hold_suspends_the_task_reports_it_and_resumes_it() -> None:
 
 
 def test_return_drives_back_along_its_points_of_contact_then_holds() -> None:
-    cfg = CommsWatchdogConfig(silence_s=5.0, task_grace_s=0.0, policy="return")
+    cfg = CommsWatchdogConfig(
+        silence_s=5.0, task_grace_s=0.0, task_limit_s=0.0, return_after_s=0.0, policy="return"
+    )
     tasks = LinkAwareTasks(config=cfg)
     earlier, contact = np.array([0.0, 0.0, 0.0]), np.array([3.0, -1.0, 0.0])
     _beat(tasks, 0.0, earlier)
@@ -101,6 +104,37 @@ def test_return_drives_back_along_its_points_of_contact_then_holds() -> None:
     assert np.allclose(tasks.intent.waypoints_in_odom, [[50.0, 0.0]])  # the task again
 
 
+def test_a_driving_task_goes_on_through_a_silence_then_holds_then_returns() -> None:
+    """An outage in time costs the robot nothing while its task has ground to cover: it
+    drives on, holds when the goal is reached, and backs out only after ``return_after_s``."""
+    cfg = CommsWatchdogConfig(
+        silence_s=5.0, task_grace_s=5.0, task_limit_s=60.0, return_after_s=30.0, policy="return"
+    )
+    tasks = LinkAwareTasks(config=cfg)
+    _beat(tasks, 0.0)
+    _beat(tasks, 2.0)
+    tasks.submit(GoToTask(3, 2.0, [(20.0, 0.0)]), 2.0, POSE)
+    x, reports = 0.0, []
+    for k in range(1, 401):  # 0.1 s steps at 1 m/s towards the goal, never heard
+        t = 2.0 + 0.1 * k
+        reports += tasks.update(t, np.array([x, 0.0, 0.0]))
+        if tasks.intent.mode is AutonomyMode.AUTONOMOUS and tasks.state is not LinkState.RETURNING:
+            x = min(20.0, x + 0.1)
+        if t <= 21.0:  # silent from 7 s, the grace over at 12 s: still driving to the goal
+            assert tasks.state in (LinkState.CONNECTED, LinkState.SILENT), t
+    assert [r.state for r in reports if r.task_id == 3][-1] is TaskState.SUCCEEDED
+    assert x >= 19.0  # it got there (within the waypoint tolerance), 18 s into the silence
+    wd = tasks.watchdog
+    assert wd.state is LinkState.RETURNING  # lost at 7 s: back from 37 s on
+    assert np.allclose(tasks.intent.waypoints_in_odom, [[0.0, 0.0]])
+    stuck = CommsWatchdog(cfg)
+    for t in (0.0, 2.0):
+        stuck.heard(t, POSE, periodic=True)
+    assert stuck.update(60.0, POSE, task_driving=True) is LinkState.SILENT  # 53 s lost
+    away = np.array([10.0, 0.0, 0.0])
+    assert stuck.update(67.0, away, task_driving=True) is LinkState.RETURNING  # the limit
+
+
 def test_config_rejects_unknown_keys_and_bad_values(tmp_path) -> None:  # type: ignore[no-untyped-def]
     path = tmp_path / "robot.yaml"
     path.write_text("comms:\n  policy: hold\n  silence_s: 8\n")
@@ -112,3 +146,5 @@ def test_config_rejects_unknown_keys_and_bad_values(tmp_path) -> None:  # type: 
         msgspec.convert({"policy": "wander"}, CommsWatchdogConfig)
     with pytest.raises(msgspec.ValidationError, match="silence_s"):
         msgspec.convert({"silence_s": 0}, CommsWatchdogConfig)
+    with pytest.raises(msgspec.ValidationError, match="task_limit_s"):
+        msgspec.convert({"task_grace_s": 30, "task_limit_s": 10}, CommsWatchdogConfig)

@@ -3,7 +3,8 @@
 One robot in an open field, a ground side that acts like the GCS on the radio (its
 frame/hazard broadcast every 2 s, one long GoTo task) and counts what arrives. The simulator
 turns the robot's radio off for 60 s (``SimulatorConfig.radio_blackouts``). The robot keeps
-driving its task while the link is silent, holds after ``silence_s + task_grace_s``, resumes
+driving its task while the link is silent, holds after ``silence_s + task_limit_s`` (here
+equal to ``task_grace_s``: the task is far from done), resumes
 when the radio returns, and every pose node and terrain grid it made arrives afterwards, once
 each and in order.
 """
@@ -42,7 +43,13 @@ END_S = BLACKOUT_START_S + BLACKOUT_S + 12.0
 def test_robot_through_a_60_s_blackout_delivers_everything_afterwards(policy: str) -> None:
     world = make_world(robots=[(5.0, 20.0, 0.0, "sensor")], size_m=(140.0, 40.0))
     sim_cfg = SimulatorConfig(seed=0, radio_blackouts=((0, BLACKOUT_START_S, BLACKOUT_S),))
-    comms = CommsWatchdogConfig(silence_s=10.0, task_grace_s=15.0, policy=policy)  # type: ignore[arg-type]
+    comms = CommsWatchdogConfig(
+        silence_s=10.0,
+        task_grace_s=15.0,
+        task_limit_s=15.0,
+        return_after_s=15.0,
+        policy=policy,  # type: ignore[arg-type]
+    )
     robot_cfg = RobotNodeConfig(comms=comms)
     arrived: list[tuple[float, Any]] = []
     with Simulator(world, config=sim_cfg, radio=RadioConfig()) as sim:
