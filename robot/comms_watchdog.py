@@ -31,8 +31,10 @@ States (:class:`LinkState`), with ``quiet = now - last heard``:
   is as often an outage in time (interference, a relay moving, the GCS restarting) as a
   shadow in space, and backing out costs the way back and then forth again; the chaos bench
   (``magic bench chaos``: two 60 s blackouts per robot in 600 mission-s) lost 0.076 of the
-  explored fraction with robots suspending their tasks 20 s into a silence and backing out
-  (see ``magic bench chaos``'s ``robot_suspended_s`` for what the policy costs).
+  explored fraction with robots suspending their tasks 20 s into a silence and backing out;
+  with the task driven on and the return after a minute the faulted run explored 0.884
+  against 0.839 without faults, one seed (``robot_suspended_s`` there says what the policy
+  costs: 459 robot-s faulted, 607 without faults: the small world's radio shadows).
 
 The first message heard again returns it to ``CONNECTED`` and the suspended task resumes (or
 the GCS's next task replaces it). Every transition of a robot with a task is reported as a
