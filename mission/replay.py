@@ -619,7 +619,13 @@ def run_replay(
     cfg = config or ReplayConfig()
     t_start = time.perf_counter()
     clock = log_clock(log, cfg.period_s)
-    station = GroundStation(cfg.station)
+    station_cfg = cfg.station
+    if station_cfg.loops.grid_window_m == 0.0 and cfg.grid.aggregate_m > 0.0:
+        # the closer bounds how far odometry's turn error bends a grid by the travel it
+        # spans (gcs.loops.loop_closer, "Bent grids"): here, the scans of aggregate_m
+        loops = msgspec.structs.replace(station_cfg.loops, grid_window_m=cfg.grid.aggregate_m)
+        station_cfg = msgspec.structs.replace(station_cfg, loops=loops)
+    station = GroundStation(station_cfg)
     rid = cfg.robot_id
     nodes: list[ReplayNode] = []
     interrupted: str | None = None
