@@ -61,10 +61,11 @@ them again.
 
 The suite reports its own cost: ``bench_wall_s`` and ``bench_cpu_s`` (this process, every
 thread), so a run on a loaded machine says how loaded it was. Measured (quick, load average
-28 on the 2 cores): 127 s CPU, 8.2 min wall (was 182 s CPU with the loop-less prefixes and a
-second ACES replay); the four turn-scale rows of ACES and Freiburg 079 take two thirds of
-its wall time (ACES 113 and 121 s against 14 s clean: under cProfile 90 % of such a run is
-``cycle_validation``'s search over conflicting hypotheses), every other row 3..14 s wall.
+20..28 on the 2 cores): 115..127 s CPU, 4.7..8.2 min wall (was 182 s CPU with the loop-less
+prefixes and a second ACES replay); the four turn-scale rows of ACES and Freiburg 079 take
+half to two thirds of its wall time (ACES 113 and 121 s against 14 s clean: under cProfile
+90 % of such a run is ``cycle_validation``'s search over conflicting hypotheses), every other
+row 3..14 s wall.
 Clean rows 0 false closures, ATE 0.094 / 0.147 / 0.144 m against odometry's 0.372 / 2.712 /
 0.443 m (Intel / ACES / Freiburg 079).
 """
