@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import msgspec
 import numpy as np
@@ -53,6 +53,9 @@ from protocol.se2 import compose, inverse, relative, transform_points
 from robot.node import RobotNodeConfig
 from sim.simulator import Simulator, SimulatorConfig
 from sim.world_generator import World, WorldConfig
+
+if TYPE_CHECKING:
+    from protocol.link import LinkConfig
 
 __all__ = [
     "Assembly",
@@ -332,6 +335,11 @@ def assemble(
     realtime: bool = False,
     journal_path: str | Path | None = None,
     broadcast_hazards: bool = True,
+    workers: int | None = None,
+    remote_robots: tuple[int, ...] = (),
+    link: LinkConfig | None = None,
+    worker_link_args: list[str] | None = None,
+    mission_name: str | None = None,
 ) -> Iterator[Assembly]:
     """Bring a team up (module docstring); closes everything on exit (links, processes, the
     simulator). ``with_gcs``: the real GCS on the ground side (roles as disruptors from the
@@ -340,7 +348,23 @@ def assemble(
     ``robot_processes``). Deterministic unless ``realtime`` (see :mod:`mission.lockstep`).
     ``journal_path``: the GCS journal's file (a new one; ``RUN_DIR/journal.sqlite`` for a
     run), closed on exit. ``broadcast_hazards``: the station's HazardUpdate goes out as one
-    broadcast when several robots are due (else one copy per robot)."""
+    broadcast when several robots are due (else one copy per robot).
+
+    With ``robot_processes`` (:class:`~mission.lockstep.TeamOverProcesses`): ``workers``
+    worker processes (default one per core), ``remote_robots`` started elsewhere (other
+    hosts), ``link`` this process's zenoh endpoints and mode, ``worker_link_args`` the
+    endpoint options of the workers it starts, ``mission_name`` the zenoh mission name
+    (default a fresh one). Any of them without ``robot_processes`` is a ValueError."""
+    spread = {
+        "workers": workers is not None,
+        "remote_robots": bool(remote_robots),
+        "link": link is not None,
+        "worker_link_args": worker_link_args is not None,
+        "mission_name": mission_name is not None,
+    }
+    if not robot_processes and any(spread.values()):
+        given = ", ".join(k for k, v in spread.items() if v)
+        raise ValueError(f"{given}: only with robot_processes (robot nodes in worker processes)")
     sim_cfg = msgspec.structs.replace(simulator or SimulatorConfig(), seed=seeds.simulator)
     with Simulator(world, config=sim_cfg, radio=radio) as sim:  # its radio model grants
         roles = roles_of(sim)
@@ -398,6 +422,11 @@ def assemble(
                 seeds=seeds,
                 on_ground_message=on_message,
                 robot_config=robot,
+                workers=workers,
+                remote_robots=remote_robots,
+                link=link,
+                worker_link_args=worker_link_args,
+                mission=mission_name,
             )
         else:
             team = TeamInLockstep(

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import math
 import os
 import queue
 import signal
@@ -525,6 +526,8 @@ def main(argv: list[str]) -> int:
         robot_ids = _robot_ids(args.id)
         if args.seed < 0:
             raise ValueError(f"--seed must be >= 0, got {args.seed}")
+        if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+            raise ValueError(f"--duration must be > 0 mission-seconds, got {args.duration}")
         keys.sim_clock(args.mission)
         config = load_config(args.config, RobotNodeConfig) if args.config else RobotNodeConfig()
         radio = load_config(args.radio, RadioConfig)

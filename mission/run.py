@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import msgspec
@@ -43,7 +43,7 @@ from gcs.ground_station import GroundStationConfig
 from gcs.mission_control import MissionControlConfig
 from mission.assembly import Assembly, GroundSide, assemble
 from mission.config import config_path, load_config
-from mission.lockstep import seed_streams
+from mission.lockstep import WorkerDied, seed_streams
 from protocol.messages import (
     Detection,
     GoToTask,
@@ -62,10 +62,14 @@ from protocol.se2 import inverse, transform_points
 from robot.node import RobotNodeConfig
 from sim.simulator import Simulator, SimulatorConfig, load_world_config
 
+if TYPE_CHECKING:
+    from protocol.link import LinkConfig
+
 __all__ = [
     "RobotProgress",
     "RunConfig",
     "RunReport",
+    "TeamSetupError",
     "fields_differing",
     "main",
     "run_mission",
@@ -97,7 +101,9 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     hazard_period_s: float = 1.0  # hazard updates to every robot (0: none)
     seed: int = 0  # every random stream of the run derives from it (mission.lockstep)
     realtime: bool = False  # wall-clock delivery (hardware in the loop): not repeatable
-    robot_processes: bool = False  # each robot node in its own process (magic robot --lockstep)
+    robot_processes: bool = False  # robot nodes in worker processes (magic robot --lockstep)
+    workers: int | None = None  # robot worker processes (robot_processes; None: one per core)
+    remote_robots: tuple[int, ...] = ()  # robots whose workers another host starts
     simulator: SimulatorConfig = SimulatorConfig()
     robot: RobotNodeConfig = RobotNodeConfig()
 
@@ -108,10 +114,23 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
             raise ValueError(f"seed must be >= 0, got {self.seed}")
         if self.realtime and self.robot_processes:
             raise ValueError("realtime and robot_processes cannot be combined (yet)")
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"workers must be >= 1 processes, got {self.workers}")
+        if (self.workers is not None or self.remote_robots) and not self.robot_processes:
+            raise ValueError("workers and remote_robots need robot_processes: true")
+        if any(r < 0 for r in self.remote_robots) or len(set(self.remote_robots)) != len(
+            self.remote_robots
+        ):
+            raise ValueError(f"remote_robots must be distinct ids >= 0, got {self.remote_robots}")
         if self.goals_per_robot < 0:
             raise ValueError(f"goals_per_robot must be >= 0, got {self.goals_per_robot}")
         if not (math.isfinite(self.gcs_step_period_s) and self.gcs_step_period_s > 0):
             raise ValueError(f"gcs_step_period_s must be > 0, got {self.gcs_step_period_s}")
+
+
+class TeamSetupError(ValueError):
+    """The team could not be brought up (an endpoint in use or unreachable, a robot worker
+    that died or never answered): bad input for ``magic run`` (status 2, one line)."""
 
 
 @dataclass
@@ -381,6 +400,9 @@ def run_mission(
     out_dir: str | Path | None = None,
     operator: Callable[[Any, Any], Any] | None = None,
     on_console: Callable[[str], None] | None = None,
+    link: LinkConfig | None = None,
+    mission_name: str | None = None,
+    worker_link_args: list[str] | None = None,
 ) -> RunReport:
     """Run the team for ``config.duration_s`` mission-seconds; returns what happened.
 
@@ -395,7 +417,10 @@ def run_mission(
     Deterministic unless ``config.realtime`` (see :mod:`mission.lockstep`). ^C or SIGTERM
     (any ``KeyboardInterrupt``) ends the run early: links are closed and the report so far is
     returned with ``interrupted`` set to the exception; an interrupt before the team is up
-    propagates.
+    propagates. With ``config.robot_processes`` the robot nodes run in ``config.workers``
+    worker processes (``config.remote_robots`` in workers started on other hosts); ``link``
+    (this process's zenoh endpoints and mode), ``mission_name`` and ``worker_link_args`` go
+    to :func:`mission.assembly.assemble`.
     """
     world_cfg = load_world_config(config_path(config.world, "world"))
     radio_path = config_path(config.radio, "radio")
@@ -410,24 +435,35 @@ def run_mission(
         rng = np.random.default_rng(seeds.ground)
         return [_GroundScript(sim, config, report.robots, rng)]
 
-    with assemble(
-        world_cfg,
-        seeds=seeds,
-        radio=radio_cfg,
-        radio_path=str(radio_path),
-        simulator=config.simulator,
-        robot=config.robot,
-        gcs=config.gcs,
-        mission=config.mission,
-        with_gcs=not config.scripted,
-        scripts=scripts if config.scripted else None,
-        taps=[_ProgressTap(report.robots)],
-        gcs_step_period_s=config.gcs_step_period_s,
-        gcs_budget_s=config.gcs_budget_s,
-        robot_processes=config.robot_processes,
-        realtime=config.realtime,
-        journal_path=_journal_path(out_dir, config),
-    ) as asm:
+    with contextlib.ExitStack() as stack:
+        team = assemble(
+            world_cfg,
+            seeds=seeds,
+            radio=radio_cfg,
+            radio_path=str(radio_path),
+            simulator=config.simulator,
+            robot=config.robot,
+            gcs=config.gcs,
+            mission=config.mission,
+            with_gcs=not config.scripted,
+            scripts=scripts if config.scripted else None,
+            taps=[_ProgressTap(report.robots)],
+            gcs_step_period_s=config.gcs_step_period_s,
+            gcs_budget_s=config.gcs_budget_s,
+            robot_processes=config.robot_processes,
+            realtime=config.realtime,
+            journal_path=_journal_path(out_dir, config),
+            workers=config.workers,
+            remote_robots=config.remote_robots,
+            link=link,
+            worker_link_args=worker_link_args,
+            mission_name=mission_name,
+        )
+        try:
+            asm = stack.enter_context(team)
+        except (ValueError, TimeoutError, WorkerDied) as exc:
+            # an endpoint in use or unreachable, a worker that died or never came up
+            raise TeamSetupError(f"the team did not come up: {exc}") from exc
         if operator is not None and asm.gcs is not None:  # consoles and views (issue 15)
             asm.gcs.attach_operator(operator(asm.team.ground_link, asm.gcs.control))
             if on_console is not None:
@@ -779,6 +815,36 @@ def _parser() -> Any:
         help="each robot node in its own process (magic robot --lockstep), the simulator and "
         "the ground side in this one: the same run as in one process (default: one process)",
     )
+    spread = p.add_argument_group(
+        "across processes and hosts",
+        "Any of these puts the robot nodes in worker processes (as --robot-processes).",
+    )
+    spread.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="robot worker processes this process starts, robots split among them in "
+        "consecutive id groups (default: one per core)",
+    )
+    spread.add_argument(
+        "--remote-robots",
+        metavar="IDS",
+        help="robots (e.g. 4-7 or 0,2) whose workers another host starts with `magic robot "
+        "--lockstep --id IDS --mission NAME --seed SEED` and endpoints reaching this one; the "
+        "run waits for them (needs --mission; default: none)",
+    )
+    from protocol.process_cli import add_link_arguments
+
+    add_link_arguments(p)  # --mission, --radio, --connect, --listen, --mode, --link-config
+    p.set_defaults(mission=None, radio=None)  # unset: the run's config (and a fresh name)
+    for action in p._actions:
+        if action.dest == "mission":
+            action.help = (
+                "zenoh mission name the robot workers join (default: a fresh one; name it "
+                "when workers run on other hosts)"
+            )
+        elif action.dest == "radio":
+            action.help = "radio model config (default: the run config's, radio/magic2010.yaml)"
     p.add_argument(
         "--out",
         metavar="RUN_DIR",
@@ -864,8 +930,55 @@ def _check_inputs(config: RunConfig) -> None:
     """Everything a run reads, read before it starts (ConfigError/ValueError naming it)."""
     world = load_world_config(config_path(config.world, "world"))
     load_config(config_path(config.radio, "radio"), RadioConfig)
-    if world.robots.sensors + world.robots.disruptors < 1:  # pragma: no cover - config refuses
+    team = world.robots.sensors + world.robots.disruptors
+    if team < 1:  # pragma: no cover - config refuses
         raise ValueError(f"world {config.world}: no robots")
+    beyond = [r for r in config.remote_robots if r >= team]
+    if beyond:
+        raise ValueError(
+            f"remote robots {beyond}: world {config.world} has robots 0-{team - 1} only"
+        )
+
+
+def _remote_robot_ids(text: str, mission: str | None) -> list[int]:
+    """``--remote-robots``' ids (ValueError naming the option and the part at fault)."""
+    from mission.lockstep_protocol import parse_robot_ids
+
+    try:
+        ids = parse_robot_ids(text)
+    except ValueError as exc:
+        raise ValueError(f"--remote-robots: {exc}") from None
+    if not mission:
+        raise ValueError(
+            f"--remote-robots {text}: give --mission NAME too (the workers on the other host "
+            "join that mission)"
+        )
+    return ids
+
+
+def _run_link(config: RunConfig, args: Any) -> LinkConfig:
+    """This process's zenoh endpoints and mode from ``--connect``, ``--listen``, ``--mode``,
+    ``--link-config`` and ``--security`` (:func:`protocol.process_cli.link_config`). The
+    workers connect to what it connects to or, when it connects nowhere, to its listen
+    endpoints: those need a port (loopback's default ``:0`` becomes a free port)."""
+    from protocol.loopback import free_loopback_port
+    from protocol.process_cli import link_config
+
+    radio = load_config(config_path(config.radio, "radio"), RadioConfig)
+    link = link_config(radio, args)
+    if not link.connect:
+        default = "tcp/127.0.0.1:0"
+        listen = tuple(
+            f"tcp/127.0.0.1:{free_loopback_port()}" if e == default else e for e in link.listen
+        )
+        for e in listen:
+            if e.endswith(":0"):
+                raise ValueError(
+                    f"--listen {e}: the robot workers connect to this endpoint: give it a "
+                    "port, or --connect to a router"
+                )
+        link = msgspec.structs.replace(link, listen=listen)
+    return link
 
 
 def _run_dir(out: str | None, config: RunConfig) -> Path:
@@ -928,8 +1041,15 @@ def main(argv: list[str] | None = None) -> int:
         err.print(f"magic run: {text}", style="red", markup=False, soft_wrap=True)
         return 2
 
+    link = None
     try:
         config = load_config(args.config, RunConfig) if args.config else RunConfig()
+        remote = None
+        if args.remote_robots is not None:
+            remote = tuple(_remote_robot_ids(args.remote_robots, args.mission))
+        link_given = bool(args.connect or args.listen or args.mode or args.link_config)
+        link_given = link_given or bool(args.security)
+        spread = link_given or bool(args.mission) or args.workers is not None or bool(remote)
         overrides = {
             k: v
             for k, v in (
@@ -937,7 +1057,10 @@ def main(argv: list[str] | None = None) -> int:
                 ("duration_s", args.duration),
                 ("seed", args.seed),
                 ("realtime", True if args.realtime else None),
-                ("robot_processes", True if args.robot_processes else None),
+                ("robot_processes", True if args.robot_processes or spread else None),
+                ("workers", args.workers),
+                ("remote_robots", remote),
+                ("radio", None if args.radio is None else str(args.radio)),
                 ("scripted", True if args.scripted else None),
             )
             if v is not None
@@ -945,6 +1068,8 @@ def main(argv: list[str] | None = None) -> int:
         if overrides:
             config = msgspec.structs.replace(config, **overrides)
         _check_inputs(config)
+        if link_given:
+            link = _run_link(config, args)
         from gcs.operator.node_hooks import check_operator_arguments, operator_service
 
         no_consoles = ""
@@ -987,6 +1112,16 @@ def main(argv: list[str] | None = None) -> int:
         console.print(f"magic run: operators: {command}", markup=False, soft_wrap=True)
 
     ops: dict[str, Any] = {} if config.scripted or no_consoles else {"operator": operators}
+    ops.update(link=link, mission_name=args.mission)
+    if config.remote_robots:
+        where = " ".join(f"--connect {e}" for e in (link.connect or link.listen)) if link else ""
+        err.print(
+            f"magic run: waiting for robots {args.remote_robots}: start them with magic robot "
+            f"--lockstep --id {args.remote_robots} --mission {args.mission} --seed "
+            f"{config.seed} {where}".rstrip(),
+            markup=False,
+            soft_wrap=True,
+        )
     if no_consoles:
         err.print(f"magic run: {no_consoles}", markup=False, soft_wrap=True)
     try:
@@ -1029,7 +1164,7 @@ def main(argv: list[str] | None = None) -> int:
         status, name = _exit_status(exc)
         err.print(f"magic run: stopped by {name} before the run started", soft_wrap=True)
         return status
-    except ConfigError as exc:
+    except (ConfigError, TeamSetupError) as exc:
         return fail(exc)
     finally:
         signal.signal(signal.SIGTERM, previous)

@@ -122,3 +122,15 @@ def test_a_signal_stops_a_robot_process_cleanly(sig, status) -> None:
     assert "Traceback" not in err
     assert f"magic robot: stopped by {signal.Signals(sig).name}" in out
     assert "robot 0 t=" in out  # its last status line
+
+
+@pytest.mark.parametrize("duration", ["-5", "0", "nan", "inf"])
+def test_a_non_positive_duration_is_refused_in_one_line(duration, capsys) -> None:
+    """``magic robot --duration -5``: status 2 and one line, as ``magic run`` does, before any
+    link opens."""
+    from mission.robot_process import main
+
+    assert main(["--id", "0", "--duration", duration]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "--duration must be > 0 mission-seconds, got" in err and "Traceback" not in err

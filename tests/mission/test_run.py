@@ -58,6 +58,16 @@ def test_run_command_reports_a_bad_config_file(tmp_path, capsys) -> None:
         (["--world", "/tmp/no/such/world.yaml"], "(shipped: magic_phase, "),
         (["--duration", "-5"], "duration_s must be > 0 mission-seconds, got -5.0"),
         (["--duration", "nan"], "duration_s must be > 0 mission-seconds, got nan"),
+        (["--workers", "0"], "workers must be >= 1 processes, got 0"),
+        (["--remote-robots", "2-1", "--mission", "m"], "--remote-robots: robot ids '2-1':"),
+        (["--remote-robots", "3"], "--remote-robots 3: give --mission NAME too"),
+        (
+            ["--remote-robots", "9", "--mission", "m"],
+            "remote robots [9]: world world/small.yaml has robots 0-3 only",
+        ),
+        (["--listen", "tcp/0.0.0.0:0"], "--listen tcp/0.0.0.0:0: the robot workers connect"),
+        (["--workers", "2", "--realtime"], "realtime and robot_processes cannot be combined"),
+        (["--link-config", "/no/such.yaml"], "/no/such.yaml"),
     ],
 )
 def test_run_command_refuses_bad_arguments_before_running(argv, problem, capsys) -> None:
@@ -95,11 +105,19 @@ def test_same_seed_gives_the_same_mission_bit_for_bit_even_under_load() -> None:
 
 
 def test_robots_in_their_own_processes_give_the_same_mission() -> None:
-    """``magic run --robot-processes``: each node a ``magic robot --lockstep`` process, the
-    same figures bit for bit as in one process (node counters and uplink bytes included)."""
+    """``magic run --robot-processes --workers 2 --listen E --mission M``: the robot nodes in
+    two ``magic robot --lockstep`` worker processes, the same figures bit for bit as in one
+    process (node counters and uplink bytes included)."""
+    from protocol.link import LinkConfig
+    from protocol.loopback import free_loopback_port, unique_mission
+
     config = RunConfig(duration_s=8.0, seed=2)
     in_process = run_mission(config).fields()
-    spread = run_mission(msgspec.structs.replace(config, robot_processes=True)).fields()
+    spread = run_mission(
+        msgspec.structs.replace(config, robot_processes=True, workers=2),
+        link=LinkConfig(listen=(f"tcp/127.0.0.1:{free_loopback_port()}",)),
+        mission_name=unique_mission("run-workers"),
+    ).fields()
     assert fields_differing(in_process, spread) == []
     assert spread["robot0.pose_nodes"] > 0 and spread["robot0.uplink_bytes"] > 0
 
