@@ -54,9 +54,10 @@ simulated MAGIC site has a pit with 25% slip) the encoders report up to a third 
 than the body made, with the usual small covariance, and the map bends there for good unless
 a loop closes over it (small world, 300 s: one robot's trajectory 1-2 m off after 8 m of
 sand). So every odometry edge whose two grids have arrived is checked against the correlative
-match of those grids (standard window, around the odometry): a confident match that
-contradicts the edge (:class:`OdometryCheckConfig`, :func:`odometry_contradicted`) replaces
-its measurement and covariance (``stats.odometry_replaced``; the robot's report stays in
+match of those grids (standard window, around the odometry): a confident match whose
+translation contradicts the edge (:class:`OdometryCheckConfig`, :func:`odometry_contradicted`)
+replaces the edge's translation and its covariance, keeping the gyro's heading (a match's
+heading in sparse sand was once 4 deg off) (``stats.odometry_replaced``; the robot's report stays in
 :meth:`PoseGraph.odometry_reported`, and the replacement is put back after an odometry
 recalibration). The check runs at the next :meth:`GroundStation.step`, before loop closing.
 
@@ -157,9 +158,12 @@ class OdometryCheckConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     replaces the odometry edge when it contradicts it: Mahalanobis ``chi2`` (3 dof, odometry
     and match covariances added) above ``chi2`` and a difference of at least ``min_diff_m``
     in translation or ``min_diff_rad`` in heading (well-measured steps are left alone).
+    ``keep_heading``: the replacement keeps the odometry's heading and its variance (the
+    gyro's; slip corrupts the wheels' translation) and takes only the match's translation.
     """
 
     enabled: bool = True
+    keep_heading: bool = True
     min_score: float = 0.5
     max_sigma_xy_m: float = 0.1
     chi2: float = 4.0
@@ -1214,20 +1218,30 @@ class GroundStation:
                 float(np.linalg.eigvalsh(cov_xy)[-1]) <= cfg.max_sigma_xy_m**2
             ):
                 continue
-            cov = vector_to_body_covariance(m.a_from_b, m.covariance)
-            cov = 0.5 * (cov + cov.T) + floor
+            # slip corrupts what the wheels measure, the translation; the heading is the
+            # gyro's (a match's heading in sparse sand was 4 deg off where the gyro's was 0.1)
+            if cfg.keep_heading:
+                z_new = np.array([m.a_from_b[0], m.a_from_b[1], z_odo[2]], dtype=float)
+                cov_m = vector_to_body_covariance(z_new, m.covariance)
+                cov_new = np.zeros((3, 3))
+                cov_new[:2, :2] = 0.5 * (cov_m[:2, :2] + cov_m[:2, :2].T) + floor[:2, :2]
+                cov_new[2, 2] = cov_odo[2, 2]
+            else:
+                z_new = np.asarray(m.a_from_b, dtype=float).copy()
+                cov_m = vector_to_body_covariance(z_new, m.covariance)
+                cov_new = 0.5 * (cov_m + cov_m.T) + floor
             bad, _ = odometry_contradicted(
                 z_odo,
                 cov_odo,
-                m.a_from_b,
-                cov,
+                z_new,
+                cov_new,
                 chi2=cfg.chi2,
                 min_diff_m=cfg.min_diff_m,
                 min_diff_rad=cfg.min_diff_rad,
             )
             eid = self._odometry_edge_id(kb) if bad else None
             if eid is not None and eid not in self._odometry_replaced:
-                updates[eid] = (np.asarray(m.a_from_b, dtype=float).copy(), cov)
+                updates[eid] = (z_new, cov_new)
         if updates:
             self.graph.update_edges(updates)
             self._odometry_replaced.update(updates)
