@@ -37,8 +37,8 @@ from gcs.journal import (
     step_control,
 )
 from gcs.mission_control import MissionControl, MissionControlConfig
+from gcs.node_args import gcs_parser
 from gcs.operator.node_hooks import (  # operator (issue 15): views and console commands
-    add_operator_arguments,
     check_operator_arguments,
     operator_service,
 )
@@ -49,7 +49,6 @@ from protocol.config import ConfigError, load_config
 from protocol.link import Link
 from protocol.messages import STREAMS, Direction, HazardUpdate, Reliability, stream_of
 from protocol.process_cli import (
-    add_link_arguments,
     follow_sim_clock,
     link_config,
     spin_until,
@@ -338,29 +337,6 @@ class GcsProcess:
             self._clock_sub.close()
 
 
-_DESCRIPTION = """\
-Run the ground-control station (GCS) as its own process. It takes every robot's uplink (pose
-nodes, terrain grids, fiducials, detections) over zenoh, builds the only global map (factor
-graph, loop closing, iSAM2) and sends each robot a HazardUpdate (every linked robot's
-map_from_odom and the hazards) every frames_period_s of mission time (GroundStationConfig,
-default 2 s). Bad messages are refused and counted, never fatal; a solver fault is recovered
-(batch re-solve) and counted.
-
-Prints a status line every --progress-s wall seconds and a one-line summary at the end: mission
-time (s), robots seen and linked to map, pose nodes, grids, graph edges, rejected messages,
-solver recoveries/faults and clock anomalies. Exit status: 0 when --duration has passed, 2 on
-bad input (one line on stderr, before anything starts), 130 after SIGINT, 143 after SIGTERM.
-"""
-
-#: Help of the shared link options, with their defaults and units.
-_LINK_HELP = {
-    "mission": "mission name in the zenoh keys (default: %(default)s)",
-    "radio": "radio config YAML (RadioConfig; default: configs/radio/magic2010.yaml)",
-    "connect": "zenoh endpoint to connect to, e.g. tcp/10.0.0.2:7447; repeatable (default: none)",
-    "listen": "zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7448; repeatable "
-    "(default: tcp/127.0.0.1 on an ephemeral port)",
-}
-
 #: zenoh link protocols whose address is ``host:port``.
 _HOST_PORT_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
 _OTHER_PROTOCOLS = ("unixsock-stream", "unixpipe", "serial", "vsock")
@@ -383,107 +359,6 @@ def check_endpoint(endpoint: str) -> None:
     host, colon, port = address.rpartition(":")
     if not colon or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
         raise ValueError(f"endpoint {endpoint!r}: expected {proto}/<host>:<port 0..65535>")
-
-
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="magic gcs",
-        description=_DESCRIPTION,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    add_link_arguments(p)
-    add_operator_arguments(p)  # operator (issue 15)
-    for action in p._actions:
-        if action.dest in _LINK_HELP:
-            action.help = _LINK_HELP[action.dest]
-            action.metavar = {"radio": "YAML", "mission": "NAME"}.get(action.dest, "ENDPOINT")
-    p.add_argument(
-        "--config",
-        type=Path,
-        metavar="YAML",
-        help="GCS config YAML (GroundStationConfig: roster, loop closing, bounds on "
-        "covariances and clocks, ...); default: built in",
-    )
-    p.add_argument(
-        "--clock",
-        choices=("sim", "wall"),
-        default="sim",
-        help="mission time source: the simulator's clock ticks, or this host's clock for real "
-        "robots (default: %(default)s)",
-    )
-    p.add_argument(
-        "--duration",
-        type=float,
-        metavar="S",
-        help="mission seconds to run (default: until SIGINT or SIGTERM)",
-    )
-    p.add_argument(
-        "--step-s",
-        type=float,
-        metavar="S",
-        default=0.5,
-        help="mission seconds between station steps: loop closing, optimization, frames "
-        "(default: %(default)s)",
-    )
-    p.add_argument(
-        "--budget-s",
-        type=float,
-        metavar="S",
-        default=0.2,
-        help="wall seconds of loop closing per step (default: %(default)s)",
-    )
-    p.add_argument(
-        "--tasking-config",
-        type=Path,
-        metavar="YAML",
-        help="task allocation config YAML (gcs.mission_control.MissionControlConfig: plan "
-        "period, disruptors, area of operations, the planners' settings); --disruptors, "
-        "--plan-s and --no-tasking override it (default: built in)",
-    )
-    p.add_argument(
-        "--disruptors",
-        metavar="IDS",
-        default="",
-        help="comma-separated ids of the team's disruptors; every other robot is a sensor "
-        "robot (default: none)",
-    )
-    p.add_argument(
-        "--plan-s",
-        type=float,
-        metavar="S",
-        help="mission seconds between task allocations (default: 2)",
-    )
-    p.add_argument(
-        "--no-tasking",
-        action="store_true",
-        help="estimation only: no task allocation, robots get no tasks from this GCS "
-        "(default: the planners task every robot)",
-    )
-    p.add_argument(
-        "--out",
-        type=Path,
-        metavar="RUN_DIR",
-        help="run directory: the GCS journal (journal.sqlite: every uplink message, step, "
-        "planner decision and operator command) and gcs.json (the resolved configuration); "
-        "must not hold a journal yet (default: runs/<UTC date-time>-gcs-<mission>/)",
-    )
-    p.add_argument(
-        "--resume",
-        type=Path,
-        metavar="RUN_DIR",
-        help="carry on a GCS that was killed: rebuild the station from RUN_DIR/journal.sqlite "
-        "(graph, closures, hazards, OOIs), re-plan from it, continue every robot's radio "
-        "streams where the journal left them, and keep journaling there (its configuration "
-        "is the journal's: no --config)",
-    )
-    p.add_argument(
-        "--progress-s",
-        type=float,
-        metavar="S",
-        default=5.0,
-        help="wall seconds between status lines (default: %(default)s)",
-    )
-    return p
 
 
 def summary_line(proc: GcsProcess, stopped_by: str | None) -> str:
@@ -596,7 +471,7 @@ def main(argv: list[str]) -> int:
 
 def _main(argv: list[str]) -> int:
     try:
-        args = _parser().parse_args(argv)
+        args = gcs_parser().parse_args(argv)
     except SystemExit as exit_:
         return int(exit_.code or 0)
     try:

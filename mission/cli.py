@@ -47,9 +47,10 @@ usage: magic perception {record,train,evaluate} ...  LIDAR shape thresholds (5.2
 `magic perception ACTION --help` says what each takes and writes.
 """
 
+#: Every command's help ends with it (lines kept short: raw-text helps print it as it is).
 _EXIT_STATUSES = (
-    "exit status: 0 done, 1 the work failed, 2 bad input (one line on stderr naming it, "
-    "before any long work), 130 stopped by SIGINT (^C), 143 stopped by SIGTERM; a stopped "
+    "exit status: 0 done, 1 the work failed, 2 bad input (one line on stderr naming it,\n"
+    "before any long work), 130 stopped by SIGINT (^C), 143 stopped by SIGTERM; a stopped\n"
     "command summarises what ran and keeps what it already wrote."
 )
 
@@ -300,6 +301,30 @@ def _cmd_perception(argv: list[str]) -> int:
     return shape_main(argv)
 
 
+def _light_parser(command: str) -> argparse.ArgumentParser:
+    """``magic COMMAND``'s own parser with the exit statuses as its epilog, from a module
+    that imports none of the command's work (gtsam, PyBullet, numba, scipy load after)."""
+    if command == "run":
+        from mission.run_args import run_parser
+
+        return run_parser(_EXIT_STATUSES)
+    if command == "robot":
+        from mission.robot_args import robot_parser
+
+        return robot_parser(_EXIT_STATUSES)
+    if command == "replay":
+        from mission.replay_args import replay_parser
+
+        return replay_parser(_EXIT_STATUSES)
+    if command == "gcs":
+        from gcs.node_args import gcs_parser
+
+        return gcs_parser(_EXIT_STATUSES)
+    from sim.server_args import sim_parser
+
+    return sim_parser(_EXIT_STATUSES)
+
+
 def _dispatch(argv: list[str]) -> int:
     if argv and argv[0] == "perception":  # its own parsers: mission/perception_*training.py
         return _cmd_perception(argv[1:])
@@ -308,6 +333,15 @@ def _dispatch(argv: list[str]) -> int:
 
         return console_main(argv[1:])
     if argv and argv[0] in ("sim", "robot", "gcs", "replay", "run"):  # their own parsers
+        # parsed first without the work's modules: --help and a bad argument answer at once
+        journal_replay = argv[0] == "replay" and len(argv) > 1 and not argv[1].startswith("-")
+        if not journal_replay:
+            try:
+                _light_parser(argv[0]).parse_args(argv[1:])
+            except SystemExit as exit_:
+                if argv[0] in ("run", "replay"):  # their main lets argparse exit too
+                    raise
+                return int(exit_.code or 0)  # sim, robot, gcs return the status
         if argv[0] == "run":
             from mission.run import main as run_main
 

@@ -77,6 +77,7 @@ from gcs.replay.relations import (
     relations_error,
 )
 from gcs.replay.trajectory_error import TrajectoryError, trajectory_error
+from mission.replay_args import replay_parser
 from protocol.messages import (
     PoseNode,
     TerrainGrid,
@@ -821,65 +822,6 @@ def _write_outputs(
 # ---------------------------------------------------------------- the command
 
 
-def _parser() -> Any:
-    import argparse
-
-    p = argparse.ArgumentParser(
-        prog="magic replay",
-        description="Replay a CARMEN laser log through the GCS: pose nodes and scan grids into "
-        "loop closing and optimization, evaluated against the log's poses and relations. "
-        "Exit 0 with the result saved (an evaluation that could not be done is listed under "
-        "'evaluation'), 2 on bad input, 130 on ^C and 143 on SIGTERM (what ran is saved).",
-    )
-    p.add_argument(
-        "--carmen", required=True, metavar="FILE", help="CARMEN log (.log or .log.gz); required"
-    )
-    p.add_argument(
-        "--relations",
-        metavar="FILE",
-        help="Kuemmerle et al. relations file 't1 t2 x y z roll pitch yaw' (s, m, rad); "
-        "default: none",
-    )
-    p.add_argument(
-        "--out",
-        metavar="DIR",
-        help="write summary.json, poses.txt, closures.txt and the map here; default: nothing "
-        "written",
-    )
-    p.add_argument(
-        "--config", metavar="YAML", help="replay configuration (ReplayConfig); default: built in"
-    )
-    p.add_argument(
-        "--odom-noise",
-        type=float,
-        metavar="SCALE",
-        help="add odometry noise: SCALE times the pose-node model's sigmas (unitless); "
-        "default: the config's noise.scale, 0 (none)",
-    )
-    p.add_argument("--seed", type=int, help="seed of the odometry noise; default: the config's, 0")
-    p.add_argument(
-        "--odom-sigma-scale",
-        type=float,
-        metavar="S",
-        help="the log's odometry is S times less certain than the pose-node model says "
-        "(unitless); default: the config's, 1",
-    )
-    p.add_argument(
-        "--scans", type=int, metavar="N", help="replay only the first N scans; default: all"
-    )
-    p.add_argument(
-        "--progress-every",
-        type=int,
-        default=50,
-        metavar="N",
-        help="a progress line every N scans (default: %(default)s)",
-    )
-    p.add_argument(
-        "--quiet", action="store_true", help="no progress lines, only the summary (default: off)"
-    )
-    return p
-
-
 def _format_summary(summary: dict[str, Any]) -> list[str]:
     lines = [
         f"log {summary['log']}: {summary['scans']} scans -> {summary['nodes']} pose nodes, "
@@ -949,7 +891,7 @@ def main(argv: list[str] | None = None) -> int:
         from mission.mission_replay import main as replay_run_dir
 
         return replay_run_dir(argv)
-    args = _parser().parse_args(argv)
+    args = replay_parser().parse_args(argv)
     err = sys.stderr
     try:
         config = load_config(args.config, ReplayConfig) if args.config else ReplayConfig()

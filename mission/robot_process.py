@@ -16,7 +16,6 @@ endpoint in use, and a ``--connect`` endpoint that does not answer within
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import logging
 import math
@@ -28,7 +27,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -43,12 +41,12 @@ from mission.lockstep_protocol import (
     step_done_key,
     step_go_key,
 )
+from mission.robot_args import robot_parser
 from protocol import keys
 from protocol.clock import ManualClock
 from protocol.link import Link
 from protocol.messages import Direction
 from protocol.process_cli import (
-    add_link_arguments,
     follow_sim_clock,
     link_config,
     open_link,
@@ -435,44 +433,6 @@ def _stop_on_signals(stop: Callable[[], None]) -> Iterator[list[int]]:
             signal.signal(signum, old)
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="magic robot", description="Run robot nodes.")
-    p.add_argument(
-        "--id",
-        required=True,
-        metavar="IDS",
-        help="robot id (as the simulator numbers them), or several hosted by this one process "
-        "(a worker): 0,1,2 or 0-31",
-    )
-    add_link_arguments(p)
-    p.add_argument("--config", type=Path, help="robot node config YAML (RobotNodeConfig)")
-    p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
-    p.add_argument("--progress-s", type=float, default=5.0, help="wall seconds between reports")
-    p.add_argument(
-        "--lockstep",
-        action="store_true",
-        help="be stepped by the ground side of `magic run --robot-processes` (it starts these "
-        "processes, or waits for them when they run on other hosts): every step answered, "
-        "radio pumped per step, the same mission as in one process (default: process frames "
-        "as they come, wall-clock radio)",
-    )
-    p.add_argument(
-        "--seed",
-        type=int,
-        default=0,
-        help="the run's seed (the node's draws derive from it and the id; default: 0)",
-    )
-    p.add_argument(
-        "--connect-timeout",
-        type=float,
-        default=10.0,
-        metavar="S",
-        help="wall seconds to wait for a --connect endpoint to answer before giving up with "
-        "one line naming it (default: 10)",
-    )
-    return p
-
-
 def _robot_ids(text: str) -> list[int]:
     text = text.strip()
     if text.startswith("-") and text[1:].isdigit():
@@ -519,7 +479,7 @@ def main(argv: list[str]) -> int:
     simulator does not have or that another process hosts, an endpoint in use or that does
     not answer (one line on stderr), 130 / 143 on SIGINT / SIGTERM."""
     try:
-        args = _parser().parse_args(argv)
+        args = robot_parser().parse_args(argv)
     except SystemExit as exit_:
         return int(exit_.code or 0)
     try:

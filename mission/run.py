@@ -44,6 +44,7 @@ from gcs.mission_control import MissionControlConfig
 from mission.assembly import Assembly, GroundSide, assemble
 from mission.config import config_path, load_config
 from mission.lockstep import WorkerDied, seed_streams
+from mission.run_args import DEFAULT_DURATION_S, DEFAULT_SEED, run_parser
 from protocol.messages import (
     Detection,
     GoToTask,
@@ -86,7 +87,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
 
     world: str = "world/small.yaml"
     radio: str = "radio/magic2010.yaml"
-    duration_s: float = 180.0
+    duration_s: float = DEFAULT_DURATION_S
     scripted: bool = False  # goals drawn from the truth instead of the GCS (comparisons only)
     gcs_step_period_s: float = 1.0
     gcs_budget_s: float = 0.2  # wall seconds of loop closing per GCS step, --realtime only
@@ -99,7 +100,7 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     goal_separation_m: float = 8.0  # teammates' goals at the same step stay this far apart
     ooi_clearance_m: float = 7.0  # goals stay well away from objects of interest
     hazard_period_s: float = 1.0  # hazard updates to every robot (0: none)
-    seed: int = 0  # every random stream of the run derives from it (mission.lockstep)
+    seed: int = DEFAULT_SEED  # every random stream of the run derives from it (mission.lockstep)
     realtime: bool = False  # wall-clock delivery (hardware in the loop): not repeatable
     robot_processes: bool = False  # robot nodes in worker processes (magic robot --lockstep)
     workers: int | None = None  # robot worker processes (robot_processes; None: one per core)
@@ -733,140 +734,6 @@ def format_progress(report: RunReport, duration_s: float | None = None) -> Any:
     return Group(table, *(Text(line, no_wrap=True, overflow="ignore") for line in _footer(report)))
 
 
-_HELP_EPILOG = """\
-what a run produces: a run directory (--out; default runs/<UTC date-time>-<world>-<seed>/):
-the record, the final global map, report.json and report.md with plots, scored against the
-ground truth (magic report RUN_DIR rebuilds it), and run.log: the GCS's and robots' log
-(warnings counted in the summary; never printed through the progress). Progress goes to
-stderr (a live table on a terminal, else one line per tenth of the run), the final summary
-table and the report's headline to stdout; status 0 when the run completes, 2 on bad input
-(one line on stderr), 130 after ^C and 143 after SIGTERM (the run stops at once, its links
-are closed, the report is written from what ran and the summary so far is printed).
-
-operators (paper 6): the run's GCS serves consoles over zenoh; the start prints the command
-that reaches it ("magic run: operators: magic console --connect ... --mission ..."). Their
-commands are interactions in the report (per minute, paper Fig. 24), and a robot on an
-operator's goal reports itself semi-autonomous (time and distance per autonomy mode). A run
-no console talks to is the same run as without. --rerun / --rerun-save: the operator views.
-
-deterministic by default: a run is fixed by its world, seed, duration and configuration;
-running it twice (on a loaded machine too) gives the same poses, events and figures, bit for
-bit. --realtime delivers radio traffic on wall-clock threads instead: not repeatable.
-
-terms: mission-s: simulated seconds; "xN real time": mission-s per wall second; events
-(rule events): the simulator's rule events, from ground truth (a robot disabled by a trigger
-or a hostile, a hostile neutralized, a civilian lasered); tasks ok/sent: tasks the GCS's
-planners sent the robot / reports of one succeeded (--scripted: goals ok/sent, scripted goals
-reached / given); task: the latest task status the robot reported; driven m: distance driven
-(truth); nodes: pose nodes received by the ground side over the radio; uplink B/s: radio
-bytes the robot sent per mission-second; closest to a static OOI / hostile: the team's
-nearest approach (truth; keep-out 2.5 m / 5 m); teammate deadlocks broken: times a robot
-backed off a teammate; gcs: the station's pose nodes, robots linked to its map, automatic
-loop closures, hazards known (from robot detections only) and tasks sent; planner: its
-latest decision.
-"""
-
-
-def _parser() -> Any:
-    import argparse
-
-    d = RunConfig()
-    p = argparse.ArgumentParser(
-        prog="magic run",
-        description="Run the MAGIC mission on this machine, end to end: the simulator, one\n"
-        "robot node per robot and the ground-control station (global map, loop closing, task\n"
-        "allocation: it explores and neutralizes what the robots detect), talking over the\n"
-        "simulated radio on real zenoh sessions. The team comes from the world's config.",
-        epilog=_HELP_EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    p.add_argument(
-        "--config",
-        metavar="YAML",
-        help="run configuration, a mission.run.RunConfig YAML (default: built-in defaults)",
-    )
-    p.add_argument(
-        "--world",
-        metavar="WORLD",
-        help="world: a name in configs/world/ (small, magic_phase) or a YAML path (default: small)",
-    )
-    p.add_argument(
-        "--duration",
-        type=float,
-        metavar="S",
-        help=f"mission-seconds to run (default: {d.duration_s:g})",
-    )
-    p.add_argument(
-        "--seed",
-        type=int,
-        metavar="N",
-        help=f"the run's seed, >= 0: goals, sensor noise, radio loss, robots' draws "
-        f"(default: {d.seed})",
-    )
-    p.add_argument(
-        "--realtime",
-        action="store_true",
-        help="wall-clock radio delivery (hardware in the loop); the run is NOT repeatable "
-        "(default: deterministic lockstep)",
-    )
-    p.add_argument(
-        "--robot-processes",
-        action="store_true",
-        help="each robot node in its own process (magic robot --lockstep), the simulator and "
-        "the ground side in this one: the same run as in one process (default: one process)",
-    )
-    spread = p.add_argument_group(
-        "across processes and hosts",
-        "Any of these puts the robot nodes in worker processes (as --robot-processes).",
-    )
-    spread.add_argument(
-        "--workers",
-        type=int,
-        metavar="N",
-        help="robot worker processes this process starts, robots split among them in "
-        "consecutive id groups (default: one per core)",
-    )
-    spread.add_argument(
-        "--remote-robots",
-        metavar="IDS",
-        help="robots (e.g. 4-7 or 0,2) whose workers another host starts with `magic robot "
-        "--lockstep --id IDS --mission NAME --seed SEED` and endpoints reaching this one; the "
-        "run waits for them (needs --mission; default: none)",
-    )
-    from protocol.process_cli import add_link_arguments
-
-    add_link_arguments(p)  # --mission, --radio, --connect, --listen, --mode, --link-config
-    p.set_defaults(mission=None, radio=None)  # unset: the run's config (and a fresh name)
-    for action in p._actions:
-        if action.dest == "mission":
-            action.help = (
-                "zenoh mission name the robot workers join (default: a fresh one; name it "
-                "when workers run on other hosts)"
-            )
-        elif action.dest == "radio":
-            action.help = "radio model config (default: the run config's, radio/magic2010.yaml)"
-    p.add_argument(
-        "--out",
-        metavar="RUN_DIR",
-        help="run directory for the record and the report (report.json, report.md, plots, "
-        "map); must not hold a run yet (default: runs/<UTC date-time>-<world>-<seed>/ under "
-        "the current directory; --scripted writes none)",
-    )
-    p.add_argument(
-        "--scripted",
-        action="store_true",
-        help="no GCS: a script sends goals and hazards drawn from the ground truth "
-        "(comparisons only; default: the GCS and its planners drive the robots)",
-    )
-    p.add_argument(
-        "--quiet", action="store_true", help="no progress, only the summary (default: progress)"
-    )
-    from gcs.operator.node_hooks import add_operator_arguments
-
-    add_operator_arguments(p)  # consoles and views on the run's GCS (issue 15)
-    return p
-
-
 class _LogCounter(logging.Handler):
     """Counts the records at WARNING and above (the summary says how many went to the log)."""
 
@@ -1031,7 +898,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from mission.config import ConfigError
 
-    args = _parser().parse_args(argv)
+    args = run_parser().parse_args(argv)
     err = Console(stderr=True, highlight=False)
     # a pipe or a file: lines are never wrapped mid-phrase (a terminal keeps its width)
     out = Console(highlight=False) if sys.stdout.isatty() else Console(width=160, soft_wrap=True)

@@ -27,14 +27,12 @@ and logged; the server runs on. Progress goes to stdout every ``--progress-s`` w
 
 from __future__ import annotations
 
-import argparse
 import logging
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -42,7 +40,6 @@ import msgspec
 from protocol import keys
 from protocol.config import ConfigError, config_path, load_config
 from protocol.process_cli import (
-    add_link_arguments,
     exit_code_for,
     link_config,
     open_link,
@@ -51,6 +48,7 @@ from protocol.process_cli import (
 )
 from protocol.radio import RadioConfig
 from protocol.sensors import ClockTick, RobotCommand, encode_sensor_frame
+from sim.server_args import sim_parser
 from sim.simulator import CommandError, Simulator, SimulatorConfig, load_world_config
 
 __all__ = ["SimServer", "main"]
@@ -196,33 +194,10 @@ class SimServer:
         self._ports.clear()
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="magic sim", description="Run the PyBullet simulator server.")
-    p.add_argument(
-        "--world",
-        default="small",
-        help="world: a name in configs/world/ (small, magic_phase) or a YAML path (default: small)",
-    )
-    p.add_argument("--sim-config", type=Path, help="simulator config YAML (SimulatorConfig)")
-    add_link_arguments(p)
-    p.add_argument(
-        "--rtf", type=float, default=1.0, help="target real-time factor; 0 runs as fast as possible"
-    )
-    p.add_argument(
-        "--lockstep",
-        action="store_true",
-        help="advance only when every robot node consumed its last sweep",
-    )
-    p.add_argument("--duration", type=float, help="mission seconds to run (default: until ^C)")
-    p.add_argument("--no-zenoh", action="store_true", help="step the world without serving it")
-    p.add_argument("--progress-s", type=float, default=2.0, help="wall seconds between reports")
-    return p
-
-
 def main(argv: list[str]) -> int:
     """``magic sim``: returns the exit status (2 on bad arguments or configuration)."""
     try:
-        args = _parser().parse_args(argv)
+        args = sim_parser().parse_args(argv)
     except SystemExit as exit_:  # --help, or bad arguments (argparse printed why)
         return int(exit_.code or 0)
     out = sys.stdout

@@ -337,3 +337,40 @@ def test_every_registered_suite_has_its_module() -> None:
 
     missing = [m for m in SUITES.values() if importlib.util.find_spec(m) is None]
     assert missing == []
+
+
+_HEAVY = ("gtsam", "pybullet", "numba", "scipy", "cv2")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["run", "--help"],
+        ["gcs", "--help"],
+        ["robot", "--help"],
+        ["replay", "--help"],
+        ["sim", "--help"],
+        ["robot", "--id", "0", "--duration", "soon"],
+        ["run", "--workers", "two"],
+        ["replay"],
+    ],
+)
+def test_help_and_argument_errors_load_none_of_the_work(argv: list[str]) -> None:
+    """``magic X --help`` and a bad argument answer from the command's light parser: none of
+    gtsam, PyBullet, numba, scipy, cv2 is imported (they made help take seconds); the help
+    ends with the exit statuses, an argument error is status 2."""
+    code = (
+        "import sys\nfrom mission.cli import main\ntry:\n    status = main(sys.argv[1:])\n"
+        "except SystemExit as e:\n    status = e.code\n"
+        f"print('loaded', [m for m in {_HEAVY!r} if m in sys.modules], 'status', status)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120
+    )
+    last = done.stdout.strip().splitlines()[-1]
+    want = 0 if "--help" in argv else 2
+    assert last == f"loaded [] status {want}", (last, done.stderr[-300:])
+    if want == 0:
+        flat = " ".join(done.stdout.split())
+        assert "exit status: 0 done, 1 the work failed, 2 bad input" in flat
+        assert "143 stopped by SIGTERM" in flat
