@@ -97,11 +97,12 @@ def test_an_ooi_that_is_an_obstacle_in_the_map_can_still_be_seen() -> None:
     box(v, 15.5, 4.5, 16.75, 5.75, OCCUPIED)  # the OOI and the cells around it
     g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
     hw = _highway(_poly((1, 5), (11, 5)))
-    nodes = neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], CFG)
+    clear = DisruptorConfig(los_clear_m=1.0)
+    nodes = neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], clear)
     assert nodes.size > 0
     assert min(math.dist(hw.nodes_in_map[i], (16.0, 5.0)) for i in nodes) >= 3.5
-    strict = DisruptorConfig(los_clear_m=0.0)  # the old check: the OOI's own cells hid it
-    assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], strict).size == 0
+    # the default (0 m, see DisruptorConfig): the OOI's own cells hide it
+    assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], CFG).size == 0
     box(v, 13.0, 0, 13.5, 10, OCCUPIED)  # a wall 3 m in front of it
     g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
-    assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], CFG).size == 0
+    assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], clear).size == 0
