@@ -539,13 +539,25 @@ def main(argv: list[str]) -> int:
         for rid in robot_ids:
             _check_served(link, rid)
 
+    last_step = [time.monotonic()]
+    ended = [False]
+
     def spin_once() -> None:
         # until frames flow, check now and then that a simulator that is up has these robots
         if proc.frames_seen == 0 and time.monotonic() >= next_check[0]:
             check_served()
             next_check[0] = time.monotonic() + 1.0
         if isinstance(proc, LockstepRobot | LockstepGroup):
-            proc.step_once()
+            now = time.monotonic()
+            if proc.step_once():
+                last_step[0] = now
+            elif proc.frames_seen and now - last_step[0] >= 2.0 and now >= next_check[0]:
+                # no step for a while: a run whose simulator is gone has ended (a worker
+                # started on another host is not closed by it)
+                next_check[0] = now + 2.0
+                if not simulator_robots(link, 0.5):
+                    ended[0] = True
+                    stop.set()
         else:
             proc.spin_once()
 
@@ -575,6 +587,8 @@ def main(argv: list[str]) -> int:
         proc.close()
         link.close()
     print(proc.status_line(), flush=True)
+    if ended[0]:
+        print(f"magic robot: the simulator of mission {args.mission!r} is gone: done", flush=True)
     if stopped_by:
         print(f"magic robot: stopped by {signal.Signals(stopped_by[0]).name}", flush=True)
         return 128 + stopped_by[0]

@@ -134,3 +134,44 @@ def test_a_non_positive_duration_is_refused_in_one_line(duration, capsys) -> Non
     err = capsys.readouterr().err
     assert err.count("\n") == 1
     assert "--duration must be > 0 mission-seconds, got" in err and "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_robots_started_on_another_host_join_a_run_and_leave_when_it_ends() -> None:
+    """``magic run --workers 1 --remote-robots 2-3 --mission M --listen E`` with robots 2 and 3
+    in a ``magic robot --lockstep --id 2-3 --mission M --connect E`` started apart (another
+    host's worker): the same run bit for bit as in one process, and that worker, which the
+    run does not own, ends by itself (status 0) once the run's simulator is gone."""
+    import msgspec
+
+    from mission.run import RunConfig, fields_differing, run_mission
+
+    repo = Path(__file__).resolve().parents[2]
+    config = RunConfig(duration_s=3.0, seed=1)
+    in_process = run_mission(config).fields()
+    mission = unique_mission("remote")
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "mission.cli", "robot", "--lockstep", "--id", "2-3"]
+        + ["--mission", mission, "--seed", "1", "--connect", endpoint, "--progress-s", "1e9"]
+        + ["--connect-timeout", "60"],
+        cwd=repo,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    watchdog = threading.Timer(180.0, worker.kill)
+    watchdog.start()
+    try:
+        spread = run_mission(
+            msgspec.structs.replace(config, robot_processes=True, workers=1, remote_robots=(2, 3)),
+            link=LinkConfig(listen=(endpoint,)),
+            mission_name=mission,
+        ).fields()
+        out, err = worker.communicate(timeout=60)
+    finally:
+        watchdog.cancel()
+        worker.kill()
+    assert fields_differing(in_process, spread) == []
+    assert worker.returncode == 0, err
+    assert f"the simulator of mission {mission!r} is gone: done" in out
