@@ -5,6 +5,7 @@ answer before the simulator, the GCS (gtsam) and the robots (numba, scipy) load
 from __future__ import annotations
 
 import argparse
+from typing import cast
 
 __all__ = ["DEFAULT_DURATION_S", "DEFAULT_SEED", "run_parser"]
 
@@ -95,7 +96,8 @@ def run_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     )
     spread = p.add_argument_group(
         "across processes and hosts",
-        "Any of these puts the robot nodes in worker processes (as --robot-processes).",
+        "Each of these but --radio puts the robot nodes in worker processes (as\n"
+        "--robot-processes); the simulator and the GCS stay in this one.",
     )
     spread.add_argument(
         "--workers",
@@ -113,7 +115,9 @@ def run_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     )
     from protocol.process_cli import add_link_arguments
 
-    add_link_arguments(p)  # --mission, --radio, --connect, --listen, --mode, --link-config
+    # --mission, --radio, --connect, --listen, --mode, --link-config, --security: magic sim's,
+    # robot's and gcs's own (an argument group takes arguments as a parser does)
+    add_link_arguments(cast(argparse.ArgumentParser, spread))
     p.set_defaults(mission=None, radio=None)  # unset: the run's config (and a fresh name)
     for action in p._actions:
         if action.dest == "mission":
