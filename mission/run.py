@@ -43,7 +43,7 @@ from gcs.ground_station import GroundStationConfig
 from gcs.mission_control import MissionControlConfig
 from mission.assembly import Assembly, GroundSide, assemble
 from mission.config import config_path, load_config
-from mission.lockstep import WorkerDied, seed_streams
+from mission.lockstep import TeamOverProcesses, WorkerDied, seed_streams
 from mission.run_args import DEFAULT_DURATION_S, DEFAULT_SEED, run_parser
 from protocol.messages import (
     Detection,
@@ -175,6 +175,7 @@ class RunReport:
     metrics: dict[str, float] = field(default_factory=dict)  # the report's, scored vs truth
     gcs: dict[str, float] = field(default_factory=dict)  # the GCS's own figures (no truth)
     tasking_events: list[str] = field(default_factory=list)  # the planners' journal
+    processes: str = ""  # where the robot nodes ran ("": in this process)
 
     @property
     def rtf(self) -> float:
@@ -465,6 +466,15 @@ def run_mission(
         except (ValueError, TimeoutError, WorkerDied) as exc:
             # an endpoint in use or unreachable, a worker that died or never came up
             raise TeamSetupError(f"the team did not come up: {exc}") from exc
+        if isinstance(asm.team, TeamOverProcesses):  # robot nodes in worker processes
+            groups = asm.team.groups
+            n = f"{len(groups)} worker process" + ("es" if len(groups) != 1 else "")
+            report.processes = f"robot nodes in {n} (" + (
+                "; ".join(",".join(map(str, g)) for g in groups) + ")"
+            )
+            if config.remote_robots:
+                remote = ",".join(map(str, config.remote_robots))
+                report.processes += f", robots {remote} on other hosts"
         if operator is not None and asm.gcs is not None:  # consoles and views (issue 15)
             asm.gcs.attach_operator(operator(asm.team.ground_link, asm.gcs.control))
             if on_console is not None:
@@ -703,6 +713,8 @@ def _footer(report: RunReport) -> list[str]:
         if report.realtime
         else "mode: deterministic lockstep (same seed, same run)"
     )
+    if report.processes:
+        lines.append(report.processes)
     return lines
 
 

@@ -163,15 +163,17 @@ def test_robots_started_on_another_host_join_a_run_and_leave_when_it_ends() -> N
     watchdog = threading.Timer(180.0, worker.kill)
     watchdog.start()
     try:
-        spread = run_mission(
+        report = run_mission(
             msgspec.structs.replace(config, robot_processes=True, workers=1, remote_robots=(2, 3)),
             link=LinkConfig(listen=(endpoint,)),
             mission_name=mission,
-        ).fields()
+        )
+        spread = report.fields()
         out, err = worker.communicate(timeout=60)
     finally:
         watchdog.cancel()
         worker.kill()
     assert fields_differing(in_process, spread) == []
+    assert report.processes == "robot nodes in 1 worker process (0,1), robots 2,3 on other hosts"
     assert worker.returncode == 0, err
     assert f"the simulator of mission {mission!r} is gone: done" in out

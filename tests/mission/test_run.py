@@ -113,12 +113,14 @@ def test_robots_in_their_own_processes_give_the_same_mission() -> None:
 
     config = RunConfig(duration_s=8.0, seed=2)
     in_process = run_mission(config).fields()
-    spread = run_mission(
+    report = run_mission(
         msgspec.structs.replace(config, robot_processes=True, workers=2),
         link=LinkConfig(listen=(f"tcp/127.0.0.1:{free_loopback_port()}",)),
         mission_name=unique_mission("run-workers"),
-    ).fields()
+    )
+    spread = report.fields()
     assert fields_differing(in_process, spread) == []
+    assert report.processes == "robot nodes in 2 worker processes (0,1; 2,3)"
     assert spread["robot0.pose_nodes"] > 0 and spread["robot0.uplink_bytes"] > 0
 
 
