@@ -819,20 +819,30 @@ def _check_inputs(config: RunConfig) -> None:
         )
 
 
-def _remote_robot_ids(text: str, mission: str | None) -> list[int]:
+def _remote_robot_ids(text: str) -> list[int]:
     """``--remote-robots``' ids (ValueError naming the option and the part at fault)."""
     from mission.lockstep_protocol import parse_robot_ids
 
     try:
-        ids = parse_robot_ids(text)
+        return parse_robot_ids(text)
     except ValueError as exc:
         raise ValueError(f"--remote-robots: {exc}") from None
-    if not mission:
-        raise ValueError(
-            f"--remote-robots {text}: give --mission NAME too (the workers on the other host "
-            "join that mission)"
-        )
-    return ids
+
+
+def _remote_hint(
+    config: RunConfig, mission: str, link: LinkConfig | None, out_dir: Path | None
+) -> str:
+    """The command that starts the remote robots' workers on their host (their robot config,
+    when not the default, written to ``out_dir/robot.json`` for them)."""
+    ids = ",".join(map(str, config.remote_robots))
+    where = "" if link is None else " ".join(f"--connect {e}" for e in link.connect or link.listen)
+    command = f"magic robot --lockstep --id {ids} --mission {mission} --seed {config.seed}"
+    hint = f"waiting for robots {ids}: start them with {command} {where}".rstrip()
+    if config.robot != RobotNodeConfig() and out_dir is not None:
+        path = out_dir / "robot.json"  # JSON is YAML
+        path.write_bytes(msgspec.json.encode(config.robot))
+        hint += f" --config {path} (this run's robot config: copy it to that host)"
+    return hint
 
 
 def _run_link(config: RunConfig, args: Any) -> LinkConfig:
@@ -925,7 +935,7 @@ def main(argv: list[str] | None = None) -> int:
         config = load_config(args.config, RunConfig) if args.config else RunConfig()
         remote = None
         if args.remote_robots is not None:
-            remote = tuple(_remote_robot_ids(args.remote_robots, args.mission))
+            remote = tuple(_remote_robot_ids(args.remote_robots))
         link_given = bool(args.connect or args.listen or args.mode or args.link_config)
         link_given = link_given or bool(args.security)
         spread = link_given or bool(args.mission) or args.workers is not None or bool(remote)
@@ -947,7 +957,13 @@ def main(argv: list[str] | None = None) -> int:
         if overrides:
             config = msgspec.structs.replace(config, **overrides)
         _check_inputs(config)
-        if link_given:
+        if config.remote_robots and not args.mission:
+            ids = ",".join(map(str, config.remote_robots))
+            raise ValueError(
+                f"--remote-robots {ids}: give --mission NAME too (the workers on the other "
+                "host join that mission)"
+            )
+        if link_given or config.remote_robots:  # remote workers need a known endpoint
             link = _run_link(config, args)
         from gcs.operator.node_hooks import check_operator_arguments, operator_service
 
@@ -993,14 +1009,8 @@ def main(argv: list[str] | None = None) -> int:
     ops: dict[str, Any] = {} if config.scripted or no_consoles else {"operator": operators}
     ops.update(link=link, mission_name=args.mission)
     if config.remote_robots:
-        where = " ".join(f"--connect {e}" for e in (link.connect or link.listen)) if link else ""
-        err.print(
-            f"magic run: waiting for robots {args.remote_robots}: start them with magic robot "
-            f"--lockstep --id {args.remote_robots} --mission {args.mission} --seed "
-            f"{config.seed} {where}".rstrip(),
-            markup=False,
-            soft_wrap=True,
-        )
+        hint = _remote_hint(config, args.mission, link, out_dir)
+        err.print(f"magic run: {hint}", markup=False, soft_wrap=True)
     if no_consoles:
         err.print(f"magic run: {no_consoles}", markup=False, soft_wrap=True)
     try:
