@@ -65,12 +65,14 @@ Fiducials. A tag sighting relates the observer's node to where the teammate was 
 sighting's time, which lies on the teammate's motion between two of the times its odometry
 is known here (its pose nodes and telemetry poses; robots start, stop and turn in place
 between nodes): the edge goes to the earlier node with the teammate half way along that step
-and the step's uncertainty (:meth:`GroundStation._teammate_node`). Between robots already
-linked, fiducials are left out by default (``fiducials_link_only``): they would tie down the
-start hints' errors where robots share no scan, but the evidence is mixed. Replayed mission
-journals, same code, without / with them: ATE 0.435 / 0.470 m, 0.348 / 0.290 m, 1.177 /
-0.669 m, F1 0.52 / 0.55, 0.58 / 0.47, 0.22 / 0.59 (small world, seeds 0 and 7 at 300 s and
-seed 0 at 240 s); the team-mapping trial (100 s): ATE 0.218 m with them.
+and the step's uncertainty (:meth:`GroundStation._teammate_node`). Fiducials also tie
+robots already linked (``fiducials_link_only`` False): the start hints' errors (0.3 m, 3 deg)
+otherwise stay in the map wherever robots share no scan, and in the mission they rarely do
+(2-8 cross-robot closures in 300 s). ``magic run`` small world 300 s, seeds 0 / 7, without
+them: ATE 0.885 / 0.484 m, F1 0.43 / 0.33 (one robot 1.6 m off, rotated by its hint); with
+them: 0.503 / 0.378 m, F1 0.64 / 0.84. Replayed journals, same code,
+without / with: ATE 0.435 / 0.470, 0.348 / 0.290, 1.177 / 0.669 m. The team-mapping trial
+(100 s, this tree): 0.202 m without, 0.218 m with.
 
 The GCS node (:mod:`gcs.node`) is the thin zenoh shell around this class; the CARMEN replay
 (:mod:`mission.replay`) drives it directly.
@@ -223,7 +225,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     docstring, "Fiducials"). When the teammate's nearest node stood in for it (up to half a
     node spacing and its turn away, with the tag's covariance) 14 fiducial edges took the
     team-mapping trial's ATE from 0.09 m to 0.53 m; carried along its step with the step's
-    uncertainty, 0.22 m.
+    uncertainty they help the mission (module docstring), hence the default False.
     ``max_grid_resolution_m`` / ``min_grid_resolution_m``: accepted grid cell sizes.
     ``gap_covariance_scale``: inflation of the odometry covariance across a bridged gap.
     ``hazard_merge_m``: detections of one kind closer than this are the same hazard.
@@ -262,7 +264,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     max_pending_grids: int = 64
     max_pending_sightings: int = 512
     fiducial_wait_s: float = 5.0
-    fiducials_link_only: bool = True
+    fiducials_link_only: bool = False
     fiducial_standin_sigma_xy_m: float = 0.5
     fiducial_standin_sigma_yaw_rad: float = 0.2
     min_grid_resolution_m: float = 0.02
