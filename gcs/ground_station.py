@@ -1278,7 +1278,9 @@ class GroundStation:
             log.exception("loop closer failed at t=%.3f s (the station goes on)", now_s)
             return
         self.last_loop_report = report
-        if report.accepted_edge_ids:
+        # closures removed or re-weighted after a new turn-scale fit change the optimum as
+        # much as new ones do: re-optimize now, not at the next accepted closure
+        if report.accepted_edge_ids or report.pruned_edge_ids or report.recalibrated_robots:
             self._dirty = True
 
     def _optimize(self) -> None:
