@@ -269,6 +269,9 @@ class _Ctx:
     cells: dict[int, tuple[int, int]]
     static_live: list[Hazard]
     hostiles_live: list[Hazard]
+    # every static OOI, done ones too: the station sends the robots every hazard and a robot
+    # keeps out of each (robot/control/keepout.py), neutralized or not
+    static_all: list[Hazard]
     out: list[tuple[int, TaskMessage]] = field(default_factory=list)
 
 
@@ -448,12 +451,16 @@ class TaskAllocator:
             and h.hazard_id not in done
             and h.hazard_id not in locked
         ]
+        # the keep-outs of done OOIs stay: the robots keep out of them (small world seed 0: a
+        # disruptor sent to a pose 2.7 m from a sighting taken as neutralized, a duplicate, sat
+        # at its keep-out's edge 3.7 m off until the task timed out, 72 s)
+        static_all = [h for h in state.hazards if h.kind == ObjectKind.STATIC_OOI]
         discs = [
             (
                 *h.position_in_map,
                 max(h.radius_m, cfg.disruptor.trigger_radius_m) + cfg.keepout_margin_m,
             )
-            for h in static_live
+            for h in static_all
         ] + [
             (*h.position_in_map, max(h.radius_m, cfg.hostile.blast_radius_m) + cfg.keepout_margin_m)
             for h in hostiles_live
@@ -478,7 +485,17 @@ class TaskAllocator:
         self.grid, self.highway = grid, highway
         robots = {r.robot_id: r for r in state.robots}
         return _Ctx(
-            now_s, state, grid, highway, blocked, robots, {}, {}, static_live, hostiles_live
+            now_s,
+            state,
+            grid,
+            highway,
+            blocked,
+            robots,
+            {},
+            {},
+            static_live,
+            hostiles_live,
+            static_all,
         )
 
     # ---- 1: bookkeeping ---------------------------------------------------------------------
@@ -789,7 +806,7 @@ class TaskAllocator:
                 )
                 a.purpose = a.purpose.replace(":released", ":dropped")
         static_xy = np.asarray(
-            [h.position_in_map for h in ctx.static_live], dtype=np.float64
+            [h.position_in_map for h in ctx.static_all], dtype=np.float64
         ).reshape(-1, 2)
         free_xy = [self._position(r) for rid, r in mine.items()]
 

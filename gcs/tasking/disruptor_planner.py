@@ -54,12 +54,13 @@ class DisruptorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     spread_tolerance_m: float = 3.0
     spread_period_s: float = 20.0
     path_tolerance_m: float = 0.3
-    # line of sight is checked up to this far short of the OOI (the OOI is an obstacle in the
-    # map itself: small world seed 0, a sighting on occupied cells was never dispatched to);
-    # off by default: with 1 m, small world seed 7 sent the disruptor to poses 8.8-9.8 m off
-    # whose laser the rules did not count (grazing a wall, at the edge of range): 0 of 2
-    # OOIs neutralized against 2 of 2 with 0 (seed 0: 2 of 2 either way)
-    los_clear_m: float = 0.0
+    # line of sight is checked up to this far short of the OOI: the OOI (0.25 m in radius) is
+    # an obstacle in the GCS's map itself, and the robot's own check stops 0.5 m short too
+    # (robot/node.py). With 0 m, small world seed 0 (sharper map, 2026-11-25): the sighting
+    # of one OOI lay on occupied cells from 50 s to the end, 0 waypoints saw it and no
+    # disruptor was ever sent (0.5 m: 11 waypoints). With 1 m, seed 7 sent the disruptor to
+    # poses 8.8-9.8 m off grazing a wall whose laser the rules did not count
+    los_clear_m: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("trigger_radius_m", "laser_range_m", "hold_s", "path_tolerance_m"):

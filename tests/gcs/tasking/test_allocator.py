@@ -494,3 +494,26 @@ def test_a_frontier_reached_through_the_highway_is_not_explored_away() -> None:
     alloc = TaskAllocator()
     out = alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)
     assert alloc.stats.explored and isinstance(out[0][1], IdleTask)
+
+
+def test_a_neutralization_pose_keeps_out_of_done_ooi_sightings_too() -> None:
+    """The station sends every hazard to the robots, which keep out of each, done or not: a
+    neutralization pose is never inside a done OOI's keep-out (small world seed 0: a pose
+    2.7 m from a sighting taken as neutralized, a duplicate; the disruptor stopped 3.7 m
+    off it until the task timed out)."""
+    state, d1, _ = _dispatch_world()
+    d1.pose_in_map = (20.0, 1.0, 0.0)
+    state.robots = [d1]
+    state.hazards = [
+        Hazard(3, ObjectKind.STATIC_OOI, (14.0, 6.0), 2.5),
+        Hazard(4, ObjectKind.STATIC_OOI, (21.0, 3.5), 2.5),
+    ]
+    state.neutralized_hazard_ids = frozenset({4})
+    alloc = TaskAllocator()
+    alloc.plan(state, now_s=0.0)
+    assert [e.hazard_id for e in alloc.events if e.kind == "dispatch"] == [3]
+    goal = alloc.assignments[11].goal_in_map
+    assert goal is not None
+    keepout = 2.5 + DisruptorConfig().standoff_margin_m
+    assert math.dist(goal, (21.0, 3.5)) >= keepout
+    assert math.dist(goal, (14.0, 6.0)) >= keepout

@@ -18,6 +18,7 @@ from gcs.tasking.trajectory_graph import build_trajectory_graph
 from tests.gcs.tasking.maps import FREE, OCCUPIED, RES, blank, box, occupancy
 
 CFG = DisruptorConfig()
+NO_CLEAR = DisruptorConfig(los_clear_m=0.0)
 
 
 def _poly(*corners: tuple[float, float], step: float = 0.5) -> np.ndarray:
@@ -101,8 +102,27 @@ def test_an_ooi_that_is_an_obstacle_in_the_map_can_still_be_seen() -> None:
     nodes = neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], clear)
     assert nodes.size > 0
     assert min(math.dist(hw.nodes_in_map[i], (16.0, 5.0)) for i in nodes) >= 3.5
-    # the default (0 m, see DisruptorConfig): the OOI's own cells hide it
-    assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], CFG).size == 0
+    # with 0 m the OOI's own cells hide it
+    assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], NO_CLEAR).size == 0
     box(v, 13.0, 0, 13.5, 10, OCCUPIED)  # a wall 3 m in front of it
     g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
     assert neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], clear).size == 0
+
+
+def test_by_default_an_ooi_on_its_own_occupied_cells_is_seen() -> None:
+    """The default ``los_clear_m`` (0.5 m): a sighting on the OOI's own occupied cells (the
+    cylinder, 0.25 m in radius, a sighting 0.2 m off its centre) is seen from the highway;
+    with 0 m it is not (small world seed 0: no disruptor was ever sent to such an OOI); a wall
+    in front still hides it."""
+    v = blank(30, 10, FREE)
+    box(v, 15.9, 4.9, 16.4, 5.4, OCCUPIED)  # the OOI: centre (16.15, 5.15)
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    hw = _highway(_poly((1, 5), (14, 5)))
+    sighting = (16.0, 5.0)
+    assert neutralization_nodes(g, hw, sighting, [sighting], NO_CLEAR).size == 0
+    nodes = neutralization_nodes(g, hw, sighting, [sighting], CFG)
+    assert nodes.size > 0
+    assert min(math.dist(hw.nodes_in_map[i], sighting) for i in nodes) >= 3.5
+    box(v, 13.0, 0, 13.5, 10, OCCUPIED)
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    assert neutralization_nodes(g, hw, sighting, [sighting], CFG).size == 0
