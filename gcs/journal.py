@@ -643,7 +643,9 @@ class _CheckpointUnpickler(pickle.Unpickler):
         top = module.partition(".")[0]
         if (module == "builtins" and name in _CHECKPOINT_BUILTINS) or (top in _CHECKPOINT_MODULES):
             return super().find_class(module, name)
-        if module == "logging" and name == "getLogger":
+        if (module, name) in (("logging", "getLogger"), ("functools", "partial")):
+            # a partial only binds arguments: what it wraps loads through this check too
+            # (the graph's odometry correction is partial(debias_odometry, estimate=...))
             return super().find_class(module, name)
         raise JournalError(f"names {module}.{name}, which no saved station holds")
 
