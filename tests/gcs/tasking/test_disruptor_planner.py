@@ -126,3 +126,25 @@ def test_by_default_an_ooi_on_its_own_occupied_cells_is_seen() -> None:
     box(v, 13.0, 0, 13.5, 10, OCCUPIED)
     g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
     assert neutralization_nodes(g, hw, sighting, [sighting], CFG).size == 0
+
+
+def test_a_pose_near_the_ooi_is_preferred_over_one_at_the_edge_of_laser_range() -> None:
+    """A road passing an OOI 4 m off: the first waypoint in laser range (10 m) is 9 m from it,
+    but the disruptor goes on to one within preferred_range_m (6 m): from ~10 m its own
+    perception may not find the OOI and its laser misses (small world seed 0: 9.7 m, no hold;
+    5.3 m, neutralized). With no such waypoint reached yet, the far one is used."""
+    v = blank(32, 10, FREE)
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    ooi = (20.0, 5.0)
+    hw = _highway(_poly((1, 1), (30, 1)))
+    d = dispatch_disruptor(g, hw, 7, ooi, [ooi], {5: (1.0, 1.0)}, None, CFG)
+    assert d is not None
+    assert 3.5 <= math.dist(d.pose_in_map, ooi) <= CFG.preferred_range_m
+    far = DisruptorConfig(preferred_range_m=CFG.laser_range_m)
+    d_far = dispatch_disruptor(g, hw, 7, ooi, [ooi], {5: (1.0, 1.0)}, None, far)
+    assert d_far is not None and math.dist(d_far.pose_in_map, ooi) > 8.0
+    short = _highway(_poly((1, 1), (12, 1)))
+    d_short = dispatch_disruptor(g, short, 7, ooi, [ooi], {5: (1.0, 1.0)}, None, CFG)
+    assert d_short is not None and 8.0 < math.dist(d_short.pose_in_map, ooi) <= 10.0
+    with pytest.raises(ValueError, match="preferred_range_m"):
+        DisruptorConfig(preferred_range_m=12.0)
