@@ -3,9 +3,9 @@
 Rendering a robot's camera image (PyBullet's TinyRenderer, CPU) is the simulator's largest cost
 and PyBullet holds the GIL while it renders, so a thread cannot overlap it with the robots'
 and the GCS's work; a process can. :class:`RenderWorkerProcess` starts ``python -m
-sim.render_worker`` (a plain subprocess, like :mod:`sim.ray_worker`), sends it the world once,
-then for each image the scene state to draw (robot transforms, people, detonated objects) and
-the camera; the worker renders every job as soon as it arrives and sends the images back in
+sim.render_worker`` (:class:`sim.scene_worker.SceneWorkerProcess`, like :mod:`sim.ray_worker`),
+sends it the world once, then for each image the scene state to draw (robot transforms,
+people, detonated objects) and the camera; the worker renders every job as soon as it arrives and sends the images back in
 the order they were asked for. Same geometry, same engine, same state: the pixels are exactly
 those the parent's scene would give (:meth:`sim.simulator.Simulator.render_image`), so runs
 stay repeatable; the simulator checks at collection time that the state it sent is still the
@@ -14,10 +14,7 @@ one it would have rendered with and renders in process otherwise.
 
 from __future__ import annotations
 
-import os
 import queue
-import subprocess
-import sys
 import threading
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
@@ -25,6 +22,7 @@ from multiprocessing.connection import Connection
 import numpy as np
 
 from sim.scene import RobotGeometry, Scene
+from sim.scene_worker import SceneWorkerProcess, child_connections, serve_setup
 from sim.world_generator import World
 
 __all__ = ["RenderJob", "RenderWorkerProcess"]
@@ -51,36 +49,14 @@ class RenderJob:
     far_m: float
 
 
-class RenderWorkerProcess:
+class RenderWorkerProcess(SceneWorkerProcess):
     """One worker process holding a scene of ``world``: :meth:`submit` jobs, then
     :meth:`result` in the same order."""
 
     def __init__(self, world: World, geometry: RobotGeometry, *, timeout_s: float = 60.0) -> None:
-        to_child_r, to_child_w = os.pipe()
-        from_child_r, from_child_w = os.pipe()
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
-        self._proc = subprocess.Popen(
-            [sys.executable, "-m", "sim.render_worker", str(to_child_r), str(from_child_w)],
-            pass_fds=(to_child_r, from_child_w),
-            env=env,
-            stdin=subprocess.DEVNULL,
-            stdout=subprocess.DEVNULL,
-        )
-        os.close(to_child_r)
-        os.close(from_child_w)
-        self._tx = Connection(to_child_w, readable=False)
-        self._rx = Connection(from_child_r, writable=False)
         self._lock = threading.Lock()  # commands may arrive on any thread
         self.pending = 0
-        self._tx.send((world, geometry))
-        if not self._rx.poll(timeout_s):
-            self.close()
-            raise RuntimeError(f"render worker did not start within {timeout_s} s")
-        ready = self._rx.recv()
-        if ready != "ready":
-            self.close()
-            raise RuntimeError(f"render worker failed to start: {ready}")
+        super().__init__("sim.render_worker", "render worker", world, geometry, timeout_s=timeout_s)
 
     def submit(self, job: RenderJob) -> None:
         """Queue ``job`` (rendered at once, in the worker)."""
@@ -101,21 +77,6 @@ class RenderWorkerProcess:
         if isinstance(out, str):
             raise RuntimeError(f"render worker: {out}")
         return out  # type: ignore[no-any-return]
-
-    def close(self) -> None:
-        try:
-            self._tx.send(None)
-        except OSError:
-            pass
-        # images asked for and never collected: the worker's sender gets a broken pipe
-        # instead of waiting for a reader
-        self._rx.close()
-        try:
-            self._proc.wait(5.0)
-        except subprocess.TimeoutExpired:
-            self._proc.kill()
-            self._proc.wait(5.0)
-        self._tx.close()
 
 
 def _draw(scene: Scene, job: RenderJob) -> np.ndarray:
@@ -139,13 +100,9 @@ def _draw(scene: Scene, job: RenderJob) -> np.ndarray:
 
 
 def _serve(rx: Connection, tx: Connection) -> None:
-    world, geometry = rx.recv()
-    try:
-        scene = Scene(world, geometry=geometry, ray_threads=1)
-    except Exception as err:  # noqa: BLE001 - reported to the parent
-        tx.send(repr(err))
+    scene = serve_setup(rx, tx)
+    if scene is None:
         return
-    tx.send("ready")
     # images go back on their own thread: the next job renders while the parent has not yet
     # read the last image (a pipe holds far less than one image)
     out: queue.SimpleQueue[object] = queue.SimpleQueue()
@@ -185,6 +142,4 @@ if __name__ == "__main__":
     # ^C reaches the whole process group: the parent decides when this worker ends (it
     # closes the pipe), so no second traceback and no image lost mid-run
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _serve(
-        Connection(int(sys.argv[1]), writable=False), Connection(int(sys.argv[2]), readable=False)
-    )
+    _serve(*child_connections())
