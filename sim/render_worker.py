@@ -1,15 +1,16 @@
 """A camera-rendering worker process: a copy of the scene in another process (issue 14: speed).
 
 Rendering a robot's camera image (PyBullet's TinyRenderer, CPU) is the simulator's largest cost
-and PyBullet holds the GIL while it renders, so a thread cannot overlap it with the robots'
-and the GCS's work; a process can. :class:`RenderWorkerProcess` starts ``python -m
+and PyBullet holds the GIL while it renders, so a thread cannot overlap it with the robots' and
+the GCS's work; a process can. :class:`RenderWorkerProcess` starts ``python -m
 sim.render_worker`` (:class:`sim.scene_worker.SceneWorkerProcess`, like :mod:`sim.ray_worker`),
-sends it the world once, then for each image the scene state to draw (robot transforms,
-people, detonated objects) and the camera; the worker renders every job as soon as it
-arrives and sends the images back in the order they were asked for. Same geometry, same engine, same state: the pixels are exactly
-those the parent's scene would give (:meth:`sim.simulator.Simulator.render_image`), so runs
-stay repeatable; the simulator checks at collection time that the state it sent is still the
-one it would have rendered with and renders in process otherwise.
+sends it the world once, then for each image the scene state to draw (robot transforms, people,
+detonated objects) and the camera; the worker renders every job as soon as it arrives and sends
+the images back in the order they were asked for. Same geometry, same engine, same state: the
+pixels are exactly those the parent's scene would give
+(:meth:`sim.simulator.Simulator.render_image`), so runs stay repeatable; the simulator checks
+at collection time that the state it sent is still the one it would have rendered with and
+renders in process otherwise.
 """
 
 from __future__ import annotations
