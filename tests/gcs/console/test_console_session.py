@@ -121,8 +121,15 @@ def test_console_session_pause_goto_resume_and_refusals(tmp_path: Path) -> None:
         assert _until(team, arrived, by_mission_s=t_goto + 120.0), (
             f"robot 0 did not reach {goal} in 120 mission-s: {service.reports[0].status}"
         )
-        pose = _row(team, 0).pose_in_map  # type: ignore[union-attr]
-        assert pose is not None and math.dist(pose[:2], goal) < 1.5, (pose, goal)
+
+        # the status row follows telemetry (a period behind the task's success): wait for
+        # the row that shows where the robot stopped
+        def near_goal() -> bool:
+            row = _row(team, 0)
+            pose = None if row is None else row.pose_in_map
+            return pose is not None and math.dist(pose[:2], goal) < 1.5
+
+        assert _until(team, near_goal, by_mission_s=team.now_s + 5.0), (_row(team, 0), goal)
 
         assert console.run_line("resume 1-3; auto 0"), lines[-4:]
         t_resumed = team.now_s
