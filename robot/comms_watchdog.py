@@ -260,6 +260,7 @@ class LinkAwareTasks:
         *,
         path_found: bool = True,
         laser_on_target: bool = False,
+        laser_detail: str = "",
     ) -> list[TaskStatus]:
         """The watchdog's transitions, then the executor's progress (see the class)."""
         wd = self.watchdog
@@ -275,6 +276,7 @@ class LinkAwareTasks:
             pose_in_odom,
             path_found=path_found or suspended,
             laser_on_target=laser_on_target,
+            laser_detail=laser_detail,
         )
         return out
 

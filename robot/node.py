@@ -168,6 +168,23 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     # lifts it over (seed 0: a 15 s hold reported done that the rules never counted)
     laser_mount_height_m: float = 0.75
     laser_aim_height_m: float = 0.35
+    # the laser aims at what the robot sees now: a fused detection carries the odometry drift
+    # since it was made (small world, seeds 0 and 7: made 9.5 m and 13 s before the stand-off
+    # across sand, 0.58 m and 1.8 deg off, the beam aimed at 78.3 deg where 71.4-77.1 hit; a
+    # 15 s hold reported done). At the stand-off the robot faces its detection (turning in
+    # place beyond laser_face_rad), takes the cylinder its LIDAR saw within laser_fresh_s
+    # nearest it (within laser_reacquire_m: the drift) and aims there, refined from each
+    # sweep's sightings within laser_lock_m of the aim while it holds. Nothing seen there:
+    # the laser stays off and the task fails after tasks.laser_search_s, saying why.
+    laser_fresh_s: float = 3.0
+    laser_reacquire_m: float = 1.5
+    laser_lock_m: float = 0.4
+    laser_face_rad: float = 0.35
+    laser_turn_rate_rad_s: float = 0.8
+    # the hold counts only while the body is still (odometry over laser_still_s)
+    laser_still_s: float = 0.5
+    laser_still_m: float = 0.02
+    laser_still_rad: float = 0.005
 
 
 @dataclass
@@ -248,10 +265,15 @@ class RobotNode:
         self._latest: tuple[np.ndarray, GridGeometry] | None = None  # newest sweep's obstacles
         self._path_found = True
         self._backup_until_s = -math.inf
-        # the terrain map last planned on, without the keep-out disks: line of sight for the
-        # laser (a static OOI's own keep-out would block every view of it from outside)
+        # the fused terrain map of the newest sweep (None: not made since), without the
+        # keep-out disks: line of sight for the laser (a static OOI's own keep-out would
+        # block every view of it from outside)
         self._last_map: tuple[np.ndarray, GridGeometry] | None = None
         self._laser_on = False
+        self._laser_lock: tuple[int, np.ndarray] | None = None  # task id, aim (odom)
+        self._laser_face: np.ndarray | None = None  # where a neutralization looks (odom)
+        self._laser_detail = ""  # why the laser is off, for the task's failure
+        self._turning = False  # turning to face a neutralization's OOI
         self._battery_frac = math.nan  # unknown until the hardware reports it
         self._start_s: float | None = None
 
@@ -472,6 +494,7 @@ class RobotNode:
             obstacle_height_m=layers.obstacle_height_m,
             free_height_m=layers.free_height_m,
         )
+        self._last_map = None
         end_time = sweep.time_s + sweep.duration_s
         pose = self.odometry.pose_in_odom
         if self.nodes.due(pose, end_time):
@@ -784,11 +807,23 @@ class RobotNode:
         now = self._now
         pose = self.odometry.pose_in_odom
         intent = self.tasks.intent
-        laser_target = self._laser_aim(intent.laser_target_in_odom)
+        laser_target = self._laser_aim(intent.laser_target_in_odom, intent.task_id, pose)
         laser_ok = laser_target is not None and self._line_of_sight(pose, laser_target)
+        if laser_target is not None and not laser_ok:
+            self._laser_detail = "no line of sight to the OOI"
+        if laser_ok and not self._still(now):
+            # the beam follows the body a control period late: while it turns (to face the
+            # OOI) or moves, the hold does not count (test: 3 s counted while turning, the
+            # rules saw 12 s of the 15 s reported)
+            laser_ok = False
+            self._laser_detail = "turning to face the OOI"
         breaking = self.deadlock.phase in (Phase.BACKOFF, Phase.HOLD)
         for status in self.tasks.update(
-            now, pose, path_found=self._path_found or breaking, laser_on_target=laser_ok
+            now,
+            pose,
+            path_found=self._path_found or breaking,
+            laser_on_target=laser_ok,
+            laser_detail=self._laser_detail,
         ):
             self._report(status)
         intent = self.tasks.intent
@@ -819,6 +854,8 @@ class RobotNode:
                 self.follower.set_path(np.zeros((0, 2)))
         elif self.deadlock.phase is Phase.HOLD:
             v, w = 0.0, 0.0
+        elif (turn := self._face_turn(pose, intent)) is not None:
+            v, w = 0.0, turn  # at the stand-off: face the OOI, to see it now
         else:
             cmd = self.follower.step(pose, dt_s, keepout_disks_in_odom=self._keepout)
             v, w = cmd.linear_m_s, cmd.angular_rad_s
@@ -874,24 +911,88 @@ class RobotNode:
         if phase is not before:
             self._planned_goal = None  # replan: to the back-off point, nowhere, or the goal
 
-    def _laser_aim(self, target: tuple[float, float] | None) -> tuple[float, float] | None:
-        """Where the laser points for a neutralization aimed at ``target`` (odom): this
-        robot's own static-OOI detection nearest it within ``laser_snap_m`` (fused from its
-        sweeps in its own frame: centimetres, where the GCS's target carries the global map's
-        error); None (laser off, the hold does not count) when it has none there; ``target``
-        itself without perception."""
-        if target is None or self.perception is None:
+    def _laser_aim(
+        self, target: tuple[float, float] | None, task_id: int, pose: np.ndarray
+    ) -> tuple[float, float] | None:
+        """Where the laser points for a neutralization aimed at ``target`` (odom), or None
+        (laser off; :attr:`_laser_detail` says why). Without perception, ``target`` itself.
+
+        The OOI is this robot's own static-OOI detection nearest ``target`` within
+        ``laser_snap_m`` (its own frame: the GCS's target carries the global map's error),
+        but seen *now*: the aim is the cylinder candidate of the LIDAR's sweeps of the last
+        ``laser_fresh_s`` nearest that detection within ``laser_reacquire_m`` (the odometry
+        drift since the detection was made), the mean of that sweep's and the window's
+        sightings within ``laser_lock_m`` of it; once found, each sweep refines it from the
+        sightings within ``laser_lock_m`` of the last aim. The robot faces the detection
+        meanwhile (:meth:`_face_turn`)."""
+        self._laser_face = None
+        if target is None:
+            self._laser_lock = None
+            self._laser_detail = ""
+            return None
+        perception = self.perception
+        if perception is None:
             return target
-        best: tuple[float, float] | None = None
-        best_d = self.config.laser_snap_m
-        for o in self.perception.registry.objects:
-            if o.kind != ObjectKind.STATIC_OOI:
-                continue
-            x, y = float(o.position_in_odom[0]), float(o.position_in_odom[1])
-            d = math.hypot(x - target[0], y - target[1])
-            if d <= best_d:
-                best, best_d = (x, y), d
-        return best
+        cfg = self.config
+        lock = self._laser_lock
+        if lock is not None and lock[0] != task_id:
+            lock = self._laser_lock = None
+        ref: np.ndarray | None = None if lock is None else lock[1]
+        gate = cfg.laser_lock_m
+        if ref is None:
+            gate = cfg.laser_reacquire_m
+            best_d = cfg.laser_snap_m
+            for o in perception.registry.objects:
+                if o.kind != ObjectKind.STATIC_OOI:
+                    continue
+                d = math.hypot(o.position_in_odom[0] - target[0], o.position_in_odom[1] - target[1])
+                if d <= best_d:
+                    ref, best_d = np.asarray(o.position_in_odom, dtype=np.float64), d
+        if ref is None:
+            self._laser_face = np.asarray(target, dtype=np.float64)
+            self._laser_detail = f"no OOI of its own within {cfg.laser_snap_m:g} m of the target"
+            return None
+        self._laser_face = ref
+        seen = perception.recent_cylinders(self._now - cfg.laser_fresh_s)
+        d = np.hypot(seen[:, 1] - ref[0], seen[:, 2] - ref[1])
+        seen, d = seen[d <= gate], d[d <= gate]
+        if not len(seen):
+            self._laser_detail = "the OOI not seen from the stand-off"
+            return None
+        newest = seen[:, 0] == seen[:, 0].max()
+        pick = seen[newest][int(np.argmin(d[newest]))]
+        near = np.hypot(seen[:, 1] - pick[1], seen[:, 2] - pick[2]) <= cfg.laser_lock_m
+        aim = seen[near, 1:3].mean(axis=0)
+        self._laser_lock = (task_id, aim)
+        self._laser_face = aim
+        self._laser_detail = ""
+        return float(aim[0]), float(aim[1])
+
+    def _still(self, now: float) -> bool:
+        """The body has not moved (``laser_still_m``, ``laser_still_rad``) over the last
+        ``laser_still_s`` by odometry."""
+        cfg = self.config
+        a = self.odometry.pose_at(now - cfg.laser_still_s)
+        b = self.odometry.pose_in_odom
+        return (
+            math.hypot(b[0] - a[0], b[1] - a[1]) <= cfg.laser_still_m
+            and abs(float(wrap_angle(b[2] - a[2]))) <= cfg.laser_still_rad
+        )
+
+    def _face_turn(self, pose: np.ndarray, intent: Any) -> float | None:
+        """The turn rate that faces a neutralization at its stand-off towards its OOI (the
+        LIDAR sees 270 deg, not behind), or None when it faces it already or is driving."""
+        face = self._laser_face
+        if face is None or intent.laser_target_in_odom is None or len(intent.waypoints_in_odom):
+            self._turning = False
+            return None
+        err = float(wrap_angle(math.atan2(face[1] - pose[1], face[0] - pose[0]) - pose[2]))
+        # turn from laser_face_rad off down to a third of it (no dithering at the edge)
+        self._turning = abs(err) > self.config.laser_face_rad * (1 / 3 if self._turning else 1)
+        if not self._turning:
+            return None
+        rate = self.config.laser_turn_rate_rad_s
+        return float(np.clip(2.0 * err, -rate, rate))
 
     def _laser(self, pose: np.ndarray, target: tuple[float, float] | None) -> list[RobotCommand]:
         if target is None:
@@ -910,7 +1011,9 @@ class RobotNode:
         """No obstacle cell of the fused terrain map (keep-out disks are not obstacles to a
         laser) between the robot and ``target``."""
         if self._last_map is None:
-            return False
+            if not len(self.fusion):
+                return False
+            self._last_map = self._current_map(keepout=False)
         classes, geometry = self._last_map
         start = np.asarray(pose[:2])
         end = np.asarray(target)

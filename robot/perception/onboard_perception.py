@@ -134,6 +134,10 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     # (it drops when the walker turns at a corner of its route, off its own line: small world
     # seed 0, the robot drove on to 5 m of the unlabelled hostile, whose disk had vanished)
     hostile_memory_s: float = 20.0
+    # raw cylinder sightings kept this long for a fresh look at an object (the disruptor's
+    # laser aims at what it sees now, not at a fused position carrying the odometry drift
+    # since the object was first seen: small world, 0.58 m and 1.8 deg after 9.5 m on sand)
+    recent_cylinders_s: float = 10.0
     pos_sigma_m: float = 0.06  # a cylinder centre's error at 0 m ...
     pos_sigma_per_m: float = 0.012  # ... growing with range
     thumbnail_max_bytes: int = 2000
@@ -314,6 +318,8 @@ class OnboardPerception:
         self._now = -math.inf
         self._bootstrap_asks = 0
         self._early: list[tuple[float, tuple[float, float, float]]] = []  # before the phase
+        # (time_s, x, y, radius_m, range_m) of every cylinder candidate, newest last
+        self._recent_cylinders: deque[tuple[float, float, float, float, float]] = deque(maxlen=512)
 
     # ------------------------------------------------------------------ outputs
 
@@ -333,6 +339,13 @@ class OnboardPerception:
     def take_fiducials(self) -> list[FiducialSighting]:
         out, self._fiducials = self._fiducials, []
         return out
+
+    def recent_cylinders(self, since_s: float) -> NDArray[np.float64]:
+        """Cylinder candidates (shape only, no colour test) of the sweeps from ``since_s``
+        on, as ``(K, 5)`` rows ``(time_s, x_m, y_m, radius_m, range_m)`` in ``odom`` at the
+        odometry of their sweep, oldest first (kept ``recent_cylinders_s``)."""
+        rows = [c for c in self._recent_cylinders if c[0] >= since_s]
+        return np.array(rows, dtype=np.float64).reshape(-1, 5)
 
     def take_hazards_changed(self) -> bool:
         """Whether :meth:`own_hazards_in_odom` changed since the last call."""
@@ -359,6 +372,16 @@ class OnboardPerception:
                 p = t.position_m + la * _track_velocity(t, self.config.velocity_window_s)
                 out.append((ObjectKind.HOSTILE, float(p[0]), float(p[1])))
         return out
+
+    def hostile_tracks_in_odom(self) -> NDArray[np.float64]:
+        """This robot's hostile tracks (labelled, or within ``hostile_memory_s`` of the
+        label) as ``(N, 4)`` rows ``(x_m, y_m, vx_m_s, vy_m_s)`` in ``odom``, now."""
+        rows = [
+            (*t.position_m, *_track_velocity(t, self.config.velocity_window_s))
+            for t in self.lidar.tracker.tracks
+            if self._hostile(t)
+        ]
+        return np.array(rows, dtype=np.float64).reshape(-1, 4)
 
     def _hostile(self, track: PersonTrack) -> bool:
         """Labelled hostile, or was within ``hostile_memory_s`` (for the keep-out only)."""
@@ -468,6 +491,10 @@ class OnboardPerception:
             log.warning("robot %d: perception skipped a sweep: %s", self.robot_id, err)
             return
         self.stats.sweep_cpu_ms.append(_cpu_ms(t0))
+        while self._recent_cylinders and (
+            self._recent_cylinders[0][0] < time_s - cfg.recent_cylinders_s
+        ):
+            self._recent_cylinders.popleft()
         jobs: list[tuple[RememberedFrame, _Job]] = []
         for cand in out.cylinders:
             xy = (float(cand.position_in_odom[0]), float(cand.position_in_odom[1]))
@@ -475,6 +502,7 @@ class OnboardPerception:
             if rng > cfg.candidate_max_range_m:
                 continue
             self.stats.candidates += 1
+            self._recent_cylinders.append((time_s, xy[0], xy[1], float(cand.radius_m), rng))
             known = self.registry.nearest(xy, cfg.refine_m)
             if known is not None:
                 self._fuse(int(known.kind), xy, cand.radius_m, cand.height_m, rng, time_s, 0.5)

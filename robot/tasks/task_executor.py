@@ -50,9 +50,12 @@ class TaskExecutorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     waypoint_tolerance_m: float = 0.5
     standoff_tolerance_m: float = 0.75
     laser_hold_s: float = 15.0  # paper 2: the disruptor's laser must stay on for 15 s
-    # at the stand-off and approved, the laser never on target this long: the task fails
-    # (the robot sees no OOI near the GCS's target; the GCS may send another)
-    laser_search_s: float = 40.0
+    # at the stand-off and approved, the laser never on target this long: the task fails,
+    # saying why (the robot has no OOI of its own near the GCS's target, or does not see it
+    # from the stand-off); the GCS may send it again. 20 s: the robot turns to face the OOI
+    # in a few seconds and its LIDAR sweeps every 1.25 s; a neutralization the GCS sends at
+    # the stand-off times out there after 30 s + the 15 s hold
+    laser_search_s: float = 20.0
     no_path_timeout_s: float = 30.0
     max_teleop_linear_m_s: float = 1.5
     max_teleop_angular_rad_s: float = 2.0
@@ -221,11 +224,13 @@ class TaskExecutor:
         *,
         path_found: bool = True,
         laser_on_target: bool = False,
+        laser_detail: str = "",
     ) -> list[TaskStatus]:
         """Advance the current task given where the robot is; returns status reports.
 
         ``path_found``: the planner has a path to the next waypoint; ``laser_on_target``: the
-        laser has line of sight to the neutralization target this instant.
+        laser is on the OOI, seen now with line of sight, this instant; ``laser_detail``: why
+        not (the failure's detail says it).
         """
         act = self._active
         if act is None or act.paused:
@@ -275,6 +280,8 @@ class TaskExecutor:
             if not laser_on_target and now_s - act.ready_since_s >= cfg.laser_search_s:
                 self._active = None
                 detail = f"laser not on the target for {cfg.laser_search_s:g} s"
+                if laser_detail:
+                    detail += f": {laser_detail}"
                 return [*out, self._status(tid, TaskState.FAILED, now_s, detail)]
             if not laser_on_target:
                 act.los_since_s = None
