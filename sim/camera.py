@@ -10,6 +10,16 @@ the scene is rendered with PyBullet's TinyRenderer, and everything is put back.
 
 Intrinsics: pinhole, square pixels, principal point at the centre, horizontal field of view
 ``hfov_deg`` (about 60 deg for MAGIC's Firefly MV with its lens).
+
+Frames with nothing to find (issue 16: renders grew with the team, about 650 a mission-second
+at 64 robots, most of the simulator's CPU). A robot's perception looks in an image for things
+only: objects of interest, people, teammates' tags, and the clutter its LIDAR may take for a
+candidate (trunks, posts, cars). When none of them is in the camera's frustum (bounding
+spheres, :func:`in_frustum`) within ``subject_range_m`` (a teammate: within the range where its
+tag still spans ``min_tag_px`` pixels), the frame holds terrain only (ground, walls, roofs,
+fences) and the simulator answers with a flat image of ``empty_rgb`` instead of rendering it
+(``skip_empty``; False: always render). The choice is a pure function of the recorded frame,
+so runs stay repeatable.
 """
 
 from __future__ import annotations
@@ -19,7 +29,7 @@ import math
 import msgspec
 import numpy as np
 
-__all__ = ["CameraConfig", "camera_axes", "intrinsics", "pan_angle"]
+__all__ = ["CameraConfig", "camera_axes", "in_frustum", "intrinsics", "pan_angle"]
 
 
 class CameraConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -30,6 +40,12 @@ class CameraConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
     history_s: float = 20.0
     near_m: float = 0.05
     far_m: float = 80.0
+    # frames with nothing to find (module docstring): the robots' colour tests stop at 12 m
+    # (robot.perception.image_memory), a tag needs about one pixel per cell (8) to decode
+    skip_empty: bool = True
+    subject_range_m: float = 25.0
+    min_tag_px: float = 8.0
+    empty_rgb: tuple[int, int, int] = (128, 128, 128)
 
     def __post_init__(self) -> None:
         if not 10.0 <= self.hfov_deg <= 150.0:
@@ -42,6 +58,12 @@ class CameraConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_o
             raise ValueError(f"tilt_rad must be in (-1.5, 1.5), got {self.tilt_rad}")
         if not 0 < self.history_s <= 600:
             raise ValueError(f"history_s must be in (0, 600], got {self.history_s}")
+        if not (math.isfinite(self.subject_range_m) and self.subject_range_m > 0):
+            raise ValueError(f"subject_range_m must be > 0, got {self.subject_range_m}")
+        if not (math.isfinite(self.min_tag_px) and self.min_tag_px > 0):
+            raise ValueError(f"min_tag_px must be > 0, got {self.min_tag_px}")
+        if len(self.empty_rgb) != 3 or not all(0 <= int(c) <= 255 for c in self.empty_rgb):
+            raise ValueError(f"empty_rgb must be three values in [0, 255], got {self.empty_rgb}")
 
 
 def pan_angle(time_s: float, config: CameraConfig, *, phase_s: float = 0.0) -> float:
@@ -76,3 +98,39 @@ def camera_axes(
     fwd = rot @ np.array([cp * ct, sp * ct, st])
     up = rot @ np.array([-cp * st, -sp * st, ct])
     return eye, fwd, up
+
+
+def in_frustum(
+    eye_m: np.ndarray,
+    forward: np.ndarray,
+    up: np.ndarray,
+    *,
+    hfov_rad: float,
+    vfov_rad: float,
+    near_m: float,
+    centers_m: np.ndarray,
+    radii_m: np.ndarray,
+    ranges_m: np.ndarray,
+) -> np.ndarray:
+    """Which spheres (``centers_m (N, 3)``, ``radii_m (N,)``) may show in a pinhole camera at
+    ``eye_m`` looking along ``forward`` (``up`` its image's up) with full fields of view
+    ``hfov_rad`` x ``vfov_rad``, nearer than ``ranges_m (N,)`` (sphere surface) and beyond
+    ``near_m``: boolean ``(N,)``. Conservative: a sphere that touches the frustum counts."""
+    centers = np.asarray(centers_m, dtype=float).reshape(-1, 3)
+    r = np.asarray(radii_m, dtype=float).reshape(-1)
+    d = centers - np.asarray(eye_m, dtype=float)
+    f = np.asarray(forward, dtype=float)
+    u = np.asarray(up, dtype=float)
+    right = np.cross(f, u)
+    z = d @ f
+    x = np.abs(d @ right)
+    y = np.abs(d @ u)
+    th, tv = math.tan(hfov_rad / 2), math.tan(vfov_rad / 2)
+    # a side plane through the eye at half-angle a: distance of the centre outside it is
+    # |x| cos a - z sin a; the sphere touches the inside when that is <= r
+    ch, cv = math.cos(hfov_rad / 2), math.cos(vfov_rad / 2)
+    inside_h = x * ch - z * th * ch <= r
+    inside_v = y * cv - z * tv * cv <= r
+    near = z >= near_m - r
+    close = np.sqrt(np.einsum("ij,ij->i", d, d)) - r <= np.asarray(ranges_m, dtype=float)
+    return inside_h & inside_v & near & close

@@ -62,7 +62,7 @@ from protocol.sensors import (
     WheelTicks,
 )
 from sim.actors import PatrolRoutes
-from sim.camera import CameraConfig, camera_axes, intrinsics, pan_angle
+from sim.camera import CameraConfig, camera_axes, in_frustum, intrinsics, pan_angle
 from sim.ground_truth import GroundTruth, rasterize
 from sim.imu import EncoderConfig, ImuConfig, Imus, wheel_ticks
 from sim.lidar import LidarConfig, NoddingLidars
@@ -231,6 +231,53 @@ class _RenderTicket:
     hidden_oois: frozenset[int]
 
 
+#: A robot's bounding sphere for :meth:`Simulator._frame_has_subjects`: centred this high
+#: over ``base`` with this radius, it holds the chassis and the tagged head
+#: (:class:`sim.scene.RobotGeometry`: the head's far corner is 0.45 m from the centre).
+_ROBOT_SPHERE_Z_M = 0.5
+_ROBOT_SPHERE_RADIUS_M = 0.8
+#: Solids at most this wide (half extent, m) on the obstacle layer are clutter a LIDAR may take
+#: for a candidate (trunks, canopies, posts, cars); wider ones and the ground and roof layers
+#: are terrain.
+_CLUTTER_HALF_EXTENT_M = 2.5
+
+
+@dataclass(frozen=True)
+class _StaticSubjects:
+    """Bounding spheres of what never moves but may be looked for: clutter solids first
+    (``n_static``), then the objects of interest (``ooi_ids`` in order); and the people's
+    sphere sizes (their centres move)."""
+
+    centers_m: np.ndarray
+    radii_m: np.ndarray
+    n_static: int
+    ooi_ids: tuple[int, ...]
+    human_radii_m: np.ndarray
+    human_half_height_m: np.ndarray
+
+    @staticmethod
+    def of(world: World) -> _StaticSubjects:
+        clutter = [
+            s
+            for s in world.solids
+            if s.layer == "obstacle" and max(s.half_extents_m[:2]) <= _CLUTTER_HALF_EXTENT_M
+        ]
+        centers = [s.center_m for s in clutter]
+        radii = [float(np.linalg.norm(s.half_extents_m)) for s in clutter]
+        for o in world.oois:
+            centers.append((o.xy_m[0], o.xy_m[1], o.ground_z_m + o.height_m / 2))
+            radii.append(math.hypot(o.radius_m, o.height_m / 2))
+        hs = world.humans
+        return _StaticSubjects(
+            centers_m=np.array(centers, dtype=float).reshape(-1, 3),
+            radii_m=np.array(radii, dtype=float),
+            n_static=len(clutter),
+            ooi_ids=tuple(o.ooi_id for o in world.oois),
+            human_radii_m=np.array([math.hypot(h.radius_m, h.height_m / 2) for h in hs]),
+            human_half_height_m=np.array([h.height_m / 2 for h in hs]),
+        )
+
+
 @dataclass
 class _Inbox:
     velocity: dict[int, tuple[float, float]] = field(default_factory=dict)
@@ -266,6 +313,7 @@ class Simulator:
         self._render_wanted = renderers > 0
         self._render_worker: RenderWorkerProcess | None = None
         self.worker_renders = 0  # images the render worker drew that were used
+        self.empty_frames = 0  # images answered flat: nothing to find in them (sim.camera)
         self.clock = ManualClock(0.0)
         self.time_s = 0.0
         self.steps = 0
@@ -326,6 +374,7 @@ class Simulator:
         )
         self._history_t: collections.deque[float] = collections.deque(maxlen=self._history.maxlen)
         self._cam_phase = np.arange(n) * 1.7
+        self._subjects = _StaticSubjects.of(self.world)
         self._sync_scene()
         self._record()
         self._update_radio()
@@ -663,6 +712,55 @@ class Simulator:
         j = max(0, min(len(times) - 1, bisect.bisect_right(times, request.time_s + 1e-9) - 1))
         return j, j == len(times) - 1
 
+    def _frame_has_subjects(self, robot_id: int, j: int, request: ImageRequest) -> bool:
+        """Whether recorded frame ``j`` of robot ``robot_id``'s camera, at the request's size,
+        may show anything its perception looks for (:mod:`sim.camera`: objects, people,
+        clutter within ``subject_range_m``, teammates whose tag spans ``min_tag_px``)."""
+        cc = self.config.camera
+        if not cc.skip_empty:
+            return True
+        k = self.robot_ids.index(robot_id)
+        t_rec, mats, hxy, hidden = self._history[j]
+        pan = self.camera_pan(robot_id, t_rec)
+        eye, fwd, up = camera_axes(mats[k], np.array(self.geometry.camera_m), pan, cc.tilt_rad)
+        w, h = request.width_px, request.height_px
+        fx, fy, _, _ = intrinsics(w, h, cc)
+        st = self._subjects
+        centers = [st.centers_m]
+        radii = [st.radii_m]
+        ranges = [np.full(len(st.radii_m), cc.subject_range_m)]
+        gone = self.scene.hidden_oois
+        if gone:
+            keep = np.array([oid not in gone for oid in st.ooi_ids], dtype=bool)
+            keep = np.concatenate([np.ones(st.n_static, dtype=bool), keep])
+            centers, radii, ranges = [centers[0][keep]], [radii[0][keep]], [ranges[0][keep]]
+        if len(hxy):
+            shown = ~np.asarray(hidden, dtype=bool)
+            hz = self.truth.height_at(hxy[:, 0], hxy[:, 1])
+            c = np.column_stack([hxy, hz + st.human_half_height_m])[shown]
+            centers.append(c)
+            radii.append(st.human_radii_m[shown])
+            ranges.append(np.full(len(c), cc.subject_range_m))
+        others = np.arange(len(mats)) != k
+        if others.any():
+            c = mats[others, :3, 3] + np.array([0.0, 0.0, _ROBOT_SPHERE_Z_M])
+            centers.append(c)
+            radii.append(np.full(len(c), _ROBOT_SPHERE_RADIUS_M))
+            tag_range_m = fx * self.geometry.tag_size_m / cc.min_tag_px
+            ranges.append(np.full(len(c), min(tag_range_m, cc.subject_range_m)))
+        hits = in_frustum(
+            eye,
+            fwd,
+            up,
+            hfov_rad=math.radians(cc.hfov_deg),
+            vfov_rad=2 * math.atan(h / 2 / fy),
+            near_m=cc.near_m,
+            centers_m=np.concatenate(centers),
+            radii_m=np.concatenate(radii),
+            ranges_m=np.concatenate(ranges),
+        )
+        return bool(hits.any())
+
     def _render_job(self, robot_id: int, request: ImageRequest) -> tuple[RenderJob, float]:
         """What :meth:`render_image` will draw for ``request`` at the next step, for the render
         worker, and the recorded frame's time. The newest frame now (a node asking for the
@@ -698,6 +796,9 @@ class Simulator:
         None: rendered in process at the step."""
         if not self._render_wanted:
             return None
+        j, _ = self._recorded(request)
+        if not self._frame_has_subjects(robot_id, j, request):
+            return None  # answered flat at the step, nothing to draw
         job, t_rec = self._render_job(robot_id, request)
         if self._render_worker is None:
             try:
@@ -755,7 +856,13 @@ class Simulator:
         w, h = request.width_px, request.height_px
         fx, fy, cx, cy = intrinsics(w, h, cc)
         pan = self.camera_pan(robot_id, t_rec)
-        if rgb is None:
+        if not self._frame_has_subjects(robot_id, j, request):
+            # terrain only (sim.camera): whatever the worker drew, the flat image, so that
+            # the answer does not depend on where it was drawn
+            self.empty_frames += 1
+            rgb = np.empty((h, w, 3), dtype=np.uint8)
+            rgb[:] = np.array(cc.empty_rgb, dtype=np.uint8)
+        elif rgb is None:
             if not current:
                 self.scene.set_robot_poses(mats)
                 if len(self.routes):

@@ -32,10 +32,10 @@ def box(
     return Solid(
         kind,
         "box",
-        layer,
+        layer,  # type: ignore[arg-type]
         ((x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2),
         ((x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2),
-    )  # type: ignore[arg-type]
+    )
 
 
 def make_world(

@@ -157,7 +157,9 @@ def test_tags_are_found_up_to_about_4_m_at_640x480() -> None:
 
 def test_images_come_from_the_recorded_camera_pose_of_the_requested_time() -> None:
     robots = [(10.0, 10.0, 0.0, "sensor"), (12.0, 10.0, math.pi, "sensor")]
-    with Simulator(make_world(robots=robots)) as sim:
+    # every frame drawn (a frame of terrain only would be flat: tests/sim/test_camera_frustum)
+    cfg = SimulatorConfig(camera=CameraConfig(skip_empty=False))
+    with Simulator(make_world(robots=robots), config=cfg) as sim:
         sim.run_for(2.0)
         t_past = 1.0
         sim.driver(0).send(ImageRequest(request_id=1, time_s=t_past))
