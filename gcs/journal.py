@@ -8,14 +8,17 @@ same state (same nodes, edges and poses, given a deterministic run: see below). 
 - ``uplink``: a message handed to :meth:`GroundStation.handle` (accepted or refused: the
   station's counts replay too), the frame bytes of :func:`protocol.messages.encode_frame`;
 - ``step``: a call of :meth:`GroundStation.step` with its ``now_s`` and ``budget_s``;
-- ``start_hint``, ``accept_closure``, ``rewind``, ``restart_closer``: the operator primitives
-  of the station (paper 6.1) with their arguments;
+- ``start_hint``, ``accept_closure``, ``rewind``, ``restart_closer``, ``hazard_edit``: the
+  operator primitives of the station (paper 6.1) with their arguments (``hazard_edit``: an
+  operator's reclassification of a hazard, :func:`edit_hazard`);
 - ``operator`` and ``decision``: operator commands and planner decisions as JSON objects, for
   their owners to rebuild from (the station ignores them);
 - ``downlink`` and ``link``: the GCS process's reliable downlink messages (frame bytes with
   their sequence numbers) and snapshots of its latest-only streams' sequence numbers, from
   which a resumed ``magic gcs`` continues every robot's streams (the station ignores them);
-- ``checkpoint``: the station's whole state was saved here (table ``checkpoints``, below).
+- ``checkpoint``: the station's whole state was saved here (table ``checkpoints``, below),
+  with the planners' task bookkeeping at that point (tasks sent per robot, the last task id),
+  so a resume reads only the ``decision`` records after it.
 
 Checkpoints bound a restart. Replaying every record repeats every station step (its loop
 closing): 6.3 s for 300 mission-s of the small world, growing with the mission. So every
@@ -37,6 +40,7 @@ Storage is SQLite in WAL mode (Python's standard library: no server, one file, r
 any SQLite tool, safe against a torn write). :meth:`GcsJournal.commit` makes what was appended
 survive a crash of the process (a WAL commit is in the OS's hands at once); the journal also
 checkpoints (an fsync) at most ``sync_period_s`` apart, so a power loss takes at most that.
+Both happen only when something was appended: an idle GCS touches the disk not at all.
 The GCS commits before it acknowledges, so what the link acknowledged is in the journal.
 
 Replaying gives the same state only when the run itself was deterministic: a loop-closer step
@@ -47,6 +51,8 @@ exactly.
 
 from __future__ import annotations
 
+import base64
+import binascii
 import hashlib
 import io
 import json
@@ -78,6 +84,7 @@ __all__ = [
     "Record",
     "ReplaySummary",
     "ResumedControl",
+    "edit_hazard",
     "load_station",
     "rebuild_station",
     "replay_journal",
@@ -123,6 +130,7 @@ _KINDS = frozenset(
         "downlink",
         "link",
         "checkpoint",
+        "hazard_edit",
     }
 )
 
@@ -179,6 +187,10 @@ class GcsJournal:
         self._seq = int(row[0] or 0)
         self._committed_seq = self._seq
         self._last_sync_wall_s = time.monotonic()
+        #: the planners' task bookkeeping (:func:`step_control`): tasks sent per robot and the
+        #: last task id journaled, saved with each checkpoint (:func:`resume_control`)
+        self.tasks_sent: dict[int, int] = {}
+        self.last_task_id = 0
         self.unencodable = 0  # messages that are no protocol message (refused by the station)
 
     # ---- opening ----------------------------------------------------------------------------
@@ -205,6 +217,10 @@ class GcsJournal:
             "format": str(JOURNAL_FORMAT),
             "protocol_version": str(PROTOCOL_VERSION),
             "station_config": msgspec.json.encode(station_config).decode(),
+            # what is read back: JSON has no infinity (a bound of inf: unbounded), msgpack has
+            "station_config_msgpack": base64.b64encode(
+                msgspec.msgpack.encode(station_config)
+            ).decode(),
             "checkpoint_period_s": repr(float(checkpoint_period_s)),
             **(meta or {}),
         }
@@ -303,25 +319,33 @@ class GcsJournal:
             raise JournalError(f"{self.path}: {kind} record: {err}") from None
         return self.append(kind, time_s, body, robot_id=robot_id)
 
-    def commit(self) -> None:
+    def commit(self) -> bool:
         """Make every appended record survive a crash of this process; checkpoint (fsync) when
-        the last one is ``sync_period_s`` or more ago, so a power loss takes at most that."""
-        if self._seq != self._committed_seq:
-            self._conn.commit()
-            self._committed_seq = self._seq
+        the last one is ``sync_period_s`` or more ago, so a power loss takes at most that.
+        Only when something was appended since (the GCS calls this every spin, 20 a second:
+        an idle one writes nothing). Returns whether anything was committed."""
+        if self._seq == self._committed_seq:
+            return False
+        self._conn.commit()
+        self._committed_seq = self._seq
         now = time.monotonic()
         if now - self._last_sync_wall_s >= self.sync_period_s:
             self._last_sync_wall_s = now
             self._conn.execute("PRAGMA wal_checkpoint(PASSIVE)")
+        return True
 
     def checkpoint_due(self, now_s: float) -> bool:
         """Whether a station checkpoint is due at mission time ``now_s``."""
         return now_s - self._last_checkpoint_s >= self.checkpoint_period_s
 
-    def checkpoint(self, station: GroundStation, now_s: float) -> int:
+    def checkpoint(
+        self, station: GroundStation, now_s: float, *, tasking: dict[str, Any] | None = None
+    ) -> int:
         """Save ``station`` whole at mission time ``now_s`` (module docstring: its iSAM2 is
         re-seeded at its next solve, as the loaded copy's will be); returns the ``checkpoint``
         record's sequence number. Older checkpoints are deleted (a resume needs the latest).
+        ``tasking``: JSON fields saved in the record (the planners' bookkeeping, default
+        :attr:`tasks_sent` and :attr:`last_task_id`).
         Durable with the next :meth:`commit`, together with the records before it. A station
         that cannot be saved is logged and checkpoints stop (the record still marks the
         barrier); the journal goes on."""
@@ -335,7 +359,9 @@ class GcsJournal:
             self._last_checkpoint_s = float(now_s)
             return self.event("checkpoint", now_s, {"bytes": 0, "error": str(err)})
         digest = hashlib.sha256(state).digest()
-        seq = self.event("checkpoint", now_s, {"bytes": len(state), "sha256": digest.hex()})
+        fields: dict[str, Any] = {"bytes": len(state), "sha256": digest.hex()}
+        fields.update(tasking if tasking is not None else self._tasking())
+        seq = self.event("checkpoint", now_s, fields)
         self._conn.execute("DELETE FROM checkpoints")
         self._conn.execute(
             "INSERT INTO checkpoints VALUES (?, ?, ?, ?)", (seq, float(now_s), digest, state)
@@ -344,6 +370,38 @@ class GcsJournal:
         self.checkpoint_bytes = len(state)
         self.checkpoint_wall_s += time.perf_counter() - t0
         return seq
+
+    def _tasking(self) -> dict[str, Any]:
+        return {
+            "tasks_sent": {str(r): n for r, n in sorted(self.tasks_sent.items())},
+            "last_task_id": self.last_task_id,
+        }
+
+    def note_task(self, robot_id: int, task_id: int) -> None:
+        """A task sent to ``robot_id`` (its ``decision`` record journaled by the caller)."""
+        self.tasks_sent[robot_id] = self.tasks_sent.get(robot_id, 0) + 1
+        self.last_task_id = max(self.last_task_id, int(task_id))
+
+    def latest_record(self, kind: str) -> Record | None:
+        """The newest record of ``kind`` (None: none). Walks back from the end: cheap when
+        one is recent, as the GCS's ``link`` snapshots are."""
+        row = self._conn.execute(
+            "SELECT seq, time_s, kind, robot_id, body FROM records WHERE kind = ? "
+            "ORDER BY seq DESC LIMIT 1",
+            (kind,),
+        ).fetchone()
+        if row is None:
+            return None
+        return Record(int(row[0]), float(row[1]), str(row[2]), int(row[3]), bytes(row[4]))
+
+    def record(self, seq: int) -> Record | None:
+        """The record numbered ``seq`` (None: none)."""
+        row = self._conn.execute(
+            "SELECT seq, time_s, kind, robot_id, body FROM records WHERE seq = ?", (int(seq),)
+        ).fetchone()
+        if row is None:
+            return None
+        return Record(int(row[0]), float(row[1]), str(row[2]), int(row[3]), bytes(row[4]))
 
     def latest_checkpoint(self) -> tuple[int, float, GroundStation] | None:
         """``(record seq, mission time, the station as saved)`` of the latest checkpoint, or
@@ -390,12 +448,16 @@ class GcsJournal:
     def station_config(self) -> GroundStationConfig:
         from gcs.ground_station import GroundStationConfig
 
-        raw = self.meta().get("station_config")
-        if raw is None:
+        meta = self.meta()
+        packed = meta.get("station_config_msgpack")
+        raw = meta.get("station_config")
+        if raw is None and packed is None:
             raise JournalError(f"{self.path}: no station_config in the journal's meta")
         try:
-            return msgspec.json.decode(raw, type=GroundStationConfig)
-        except (msgspec.ValidationError, msgspec.DecodeError) as err:
+            if packed is not None:
+                return msgspec.msgpack.decode(base64.b64decode(packed), type=GroundStationConfig)
+            return msgspec.json.decode(raw or "", type=GroundStationConfig)
+        except (msgspec.ValidationError, msgspec.DecodeError, binascii.Error) as err:
             raise JournalError(f"{self.path}: station_config: {err}") from None
 
     def records(self, *, after_seq: int = 0, kind: str | None = None) -> Iterator[Record]:
@@ -520,6 +582,25 @@ def _apply(rec: Record, station: GroundStation) -> None:
         station.restart_loop_closer()
     elif rec.kind == "checkpoint":
         _checkpoint_barrier(station)
+    elif rec.kind == "hazard_edit":
+        f = rec.json()
+        edit_hazard(station, int(f["hazard_id"]), int(f["kind"]), float(f["radius_m"]))
+
+
+def edit_hazard(station: Any, hazard_id: int, kind: int, radius_m: float) -> None:
+    """An operator's edit of hazard ``hazard_id`` (paper 6.1: reclassifying an OOI): its kind
+    and keep-out radius, in place at the same index (the station's per-hazard sighting counts
+    stay aligned); KeyError naming it when the station has no such hazard."""
+    from protocol.messages import Hazard, ObjectKind
+
+    station = getattr(station, "station", station)  # a JournaledStation's own
+    for i, h in enumerate(station.hazards):
+        if h.hazard_id == hazard_id:
+            station.hazards[i] = Hazard(
+                h.hazard_id, ObjectKind(kind), h.position_in_map, float(radius_m)
+            )
+            return
+    raise KeyError(f"no hazard {hazard_id} at the station")
 
 
 def _checkpoint_barrier(station: GroundStation) -> None:
@@ -755,6 +836,12 @@ class JournaledStation:
         self.station.restart_loop_closer()
         self.journal.event("restart_closer", self._now(), {})
 
+    def edit_hazard(self, hazard_id: int, kind: int, radius_m: float) -> None:
+        """:func:`edit_hazard`, journaled (a resume and a replay keep the operator's edit)."""
+        edit_hazard(self.station, hazard_id, kind, radius_m)
+        fields = {"hazard_id": int(hazard_id), "kind": int(kind), "radius_m": float(radius_m)}
+        self.journal.event("hazard_edit", self._now(), fields)
+
     def commit(self) -> None:
         self.journal.commit()
 
@@ -806,6 +893,7 @@ def step_control(
                 {"task": type(msg).__name__, "task_id": task_id},
                 robot_id=int(rid),
             )
+            journal.note_task(int(rid), task_id)
     if journal.checkpoint_due(now_s):
         journal.checkpoint(control.station, now_s)
     return out
@@ -834,9 +922,11 @@ def resume_control(
     allocator is *not* replayed: it re-plans from the rebuilt estimate at its next step (its
     plan is a function of the station's state, the robots' last reports and its own
     assignments; the assignments would need every plan replayed with the same map, which
-    costs a rasterization per plan). What the journal's ``decision`` records give it back:
-    the tasks sent per robot and the task ids used (new ids start past them, so no robot
-    sees an id twice)."""
+    costs a rasterization per plan). What the journal gives it back: the tasks sent per
+    robot and the task ids used (new ids start past them, so no robot sees an id twice),
+    from the bookkeeping saved with the checkpoint the station loaded from and the
+    ``decision`` records after it only (none: every ``decision`` record), so the rebuild
+    reads no more of the journal than the records after the checkpoint."""
     import msgspec
 
     from gcs.mission_control import MissionControl, MissionControlConfig
@@ -847,11 +937,21 @@ def resume_control(
         station, summary = rebuild_station(journal, from_checkpoint=from_checkpoint)
         sent: dict[int, int] = {}
         last_id = 0
-        for rec in journal.records(kind="decision"):
+        after = 0
+        if summary.checkpoint_seq:
+            saved = journal.record(summary.checkpoint_seq)
+            f = saved.json() if saved is not None else {}
+            if "tasks_sent" in f:  # format 2 before the bookkeeping: every decision record
+                sent = {int(r): int(n) for r, n in f["tasks_sent"].items()}
+                last_id = int(f["last_task_id"])
+                after = summary.checkpoint_seq
+        for rec in journal.records(after_seq=after, kind="decision"):
             f = rec.json()
             if "task_id" in f:
                 sent[rec.robot_id] = sent.get(rec.robot_id, 0) + 1
                 last_id = max(last_id, int(f["task_id"]))
+        journal.tasks_sent = dict(sent)
+        journal.last_task_id = last_id
     except BaseException:
         journal.close()
         raise

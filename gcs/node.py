@@ -57,7 +57,14 @@ from protocol.process_cli import (
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
 
-__all__ = ["GcsProcess", "check_endpoint", "main", "restore_link_state", "summary_line"]
+__all__ = [
+    "GcsProcess",
+    "LinkLedger",
+    "check_endpoint",
+    "main",
+    "restore_link_state",
+    "summary_line",
+]
 
 #: Sequence numbers a resumed GCS skips on its latest-only downlink streams (acks, hazard
 #: updates, broadcasts) past the last journaled snapshot: more than a second of them can
@@ -85,14 +92,107 @@ def link_snapshot(radio: Any) -> dict[str, Any]:
     return {"robots": robots, "broadcast": {n: st.next_seq for n, st in bc._send.items()}}
 
 
-def restore_link_state(radio: Any, journal: GcsJournal) -> dict[str, int]:
+class LinkLedger:
+    """What a resumed GCS endpoint needs of the journal to continue every robot's radio streams
+    (:func:`restore_link_state`), kept up to date as records are journaled and saved in the
+    journal's ``link`` records, so that a resume reads the newest ``link`` record and decodes
+    only the records after it, however long the journal (issue 17: a restart that stays
+    flat). Per robot: how many messages each reliable uplink stream delivered (the link
+    delivers them in order, exactly once, from 1: the count is the last sequence number), the
+    record numbers of the last two pose nodes and the last terrain grid (the stream decoders'
+    references), and per reliable downlink stream the record numbers of the last
+    ``RESEND_TAIL`` messages; and the latest-only streams' snapshot (:func:`link_snapshot`)."""
+
+    def __init__(self) -> None:
+        self.up: dict[tuple[int, str], int] = {}
+        self.node_seqs: dict[int, list[int]] = {}
+        self.grid_seq: dict[int, int] = {}
+        self.down_seqs: dict[tuple[int, str], list[int]] = {}
+        self.snapshot: dict[str, Any] | None = None
+        #: records decoded by :meth:`from_journal` (the tail after the newest ``link`` record)
+        self.records_read = 0
+
+    def uplink(self, robot_id: int, msg: Any, seq: int) -> None:
+        """An uplink message journaled as record ``seq``."""
+        from protocol.messages import PoseNode, TerrainGrid
+
+        spec = stream_of(Direction.UP, msg)
+        if spec.reliability is Reliability.RELIABLE:
+            key = (robot_id, spec.name)
+            self.up[key] = self.up.get(key, 0) + 1
+        if isinstance(msg, PoseNode):
+            nodes = self.node_seqs.setdefault(robot_id, [])
+            nodes.append(seq)
+            del nodes[:-2]
+        elif isinstance(msg, TerrainGrid):
+            self.grid_seq[robot_id] = seq
+
+    def downlink(self, robot_id: int, stream: str, seq: int) -> None:
+        """A reliable downlink message of ``stream`` journaled as record ``seq``."""
+        tail = self.down_seqs.setdefault((robot_id, stream), [])
+        tail.append(seq)
+        del tail[:-RESEND_TAIL]
+
+    def robots(self) -> set[int]:
+        out = {r for r, _ in self.up} | {r for r, _ in self.down_seqs}
+        if self.snapshot is not None:
+            out |= {int(r) for r in self.snapshot["robots"]}
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "up": [[r, s, n] for (r, s), n in sorted(self.up.items())],
+            "nodes": {str(r): v for r, v in sorted(self.node_seqs.items())},
+            "grid": {str(r): v for r, v in sorted(self.grid_seq.items())},
+            "down": [[r, s, v] for (r, s), v in sorted(self.down_seqs.items())],
+        }
+
+    @classmethod
+    def from_journal(cls, journal: GcsJournal) -> LinkLedger:
+        """The ledger at the journal's end: from its newest ``link`` record that carries one
+        (the records after it decoded), else (a journal written before ledgers) from every
+        record."""
+        from protocol.messages import decode_frame
+
+        ledger = cls()
+        after = 0
+        last = journal.latest_record("link")
+        if last is not None:
+            body = last.json()
+            saved = body.get("ledger")
+            if isinstance(saved, dict):
+                ledger.up = {(int(r), str(s)): int(n) for r, s, n in saved["up"]}
+                ledger.node_seqs = {int(r): [int(x) for x in v] for r, v in saved["nodes"].items()}
+                ledger.grid_seq = {int(r): int(v) for r, v in saved["grid"].items()}
+                ledger.down_seqs = {
+                    (int(r), str(s)): [int(x) for x in v] for r, s, v in saved["down"]
+                }
+                ledger.snapshot = {"robots": body["robots"], "broadcast": body["broadcast"]}
+                after = last.seq
+        for rec in journal.records(after_seq=after):
+            if rec.kind == "uplink":
+                ledger.uplink(rec.robot_id, decode_frame(rec.body, Direction.UP).msg, rec.seq)
+                ledger.records_read += 1
+            elif rec.kind == "downlink":
+                frame = decode_frame(rec.body, Direction.DOWN)
+                ledger.downlink(rec.robot_id, stream_of(Direction.DOWN, frame.msg).name, rec.seq)
+                ledger.records_read += 1
+            elif rec.kind == "link":
+                body = rec.json()
+                ledger.snapshot = {"robots": body["robots"], "broadcast": body["broadcast"]}
+        return ledger
+
+
+def restore_link_state(
+    radio: Any, journal: GcsJournal, ledger: LinkLedger | None = None
+) -> dict[str, int]:
     """Give a fresh GCS endpoint the sequence state of the one that was killed, from the
-    journal, so that robots notice nothing but a pause and nothing is delivered twice:
+    journal (through ``ledger``, :meth:`LinkLedger.from_journal` when None), so that robots
+    notice nothing but a pause and nothing is delivered twice:
 
     * each robot's reliable uplink streams continue after the last message journaled (the
-      link delivers them in order, exactly once, from 1, and the GCS acknowledges only what
-      it committed: the count is the last sequence number), and the stream decoders of pose
-      nodes and grids get their reference back (the last two nodes, the last grid);
+      GCS acknowledges only what it committed), and the stream decoders of pose nodes and
+      grids get their reference back (the last two nodes, the last grid);
     * each reliable downlink stream continues after its last journaled message, and the last
       ``RESEND_TAIL`` go out again with their numbers (one the robot never got would stall
       its stream; those it had it drops);
@@ -100,61 +200,56 @@ def restore_link_state(radio: Any, journal: GcsJournal) -> dict[str, int]:
       ``LATEST_SEQ_MARGIN`` past the last ``link`` snapshot.
 
     Writes the channels' private state (the link has no public API for it yet). Returns
-    counts: robots, uplink streams restored, downlink messages resent."""
-    from protocol.messages import PoseNode, TerrainGrid, decode_frame
+    counts: robots, uplink streams restored, downlink messages resent, journal records
+    decoded."""
+    from protocol.messages import decode_frame
 
-    up: dict[tuple[int, str], int] = {}
-    nodes: dict[int, list[Any]] = {}
-    grids: dict[int, Any] = {}
-    down: dict[tuple[int, str], list[tuple[int, Any]]] = {}
-    snapshot: dict[str, Any] | None = None
-    for rec in journal.records():
-        if rec.kind == "uplink":
-            msg = decode_frame(rec.body, Direction.UP).msg
-            spec = stream_of(Direction.UP, msg)
-            if spec.reliability is Reliability.RELIABLE:
-                key = (rec.robot_id, spec.name)
-                up[key] = up.get(key, 0) + 1
-            if isinstance(msg, PoseNode):
-                nodes.setdefault(rec.robot_id, []).append(msg)
-                del nodes[rec.robot_id][:-2]
-            elif isinstance(msg, TerrainGrid):
-                grids[rec.robot_id] = msg
-        elif rec.kind == "downlink":
-            frame = decode_frame(rec.body, Direction.DOWN)
-            tail = down.setdefault((rec.robot_id, stream_of(Direction.DOWN, frame.msg).name), [])
-            tail.append((frame.seq, frame.msg))
-            del tail[:-RESEND_TAIL]
-        elif rec.kind == "link":
-            snapshot = rec.json()
-    robots = {r for r, _ in up} | {r for r, _ in down}
-    if snapshot is not None:
-        robots |= {int(r) for r in snapshot["robots"]}
+    if ledger is None:
+        ledger = LinkLedger.from_journal(journal)
+
+    def body(seq: int) -> bytes:
+        rec = journal.record(seq)
+        if rec is None:
+            raise JournalError(f"{journal.path}: the link ledger names record {seq}: missing")
+        return rec.body
+
     resent = 0
-    for rid in sorted(robots):
+    decoded = ledger.records_read
+    snapshot = ledger.snapshot
+    for rid in sorted(ledger.robots()):
         ch = radio.channel(rid)
-        for (r, stream), count in up.items():
+        for (r, stream), count in ledger.up.items():
             if r == rid:
                 ch._recv[stream].delivered_through = count
-        for node in nodes.get(rid, []):
-            ch._coders_in["pose_node"].decode(node)
-        if rid in grids:
-            ch._coders_in["terrain_grid"].decode(grids[rid])
+        for seq in ledger.node_seqs.get(rid, []):
+            ch._coders_in["pose_node"].decode(decode_frame(body(seq), Direction.UP).msg)
+            decoded += 1
+        if rid in ledger.grid_seq:
+            grid = decode_frame(body(ledger.grid_seq[rid]), Direction.UP).msg
+            ch._coders_in["terrain_grid"].decode(grid)
+            decoded += 1
         if snapshot is not None:
             for name, nxt in snapshot["robots"].get(str(rid), {}).items():
                 ch._send[name].next_seq = int(nxt) + LATEST_SEQ_MARGIN
-        for (r, stream), tail in down.items():
-            if r != rid or not tail:
+        for (r, stream), seqs in ledger.down_seqs.items():
+            if r != rid or not seqs:
                 continue
-            ch._send[stream].next_seq = tail[0][0]
-            for _, msg in tail:
-                radio.send(rid, msg)
+            tail = [decode_frame(body(seq), Direction.DOWN) for seq in seqs]
+            decoded += len(tail)
+            ch._send[stream].next_seq = tail[0].seq
+            for frame in tail:
+                radio.send(rid, frame.msg)
                 resent += 1
     if snapshot is not None:
         bc = radio.broadcast_channel
         for name, nxt in snapshot["broadcast"].items():
             bc._send[name].next_seq = int(nxt) + LATEST_SEQ_MARGIN
-    return {"robots": len(robots), "uplink_streams": len(up), "downlink_resent": resent}
+    return {
+        "robots": len(ledger.robots()),
+        "uplink_streams": len(ledger.up),
+        "downlink_resent": resent,
+        "records_decoded": decoded,
+    }
 
 
 class GcsProcess:
@@ -202,11 +297,17 @@ class GcsProcess:
         self._pump_here = journal is not None and link.config.pump_period_s <= 0
         self._processed_arrivals = 0
         self._last_snapshot_wall_s = -math.inf
+        self._last_snapshot: dict[str, Any] | None = None
         self.link_state: dict[str, int] = {}
+        self.ledger = LinkLedger()
+        self.restore_link_s = 0.0  # wall seconds restore_link_state took (--resume)
         if journal is not None:
             self.radio.hold_arrivals()
         if resumed is not None:
-            self.link_state = restore_link_state(self.radio, resumed.journal)
+            t0 = time.perf_counter()
+            self.ledger = LinkLedger.from_journal(resumed.journal)
+            self.link_state = restore_link_state(self.radio, resumed.journal, self.ledger)
+            self.restore_link_s = time.perf_counter() - t0
         self._clock_sub = None
         if isinstance(clock, ManualClock):
             self._clock_sub = follow_sim_clock(link, clock)
@@ -231,7 +332,9 @@ class GcsProcess:
         now = self.clock.now()
         while item is not None:
             if self.journal is not None:
-                self.journal.uplink(item[0], item[1], now)
+                seq = self.journal.uplink(item[0], item[1], now)
+                if seq is not None:
+                    self.ledger.uplink(item[0], item[1], seq)
             self.control.handle(item[0], item[1], now_s=now)
             if self.operator is not None:  # operator (issue 15)
                 self.operator.observe(item[0], item[1], now_s=now, station=self.station)
@@ -267,7 +370,11 @@ class GcsProcess:
             wall = time.monotonic()
             if wall - self._last_snapshot_wall_s >= 1.0:
                 self._last_snapshot_wall_s = wall
-                self.journal.event("link", now, link_snapshot(self.radio))
+                snap = link_snapshot(self.radio)
+                snap["ledger"] = self.ledger.to_json()
+                if snap != self._last_snapshot:  # an idle GCS journals nothing
+                    self._last_snapshot = snap
+                    self.journal.event("link", now, snap)
             self.journal.commit()
             if self._pump_here:
                 self.link.pump()  # acknowledgements of what the journal now holds
@@ -281,7 +388,9 @@ class GcsProcess:
         if self.journal is not None:
             spec = stream_of(Direction.DOWN, msg)
             if spec.reliability is Reliability.RELIABLE:
-                self.journal.downlink(robot_id, msg, seq, self.clock.now())
+                rec = self.journal.downlink(robot_id, msg, seq, self.clock.now())
+                if rec is not None:
+                    self.ledger.downlink(robot_id, spec.name, rec)
         return seq
 
     def run(
@@ -544,8 +653,11 @@ def _main(argv: list[str]) -> int:
     if resumed is not None:
         st = proc.link_state
         print(
-            f"magic gcs: resumed from {proc.journal.path} in {resumed.rebuild_s:.2f} s: "
-            f"{resumed.summary.records.get('uplink', 0)} uplink messages, nodes "
+            f"magic gcs: resumed from {proc.journal.path} in "
+            f"{resumed.rebuild_s + proc.restore_link_s:.2f} s: "
+            f"{resumed.summary.records.get('uplink', 0)} uplink messages after the checkpoint "
+            f"at t={max(resumed.summary.checkpoint_time_s, 0.0):.1f} s, "
+            f"{st['records_decoded']} records read for the radio, nodes "
             f"{proc.station.stats.pose_nodes}, edges {len(proc.station.graph.edges())}; "
             f"radio streams of {st['robots']} robots continued, {st['downlink_resent']} "
             "downlink messages resent",

@@ -47,7 +47,7 @@ from gcs.journal import GcsJournal, JournaledStation, resume_control, step_contr
 from gcs.mission_control import MissionControl, MissionControlConfig
 from gcs.tasking.allocator import Role
 from mission.lockstep import RunSeeds, TeamInLockstep, TeamOverProcesses
-from protocol.messages import HazardUpdate
+from protocol.messages import HazardUpdate, PauseTask, ResumeTask
 from protocol.radio import RadioConfig
 from protocol.se2 import compose, inverse, relative, transform_points
 from robot.node import RobotNodeConfig
@@ -219,6 +219,9 @@ class Assembly:
     roles: dict[int, Role]
     gcs: GcsGround | None = None
     downlink_sent: dict[int, int] = field(default_factory=dict)
+    #: the ids of the tasks sent to each robot, by the planners and the operators alike
+    #: (pause and resume act on a task: not tasks of their own)
+    task_ids_sent: dict[int, set[int]] = field(default_factory=dict)
     broadcast_hazards: bool = True
     broadcasts: int = 0
 
@@ -248,6 +251,9 @@ class Assembly:
                 else:
                     self.team.ground.send(rid, msg)
                 self.downlink_sent[rid] = self.downlink_sent.get(rid, 0) + 1
+                task_id = getattr(msg, "task_id", None)
+                if isinstance(task_id, int) and not isinstance(msg, PauseTask | ResumeTask):
+                    self.task_ids_sent.setdefault(rid, set()).add(task_id)
 
     def restart_gcs(self) -> float:
         """The GCS killed and restarted from its journal at the end of a ground turn

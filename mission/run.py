@@ -361,10 +361,14 @@ class _GroundScript:
 
 class _ProgressTap:
     """Follows the uplink the GCS took (task reports, nodes, grids, telemetry) for the
-    progress table; counts the GCS's tasks to each robot and how they ended."""
+    progress table; how each task the GCS sent ended (:meth:`settle`: tasks ok/sent count
+    the same tasks, the planners' and the operators')."""
 
     def __init__(self, progress: dict[int, RobotProgress]) -> None:
         self.progress = progress
+        #: robot -> task id -> whether it succeeded, at its first end (a robot reports a
+        #: task's end once, but a resumed GCS may hear it again)
+        self.ended: dict[int, dict[int, bool]] = {}
 
     def __call__(self, robot_id: int, msg: Any, accepted: bool) -> None:
         p = self.progress.get(robot_id)
@@ -372,16 +376,25 @@ class _ProgressTap:
             return
         if isinstance(msg, TaskStatus):
             p.last_state = msg.state.name.lower() + (f" ({msg.detail})" if msg.detail else "")
-            if msg.state is TaskState.SUCCEEDED:
-                p.goals_succeeded += 1
-            elif msg.state in (TaskState.FAILED, TaskState.REJECTED):
-                p.goals_failed += 1
+            if msg.state in (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.REJECTED):
+                ends = self.ended.setdefault(robot_id, {})
+                ends.setdefault(int(msg.task_id), msg.state is TaskState.SUCCEEDED)
         elif isinstance(msg, PoseNode):
             p.pose_nodes += 1
         elif isinstance(msg, TerrainGrid):
             p.terrain_grids += 1
         elif isinstance(msg, Telemetry):
             p.mode = msg.mode.name.lower()
+
+    def settle(self, sent: dict[int, set[int]]) -> None:
+        """Each robot's tasks sent (``sent``: the ids, planners' and operators'), and of
+        those, how many succeeded and how many failed or were rejected."""
+        for rid, p in self.progress.items():
+            ids = sent.get(rid, set())
+            ends = [ok for tid, ok in self.ended.get(rid, {}).items() if tid in ids]
+            p.goals_sent = len(ids)
+            p.goals_succeeded = sum(ends)
+            p.goals_failed = len(ends) - p.goals_succeeded
 
 
 def _journal_path(out_dir: str | Path | None, config: RunConfig) -> Path | None:
@@ -651,8 +664,10 @@ def _hostiles(sim: Simulator) -> list[tuple[int, tuple[float, float]]]:
 def _fill_bytes(report: RunReport, asm: Assembly) -> None:
     for rid, p in report.robots.items():
         p.uplink_bytes = asm.team.uplink_bytes(rid)
-        if asm.gcs is not None:  # a script counts its own goals
-            p.goals_sent = asm.gcs.control.tasks_sent[rid]
+    if asm.gcs is not None:  # a script counts its own goals
+        for tap in asm.gcs.taps:
+            if isinstance(tap, _ProgressTap):
+                tap.settle(asm.task_ids_sent)
 
 
 def _fill_gcs(report: RunReport, asm: Assembly) -> None:

@@ -389,10 +389,12 @@ class CommandHandler:
         if name not in KINDS:
             raise CommandError(suggest(name, KINDS, what="kind"))
         kind = ObjectKind[name.upper()]
-        # in place, same index: the station's per-hazard sighting counts stay aligned
-        ctx.station.hazards[i] = Hazard(
-            h.hazard_id, kind, h.position_in_map, _HAZARD_RADIUS_M.get(kind, 0.0)
-        )
+        radius_m = _HAZARD_RADIUS_M.get(kind, 0.0)
+        edit = getattr(ctx.station, "edit_hazard", None)
+        if edit is not None:  # a journaled station: the edit survives a resume and a replay
+            edit(h.hazard_id, int(kind), radius_m)
+        else:  # in place, same index: the station's per-hazard sighting counts stay aligned
+            ctx.station.hazards[i] = Hazard(h.hazard_id, kind, h.position_in_map, radius_m)
         self.reclassified[h.hazard_id] = name
         old = ObjectKind(h.kind).name.lower()
         return Outcome(

@@ -206,3 +206,45 @@ def test_a_damaged_record_names_itself(tmp_path: Path) -> None:
     with pytest.raises(JournalError, match=r"record 1 \(uplink at t=2.500 s\)"):
         replay_journal(reader, GroundStation(_config()))
     reader.close()
+
+
+def test_an_idle_journal_commits_nothing(tmp_path: Path) -> None:
+    """The GCS commits every spin (20 a second): only what was appended is written."""
+    journal = GcsJournal.create(tmp_path / "j.sqlite", _config(), sync_period_s=0.0)
+    assert journal.commit() is False  # nothing appended since it was created
+    journal.event("operator", 1.0, {"command": "status"})
+    assert journal.commit() is True
+    wal = tmp_path / "j.sqlite-wal"
+    size = wal.stat().st_size
+    for _ in range(50):
+        assert journal.commit() is False
+    assert wal.stat().st_size == size  # no fsync, no WAL frame written while idle
+    journal.close()
+
+
+def test_an_operators_hazard_edit_is_journaled_and_replays(tmp_path: Path) -> None:
+    from gcs.operator.grammar import parse_line
+    from gcs.operator.handler import CommandHandler, OperatorContext
+    from protocol.operator import OPERATOR_TASK_IDS_FROM
+
+    path = tmp_path / "j.sqlite"
+    live = JournaledStation(GroundStation(_config()), GcsJournal.create(path, _config()))
+    _feed(live, _schedule(_mission(seed=5)))
+    (hazard,) = live.station.hazards
+    assert hazard.kind == ObjectKind.STATIC_OOI and hazard.radius_m > 0
+    handler = CommandHandler(first_task_id=OPERATOR_TASK_IDS_FROM + 1)
+    ctx = OperatorContext(station=live, now_s=30.0, reports={})  # type: ignore[arg-type]
+    out = handler.handle(parse_line(f"reclassify {hazard.hazard_id} civilian"), ctx)
+    assert out.status == "ok", out.text
+    assert live.station.hazards[0].kind == ObjectKind.CIVILIAN
+    live.step(now_s=31.0, budget_s=INF)
+    live.close()
+    rebuilt, summary = JournaledStation.resume(path)
+    assert summary.records.get("hazard_edit") == 1
+    assert rebuilt.station.hazards == live.station.hazards  # the edit survives the resume
+    rebuilt.close()
+    fresh = GroundStation(_config())
+    journal = GcsJournal.open(path)
+    replay_journal(journal, fresh)
+    journal.close()
+    assert fresh.hazards[0].kind == ObjectKind.CIVILIAN

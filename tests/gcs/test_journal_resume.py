@@ -265,3 +265,67 @@ def test_a_checkpoint_loads_only_what_a_station_is_made_of() -> None:
     station = GroundStation(GroundStationConfig(robots=(0, 1)))
     again = load_station(save_station(station))
     assert again.config == station.config and len(again.graph.nodes()) == 0
+
+
+def test_a_resume_reads_only_what_follows_the_checkpoint_and_the_link_ledger(
+    tmp_path: Path,
+) -> None:
+    """Restart time stays flat in the journal's length: the tasks' bookkeeping comes with the
+    checkpoint and the radio's state with the newest ``link`` record; only what follows them
+    is read (the records before them are deleted here, and the resume is unchanged)."""
+    from gcs.node import LinkLedger
+    from protocol.messages import GoToTask
+
+    items = _mission(seed=4)
+    path = tmp_path / "journal.sqlite"
+    first = _ground(_journal(path, checkpoint_period_s=10.0))
+    _turns(first, items, 0, 25)
+    assert first.journal is not None
+    journal = first.journal
+    # the radio's side, as the GCS process journals it: every uplink message and reliable
+    # downlink task with its record, and the ledger in a link record now and then
+    ledger = LinkLedger()
+    for k, (_, robot, msg) in enumerate(items):
+        seq = journal.uplink(robot, msg, 25.0)
+        assert seq is not None
+        first.control.handle(robot, msg, now_s=25.0)  # again: duplicates, as a replay sees
+        ledger.uplink(robot, msg, seq)
+        if k % 7 == 0:
+            task = GoToTask(900 + k, 25.0, [(1.0, 2.0)])
+            ledger.downlink(robot, "task", journal.downlink(robot, task, k + 1, 25.0) or 0)
+        if k == len(items) - 5:
+            journal.event("link", 25.0, {"robots": {}, "broadcast": {}, "ledger": ledger.to_json()})
+    journal.commit()
+    sent = dict(first.control.tasks_sent)
+    assert sent and journal.tasks_sent == sent
+    saved = journal.latest_checkpoint()
+    assert saved is not None and saved[1] == 20.0
+    whole = LinkLedger.from_journal(journal)
+    assert whole.records_read == 4  # the uplink records after the ledger, not the journal
+    assert (whole.up, whole.node_seqs, whole.grid_seq, whole.down_seqs) == (
+        ledger.up,
+        ledger.node_seqs,
+        ledger.grid_seq,
+        ledger.down_seqs,
+    )
+    journal.abandon()
+    first.journal = None
+
+    with sqlite3.connect(path) as conn:  # what precedes the checkpoint is never read
+        link_seq = conn.execute("SELECT MAX(seq) FROM records WHERE kind = 'link'").fetchone()[0]
+        keep = {link_seq} | {s for v in ledger.node_seqs.values() for s in v}
+        keep |= set(ledger.grid_seq.values()) | {s for v in ledger.down_seqs.values() for s in v}
+        gone = conn.execute(
+            "DELETE FROM records WHERE seq < ? AND kind IN ('decision', 'uplink', 'downlink') "
+            f"AND seq NOT IN ({','.join(map(str, keep))})",
+            (saved[0],),
+        ).rowcount
+    assert gone > 50
+    resumed = resume_control(path, first.control.config)
+    assert dict(resumed.control.tasks_sent) == sent
+    assert resumed.control.allocator._next_id > journal.last_task_id > 0
+    at_kill = compare_stations(first.station, resumed.control.station)
+    assert at_kill.nodes_equal and at_kill.edges_equal and at_kill.pose_diff_max_m == 0.0
+    again = LinkLedger.from_journal(resumed.journal)
+    assert again.up == ledger.up and again.records_read == 4
+    resumed.journal.close()

@@ -235,3 +235,30 @@ def test_realtime_says_it_is_not_repeatable(capsys, tmp_path) -> None:
         " ".join(captured.err.split())
     )
     assert "mode: --realtime, wall-clock delivery (not repeatable)" in captured.out
+
+
+def test_tasks_ok_over_sent_count_the_same_tasks_planners_and_operators_alike() -> None:
+    """The progress table's tasks ok/sent: of the tasks sent to a robot (the planners' and an
+    operator's), those that ended well; a task's end heard twice (a resumed GCS) counts once,
+    and a status for a task this run never sent counts nowhere."""
+    from mission.run import RobotProgress, _ProgressTap
+    from protocol.messages import TaskState, TaskStatus
+
+    progress = {0: RobotProgress(0), 1: RobotProgress(1)}
+    tap = _ProgressTap(progress)
+    for rid, tid, state in [
+        (0, 1, TaskState.SUCCEEDED),
+        (0, 1, TaskState.SUCCEEDED),  # heard again
+        (0, 70001, TaskState.SUCCEEDED),  # an operator's task
+        (0, 2, TaskState.ACTIVE),
+        (1, 3, TaskState.FAILED),
+        (1, 99, TaskState.SUCCEEDED),  # never sent by this run
+    ]:
+        tap(rid, TaskStatus(tid, state, 1.0), True)
+    tap.settle({0: {1, 2, 70001}, 1: {3, 4}})
+    assert (progress[0].goals_succeeded, progress[0].goals_sent) == (2, 3)
+    assert (progress[1].goals_succeeded, progress[1].goals_failed, progress[1].goals_sent) == (
+        0,
+        1,
+        2,
+    )
