@@ -30,6 +30,7 @@ measurement), for tests and the robustness bench.
 
 from __future__ import annotations
 
+import collections
 import copy
 import enum
 import logging
@@ -60,7 +61,9 @@ from gcs.graph.simplification import simplify_graph
 from gcs.graph.spanning_tree_init import GlobalAnchor, spanning_tree_initialization
 
 __all__ = [
+    "ChangeMark",
     "EdgeRecord",
+    "GraphAdditions",
     "NodeRecord",
     "OdometryCorrection",
     "PoseGraph",
@@ -98,6 +101,9 @@ _Arrays = tuple[NDArray[np.int64], FloatArray, FloatArray]
 #: ``a_from_b`` ``(N, 3)`` and covariances ``(N, 3, 3)`` in, the increments and covariances the
 #: graph should use out (same shapes, new arrays).
 OdometryCorrection = Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray]]
+
+#: Estimate writes :meth:`PoseGraph.moved_since` remembers.
+_MOVED_LOG = 64
 
 #: How weakly :meth:`PoseGraph.from_g2o` bridges a gap in a g2o graph's odometry chain.
 GAP_SIGMA_XY_M = 1e3
@@ -215,6 +221,28 @@ class SolverFault:
     recovered: bool
 
 
+@dataclass(frozen=True)
+class ChangeMark:
+    """A point in a :class:`PoseGraph`'s history (:meth:`PoseGraph.change_mark`): its epoch
+    (bumped by every change other than an addition) and how many nodes and edges had been
+    added by then."""
+
+    epoch: int
+    nodes: int
+    edges: int
+
+
+@dataclass(frozen=True)
+class GraphAdditions:
+    """What was added to a graph since a :class:`ChangeMark`
+    (:meth:`PoseGraph.additions_since`): node keys and edges (priors included) in the order
+    they were added, and the mark of now."""
+
+    node_keys: list[int]
+    edges: list[EdgeRecord]
+    mark: ChangeMark
+
+
 def _check_pose(p: object, what: str) -> FloatArray:
     arr = np.asarray(p, dtype=float)
     if arr.shape != (3,):
@@ -276,6 +304,15 @@ class PoseGraph:
         # odometry edges whose measurement was changed: what the robot reported
         self._reported: dict[int, tuple[FloatArray, FloatArray]] = {}
         self._corrections: dict[int, OdometryCorrection] = {}
+        # incremental views (change_mark / additions_since / estimate_revision): keys and edge
+        # ids in the order added; the epoch moves on every other change
+        self._node_log: list[int] = []
+        self._edge_log: list[int] = []
+        self._epoch = 0
+        self._estimate_revision = 0
+        self._moved: collections.deque[tuple[int, NDArray[np.int64]]] = collections.deque(
+            maxlen=_MOVED_LOG
+        )
 
     # ---- queries -------------------------------------------------------------------------
 
@@ -329,6 +366,60 @@ class PoseGraph:
             if (provenance is None or e.provenance in provenance)
             and (after_time_s is None or e.time_s > after_time_s)
         ]
+
+    @property
+    def node_count(self) -> int:
+        """Number of poses (O(1), unlike ``len(nodes())``)."""
+        return len(self._nodes)
+
+    @property
+    def edge_count(self) -> int:
+        """Number of edges, priors included (O(1))."""
+        return len(self._edges)
+
+    def change_mark(self) -> ChangeMark:
+        """The graph's present point in its history, for :meth:`additions_since`."""
+        return ChangeMark(self._epoch, len(self._node_log), len(self._edge_log))
+
+    def additions_since(self, mark: ChangeMark) -> GraphAdditions | None:
+        """The nodes and edges added since ``mark``, in the order added, or None when
+        anything else changed since (an edge removed or re-measured, an odometry correction,
+        a restore, a simplification): then a consumer's copy must be rebuilt whole.
+
+        Cost: O(what was added). A consumer that mirrors the graph (e.g. the loop closer's
+        arrays for Dijkstra projections) keeps the returned ``mark`` and extends its copy
+        instead of re-reading every node and edge at each step.
+        """
+        if mark.epoch != self._epoch or mark.nodes > len(self._node_log):
+            return None
+        edges = [self._edges[eid] for eid in self._edge_log[mark.edges :]]
+        return GraphAdditions(list(self._node_log[mark.nodes :]), edges, self.change_mark())
+
+    @property
+    def estimate_revision(self) -> int:
+        """Counts the estimate writes (solves, rigid moves of a component, re-initializations,
+        restores) that moved at least one existing pose; a new pose's first estimate does
+        not count (it is an addition: :meth:`additions_since`)."""
+        return self._estimate_revision
+
+    def moved_since(self, revision: int) -> NDArray[np.int64] | None:
+        """Keys (sorted, unique) whose estimate changed after ``revision`` (an
+        :attr:`estimate_revision` read earlier), or None when that is too long ago to tell
+        (the last ``_MOVED_LOG`` writes are kept): then treat every pose as moved. After an
+        iSAM2 update only the poses it actually moved are listed, so a consumer (frames,
+        rasterization, a mirror of the estimate) updates those alone."""
+        if revision >= self._estimate_revision:
+            return np.zeros(0, dtype=np.int64)
+        if not self._moved or self._moved[0][0] > revision + 1:
+            return None
+        parts = [keys for rev, keys in self._moved if rev > revision]
+        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+
+    def _note_moved(self, keys: NDArray[np.int64] | list[int]) -> None:
+        arr = np.asarray(keys, dtype=np.int64).reshape(-1)
+        if arr.size:
+            self._estimate_revision += 1
+            self._moved.append((self._estimate_revision, arr))
 
     def components(self) -> dict[int, int]:
         """Connected component label of every key (relative edges only)."""
@@ -396,6 +487,7 @@ class PoseGraph:
             estimate = se2.compose(self._estimate[prev], z)
         pose.setflags(write=False)
         self._nodes[key] = NodeRecord(key, robot_id, index, float(time_s), pose)
+        self._node_log.append(key)
         self._estimate[key] = estimate
         self._last_key[robot_id] = key
         if self._components is not None:
@@ -480,6 +572,7 @@ class PoseGraph:
         z.setflags(write=False)
         cov.setflags(write=False)
         self._edges[edge_id] = EdgeRecord(edge_id, key_a, key_b, z, cov, provenance, float(time_s))
+        self._edge_log.append(edge_id)
         comp = self._components
         if comp is not None and key_b is not None and comp[key_a] != comp[key_b]:
             keep, gone = comp[key_a], comp[key_b]
@@ -496,6 +589,7 @@ class PoseGraph:
         moved = se2.compose(delta, np.array([self._estimate[k] for k in keys]))
         for k, p in zip(keys, moved, strict=True):
             self._estimate[k] = p
+        self._note_moved(sorted(keys))
         self._isam_stale = True
 
     # ---- edits ---------------------------------------------------------------------------
@@ -508,6 +602,8 @@ class PoseGraph:
             if self._edges[eid].provenance is Provenance.ODOMETRY:
                 raise PoseGraphError(f"remove: edge {eid} is odometry and cannot be removed")
         removed = [self._edges.pop(eid) for eid in edge_ids]
+        if removed:
+            self._epoch += 1
         self._components = None
         self._isam_stale = True
         return removed
@@ -542,6 +638,7 @@ class PoseGraph:
             self._edges[eid] = EdgeRecord(eid, e.key_a, e.key_b, z, cov, e.provenance, e.time_s)
         if checked:
             self._isam_stale = True
+            self._epoch += 1
         return previous
 
     def odometry_reported(
@@ -627,6 +724,10 @@ class PoseGraph:
         self._last_key = {}
         for key in sorted(self._nodes):
             self._last_key[self._nodes[key].robot_id] = key
+        self._node_log = sorted(self._nodes)
+        self._edge_log = list(self._edges)
+        self._epoch += 1
+        self._note_moved(self._node_log)
         self._components = None
         self._isam_stale = True
 
@@ -796,17 +897,57 @@ class PoseGraph:
         self._injected_faults.extend([kind] * count)
 
     def _assign_estimate(self, values: gtsam.Values, source: str) -> None:
-        """Take every pose from ``values``; raises (estimate untouched) if one is non-finite."""
-        for key in self._nodes:
-            if not values.exists(key):
-                raise PoseGraphError(f"{source}: no value for pose {split_key(key)}")
-        new = {key: se2.pose_vec(values.atPose2(key)) for key in self._nodes}
-        bad = [k for k, p in new.items() if not np.all(np.isfinite(p))]
-        if bad:
+        """Take every pose from ``values``; raises (estimate untouched) if one is missing or
+        non-finite. Only the poses whose value changed are written (and listed for
+        :meth:`moved_since`): after an iSAM2 update most of a large graph has not moved.
+
+        The poses are read in one call (``gtsam.utilities.extractPose2``, key order) rather
+        than one ``atPose2`` per key: at 15,000 poses that took most of a step's solve."""
+        keys = np.fromiter(self._nodes, dtype=np.int64, count=len(self._nodes))
+        new = self._values_matrix(values, keys, source)
+        bad = ~np.isfinite(new).all(axis=1)
+        if bad.any():
+            first = int(keys[int(np.argmax(bad))])
             raise FloatingPointError(
-                f"{source} estimate is non-finite at {len(bad)} poses, e.g. {split_key(bad[0])}"
+                f"{source} estimate is non-finite at {int(bad.sum())} poses, e.g. "
+                f"{split_key(first)}"
             )
-        self._estimate.update(new)
+        if not len(keys):
+            return
+        old = np.array([self._estimate[int(k)] for k in keys], dtype=float).reshape(-1, 3)
+        changed = np.any(new != old, axis=1)
+        moved = keys[changed]
+        for k, p in zip(moved.tolist(), new[changed], strict=True):
+            self._estimate[k] = p
+        self._note_moved(np.sort(moved))
+
+    def _values_matrix(
+        self, values: gtsam.Values, keys: NDArray[np.int64], source: str
+    ) -> FloatArray:
+        """``(len(keys), 3)`` poses of ``keys`` in ``values`` (PoseGraphError naming a missing
+        one)."""
+        have = np.asarray(values.keys(), dtype=np.int64)
+        order: NDArray[np.intp] | None = None
+        if have.size > 1 and not bool(np.all(have[1:] > have[:-1])):
+            order = np.argsort(have, kind="stable")  # GTSAM lists keys sorted; be sure
+            have = have[order]
+        pos = np.searchsorted(have, keys)
+        found = pos < len(have)
+        found[found] = have[pos[found]] == keys[found]
+        if not found.all():
+            missing = int(keys[int(np.argmin(found))])
+            raise PoseGraphError(f"{source}: no value for pose {split_key(missing)}")
+        try:
+            every = np.asarray(gtsam.utilities.extractPose2(values), dtype=float)
+        except Exception:  # a binding without it: one pose at a time
+            every = np.zeros((0, 3))
+        if order is not None and every.shape == (len(have), 3):
+            every = every[order]
+        if every.shape != (len(have), 3):  # values that are not all Pose2
+            return np.array(
+                [se2.pose_vec(values.atPose2(int(k))) for k in keys], dtype=float
+            ).reshape(-1, 3)
+        return every[pos]
 
     def set_estimate(self, values: gtsam.Values) -> None:
         """Replace the estimate with ``values`` (must hold every pose, all finite)."""
@@ -910,6 +1051,7 @@ class PoseGraph:
         init = spanning_tree_initialization(len(keys), ij, z, cov, anchors, fallback=current)
         for k, p in zip(keys, init, strict=True):
             self._estimate[k] = p
+        self._note_moved(keys)
         self._isam_stale = True
 
     def simplify(self, *, alpha: float = 5.0) -> list[EdgeRecord]:
@@ -946,6 +1088,8 @@ class PoseGraph:
             for eid, e in self._edges.items()
             if e.key_b is None or eid in kept_ids
         }
+        self._edge_log = list(self._edges)
+        self._epoch += 1
         self._components = None
         self._isam_stale = True
         return removed
