@@ -69,6 +69,7 @@ from protocol.messages import (
     ParameterUpdate,
     PoseNode,
     TaskMessage,
+    TaskState,
     TaskStatus,
     Telemetry,
     TerrainGrid,
@@ -88,6 +89,12 @@ from protocol.sensors import (
 )
 from robot.comms_watchdog import CommsWatchdogConfig, LinkAwareTasks
 from robot.control.deadlock import DeadlockBreaker, DeadlockConfig, Phase, path_block_distance
+from robot.control.hostile_evasion import (
+    EvasionConfig,
+    evasion_goal,
+    hostile_threat,
+    way_clearance_m,
+)
 from robot.control.keepout import KeepoutConfig, keepout_disks_in_odom, rasterize_disks
 from robot.control.path_follower import FollowerConfig, FollowStatus, PathFollower
 from robot.control.stuck_detector import StuckConfig, StuckDetector
@@ -102,7 +109,7 @@ from robot.perception.onboard_perception import (
     PerceptionConfig,
 )
 from robot.planning.planner import PathPlanner, PlannerConfig
-from robot.tasks.task_executor import TaskExecutor, TaskExecutorConfig
+from robot.tasks.task_executor import Intent, TaskExecutor, TaskExecutorConfig
 from robot.terrain.classifier import TerrainConfig, classify_sweep_layers, points_in_odom
 from robot.terrain.grid import OBSTACLE, UNKNOWN, GridGeometry
 from robot.terrain.map_fusion import TerrainMapFusion
@@ -143,6 +150,9 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     tasks: TaskExecutorConfig = TaskExecutorConfig()
     comms: CommsWatchdogConfig = CommsWatchdogConfig()  # without the GCS: robot.comms_watchdog
     keepout: KeepoutConfig = KeepoutConfig()
+    # a hostile (its own track or the GCS's hazard) coming within its blast radius plus a
+    # margin: the robot backs away, whatever it was doing (but tele-operation), and resumes
+    evasion: EvasionConfig = EvasionConfig()
     stuck: StuckConfig = StuckConfig()
     deadlock: DeadlockConfig = DeadlockConfig()
     traversability: TraversabilityConfig = TraversabilityConfig()
@@ -200,6 +210,7 @@ class NodeStats:
     stuck_recoveries: int = 0
     keepout_stops: int = 0
     deadlocks: int = 0  # teammate deadlocks detected and backed off from
+    evasions: int = 0  # times it backed away from a hostile coming close
     yields: int = 0  # plans not taken: the path got blocked and the detour was long
     memory_refreshes: int = 0  # older sweeps forgotten: the newest saw the blocked way clear
     slip_measurements: int = 0  # sweep pairs whose match measured the speed over ground
@@ -274,6 +285,16 @@ class RobotNode:
         self._laser_face: np.ndarray | None = None  # where a neutralization looks (odom)
         self._laser_detail = ""  # why the laser is off, for the task's failure
         self._turning = False  # turning to face a neutralization's OOI
+        # backing away from a hostile: where to (odom; None: not evading), due a new goal
+        self._evade_goal: np.ndarray | None = None
+        self._evading = False
+        self._evade_refresh = False
+        # own hostile tracks as last seen: (x, y, vx, vy, seen_s), odom; and where they are now
+        self._ghosts: list[tuple[float, float, float, float, float]] = []
+        self._own_hostiles = np.zeros((0, 4))
+        # where a holding robot was when it backed away (task id, odom xy, since): it returns
+        self._evade_return: tuple[int, np.ndarray, float] | None = None
+        self._facing_hostile = False
         self._battery_frac = math.nan  # unknown until the hardware reports it
         self._start_s: float | None = None
 
@@ -506,6 +527,7 @@ class RobotNode:
         if self.perception is not None:
             self._perceive(lambda: self._perceive_sweep(sweep, poses, roll, pitch))
             self._perceive(self._flush_perception)
+        self._evade_refresh = self._evading  # the hostile moved: a new goal from this map
         self._replan(force=True)
 
     def _perceive_sweep(
@@ -639,7 +661,7 @@ class RobotNode:
         return classes
 
     def _replan(self, *, force: bool = False) -> None:
-        intent = self.tasks.intent
+        intent = self._intent()
         if intent.teleop is not None or len(intent.waypoints_in_odom) == 0:
             self.follower.set_path(np.zeros((0, 2)))
             self._planned_goal = None
@@ -806,7 +828,8 @@ class RobotNode:
         cfg = self.config
         now = self._now
         pose = self.odometry.pose_in_odom
-        intent = self.tasks.intent
+        self._watch_hostiles(now, pose)
+        intent = self._intent()
         laser_target = self._laser_aim(intent.laser_target_in_odom, intent.task_id, pose)
         laser_ok = laser_target is not None and self._line_of_sight(pose, laser_target)
         if laser_target is not None and not laser_ok:
@@ -821,12 +844,12 @@ class RobotNode:
         for status in self.tasks.update(
             now,
             pose,
-            path_found=self._path_found or breaking,
+            path_found=self._path_found or breaking or self._evading,
             laser_on_target=laser_ok,
             laser_detail=self._laser_detail,
         ):
             self._report(status)
-        intent = self.tasks.intent
+        intent = self._intent()
         if self.perception is not None:
             perception = self.perception
             self._perceive(lambda: perception.on_control(now, pose))
@@ -848,6 +871,8 @@ class RobotNode:
                 and self._obstacle_ahead(pose, cfg.conservative_stop_m)
             ):
                 v = 0.0
+        elif (turn := self._face_hostile(pose, intent)) is not None:
+            v, w = 0.0, turn  # holding: keep a hostile out of the LIDAR's blind quarter
         elif intent.mode in (AutonomyMode.PAUSED, AutonomyMode.IDLE):
             v, w = 0.0, 0.0
             if self.follower.has_path:
@@ -876,6 +901,156 @@ class RobotNode:
             self._telemetry(pose, intent.mode, intent.task_id)
         return out
 
+    def _intent(self) -> Intent:
+        """The task's intent, or, while backing away from a hostile, a drive to the evasion
+        goal (laser off; an idle or paused robot drives autonomously for it)."""
+        inner = self.tasks.intent
+        goal = self._evade_goal
+        back = self._evade_return
+        if (
+            not self._evading
+            and back is not None
+            and back[0] == inner.task_id
+            and inner.teleop is None
+            and not len(inner.waypoints_in_odom)
+        ):
+            goal = back[1]  # evaded from holding: back to where it held
+        elif not self._evading or goal is None or inner.teleop is not None:
+            return inner
+        keep = (AutonomyMode.AUTONOMOUS, AutonomyMode.SEMI_AUTONOMOUS)
+        return Intent(
+            mode=inner.mode if inner.mode in keep else AutonomyMode.AUTONOMOUS,
+            task_id=inner.task_id,
+            waypoints_in_odom=goal.reshape(1, 2).copy(),
+        )
+
+    def _hostiles(self) -> np.ndarray:
+        """Hostiles as ``(N, 4)`` rows ``(x, y, vx, vy)`` in ``odom``: this robot's own tracks
+        (with their velocity) and the GCS's hostile hazards (still, through this robot's
+        ``map_from_odom``)."""
+        rows = [self._hostile_ghosts()]
+        hz = self._hazards
+        if hz is not None and any(h.kind is ObjectKind.HOSTILE for h in hz.hazards):
+            only = msgspec.structs.replace(
+                hz, hazards=[h for h in hz.hazards if h.kind is ObjectKind.HOSTILE]
+            )
+            disks = keepout_disks_in_odom(self.robot_id, only, config=self.config.keepout)
+            rows.append(np.column_stack([disks[:, :2], np.zeros((len(disks), 2))]))
+        return np.vstack(rows) if rows else np.zeros((0, 4))
+
+    def _face_hostile(self, pose: np.ndarray, intent: Any) -> float | None:
+        """The turn rate that brings this robot's nearest own hostile (tracked, or lost
+        within ``memory_s``) within ``face_rad`` of its heading, when it holds still (no
+        waypoints, not tele-operated) and the hostile is within ``face_within_m`` beyond
+        ``face_rad`` (the LIDAR sees 270 deg: a walker behind is lost, then walks on
+        unseen); None otherwise."""
+        cfg = self.config.evasion
+        h = self._own_hostiles
+        if intent.teleop is not None or len(intent.waypoints_in_odom) or not len(h):
+            self._facing_hostile = False
+            return None
+        d = np.hypot(h[:, 0] - pose[0], h[:, 1] - pose[1])
+        k = int(np.argmin(d))
+        if d[k] > cfg.face_within_m:
+            self._facing_hostile = False
+            return None
+        err = float(wrap_angle(math.atan2(h[k, 1] - pose[1], h[k, 0] - pose[0]) - pose[2]))
+        limit = cfg.face_rad * (0.3 if self._facing_hostile else 1.0)
+        self._facing_hostile = abs(err) > limit
+        if not self._facing_hostile:
+            return None
+        return float(np.clip(2.0 * err, -cfg.face_turn_rate_rad_s, cfg.face_turn_rate_rad_s))
+
+    def _hostile_ghosts(self) -> np.ndarray:
+        """This robot's own hostile tracks now, and those it lost within the evasion's
+        ``memory_s``, carried on along their last velocity (a walker behind the robot, in the
+        LIDAR's blind quarter, is not gone: a robot turning to drive away lost the track at
+        4 m and stopped evading, and the walker came on)."""
+        now = self._now
+        if self.perception is None:
+            return np.zeros((0, 4))
+        live = self.perception.hostile_tracks_in_odom(now)
+        memory_s = self.config.evasion.memory_s
+        rows = [live]
+        kept: list[tuple[float, float, float, float, float]] = []
+        for x, y, vx, vy, seen_s in self._ghosts:
+            age = now - seen_s
+            px, py = x + vx * age, y + vy * age
+            if age > memory_s or (
+                len(live) and float(np.hypot(live[:, 0] - px, live[:, 1] - py).min()) < 2.0
+            ):
+                continue  # forgotten, or tracked again
+            kept.append((x, y, vx, vy, seen_s))
+            rows.append(np.array([[px, py, vx, vy]]))
+        seen = [(float(r[0]), float(r[1]), float(r[2]), float(r[3]), now) for r in live]
+        self._ghosts = kept + seen
+        self._own_hostiles = np.vstack(rows)
+        return self._own_hostiles
+
+    def _watch_hostiles(self, now: float, pose: np.ndarray) -> None:
+        """Start, refresh or end backing away from a hostile (:mod:`robot.control.
+        hostile_evasion`): it starts when a hostile is, or in ``lookahead_s`` will be, within
+        its blast radius plus ``margin_m`` of the robot, and ends ``release_m`` beyond; the
+        goal is renewed with every sweep. Operators' tele-operation is left alone, and so is
+        the start-up's still calibration."""
+        cfg = self.config.evasion
+        inner = self.tasks.intent
+        calibrating = self._start_s is None or now - self._start_s < self.config.calibrate_still_s
+        if not cfg.enabled or inner.teleop is not None or calibrating:
+            if self._evading:
+                self._stop_evading(now, "")
+            return
+        hostiles = self._hostiles()
+        back = self._evade_return
+        if back is not None and (
+            back[0] != inner.task_id
+            or (not self._evading and math.hypot(*(pose[:2] - back[1])) <= cfg.return_tolerance_m)
+            or now - back[2] > cfg.return_timeout_s
+        ):
+            self._evade_return = None  # back, or another task, or the way back stays shut
+            self._planned_goal = None
+        d = hostile_threat(pose[:2], hostiles, cfg)
+        start_m = cfg.blast_radius_m + cfg.margin_m
+        if not self._evading and d < start_m:
+            self._evading, self._evade_goal, self._evade_refresh = True, None, True
+            if self._evade_return is None and not len(inner.waypoints_in_odom):
+                self._evade_return = (inner.task_id, pose[:2].copy(), now)
+            self.stats.evasions += 1
+            log.info("robot %d: a hostile %.1f m off: backing away", self.robot_id, d)
+            if inner.task_id:
+                detail = f"a hostile {d:.1f} m off: backing away"
+                self._report(TaskStatus(inner.task_id, TaskState.ACTIVE, now, detail))
+        elif self._evading and d >= start_m + cfg.release_m:
+            where = "no hostile near" if math.isinf(d) else f"the hostile {d:.1f} m off"
+            self._stop_evading(now, f"{where}: resuming the task")
+            return
+        if self._evading and self._evade_refresh:
+            self._evade_refresh = False
+            old = self._evade_goal
+            if old is not None and way_clearance_m(old.reshape(1, 2), hostiles, cfg)[0] >= (
+                cfg.blast_radius_m + cfg.clear_m - cfg.release_m
+            ):
+                return  # the goal is still clear of the hostiles' ways: keep it (no flip-flop)
+            classes, geometry = self._current_map()
+            goal = evasion_goal(
+                classes,
+                geometry,
+                pose[:2],
+                hostiles,
+                cfg,
+                robot_radius_m=self.config.planner.robot_radius_m,
+            )
+            if goal is not None:
+                self._evade_goal = goal
+                self._planned_goal = None  # plan to it now
+
+    def _stop_evading(self, now: float, detail: str) -> None:
+        self._evading, self._evade_goal, self._evade_refresh = False, None, False
+        self._planned_goal = None  # back to the task's own goal
+        tid = self.tasks.intent.task_id
+        if detail and tid:
+            self._report(TaskStatus(tid, TaskState.ACTIVE, now, detail))
+
     def _watch_deadlock(self, now: float, pose: np.ndarray, intent: Any) -> None:
         """Progress towards the current waypoint; a deadlock starts a back-off (see
         :mod:`robot.control.deadlock`)."""
@@ -883,6 +1058,7 @@ class RobotNode:
             intent.teleop is None
             and intent.mode not in (AutonomyMode.PAUSED, AutonomyMode.IDLE)
             and len(intent.waypoints_in_odom) > 0
+            and not self._evading
             and self._start_s is not None
             and now - self._start_s >= self.config.calibrate_still_s
         )

@@ -373,14 +373,19 @@ class OnboardPerception:
                 out.append((ObjectKind.HOSTILE, float(p[0]), float(p[1])))
         return out
 
-    def hostile_tracks_in_odom(self) -> NDArray[np.float64]:
+    def hostile_tracks_in_odom(self, now_s: float) -> NDArray[np.float64]:
         """This robot's hostile tracks (labelled, or within ``hostile_memory_s`` of the
-        label) as ``(N, 4)`` rows ``(x_m, y_m, vx_m_s, vy_m_s)`` in ``odom``, now."""
-        rows = [
-            (*t.position_m, *_track_velocity(t, self.config.velocity_window_s))
-            for t in self.lidar.tracker.tracks
-            if self._hostile(t)
-        ]
+        label; coasting ones too) as ``(N, 4)`` rows ``(x_m, y_m, vx_m_s, vy_m_s)`` in
+        ``odom``, moved on to ``now_s`` along the velocity fitted over their recent
+        measurements (a track's own state is a sweep or more old, and the filter's velocity
+        of a walker smeared across a sweep swings by 1 m/s from sweep to sweep)."""
+        rows = []
+        for t in self.lidar.tracker.tracks:
+            if not self._hostile(t):
+                continue
+            v = _track_velocity(t, self.config.velocity_window_s)
+            p = t.position_m + v * max(0.0, now_s - t.time_s)
+            rows.append((float(p[0]), float(p[1]), float(v[0]), float(v[1])))
         return np.array(rows, dtype=np.float64).reshape(-1, 4)
 
     def _hostile(self, track: PersonTrack) -> bool:
