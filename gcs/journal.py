@@ -16,6 +16,9 @@ same state (same nodes, edges and poses, given a deterministic run: see below). 
 - ``downlink`` and ``link``: the GCS process's reliable downlink messages (frame bytes with
   their sequence numbers) and snapshots of its latest-only streams' sequence numbers, from
   which a resumed ``magic gcs`` continues every robot's streams (the station ignores them);
+- ``held``: an uplink message the GCS's link holds behind a gap in its stream (frame bytes
+  with its sequence number): selectively acknowledged, so its robot will not send it again,
+  and not yet the station's; a resumed GCS puts it back (:mod:`gcs.node`'s ``LinkLedger``);
 - ``checkpoint``: the station's whole state was saved here (table ``checkpoints``, below),
   with the planners' task bookkeeping at that point (tasks sent per robot, the last task id),
   so a resume reads only the ``decision`` records after it.
@@ -131,6 +134,7 @@ _KINDS = frozenset(
         "link",
         "checkpoint",
         "hazard_edit",
+        "held",
     }
 )
 
@@ -508,7 +512,7 @@ def replay_journal(
     record means a damaged file, not bad robot input."""
     summary = ReplaySummary()
     for rec in journal.records(after_seq=after_seq):
-        if rec.kind in ("operator", "decision", "downlink", "link"):
+        if rec.kind in ("operator", "decision", "downlink", "link", "held"):
             summary.records[rec.kind] = summary.records.get(rec.kind, 0) + 1
             continue
         try:

@@ -108,6 +108,8 @@ class LinkLedger:
         self.node_seqs: dict[int, list[int]] = {}
         self.grid_seq: dict[int, int] = {}
         self.down_seqs: dict[tuple[int, str], list[int]] = {}
+        #: uplink held behind a gap: (robot, stream) -> stream sequence number -> record
+        self.held: dict[tuple[int, str], dict[int, int]] = {}
         self.snapshot: dict[str, Any] | None = None
         #: records decoded by :meth:`from_journal` (the tail after the newest ``link`` record)
         self.records_read = 0
@@ -133,6 +135,34 @@ class LinkLedger:
         tail.append(seq)
         del tail[:-RESEND_TAIL]
 
+    def journal_held(self, radio: Any, journal: GcsJournal, now_s: float) -> int:
+        """Journal (``held`` records) the uplink messages ``radio`` holds behind a gap that
+        are not journaled yet, and forget those delivered since: the link acknowledged them
+        selectively, so their robots will not send them again, and a GCS killed now must
+        not lose them. Call before each commit. Returns the records appended. Reads the
+        channels' private state (no public accessor)."""
+        from protocol.messages import encode_frame
+
+        added = 0
+        for rid in radio.robots():
+            ch = radio.channel(rid)
+            for name, rs in ch._recv.items():
+                if rs.spec.reliability is not Reliability.RELIABLE:
+                    continue
+                known = self.held.get((rid, name))
+                if not rs.buffer and not known:
+                    continue
+                known = self.held.setdefault((rid, name), {})
+                for seq in [s for s in known if s not in rs.buffer]:
+                    del known[seq]  # delivered (journaled as uplink) or dropped
+                for seq, msg in sorted(rs.buffer.items()):
+                    if seq not in known:
+                        known[seq] = journal.append(
+                            "held", now_s, encode_frame(seq, msg), robot_id=rid
+                        )
+                        added += 1
+        return added
+
     def robots(self) -> set[int]:
         out = {r for r, _ in self.up} | {r for r, _ in self.down_seqs}
         if self.snapshot is not None:
@@ -145,6 +175,7 @@ class LinkLedger:
             "nodes": {str(r): v for r, v in sorted(self.node_seqs.items())},
             "grid": {str(r): v for r, v in sorted(self.grid_seq.items())},
             "down": [[r, s, v] for (r, s), v in sorted(self.down_seqs.items())],
+            "held": [[r, s, sorted(v.items())] for (r, s), v in sorted(self.held.items()) if v],
         }
 
     @classmethod
@@ -167,6 +198,10 @@ class LinkLedger:
                 ledger.down_seqs = {
                     (int(r), str(s)): [int(x) for x in v] for r, s, v in saved["down"]
                 }
+                ledger.held = {
+                    (int(r), str(s)): {int(q): int(x) for q, x in v}
+                    for r, s, v in saved.get("held", [])
+                }
                 ledger.snapshot = {"robots": body["robots"], "broadcast": body["broadcast"]}
                 after = last.seq
         for rec in journal.records(after_seq=after):
@@ -177,9 +212,17 @@ class LinkLedger:
                 frame = decode_frame(rec.body, Direction.DOWN)
                 ledger.downlink(rec.robot_id, stream_of(Direction.DOWN, frame.msg).name, rec.seq)
                 ledger.records_read += 1
+            elif rec.kind == "held":
+                frame = decode_frame(rec.body, Direction.UP)
+                key = (rec.robot_id, stream_of(Direction.UP, frame.msg).name)
+                ledger.held.setdefault(key, {})[frame.seq] = rec.seq
+                ledger.records_read += 1
             elif rec.kind == "link":
                 body = rec.json()
                 ledger.snapshot = {"robots": body["robots"], "broadcast": body["broadcast"]}
+        for key, held in ledger.held.items():  # delivered since they were held
+            for seq in [q for q in held if q <= ledger.up.get(key, 0)]:
+                del held[seq]
         return ledger
 
 
@@ -221,6 +264,12 @@ def restore_link_state(
         for (r, stream), count in ledger.up.items():
             if r == rid:
                 ch._recv[stream].delivered_through = count
+        for (r, stream), held in ledger.held.items():
+            if r == rid:  # back behind their gap: delivered when the robot fills it
+                for rec_seq in held.values():
+                    frame = decode_frame(body(rec_seq), Direction.UP)
+                    ch._recv[stream].buffer[frame.seq] = frame.msg
+                    decoded += 1
         for seq in ledger.node_seqs.get(rid, []):
             ch._coders_in["pose_node"].decode(decode_frame(body(seq), Direction.UP).msg)
             decoded += 1
@@ -375,6 +424,7 @@ class GcsProcess:
                 if snap != self._last_snapshot:  # an idle GCS journals nothing
                     self._last_snapshot = snap
                     self.journal.event("link", now, snap)
+            self.ledger.journal_held(self.radio, self.journal, now)
             self.journal.commit()
             if self._pump_here:
                 self.link.pump()  # acknowledgements of what the journal now holds

@@ -115,6 +115,7 @@ class GcsGround:
         budget_s: float = 0.2,
         taps: list[Callable[[int, Any, bool], None]] | None = None,
         journal: GcsJournal | None = None,
+        journal_uplink: bool = True,
     ) -> None:
         if not (math.isfinite(step_period_s) and step_period_s > 0):
             raise ValueError(f"gcs step_period_s: expected seconds > 0, got {step_period_s}")
@@ -125,6 +126,9 @@ class GcsGround:
         self.budget_s = budget_s
         self.taps = list(taps or [])
         self.journal = journal
+        #: False: whoever queues the uplink journaled it already (the GCS process journals
+        #: each message as it arrives, under the time of this turn, before acknowledging it)
+        self.journal_uplink = journal_uplink
         self.messages = 0
         self._inbox: queue.SimpleQueue[tuple[int, Any]] = queue.SimpleQueue()
         self._last_step_s = -math.inf
@@ -149,7 +153,7 @@ class GcsGround:
                 rid, msg = self._inbox.get_nowait()
             except queue.Empty:
                 return n
-            if self.journal is not None:
+            if self.journal is not None and self.journal_uplink:
                 self.journal.uplink(rid, msg, now_s)
             accepted = self.control.handle(rid, msg, now_s=now_s)
             for tap in self.taps:
@@ -224,6 +228,8 @@ class Assembly:
     task_ids_sent: dict[int, set[int]] = field(default_factory=dict)
     broadcast_hazards: bool = True
     broadcasts: int = 0
+    #: the GCS in its own process (:class:`mission.lockstep_gcs.RemoteGcs`), or None
+    remote_gcs: Any = None
 
     def step(self) -> None:
         """One simulator step with the robots' answers, every ground side's turn (its
@@ -242,14 +248,16 @@ class Assembly:
                     if isinstance(msg, HazardUpdate):
                         shared[id(msg)] = shared.get(id(msg), 0) + 1
             sent: set[int] = set()
+            radio = self.team.ground
             for rid, msg in out:
+                assert radio is not None, "the ground end of the radio is in the GCS process"
                 if shared.get(id(msg), 0) > 1:
                     if id(msg) not in sent:
                         sent.add(id(msg))
-                        self.team.ground.broadcast(msg)
+                        radio.broadcast(msg)
                         self.broadcasts += 1
                 else:
-                    self.team.ground.send(rid, msg)
+                    radio.send(rid, msg)
                 self.downlink_sent[rid] = self.downlink_sent.get(rid, 0) + 1
                 task_id = getattr(msg, "task_id", None)
                 if isinstance(task_id, int) and not isinstance(msg, PauseTask | ResumeTask):
@@ -275,6 +283,76 @@ class Assembly:
         self.team.close()
 
 
+class _NoGround:
+    """The ground side in this process when the GCS runs in its own: nothing to do here."""
+
+    def on_message(self, robot_id: int, msg: Any) -> None:  # pragma: no cover - never called
+        raise AssertionError("the uplink goes to the GCS process")
+
+    def turn(self, now_s: float) -> Downlink:
+        return []
+
+
+def _remote_gcs_factory(
+    sim: Simulator,
+    roles: dict[int, Role],
+    *,
+    seeds: RunSeeds,
+    gcs: GroundStationConfig | None,
+    mission: MissionControlConfig | None,
+    gcs_step_period_s: float,
+    hint_sigma_xy_m: float,
+    hint_sigma_yaw_rad: float,
+    radio_path: str | None,
+    run_dir: Path,
+    standby: bool,
+) -> Callable[..., Any]:
+    """What starts the GCS process (:class:`mission.lockstep_gcs.RemoteGcs`) once the team's
+    link is up: the station and planners configured as :func:`assemble` configures the
+    in-process GCS (same start hints, same draws)."""
+    from mission.lockstep_gcs import GcsSetup, RemoteGcs
+
+    if radio_path is None:
+        raise ValueError("gcs_process needs radio_path (the GCS process loads it)")
+    ids = list(sim.robot_ids)
+    station_cfg = _gcs_config(gcs or GroundStationConfig(), ids, ids[0])
+    disruptors = tuple(r for r, role in roles.items() if role is Role.DISRUPTOR)
+    mc = msgspec.structs.replace(mission or MissionControlConfig(), disruptors=disruptors)
+    if not mc.area_in_map:
+        mc = msgspec.structs.replace(mc, area_in_map=area_of_operations(sim, ids[0]))
+    hints = start_hints(
+        sim,
+        ids[0],
+        sigma_xy_m=hint_sigma_xy_m,
+        sigma_yaw_rad=hint_sigma_yaw_rad,
+        rng=np.random.default_rng(seeds.ground),
+    )
+    setup = GcsSetup(
+        station=msgspec.msgpack.encode(station_cfg),
+        mission=msgspec.msgpack.encode(mc),
+        hints=hints,
+        robots=ids,
+        step_period_s=gcs_step_period_s,
+        radio_path=str(Path(radio_path).resolve()),
+        ground_link_seed=seeds.ground_link,
+        seed=seeds.seed,
+    )
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+    def start(link: Any, mission_name: str, link_args: list[str], robot_done: Any) -> RemoteGcs:
+        return RemoteGcs(
+            link,
+            mission_name,
+            run_dir,
+            setup,
+            link_args=link_args,
+            robot_done=robot_done,
+            standby=standby,
+        )
+
+    return start
+
+
 def _gcs_config(
     base: GroundStationConfig, robot_ids: list[int], map_robot: int
 ) -> GroundStationConfig:
@@ -293,6 +371,29 @@ def area_of_operations(sim: Simulator, map_robot: int) -> tuple[tuple[float, flo
     return tuple((float(x), float(y)) for x, y in in_map)
 
 
+def start_hints(
+    sim: Simulator,
+    map_robot: int,
+    *,
+    sigma_xy_m: float,
+    sigma_yaw_rad: float,
+    rng: np.random.Generator,
+) -> list[tuple[int, tuple[float, float, float], float, float]]:
+    """The deployment plan as start hints (module docstring): each robot's planned start
+    relative to the map robot's, with a seeded placement error of the stated size, as
+    ``(robot, map_from_odom, sigma_xy_m, sigma_yaw_rad)``."""
+    plan = staging_plan(sim.world)
+    origin = plan[map_robot]
+    out = []
+    for rid in sim.robot_ids:
+        if rid == map_robot:
+            continue
+        error = rng.normal(0.0, [sigma_xy_m, sigma_xy_m, sigma_yaw_rad])
+        mfo = compose(relative(origin, plan[rid]), error)
+        out.append((rid, (float(mfo[0]), float(mfo[1]), float(mfo[2])), sigma_xy_m, sigma_yaw_rad))
+    return out
+
+
 def give_start_hints(
     station: GroundStation | JournaledStation,
     sim: Simulator,
@@ -301,22 +402,17 @@ def give_start_hints(
     sigma_yaw_rad: float,
     rng: np.random.Generator,
 ) -> None:
-    """The deployment plan as start hints (module docstring): each robot's planned start
-    relative to the map robot's, with a seeded placement error of the stated size."""
-    plan = staging_plan(sim.world)
+    """:func:`start_hints` given to ``station``."""
     core = station.station if isinstance(station, JournaledStation) else station
-    map_robot = core.config.graph.map_robot_id
-    origin = plan[map_robot]
-    for rid in sim.robot_ids:
-        if rid == map_robot:
-            continue
-        error = rng.normal(0.0, [sigma_xy_m, sigma_xy_m, sigma_yaw_rad])
-        station.add_start_hint(
-            rid,
-            map_from_odom=compose(relative(origin, plan[rid]), error),
-            sigma_xy_m=sigma_xy_m,
-            sigma_yaw_rad=sigma_yaw_rad,
-        )
+    hints = start_hints(
+        sim,
+        core.config.graph.map_robot_id,
+        sigma_xy_m=sigma_xy_m,
+        sigma_yaw_rad=sigma_yaw_rad,
+        rng=rng,
+    )
+    for rid, mfo, sxy, syaw in hints:
+        station.add_start_hint(rid, map_from_odom=mfo, sigma_xy_m=sxy, sigma_yaw_rad=syaw)
 
 
 @contextmanager
@@ -346,6 +442,8 @@ def assemble(
     link: LinkConfig | None = None,
     worker_link_args: list[str] | None = None,
     mission_name: str | None = None,
+    gcs_process: bool = False,
+    gcs_standby: bool = True,
 ) -> Iterator[Assembly]:
     """Bring a team up (module docstring); closes everything on exit (links, processes, the
     simulator). ``with_gcs``: the real GCS on the ground side (roles as disruptors from the
@@ -360,7 +458,13 @@ def assemble(
     worker processes (default one per core), ``remote_robots`` started elsewhere (other
     hosts), ``link`` this process's zenoh endpoints and mode, ``worker_link_args`` the
     endpoint options of the workers it starts, ``mission_name`` the zenoh mission name
-    (default a fresh one). Any of them without ``robot_processes`` is a ValueError."""
+    (default a fresh one). Any of them without ``robot_processes`` is a ValueError.
+
+    ``gcs_process``: the GCS in a process of its own (:mod:`mission.lockstep_gcs`, with
+    ``robot_processes`` and ``journal_path``: it journals there, and is restarted from that
+    journal if it dies; ``gcs_standby``: a warm spare waits beside it); :attr:`Assembly.gcs`
+    is then None and :attr:`Assembly.remote_gcs` its handle. The same run as in one process,
+    bit for bit, until a restart."""
     spread = {
         "workers": workers is not None,
         "remote_robots": bool(remote_robots),
@@ -368,6 +472,12 @@ def assemble(
         "worker_link_args": worker_link_args is not None,
         "mission_name": mission_name is not None,
     }
+    if gcs_process:
+        spread["gcs_process"] = True
+        if journal_path is None or not with_gcs or scripts is not None or realtime:
+            raise ValueError(
+                "gcs_process: needs journal_path and the GCS alone on the ground side, lockstep"
+            )
     if not robot_processes and any(spread.values()):
         given = ", ".join(k for k, v in spread.items() if v)
         raise ValueError(f"{given}: only with robot_processes (robot nodes in worker processes)")
@@ -376,7 +486,24 @@ def assemble(
         roles = roles_of(sim)
         grounds: list[GroundSide] = []
         gcs_ground: GcsGround | None = None
-        if with_gcs:
+        remote_gcs = None
+        if gcs_process:
+            assert journal_path is not None
+            remote_gcs = _remote_gcs_factory(
+                sim,
+                roles,
+                seeds=seeds,
+                gcs=gcs,
+                mission=mission,
+                gcs_step_period_s=gcs_step_period_s,
+                hint_sigma_xy_m=hint_sigma_xy_m,
+                hint_sigma_yaw_rad=hint_sigma_yaw_rad,
+                radio_path=radio_path,
+                run_dir=Path(journal_path).parent,
+                standby=gcs_standby,
+            )
+            grounds.append(_NoGround())
+        elif with_gcs:
             ids = list(sim.robot_ids)
             station = GroundStation(_gcs_config(gcs or GroundStationConfig(), ids, ids[0]))
             journal = None
@@ -433,6 +560,7 @@ def assemble(
                 link=link,
                 worker_link_args=worker_link_args,
                 mission=mission_name,
+                remote_gcs=remote_gcs,
             )
         else:
             team = TeamInLockstep(
@@ -447,6 +575,8 @@ def assemble(
             asm = Assembly(
                 sim, team, grounds, roles, gcs_ground, broadcast_hazards=broadcast_hazards
             )
+            if isinstance(team, TeamOverProcesses):
+                asm.remote_gcs = team.remote
             try:
                 yield asm
             finally:

@@ -291,6 +291,7 @@ class TeamOverProcesses:
         link: LinkConfig | None = None,
         worker_link_args: list[str] | None = None,
         mission: str | None = None,
+        remote_gcs: Callable[..., Any] | None = None,
     ) -> None:
         import os
         import subprocess
@@ -342,14 +343,22 @@ class TeamOverProcesses:
         self._done_cond = threading.Condition()
         self._decode_done = msgspec.msgpack.Decoder(StepDone)
         self._encode = msgspec.msgpack.Encoder()
+        #: the GCS in its own process (:class:`mission.lockstep_gcs.RemoteGcs`), or None: the
+        #: ground end of the radio is in this process (``ground``)
+        self.remote: Any = None
+        #: ask the robots for their reliable uplink state with the next steps
+        #: (:attr:`StepDone.link_state`: the chaos bench's accounting)
+        self.report_link = False
         try:
             if cfg.connect and not self.ground_link.wait_reachable(min(connect_timeout_s, 10.0)):
                 raise ValueError(
                     f"cannot reach {where} (no zenoh router or peer answered within "
                     f"{min(connect_timeout_s, 10.0):g} s)"
                 )
-            self.ground: GcsEndpoint = self.ground_link.gcs_endpoint(on_message=on_ground_message)
-            self.ground.hold_arrivals()
+            self.ground: GcsEndpoint | None = None
+            if remote_gcs is None:
+                self.ground = self.ground_link.gcs_endpoint(on_message=on_ground_message)
+                self.ground.hold_arrivals()
             self.server = SimServer(sim, link=self.ground_link, mission=mission, rtf=0.0)
             self.server.end_of_step_ticks = True
             for rid in sim.robot_ids:
@@ -377,8 +386,9 @@ class TeamOverProcesses:
                         )
                     )
             deadline = _time.monotonic() + connect_timeout_s
-            for rid in sim.robot_ids:
-                while not self.ground.wait_for_robot(rid, 0.5):
+            ground = self.ground
+            for rid in sim.robot_ids if ground is not None else []:
+                while ground is not None and not ground.wait_for_robot(rid, 0.5):
                     self._check_workers()
                     if _time.monotonic() > deadline:
                         who = "started elsewhere" if rid in remote_robots else "a worker here"
@@ -387,6 +397,11 @@ class TeamOverProcesses:
                             f"{connect_timeout_s:g} s"
                         )
             self._wait_done(0.0, max(1.0, deadline - _time.monotonic()))  # every robot hello
+            if remote_gcs is not None:
+                gcs_args = list(worker_link_args)
+                self.remote = remote_gcs(
+                    self.ground_link, mission, gcs_args, lambda: dict(self._done)
+                )
         except BaseException:
             self.close()
             raise
@@ -462,32 +477,53 @@ class TeamOverProcesses:
                 raise ValueError(self._twice)
             return dict(self._done)
 
-    def _send_go(self) -> None:
+    def _downlink_packets(self, robot_id: int) -> int:
+        if self.remote is not None:
+            return int(self.remote.downlink_packets(robot_id))
+        assert self.ground is not None
+        return self.ground.packets_out_by_robot.get(robot_id, 0)
+
+    def _send_go(self, grants: dict[int, Any]) -> None:
         sim = self.sim
-        grants = sim.radio_grants()
         for rid in sim.robot_ids:
-            go = StepGo(sim.time_s, self.ground.packets_out_by_robot.get(rid, 0), grants[rid])
+            go = StepGo(sim.time_s, self._downlink_packets(rid), grants[rid], self.report_link)
             self.ground_link.publish(step_go_key(self.mission, rid), self._encode.encode(go))
 
     def step(self, on_step: Callable[[], None] | None = None) -> None:
+        """One step (class docstring); with the GCS in its own process
+        (:mod:`mission.lockstep_gcs`) its turn and the end of its exchange are messages."""
         sim = self.sim
         assert self.server is not None
         sim.step()
-        for rid, grant in sim.radio_grants().items():
-            self.ground.set_grant(rid, grant)
+        grants = sim.radio_grants()
+        if self.ground is not None:
+            for rid, grant in grants.items():
+                self.ground.set_grant(rid, grant)
         self.server.publish()
-        self._send_go()
+        self._send_go(grants)
+        if self.remote is not None:
+            self.remote.go(sim.time_s, grants)
         if on_step is not None:
             on_step()
         done = self._wait_done(sim.time_s, self.step_timeout_s)
-        uplink = sum(d.uplink_packets for d in done.values())
-        if not self.ground.wait_packets_in(uplink, self.step_timeout_s):
-            raise TimeoutError(f"uplink packets not delivered at {sim.time_s:.2f} s")
+        if self.remote is not None:
+            self.remote.end(sim.time_s, done, sim.time_s + sim.config.step_s)
+        else:
+            assert self.ground is not None
+            uplink = sum(d.uplink_packets for d in done.values())
+            if not self.ground.wait_packets_in(uplink, self.step_timeout_s):
+                raise TimeoutError(f"uplink packets not delivered at {sim.time_s:.2f} s")
         for rid, d in done.items():
             if not self.server.wait_commands(rid, d.commands, self.step_timeout_s):
                 raise TimeoutError(f"robot {rid}'s commands not delivered at {sim.time_s:.2f} s")
-        self.ground.deliver_held()
-        self.ground_link.pump()
+        if self.ground is not None:
+            self.ground.deliver_held()
+            self.ground_link.pump()
+
+    def robot_done(self) -> dict[int, StepDone]:
+        """Each robot's latest :class:`StepDone`."""
+        with self._done_cond:
+            return dict(self._done)
 
     def uplink_bytes(self, robot_id: int) -> int:
         """Radio bytes robot ``robot_id`` sent (metered in its process, told each step)."""
@@ -516,6 +552,9 @@ class TeamOverProcesses:
         return (done.deadlocks, done.stuck_recoveries, done.plan_failures)
 
     def close(self) -> None:
+        if self.remote is not None:
+            self.remote.close()
+            self.remote = None
         for p in self._procs:
             if p.poll() is None:
                 p.terminate()

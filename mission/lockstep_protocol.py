@@ -26,11 +26,17 @@ from protocol import keys
 from protocol.radio import RadioGrant
 
 __all__ = [
+    "GcsDone",
+    "GcsEnd",
+    "GcsGo",
     "RunSeeds",
     "StepDone",
     "StepGo",
     "parse_robot_ids",
     "robot_host_key",
+    "gcs_done_key",
+    "gcs_end_key",
+    "gcs_go_key",
     "seed_streams",
     "step_done_key",
     "step_go_key",
@@ -45,6 +51,7 @@ class StepGo(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields
     time_s: float
     downlink_packets: int
     grant: RadioGrant
+    report_link: bool = False  # answer with the radio's reliable uplink state (StepDone)
 
 
 class StepDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
@@ -61,6 +68,61 @@ class StepDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fiel
     stuck_recoveries: int = 0
     plan_failures: int = 0
     worker: str = ""  # "<host>:<pid>" of the process hosting the robot (a robot hosted twice)
+    #: downlink radio packets that arrived at the robot so far (a restarted GCS process
+    #: counts its packets from there: :mod:`mission.lockstep_gcs`)
+    downlink_packets_in: int = 0
+    #: when the go asked (``report_link``): msgpack of ``{stream: [messages the link
+    #: accepted, [sequence numbers not acknowledged yet]]}`` of the reliable uplink streams
+    link_state: bytes = b""
+
+
+class GcsGo(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
+    """Orchestrator -> the GCS process (:mod:`mission.lockstep_gcs`): the ground side's turn
+    at ``time_s`` with each robot's radio ``grants`` now."""
+
+    time_s: float
+    grants: dict[int, RadioGrant]
+
+
+class GcsEnd(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
+    """Orchestrator -> the GCS process: the step at ``time_s`` ends. ``uplink_packets``: the
+    radio packets this GCS process is to have received so far (wait for them, at most
+    ``wait_s`` wall seconds); ``next_time_s``: the next step's time, when the GCS takes what
+    arrived (it journals it under that time before it acknowledges it)."""
+
+    time_s: float
+    uplink_packets: int
+    next_time_s: float
+    wait_s: float
+
+
+class GcsDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
+    """The GCS process -> orchestrator: ``phase`` ``hello`` (up, serving), ``turn`` or ``end``
+    of the step at ``time_s`` done. ``incarnation``: which start of the GCS process (1, then
+    one more per restart); ``downlink_packets``: radio packets it put on the air to each
+    robot since it started; ``packets_in``: radio packets it received since it started;
+    ``figures``: msgpack of what the run's report shows of the GCS (``end``)."""
+
+    time_s: float
+    phase: str
+    incarnation: int
+    downlink_packets: dict[int, int]
+    packets_in: int
+    figures: bytes = b""
+    pid: int = 0
+    rebuild_s: float = 0.0  # wall seconds its journal took to rebuild (a restart's hello)
+
+
+def gcs_go_key(mission: str) -> str:
+    return keys.gcs(mission, "lockstep/gcs/go")
+
+
+def gcs_end_key(mission: str) -> str:
+    return keys.gcs(mission, "lockstep/gcs/end")
+
+
+def gcs_done_key(mission: str) -> str:
+    return keys.gcs(mission, "lockstep/gcs/done")
 
 
 def step_go_key(mission: str, robot_id: int) -> str:

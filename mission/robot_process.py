@@ -214,6 +214,19 @@ class LockstepRobot:
         self.steps = 0
         self.frames_seen = 0
         self._next_hello = 0.0
+        self._report_link = False
+
+    def _link_state(self) -> bytes:
+        """The reliable uplink streams' state (:class:`StepDone`): what the link accepted and
+        what is not acknowledged yet (the channels' private state: no public accessor)."""
+        from protocol.messages import STREAMS, Reliability
+
+        out = {}
+        for name, st in self.radio.channel._send.items():
+            spec = STREAMS[Direction.UP].get(name)
+            if spec is not None and spec.reliability is Reliability.RELIABLE:
+                out[name] = [st.next_seq - 1, sorted(st.unacked)]
+        return self._encoder.encode(out)
 
     def _send(self, msg: Any) -> object:
         try:
@@ -239,6 +252,8 @@ class LockstepRobot:
             stats.stuck_recoveries,
             stats.plan_failures,
             WORKER_NAME,
+            self.radio.packets_in,
+            self._link_state() if self._report_link else b"",
         )
         self.link.publish(self._done_key, self._encoder.encode(done))
 
@@ -282,6 +297,7 @@ class LockstepRobot:
             )
         self.radio.deliver_held()  # at the previous step's time
         self.radio.set_grant(go.grant)
+        self._report_link = go.report_link
         return frames
 
     def act(self, frames: list[Any]) -> None:

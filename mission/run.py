@@ -28,6 +28,7 @@ import contextlib
 import logging
 import math
 import struct
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -105,6 +106,9 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
     robot_processes: bool = False  # robot nodes in worker processes (magic robot --lockstep)
     workers: int | None = None  # robot worker processes (robot_processes; None: one per core)
     remote_robots: tuple[int, ...] = ()  # robots whose workers another host starts
+    #: the GCS in a process of its own (mission.lockstep_gcs; with robot_processes), restarted
+    #: from its journal when it dies: the same run as in this process until then
+    gcs_process: bool = False
     simulator: SimulatorConfig = SimulatorConfig()
     robot: RobotNodeConfig = RobotNodeConfig()
 
@@ -119,6 +123,8 @@ class RunConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only
             raise ValueError(f"workers must be >= 1 processes, got {self.workers}")
         if (self.workers is not None or self.remote_robots) and not self.robot_processes:
             raise ValueError("workers and remote_robots need robot_processes: true")
+        if self.gcs_process and (self.scripted or self.realtime or not self.robot_processes):
+            raise ValueError("gcs_process needs robot_processes: true, and no scripted or realtime")
         if any(r < 0 for r in self.remote_robots) or len(set(self.remote_robots)) != len(
             self.remote_robots
         ):
@@ -451,6 +457,10 @@ def run_mission(
         return [_GroundScript(sim, config, report.robots, rng)]
 
     with contextlib.ExitStack() as stack:
+        journal_path = _journal_path(out_dir, config)
+        if journal_path is None and config.gcs_process:  # the GCS process journals somewhere
+            tmp = stack.enter_context(tempfile.TemporaryDirectory(prefix="magic-run-gcs-"))
+            journal_path = Path(tmp) / "journal.sqlite"
         team = assemble(
             world_cfg,
             seeds=seeds,
@@ -467,7 +477,8 @@ def run_mission(
             gcs_budget_s=config.gcs_budget_s,
             robot_processes=config.robot_processes,
             realtime=config.realtime,
-            journal_path=_journal_path(out_dir, config),
+            journal_path=journal_path,
+            gcs_process=config.gcs_process,
             workers=config.workers,
             remote_robots=config.remote_robots,
             link=link,
@@ -488,15 +499,20 @@ def run_mission(
             if config.remote_robots:
                 remote = ",".join(map(str, config.remote_robots))
                 report.processes += f", robots {remote} on other hosts"
+            if asm.remote_gcs is not None:
+                report.processes += f", the GCS in its own (pid {asm.remote_gcs.pid})"
         if operator is not None and asm.gcs is not None:  # consoles and views (issue 15)
             asm.gcs.attach_operator(operator(asm.team.ground_link, asm.gcs.control))
             if on_console is not None:
                 from gcs.operator.node_hooks import console_command
 
                 on_console(console_command(asm.team.ground_link))
-        recorder = None
+        recorder: _Recording | _RemoteRecording | None = None
         if out_dir is not None and asm.gcs is not None:
             recorder = _Recording(Path(out_dir), config, asm)
+            report.run_dir = str(out_dir)
+        elif out_dir is not None and asm.remote_gcs is not None:
+            recorder = _RemoteRecording(Path(out_dir), config, asm, journal_path)
             report.run_dir = str(out_dir)
         steps = [] if on_step is None else [on_step]
         if recorder is not None:
@@ -517,6 +533,53 @@ def run_mission(
         if recorder is not None:
             report.metrics = recorder.finish()
         return report
+
+
+class _RemoteRecording:
+    """The mission recorder of a run whose GCS is in its own process: the truth track every
+    step, and one sample at the end, of the station rebuilt from the GCS's journal (the
+    latest checkpoint and what follows); no time series of the GCS's map, no detection
+    events (they are the GCS process's)."""
+
+    def __init__(
+        self, run_dir: Path, config: RunConfig, asm: Assembly, journal: Path | None
+    ) -> None:
+        from mission.report.recorder import MissionRecorder
+
+        assert journal is not None
+        self.asm = asm
+        self.journal = journal
+        self.rec = MissionRecorder(
+            run_dir,
+            world_name=Path(config.world).stem,
+            seed=config.seed,
+            duration_s=config.duration_s,
+            roles={rid: role.value for rid, role in asm.roles.items()},
+        )
+
+    def step(self, asm: Assembly) -> None:
+        self.rec.track(asm.sim.time_s, sim=asm.sim)
+
+    def finish(self) -> dict[str, float]:
+        from gcs.journal import GcsJournal, rebuild_station
+
+        reader = GcsJournal.open(self.journal)
+        try:
+            station, _ = rebuild_station(reader)
+        finally:
+            reader.close()
+        modes = {}
+        for rid in self.asm.sim.robot_ids:
+            t = station.telemetry(rid)
+            modes[rid] = None if t is None else t.mode
+        self.rec.sample(
+            self.asm.sim.time_s,
+            sim=self.asm.sim,
+            station=station,
+            link_bytes=self.asm.link_bytes(),
+            modes=modes,
+        )
+        return self.rec.finish(sim=self.asm.sim, station=station)
 
 
 class _Recording:
@@ -664,6 +727,13 @@ def _hostiles(sim: Simulator) -> list[tuple[int, tuple[float, float]]]:
 def _fill_bytes(report: RunReport, asm: Assembly) -> None:
     for rid, p in report.robots.items():
         p.uplink_bytes = asm.team.uplink_bytes(rid)
+    remote = asm.remote_gcs
+    if remote is not None:  # the GCS process's progress rows (its _ProgressTap's)
+        for rid, row in remote.figures.get("progress", {}).items():
+            q = report.robots.get(int(rid))
+            if q is not None:
+                q.last_state, q.mode, q.pose_nodes, q.terrain_grids = row[:4]
+                q.goals_sent, q.goals_succeeded, q.goals_failed = row[4:7]
     if asm.gcs is not None:  # a script counts its own goals
         for tap in asm.gcs.taps:
             if isinstance(tap, _ProgressTap):
@@ -672,6 +742,12 @@ def _fill_bytes(report: RunReport, asm: Assembly) -> None:
 
 def _fill_gcs(report: RunReport, asm: Assembly) -> None:
     """The GCS's own figures (its estimate, its planners), none from the truth."""
+    remote = asm.remote_gcs
+    if remote is not None:  # told by the GCS process each step
+        report.gcs = {k: float(v) for k, v in remote.figures.get("gcs", {}).items()}
+        size = remote.setup_journal_size
+        report.tasking_events = list(remote.events[-size:] if size else remote.events)
+        return
     if asm.gcs is None:
         return
     st = asm.gcs.station
@@ -961,7 +1037,11 @@ def main(argv: list[str] | None = None) -> int:
                 ("duration_s", args.duration),
                 ("seed", args.seed),
                 ("realtime", True if args.realtime else None),
-                ("robot_processes", True if args.robot_processes or spread else None),
+                (
+                    "robot_processes",
+                    True if args.robot_processes or args.gcs_process or spread else None,
+                ),
+                ("gcs_process", True if args.gcs_process else None),
                 ("workers", args.workers),
                 ("remote_robots", remote),
                 ("radio", None if args.radio is None else str(args.radio)),
@@ -1021,6 +1101,8 @@ def main(argv: list[str] | None = None) -> int:
             command += f" --operator-key {args.operator_key}"
         console.print(f"magic run: operators: {command}", markup=False, soft_wrap=True)
 
+    if config.gcs_process and not no_consoles:
+        no_consoles = "no consoles for this run: not with --gcs-process (yet)"
     ops: dict[str, Any] = {} if config.scripted or no_consoles else {"operator": operators}
     ops.update(link=link, mission_name=args.mission)
     if config.remote_robots:

@@ -94,6 +94,15 @@ def run_parser(epilog: str | None = None) -> argparse.ArgumentParser:
         help="each robot node in its own process (magic robot --lockstep), the simulator and "
         "the ground side in this one: the same run as in one process (default: one process)",
     )
+    p.add_argument(
+        "--gcs-process",
+        action="store_true",
+        help="the GCS in a process of its own (and the robot nodes in workers, as "
+        "--robot-processes), over the zenoh link, journaling to RUN_DIR/journal.sqlite; if "
+        "it dies (kill -9) the run restarts it from the journal (a warm standby takes over) "
+        "and goes on, nothing acknowledged lost. The same run as in one process until a "
+        "restart; no consoles yet (default: the GCS in this process)",
+    )
     spread = p.add_argument_group(
         "across processes and hosts",
         "Each of these but --radio puts the robot nodes in worker processes (as\n"

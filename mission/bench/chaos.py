@@ -8,11 +8,17 @@ with the same seed: once clean, once with
 * two blackouts per robot (:func:`sim.radio_model.blackout_schedule`, 60 s each in a 600
   mission-s run; ``--quick``: 10 s each in a 60 mission-s run, so that both runs take about
   80 s of wall time on the 2-core machine);
-* the GCS killed and restarted once, mid-mission: a *simulated* crash in this process
-  (:meth:`mission.assembly.Assembly.restart_gcs`): the ground side is dropped at the end of a
-  ground turn, after its journal commit, without closing anything, and a new one is rebuilt
-  from ``journal.sqlite``. The radio link is not rebuilt (in one process it survives, as its
-  sequence state must across a real restart).
+* the GCS killed and restarted once, mid-mission: the GCS runs in its own process
+  (:mod:`mission.lockstep_gcs`, the robots in a worker process, everything over the real
+  zenoh link), is killed with SIGKILL during its turn, and the run restarts it from the
+  journal (a warm standby process takes over: the station from the latest checkpoint and
+  what follows, the radio's sequence state from the newest ``link`` record and what
+  follows). ``gcs_process=False`` keeps the older *simulated* crash in this process
+  (:meth:`mission.assembly.Assembly.restart_gcs`: the ground side dropped at the end of a
+  turn, its radio link surviving). ``accepted_lost`` then comes from the robots' and the new
+  GCS's reliable stream state at the end (:func:`_reliable_lost`: a message accepted,
+  acknowledged, neither journaled nor held behind a gap, is lost; before the GCS journaled
+  what it holds behind a gap, the real kill lost 4 such messages in a 20 s run).
 
 Each seed of :data:`SEEDS` runs clean and faulted; ``explored_frac_drop`` is the median of their
 drops, the fault counts (lost, duplicates, the replay's difference, the restart's time) their
@@ -47,6 +53,7 @@ them: 0), ``security_attempts`` (forged publishes made) and ``authorized_deliver
 from __future__ import annotations
 
 import json
+import math
 import socket
 import tempfile
 import time
@@ -59,7 +66,7 @@ import numpy as np
 
 from mission.assembly import Assembly, assemble, staging_plan
 from mission.config import config_path, load_config
-from mission.lockstep import seed_streams
+from mission.lockstep import TeamOverProcesses, seed_streams
 from mission.report.map_scoring import cell_centres, explored_frac
 from protocol.messages import STREAMS, Direction, Reliability, stream_of
 from protocol.radio import RadioConfig
@@ -121,13 +128,15 @@ class _Ledger:
     def lost(self, asm: Assembly) -> tuple[int, int, list[Any]]:
         """``(accepted_lost, in_flight, the first lost)`` at the end of the run."""
         in_flight: set[tuple[int, str, int]] = set()
+        ground = asm.team.ground
+        assert ground is not None, "the GCS in this process"
         for rid, ep in asm.team.radios.items():  # type: ignore[union-attr]
             # private state of the radio channels (no public accessor): the robot's
             # unacknowledged messages are still on their way, not lost
             for stream, st in ep.channel._send.items():
                 in_flight.update((rid, stream, seq) for seq in st.unacked)
             # selectively acknowledged, in the GCS's reorder buffer behind a gap
-            for stream, rs in asm.team.ground.channel(rid)._recv.items():
+            for stream, rs in ground.channel(rid)._recv.items():
                 in_flight.update((rid, stream, seq) for seq in rs.buffer)
         lost = flying = 0
         first: list[Any] = []
@@ -253,6 +262,136 @@ def _mission(
         diff = compare_replay(journal, live)
         out["replay_pose_diff_max_m"] = diff.pose_diff_max_m
         out["replay_edges_equal"] = 1.0 if diff.edges_equal and diff.nodes_equal else 0.0
+    return out
+
+
+def _reliable_lost(
+    done: dict[int, Any], recv: dict[int, dict[str, list[Any]]]
+) -> tuple[int, int, list[Any]]:
+    """``(accepted_lost, in_flight, the first lost)`` from the robots' reliable uplink state
+    (:attr:`StepDone.link_state`: per stream the messages their link accepted and those not
+    acknowledged) and the GCS process's (per stream delivered in order through, and held in
+    its reorder buffer): a message accepted, acknowledged (or selectively), neither delivered
+    (journaled: the GCS journals before it acknowledges) nor held, is lost."""
+    lost = flying = 0
+    first: list[Any] = []
+    for rid, d in sorted(done.items()):
+        state = msgspec.msgpack.decode(d.link_state) if d.link_state else {}
+        for stream, (accepted, unacked) in state.items():
+            through, held = recv.get(rid, {}).get(stream, [0, []])
+            waiting = set(unacked) | set(held)
+            for seq in range(int(through) + 1, int(accepted) + 1):
+                if seq in waiting:
+                    flying += 1
+                else:
+                    lost += 1
+                    if len(first) < 5:
+                        first.append((rid, stream, seq))
+    return lost, flying, first
+
+
+def _mission_gcs_process(
+    *,
+    duration_s: float,
+    seed: int,
+    blackout_s: float,
+    loss: float,
+    run_dir: Path,
+    progress: Callable[[str], None],
+    standby: bool = True,
+) -> dict[str, float]:
+    """The faulted run with the GCS in its own process (:mod:`mission.lockstep_gcs`) and the
+    robots in a worker: the loss floored, the blackouts, and the GCS process killed with
+    SIGKILL mid-mission and restarted by the run from its journal. What the GCS held at the
+    end is rebuilt from that journal (the latest checkpoint and what follows)."""
+    from gcs.journal import GcsJournal, rebuild_station
+    from protocol.link import LinkConfig
+    from protocol.loopback import free_loopback_port, unique_mission
+
+    world = load_world_config(config_path("world/small.yaml", "world"))
+    radio_path = config_path("radio/magic2010.yaml", "radio")
+    radio = load_config(radio_path, RadioConfig)
+    n = world.robots.sensors + world.robots.disruptors
+    blackouts: tuple[tuple[int, float, float], ...] = ()
+    if blackout_s > 0:
+        blackouts = blackout_schedule(
+            list(range(n)),
+            per_robot=2,
+            duration_s=blackout_s,
+            start_s=0.1 * duration_s,
+            end_s=0.9 * duration_s,
+            seed=seed,
+        )
+    journal = run_dir / "journal.sqlite"
+    t0 = time.perf_counter()
+    with assemble(
+        world,
+        seeds=seed_streams(seed),
+        radio=radio,
+        radio_path=str(radio_path),
+        simulator=SimulatorConfig(radio_blackouts=blackouts),
+        journal_path=journal,
+        robot_processes=True,
+        workers=1,
+        gcs_process=True,
+        gcs_standby=standby,
+        link=LinkConfig(listen=(f"tcp/127.0.0.1:{free_loopback_port()}",)),
+        mission_name=unique_mission("chaos"),
+    ) as asm:
+        if loss > 0:
+            _floor_loss(asm.sim, loss)
+        remote = asm.remote_gcs
+        team = asm.team
+        assert isinstance(team, TeamOverProcesses)
+        steps = int(round(duration_s / asm.sim.config.step_s))
+        for k in range(steps):
+            if k == steps // 2:
+                pid = remote.pid
+                team.step(remote.kill)  # SIGKILL during the GCS's turn
+                progress(
+                    f"chaos: GCS process {pid} killed (SIGKILL) at {asm.sim.time_s:.1f} s, "
+                    f"serving again after {remote.restart_s[-1]:.2f} s (journal rebuilt in "
+                    f"{remote.rebuild_s[-1]:.2f} s)"
+                )
+            else:
+                team.report_link = k == steps - 1
+                asm.step()
+        lost, flying, first = _reliable_lost(team.robot_done(), remote.figures.get("recv", {}))
+        if lost:
+            progress(f"chaos: accepted and lost, e.g. {first}")
+        completed = asm.sim.time_s >= duration_s - 1e-6 and remote.restarts == 1
+        plan = staging_plan(asm.sim.world)
+        reach = cell_centres(asm.sim.truth.reachable, asm.sim.truth.resolution_m)
+        restart_s = remote.restart_s[-1] if remote.restart_s else math.nan
+        rebuild_s = remote.rebuild_s[-1] if remote.rebuild_s else math.nan
+        downlink = float(sum(b for (_, d, _), b in asm.link_bytes().items() if d == "down"))
+    wall_s = time.perf_counter() - t0
+    reader = GcsJournal.open(journal)  # the GCS process ended: what it held, rebuilt
+    try:
+        station, _ = rebuild_station(reader)
+    finally:
+        reader.close()
+    map_robot = station.config.graph.map_robot_id
+    frac, _ = explored_frac(station.rasterize(), transform_points(inverse(plan[map_robot]), reach))
+    out = {
+        "explored_frac": float(frac),
+        "accepted_lost": float(lost),
+        "in_flight_at_end": float(flying),
+        "duplicates_in_graph": float(_graph_duplicates(station)),
+        "station_duplicates_dropped": float(station.stats.duplicates),
+        "mission_completed": 1.0 if completed else 0.0,
+        "gcs_restart_s": restart_s,
+        "gcs_rebuild_s": rebuild_s,
+        "gcs_killed_pid_restarts": float(remote.restarts),
+        "wall_s": wall_s,
+        "pose_nodes": float(station.stats.pose_nodes),
+        "downlink_bytes": downlink,
+    }
+    from mission.mission_replay import compare_replay
+
+    diff = compare_replay(journal, station)
+    out["replay_pose_diff_max_m"] = diff.pose_diff_max_m
+    out["replay_edges_equal"] = 1.0 if diff.edges_equal and diff.nodes_equal else 0.0
     return out
 
 
@@ -464,10 +603,14 @@ def run(
     quick: bool,
     progress: Callable[[str], None],
     seeds: tuple[int, ...] = SEEDS,
+    gcs_process: bool = True,
 ) -> dict[str, float]:
     """Every seed of ``seeds`` clean and under faults; ``explored_frac_drop`` is the median of
     the seeds' drops (each also reported: ``explored_frac_drop_seed<N>``), the fault counts
-    their worst (:func:`_combine`), ``gcs_restart_s`` the slowest restart."""
+    their worst (:func:`_combine`), ``gcs_restart_s`` the slowest restart. The faulted runs
+    put the GCS in its own process and kill it with SIGKILL (:func:`_mission_gcs_process`;
+    ``gcs_process=False``: the in-process crash of :func:`_mission`); the clean runs keep it
+    in this process, which is the same run, bit for bit (:mod:`mission.lockstep_gcs`)."""
     duration_s, blackout_s = (60.0, 10.0) if quick else (600.0, 60.0)
     faulted_runs: list[dict[str, float]] = []
     clean_runs: list[dict[str, float]] = []
@@ -492,15 +635,25 @@ def run(
             )
             chaos_dir = Path(tmp) / f"chaos-{seed}"
             chaos_dir.mkdir()
-            faulted = _mission(
-                duration_s=duration_s,
-                seed=seed,
-                faults=True,
-                blackout_s=blackout_s,
-                loss=0.3,
-                run_dir=chaos_dir,
-                progress=progress,
-            )
+            if gcs_process:  # the real thing: the GCS's own process, killed with SIGKILL
+                faulted = _mission_gcs_process(
+                    duration_s=duration_s,
+                    seed=seed,
+                    blackout_s=blackout_s,
+                    loss=0.3,
+                    run_dir=chaos_dir,
+                    progress=progress,
+                )
+            else:  # the GCS in this process, its crash simulated
+                faulted = _mission(
+                    duration_s=duration_s,
+                    seed=seed,
+                    faults=True,
+                    blackout_s=blackout_s,
+                    loss=0.3,
+                    run_dir=chaos_dir,
+                    progress=progress,
+                )
             drops[seed] = clean["explored_frac"] - faulted["explored_frac"]
             clean_runs.append(clean)
             faulted_runs.append(faulted)
@@ -516,6 +669,7 @@ def run(
     out["mission_s"] = duration_s
     out["blackout_s"] = blackout_s
     out["robot_suspended_s_clean"] = clean["robot_suspended_s"]
+    out["gcs_process"] = 1.0 if gcs_process else 0.0
     progress("chaos: secured transport, forged publishes and reads against mutual TLS")
     with tempfile.TemporaryDirectory(prefix="magic-chaos-tls-") as tmp:
         out.update(

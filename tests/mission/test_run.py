@@ -262,3 +262,79 @@ def test_tasks_ok_over_sent_count_the_same_tasks_planners_and_operators_alike() 
         1,
         2,
     )
+
+
+def test_the_gcs_in_its_own_process_gives_the_same_mission() -> None:
+    """``magic run --gcs-process``: the GCS in a process of its own (and the robots in a
+    worker) over the zenoh link, the same figures bit for bit as all in one process."""
+    from protocol.link import LinkConfig
+    from protocol.loopback import free_loopback_port, unique_mission
+
+    config = RunConfig(duration_s=8.0, seed=2)
+    in_process = run_mission(config).fields()
+    report = run_mission(
+        msgspec.structs.replace(config, robot_processes=True, workers=1, gcs_process=True),
+        link=LinkConfig(listen=(f"tcp/127.0.0.1:{free_loopback_port()}",)),
+        mission_name=unique_mission("run-gcs"),
+    )
+    apart = report.fields()
+    assert fields_differing(in_process, apart) == []
+    assert "the GCS in its own (pid " in report.processes
+    assert apart["gcs_pose_nodes"] > 0 and apart["tasks_sent"] > 0
+
+
+def test_a_gcs_process_killed_with_sigkill_is_restarted_and_loses_nothing(
+    tmp_path: Path,
+) -> None:
+    """kill -9 of the GCS process mid-turn: the run notices, a standby rebuilds the station
+    and the radio's state from the journal, the mission goes on; at the end every message
+    the robots' links accepted on a reliable stream is journaled or still on its way, and
+    the journal replays to the station it rebuilds."""
+    from gcs.journal import GcsJournal, rebuild_station
+    from mission.assembly import assemble
+    from mission.bench.chaos import _floor_loss, _reliable_lost
+    from mission.config import config_path, load_config
+    from mission.lockstep import TeamOverProcesses, seed_streams
+    from mission.mission_replay import compare_replay
+    from protocol.link import LinkConfig
+    from protocol.loopback import free_loopback_port, unique_mission
+    from protocol.radio import RadioConfig
+    from sim.simulator import load_world_config
+
+    world = load_world_config(config_path("world/small.yaml", "world"))
+    radio_path = config_path("radio/magic2010.yaml", "radio")
+    journal = tmp_path / "journal.sqlite"
+    with assemble(
+        world,
+        seeds=seed_streams(5),
+        radio=load_config(radio_path, RadioConfig),
+        radio_path=str(radio_path),
+        journal_path=journal,
+        robot_processes=True,
+        workers=1,
+        gcs_process=True,
+        link=LinkConfig(listen=(f"tcp/127.0.0.1:{free_loopback_port()}",)),
+        mission_name=unique_mission("gcs-kill"),
+    ) as asm:
+        _floor_loss(asm.sim, 0.3)  # messages held behind gaps when it dies
+        remote, team = asm.remote_gcs, asm.team
+        assert isinstance(team, TeamOverProcesses)
+        first_pid = remote.pid
+        steps = int(round(12.0 / asm.sim.config.step_s))
+        for k in range(steps):
+            if k == steps // 2:
+                team.step(remote.kill)  # SIGKILL during its turn
+            else:
+                team.report_link = k == steps - 1
+                asm.step()
+        assert remote.restarts == 1 and remote.pid != first_pid
+        assert remote.restart_s[0] < 5.0
+        lost, in_flight, first = _reliable_lost(team.robot_done(), remote.figures["recv"])
+        assert lost == 0, first
+        nodes = remote.figures["gcs"]["gcs_pose_nodes"]
+    reader = GcsJournal.open(journal)
+    station, _ = rebuild_station(reader)
+    reader.close()
+    assert station.stats.pose_nodes >= nodes > 10  # the mission went on after the kill
+    diff = compare_replay(journal, station)
+    assert diff.nodes_equal and diff.edges_equal and diff.pose_diff_max_m <= 1e-9

@@ -1,0 +1,586 @@
+"""The GCS in its own process in a lockstep team (``magic run --gcs-process``, issue 17).
+
+The ground side of :class:`~mission.lockstep.TeamOverProcesses` can run in a process of its own
+(this module's :func:`main`, started by :class:`RemoteGcs`), talking to the robots over the
+real zenoh radio link as a ``magic gcs`` does and journaling to the run directory
+(``RUN_DIR/journal.sqlite``). Each step the orchestrator (the simulator's process) and the GCS
+process exchange three messages (:mod:`mission.lockstep_protocol`):
+
+1. :class:`GcsGo`: the GCS process sets its mission clock and the robots' radio grants and
+   takes its turn (:meth:`mission.assembly.GcsGround.turn`: the uplink of the previous step,
+   a station step and a plan when due, the downlink queued), answering ``turn``;
+2. once every robot answered the step, :class:`GcsEnd`: the GCS process waits for the uplink
+   packets the robots counted, takes them (journaled *now*, under the next step's time, when
+   its station will handle them), commits its journal and only then pumps its radio: the
+   robots' acknowledgements cover only what the journal holds. It answers ``end`` with the
+   downlink packets it has put on the air (the robots wait for them at the next step) and
+   the figures the run's report shows.
+
+The order of everything the station sees, the radio's exchange and every random draw are
+those of the in-process ground side: same seed, same run, bit for bit (``tests/mission``).
+
+If the GCS process dies (``kill -9``), :class:`RemoteGcs` notices it while it waits, promotes
+a *standby* process (started beside it, its libraries already loaded, waiting) or starts a
+new one, which rebuilds the station from the journal (``--resume``: the latest checkpoint and
+the records after it, :func:`gcs.journal.resume_control`) and the radio's sequence state
+(:func:`gcs.node.restore_link_state`), and the step goes on: its turn again, the robots'
+uplink of that step retransmitted by their links (what the dead process had acknowledged is
+in the journal). From the restart on the run is no longer the one without it (the
+allocator re-plans from the rebuilt station), and it goes on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from mission.lockstep_protocol import (
+    GcsDone,
+    GcsEnd,
+    GcsGo,
+    StepDone,
+    gcs_done_key,
+    gcs_end_key,
+    gcs_go_key,
+)
+
+__all__ = ["GcsSetup", "RemoteGcs", "main"]
+
+log = logging.getLogger(__name__)
+
+#: The file in the run directory the orchestrator writes the GCS's setup to.
+SETUP_FILE = "gcs_setup.msgpack"
+
+
+class GcsSetup(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """What the GCS process is started with (written by the orchestrator, msgpack: configs
+    hold infinities). ``station`` and ``mission`` are msgpack of the
+    :class:`~gcs.ground_station.GroundStationConfig` and
+    :class:`~gcs.mission_control.MissionControlConfig`; ``hints``: the deployment plan's start
+    hints ``(robot, map_from_odom, sigma_xy_m, sigma_yaw_rad)``; ``ground_link_seed``: the
+    ground link's loss draws (:class:`~mission.lockstep.RunSeeds`)."""
+
+    station: bytes
+    mission: bytes
+    hints: list[tuple[int, tuple[float, float, float], float, float]]
+    robots: list[int]
+    step_period_s: float
+    radio_path: str
+    ground_link_seed: int
+    seed: int
+
+
+class _Figures:
+    """What the run's report shows of the GCS, kept in the GCS process: each robot's
+    progress row (the uplink the station took: task reports, nodes, grids, telemetry) and the
+    tasks sent (planners' and operators'), the GCS's own figures and its planner events."""
+
+    def __init__(self, robots: list[int]) -> None:
+        self.rows: dict[int, list[Any]] = {r: ["-", "-", 0, 0] for r in robots}
+        self.sent: dict[int, set[int]] = {r: set() for r in robots}
+        self.ended: dict[int, dict[int, bool]] = {r: {} for r in robots}
+        self.events_sent = 0
+
+    def tap(self, robot_id: int, msg: Any, accepted: bool) -> None:
+        from protocol.messages import PoseNode, TaskState, TaskStatus, Telemetry, TerrainGrid
+
+        row = self.rows.get(robot_id)
+        if row is None:
+            return
+        if isinstance(msg, TaskStatus):
+            row[0] = msg.state.name.lower() + (f" ({msg.detail})" if msg.detail else "")
+            if msg.state in (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.REJECTED):
+                ends = self.ended.setdefault(robot_id, {})
+                ends.setdefault(int(msg.task_id), msg.state is TaskState.SUCCEEDED)
+        elif isinstance(msg, PoseNode):
+            row[2] += 1
+        elif isinstance(msg, TerrainGrid):
+            row[3] += 1
+        elif isinstance(msg, Telemetry):
+            row[1] = msg.mode.name.lower()
+
+    def encode(self, control: Any, radio: Any) -> bytes:
+        from gcs.graph.pose_graph import Provenance
+        from protocol.messages import STREAMS, Direction, Reliability
+
+        st = control.station
+        progress = {}
+        for rid, row in self.rows.items():
+            ids = self.sent.get(rid, set())
+            ends = [ok for tid, ok in self.ended.get(rid, {}).items() if tid in ids]
+            ok = sum(ends)
+            progress[rid] = [*row, len(ids), ok, len(ends) - ok]
+        events = list(control.journal)
+        new = [f"{e.time_s:.1f} s {e.kind}: {e.text}" for e in events[self.events_sent :]]
+        self.events_sent = len(events)
+        gcs = {
+            "gcs_pose_nodes": float(st.stats.pose_nodes),
+            "gcs_grids": float(st.stats.terrain_grids),
+            "gcs_rejected": float(st.stats.rejected_total),
+            "gcs_linked": float(len(st.frames())),
+            "gcs_closures": float(len(st.graph.edges(Provenance.LOOP_AUTO))),
+            "gcs_hazards": float(len(st.hazards)),
+            "tasks_sent": float(sum(control.tasks_sent.values())),
+            "tasking_events": float(len(control.journal)),
+            "plans": float(control.allocator.stats.plans),
+            "explored": float(control.explored),
+        }
+        # the reliable uplink streams' receive state (the channels' private state): in order
+        # through, and held in the reorder buffer behind a gap (the chaos bench's accounting)
+        recv: dict[int, dict[str, Any]] = {}
+        for rid in self.rows:
+            ch = radio.channel(rid)
+            recv[rid] = {
+                name: [rs.delivered_through, sorted(rs.buffer)]
+                for name, rs in ch._recv.items()
+                if STREAMS[Direction.UP][name].reliability is Reliability.RELIABLE
+            }
+        return msgspec.msgpack.encode(
+            {"progress": progress, "gcs": gcs, "events": new, "recv": recv}
+        )
+
+
+class _Server:
+    """The GCS process's side (module docstring)."""
+
+    def __init__(self, args: argparse.Namespace, setup: GcsSetup, incarnation: int) -> None:
+        from gcs.ground_station import GroundStation, GroundStationConfig
+        from gcs.journal import GcsJournal, JournaledStation, resume_control
+        from gcs.mission_control import MissionControl, MissionControlConfig
+        from gcs.node import LinkLedger, restore_link_state
+        from mission.assembly import GcsGround
+        from protocol.clock import ManualClock
+        from protocol.config import load_config
+        from protocol.link import Link, LinkConfig
+        from protocol.radio import RadioConfig
+
+        t0 = time.perf_counter()
+        self.incarnation = incarnation
+        self.setup = setup
+        self.clock = ManualClock()
+        self.figures = _Figures(setup.robots)
+        journal_path = Path(args.run_dir) / "journal.sqlite"
+        mission_cfg = msgspec.msgpack.decode(setup.mission, type=MissionControlConfig)
+        if args.resume:
+            resumed = resume_control(journal_path, mission_cfg)
+            control, journal = resumed.control, resumed.journal
+        else:
+            station_cfg = msgspec.msgpack.decode(setup.station, type=GroundStationConfig)
+            station = GroundStation(station_cfg)
+            journal = GcsJournal.create(
+                journal_path,
+                station.config,
+                meta={"source": "magic run --gcs-process", "seed": str(setup.seed)},
+            )
+            hinted = JournaledStation(station, journal)
+            for rid, mfo, sxy, syaw in setup.hints:
+                hinted.add_start_hint(rid, map_from_odom=mfo, sigma_xy_m=sxy, sigma_yaw_rad=syaw)
+            control = MissionControl(station, mission_cfg)
+        self.journal = journal
+        self.ground = GcsGround(
+            control,
+            lockstep=True,
+            step_period_s=setup.step_period_s,
+            taps=[self.figures.tap],
+            journal=journal,
+            journal_uplink=False,  # journaled on arrival, before the acknowledgement
+        )
+        radio = load_config(setup.radio_path, RadioConfig)
+        cfg = LinkConfig(
+            connect=tuple(args.connect),
+            listen=tuple(args.listen),
+            mode=args.mode,
+            radio=radio,
+            pump_period_s=0.0,
+        )
+        self.link = Link(cfg, mission=args.mission, clock=self.clock, seed=setup.ground_link_seed)
+        self._next_t = 0.0
+        self.ledger = LinkLedger()
+        self.radio = self.link.gcs_endpoint(on_message=self._arrived)
+        self.radio.hold_arrivals()
+        if args.resume:
+            self.ledger = LinkLedger.from_journal(journal)
+            restore_link_state(self.radio, journal, self.ledger)
+        self.rebuild_s = time.perf_counter() - t0
+        self._last_link_s = -1.0
+        self._inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
+        self._encoder = msgspec.msgpack.Encoder()
+        self._go = msgspec.msgpack.Decoder(GcsGo)
+        self._end = msgspec.msgpack.Decoder(GcsEnd)
+        mission = args.mission
+        self.link.subscribe(gcs_go_key(mission), lambda _k, p: self._inbox.put(("go", p)))
+        self.link.subscribe(gcs_end_key(mission), lambda _k, p: self._inbox.put(("end", p)))
+        self._done_key = gcs_done_key(mission)
+
+    def _arrived(self, robot_id: int, msg: Any) -> None:
+        """The radio's delivery at the end of a step (on this thread): journaled under the
+        next step's time, when the station takes it (the in-process order), then queued."""
+        seq = self.journal.uplink(robot_id, msg, self._next_t)
+        if seq is not None:
+            self.ledger.uplink(robot_id, msg, seq)
+        self.ground.on_message(robot_id, msg)
+
+    def wait_for_robots(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        for rid in self.setup.robots:
+            if not self.radio.wait_for_robot(rid, max(0.1, deadline - time.monotonic())):
+                raise TimeoutError(f"gcs process: robot {rid} never came up")
+
+    def answer(self, time_s: float, phase: str, figures: bytes = b"") -> None:
+        done = GcsDone(
+            time_s,
+            phase,
+            self.incarnation,
+            dict(self.radio.packets_out_by_robot),
+            self.radio.packets_in,
+            figures,
+            os.getpid(),
+            self.rebuild_s,
+        )
+        self.link.publish(self._done_key, self._encoder.encode(done))
+
+    def turn(self, go: GcsGo) -> None:
+        from protocol.messages import Direction, HazardUpdate, Reliability, stream_of
+
+        self.clock.set(go.time_s)
+        for rid, grant in go.grants.items():
+            self.radio.set_grant(rid, grant)
+        out = self.ground.turn(go.time_s)
+        # as Assembly._ground_turn: the station's shared HazardUpdate as one broadcast
+        shared: dict[int, int] = {}
+        for _, msg in out:
+            if isinstance(msg, HazardUpdate):
+                shared[id(msg)] = shared.get(id(msg), 0) + 1
+        sent: set[int] = set()
+        for rid, msg in out:
+            if shared.get(id(msg), 0) > 1:
+                if id(msg) not in sent:
+                    sent.add(id(msg))
+                    self.radio.broadcast(msg)
+                continue
+            seq = self.radio.send(rid, msg)
+            spec = stream_of(Direction.DOWN, msg)
+            if spec.reliability is Reliability.RELIABLE:  # a resumed GCS continues the stream
+                rec = self.journal.downlink(rid, msg, seq, go.time_s)
+                if rec is not None:
+                    self.ledger.downlink(rid, spec.name, rec)
+            task_id = getattr(msg, "task_id", None)
+            if isinstance(task_id, int) and type(msg).__name__ not in ("PauseTask", "ResumeTask"):
+                self.figures.sent.setdefault(rid, set()).add(task_id)
+        self.journal.commit()
+        self.answer(go.time_s, "turn")
+
+    def end(self, end: GcsEnd) -> None:
+        from gcs.node import link_snapshot
+
+        self.radio.wait_packets_in(end.uplink_packets, end.wait_s)
+        self._next_t = end.next_time_s
+        self.radio.deliver_held()  # -> _arrived: journaled
+        if end.time_s - self._last_link_s >= 1.0:  # the radio's state, each mission second
+            self._last_link_s = end.time_s
+            snap = link_snapshot(self.radio)
+            snap["ledger"] = self.ledger.to_json()
+            self.journal.event("link", end.time_s, snap)
+        self.ledger.journal_held(self.radio, self.journal, end.time_s)
+        self.journal.commit()  # before the acknowledgements the pump sends
+        self.link.pump()
+        self.answer(end.time_s, "end", self.figures.encode(self.ground.control, self.radio))
+
+    def serve(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            try:
+                kind, payload = self._inbox.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                if kind == "go":
+                    self.turn(self._go.decode(payload))
+                else:
+                    self.end(self._end.decode(payload))
+            except (msgspec.DecodeError, msgspec.ValidationError) as err:
+                log.warning("gcs process: bad lockstep message: %s", err)
+
+    def close(self) -> None:
+        self.link.close()
+        self.journal.close()
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m mission.lockstep_gcs",
+        description="The GCS process of a lockstep run (started by magic run --gcs-process).",
+    )
+    p.add_argument("--run-dir", required=True, help="the run directory (journal.sqlite, setup)")
+    p.add_argument("--mission", required=True, help="the zenoh mission name")
+    p.add_argument("--connect", action="append", default=[], help="zenoh endpoint to connect to")
+    p.add_argument("--listen", action="append", default=[], help="zenoh endpoint to listen on")
+    p.add_argument("--mode", choices=("peer", "client"), default="peer", help="zenoh mode")
+    p.add_argument("--resume", action="store_true", help="rebuild from the run's journal")
+    p.add_argument("--incarnation", type=int, default=1, help="which start of the GCS this is")
+    p.add_argument(
+        "--standby",
+        action="store_true",
+        help="load the libraries, then wait for a line on stdin before resuming (a warm spare)",
+    )
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The GCS process: 0 when told to stop (SIGTERM), 2 on a setup it cannot use."""
+    args = _parser().parse_args(argv)
+    setup_path = Path(args.run_dir) / SETUP_FILE
+    try:
+        setup = msgspec.msgpack.decode(setup_path.read_bytes(), type=GcsSetup)
+    except (OSError, msgspec.DecodeError, msgspec.ValidationError) as err:
+        print(f"gcs process: {setup_path}: {err}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    incarnation = args.incarnation
+    if args.standby:
+        # the libraries a resume needs, loaded while the GCS it stands in for still runs
+        import gcs.journal  # noqa: F401
+        import gcs.mission_control  # noqa: F401
+        import gcs.node  # noqa: F401
+        import mission.assembly  # noqa: F401
+        import protocol.link  # noqa: F401
+
+        line = sys.stdin.readline()
+        if not line.strip():
+            return 0  # the run ended: never needed
+        incarnation = int(line)
+        args.resume = True
+    server = _Server(args, setup, incarnation)
+    try:
+        server.wait_for_robots(60.0)
+        server.answer(0.0, "hello")
+        server.serve(stop)
+    finally:
+        server.close()
+    return 0
+
+
+class RemoteGcs:
+    """The orchestrator's side of the GCS process (module docstring): starts it (and a
+    standby), exchanges each step's messages with it and restarts it when it dies.
+
+    ``robot_done()``: the robots' latest :class:`StepDone` by id (from the team), whose
+    counts a restarted GCS process's are offset by. ``restarts`` and ``restart_s`` (wall
+    seconds from noticing the death to a serving GCS, each) say what happened."""
+
+    def __init__(
+        self,
+        link: Any,
+        mission: str,
+        run_dir: Path,
+        setup: GcsSetup,
+        *,
+        link_args: list[str],
+        robot_done: Callable[[], dict[int, StepDone]],
+        timeout_s: float = 60.0,
+        standby: bool = True,
+    ) -> None:
+        self.link = link
+        self.mission = mission
+        self.run_dir = Path(run_dir)
+        self.setup = setup
+        self.link_args = link_args
+        self.robot_done = robot_done
+        self.timeout_s = timeout_s
+        self.use_standby = standby
+        self.incarnation = 0
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.standby: subprocess.Popen[bytes] | None = None
+        self.restarts = 0
+        self.restart_s: list[float] = []
+        self.rebuild_s: list[float] = []
+        self.figures: dict[str, Any] = {}
+        self.events: list[str] = []
+        #: how many planner events the GCS keeps (its MissionControl's journal_size)
+        self.setup_journal_size = _journal_size(setup)
+        self._base_down: dict[int, int] = {}
+        self._base_up = 0
+        self._grace = False  # after a restart: uplink published before it may be gone
+        self._last: dict[str, GcsDone] = {}
+        self._cond = threading.Condition()
+        self._dec = msgspec.msgpack.Decoder(GcsDone)
+        self._enc = msgspec.msgpack.Encoder()
+        self._go: GcsGo | None = None
+        self._killed_at = math.inf
+        (self.run_dir / SETUP_FILE).write_bytes(msgspec.msgpack.encode(setup))
+        self._sub = link.subscribe(gcs_done_key(mission), self._on_done)
+        self._stderr: list[Any] = []
+        self._start(resume=False)
+
+    # ---- processes ------------------------------------------------------------------------
+
+    def _spawn(self, *extra: str) -> subprocess.Popen[bytes]:
+        argv = [sys.executable, "-m", "mission.lockstep_gcs", "--run-dir", str(self.run_dir)]
+        argv += ["--mission", self.mission, *self.link_args, *extra]
+        err = open(self.run_dir / f"gcs{len(self._stderr)}.err", "wb")  # noqa: SIM115
+        self._stderr.append(err)
+        return subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=err)
+
+    def _start(self, *, resume: bool) -> None:
+        self.incarnation += 1
+        with self._cond:
+            self._last.clear()  # the dead one's counts and answers
+        if resume and self.standby is not None and self.standby.poll() is None:
+            self.proc, self.standby = self.standby, None
+            assert self.proc.stdin is not None
+            self.proc.stdin.write(f"{self.incarnation}\n".encode())
+            self.proc.stdin.flush()
+        else:
+            extra = ["--incarnation", str(self.incarnation)] + (["--resume"] if resume else [])
+            self.proc = self._spawn(*extra)
+        hello = self._wait("hello", 0.0, self.timeout_s, restart=False)
+        if resume:
+            self.rebuild_s.append(hello.rebuild_s)
+        if self.use_standby and (self.standby is None or self.standby.poll() is not None):
+            self.standby = self._spawn("--standby")
+
+    @property
+    def pid(self) -> int:
+        assert self.proc is not None
+        return self.proc.pid
+
+    def kill(self) -> None:
+        """``kill -9`` the GCS process (the chaos bench); the next wait notices it, and the
+        restart's time counts from here."""
+        assert self.proc is not None
+        self._killed_at = time.perf_counter()
+        os.kill(self.proc.pid, signal.SIGKILL)
+
+    def _restart(self) -> None:
+        t0 = min(time.perf_counter(), self._killed_at)
+        self._killed_at = math.inf
+        assert self.proc is not None
+        self.proc.wait()
+        log.warning("the GCS process (pid %d) died: restarting it from its journal", self.pid)
+        # its counts are gone with it: the new one counts from where the robots are
+        done = self.robot_done()
+        self._base_down = {rid: d.downlink_packets_in for rid, d in done.items()}
+        self._base_up = sum(d.uplink_packets for d in done.values())
+        self._start(resume=True)
+        self._grace = True
+        self.restarts += 1
+        self.restart_s.append(time.perf_counter() - t0)
+
+    # ---- messages -------------------------------------------------------------------------
+
+    def _on_done(self, _key: str, payload: bytes) -> None:
+        done = self._dec.decode(payload)
+        with self._cond:
+            if done.incarnation == self.incarnation:
+                self._last[done.phase] = done
+                self._cond.notify_all()
+
+    def _wait(self, phase: str, time_s: float, timeout_s: float, *, restart: bool) -> GcsDone:
+        """The GCS's answer ``phase`` for ``time_s``; a dead GCS restarted (``restart``,
+        then None is returned: the caller repeats its request) or reported."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                got = self._last.get(phase)
+                if got is not None and got.time_s >= time_s and got.incarnation == self.incarnation:
+                    return got
+                assert self.proc is not None
+                status = self.proc.poll()
+                if status is not None:
+                    if not restart:
+                        raise RuntimeError(
+                            f"the GCS process exited with status {status} before it served "
+                            f"(see {self.run_dir}/gcs*.err)"
+                        )
+                    raise _Died
+                if time.monotonic() > deadline:
+                    raise TimeoutError(f"the GCS process did not answer {phase} of {time_s:.2f} s")
+                self._cond.wait(0.2)
+
+    def downlink_packets(self, robot_id: int) -> int:
+        """Radio packets robot ``robot_id`` is to have received from the GCS so far."""
+        last = self._last.get("end") or self._last.get("hello")
+        mine = 0 if last is None else last.downlink_packets.get(robot_id, 0)
+        return self._base_down.get(robot_id, 0) + mine
+
+    def go(self, time_s: float, grants: dict[int, Any]) -> None:
+        """The ground side's turn at ``time_s`` (answered later: :meth:`end`)."""
+        self._go = GcsGo(time_s, grants)
+        self.link.publish(gcs_go_key(self.mission), self._enc.encode(self._go))
+
+    def end(self, time_s: float, done: dict[int, StepDone], next_time_s: float) -> None:
+        """The step's end: the robots' uplink counted in ``done`` taken and acknowledged by
+        the GCS process (restarted first if it died; the turn then repeated)."""
+        assert self._go is not None
+        while True:
+            try:
+                self._wait("turn", time_s, self.timeout_s, restart=True)
+                uplink = sum(d.uplink_packets for d in done.values()) - self._base_up
+                wait_s = 2.0 if self._grace else self.timeout_s
+                end = GcsEnd(time_s, uplink, next_time_s, wait_s)
+                self.link.publish(gcs_end_key(self.mission), self._enc.encode(end))
+                got = self._wait("end", time_s, self.timeout_s + wait_s, restart=True)
+                break
+            except _Died:
+                self._restart()
+                self.link.publish(gcs_go_key(self.mission), self._enc.encode(self._go))
+        if got.packets_in < uplink:
+            if not self._grace:
+                raise TimeoutError(f"uplink packets not delivered to the GCS at {time_s:.2f} s")
+            self._base_up += uplink - got.packets_in  # published before it listened: resent
+        self._grace = False
+        figures = msgspec.msgpack.decode(got.figures) if got.figures else {}
+        if figures:
+            self.figures = figures
+            self.events.extend(figures.get("events", []))
+
+    def close(self) -> None:
+        for p in (self.standby, self.proc):
+            if p is None or p.poll() is not None:
+                continue
+            if p is self.standby and p.stdin is not None:
+                try:
+                    p.stdin.write(b"\n")
+                    p.stdin.flush()
+                except OSError:
+                    pass
+            else:
+                p.terminate()
+        for p in (self.standby, self.proc):
+            if p is None:
+                continue
+            try:
+                p.wait(timeout=20.0)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        for f in self._stderr:
+            f.close()
+        self._sub.close() if hasattr(self._sub, "close") else None
+
+
+def _journal_size(setup: GcsSetup) -> int:
+    from gcs.mission_control import MissionControlConfig
+
+    return int(msgspec.msgpack.decode(setup.mission, type=MissionControlConfig).journal_size)
+
+
+class _Died(Exception):
+    """The GCS process ended while the orchestrator waited for it."""
+
+
+if __name__ == "__main__":
+    sys.exit(main())
