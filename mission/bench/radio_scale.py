@@ -182,9 +182,17 @@ def _robot_step(r: _Robot, t: float, send: Callable[[Any], object]) -> int:
 
 
 def simulate(
-    *, robots: int = 100, duration_s: float = 600.0, seed: int = 7, drain_s: float = 30.0
+    *,
+    robots: int = 100,
+    duration_s: float = 600.0,
+    seed: int = 7,
+    drain_s: float = 30.0,
+    frames_period_s: float = 2.0,
 ) -> dict[str, float]:
-    """Run the synthetic team (module docstring) and return the metrics."""
+    """Run the synthetic team (module docstring) and return the metrics. ``frames_period_s``:
+    how often the GCS broadcasts hazards and every robot's frame (a multiple of the link
+    step, 0.25 s)."""
+    frames_every = max(1, int(round(frames_period_s / STEP_S)))
     rng = np.random.default_rng(seed)
     clock = ManualClock(0.0)
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
@@ -283,7 +291,7 @@ def simulate(
                             br.sent_grids.append(br.node_index)
                             backlog_grids.append(br.node_index)
                         br.node_index += 1  # nodes it had kept to itself
-            if abs(t / 2.0 - round(t / 2.0)) < 1e-9 and live:  # the GCS's frames period
+            if (k + 1) % frames_every == 0 and live:  # the GCS's frames period
                 for rid in frames_map:
                     frames_map[rid] = frames_map[rid] + rng.normal(0.0, 0.01, 3)
                 frames = [RobotFrame(rid, tuple(v)) for rid, v in sorted(frames_map.items())]  # type: ignore[arg-type]

@@ -22,11 +22,13 @@ Metrics:
   start hints as the deployment plan gives) fed to a :class:`~gcs.ground_station.GroundStation`
   at mission pace: the station works as one thread in real time, a step every second with
   its default loop-closing budget, each message handled when it has arrived and the station
-  is free. ``gcs_node_to_frame_s_p95_100`` (<= 2.0): from a node's arrival to the end of the
-  first step that sends a ``map_from_odom`` of its robot computed with it (the step's wall
-  time counted; when the station falls behind, the wait for it too); ``_p50``;
-  ``gcs_node_to_estimate_s_p95_100`` to the end of the first step whose optimization included
-  it (frames go out every ``frames_period_s``, 2 s by default: the difference);
+  is free (between steps: a step starts on its tick unless handling or the last step still
+  holds the station), frames every ``FRAMES_PERIOD_S`` (1 s; the radio measurement
+  broadcasts them as often). ``gcs_node_to_frame_s_p95_100`` (<= 2.0): from a node's arrival
+  to the end of the first step that sends a ``map_from_odom`` of its robot computed with it
+  (the step's wall time counted; when the station falls behind, the wait for it too);
+  ``_p50``; ``gcs_node_to_estimate_s_p95_100`` to the end of the first step whose
+  optimization included it (the difference: the wait for a step that sends frames);
   ``gcs_nodes_100`` nodes fed; ``gcs_behind_s_100`` the most a step started after its time
   (the station behind the mission clock); ``gcs_step_s_p95_100``;
   ``gcs_handle_s_per_node_100``, ``gcs_{close,optimize,frames}_s_per_step_100`` where the
@@ -73,6 +75,10 @@ TILE_M = 60.0
 TILE_SPACING_M = 200.0
 STEP_S = 0.25
 RES_M = 0.1
+#: How often the GCS sends hazards and every robot's frame, in both measurements (the radio's
+#: broadcast and the station's ``frames_period_s``): 1 s keeps the downlink within its budget
+#: (74 bps a robot at 100 robots, 60 bps at 2 s) and a node's frame within 2 s of its arrival.
+FRAMES_PERIOD_S = 1.0
 
 
 # ---- the whole team ------------------------------------------------------------------------
@@ -273,7 +279,7 @@ def gcs_latency(
     period_s: float = 1.0,
     profile_steps: int = 10,
     cpu_paced: bool = True,
-    frames_period_s: float | None = None,
+    frames_period_s: float | None = FRAMES_PERIOD_S,
 ) -> dict[str, Any]:
     """The GCS at ``robots`` robots' traffic (module docstring); returns the metrics and
     ``"profile"``: the top of a cProfile of the last ``profile_steps`` busy steps.
@@ -335,8 +341,9 @@ def gcs_latency(
             profiler.enable()
         elif k == profiled.stop:
             profiler.disable()
+        # messages are handled as they arrive whenever the station is free (between steps);
+        # the step starts on its tick unless handling (or the last step) still holds it
         start = max(k * period_s, gcs_free_s)
-        behind_s = max(behind_s, start - k * period_s)
         while idx < len(traffic) and traffic[idx][0] <= start:
             t_a, rid, msg = traffic[idx]
             idx += 1
@@ -344,11 +351,13 @@ def gcs_latency(
             station.handle(rid, msg, now_s=t_a)
             h = clock() - w0
             handle_s += h
-            start += h
+            gcs_free_s = max(gcs_free_s, t_a) + h
+            start = max(start, gcs_free_s)
             if isinstance(msg, PoseNode):
                 nodes += 1
                 pending.setdefault(rid, []).append(t_a)
                 unsolved.append(t_a)
+        behind_s = max(behind_s, start - k * period_s)
         optimizations = station.stats.optimizations
         # the loop closer's budget is wall seconds: on a loaded machine a wall second holds
         # a fraction of a CPU second, so a CPU-paced station gets its budget in CPU terms
@@ -446,7 +455,7 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
     metrics: dict[str, float] = {"load_avg_1m": load}
     radio_s = 60.0 if quick else 600.0
     progress(f"radio: {ROBOTS} robots, {radio_s:.0f} mission-s through the real link")
-    radio = radio_scale.simulate(robots=ROBOTS, duration_s=radio_s)
+    radio = radio_scale.simulate(robots=ROBOTS, duration_s=radio_s, frames_period_s=FRAMES_PERIOD_S)
     for name in ("radio_use_frac_100", "downlink_bps_per_robot_100", "uplink_bytes_per_node"):
         metrics[name] = radio[name]
 

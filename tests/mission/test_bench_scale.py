@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from mission.bench.radio_scale import simulate
 from mission.bench.scale import full_team, gcs_latency, synthetic_team_traffic
 from protocol.messages import PoseNode, TerrainGrid
 
@@ -37,7 +38,7 @@ def test_gcs_latency_frames_every_node_it_was_fed() -> None:
     r = gcs_latency(10, 20.0, profile_steps=3)
     assert r["gcs_nodes"] > 50
     assert r["gcs_nodes_never_framed"] == 0
-    # a frame goes out every frames_period_s (2 s) after a step every second: a node waits
+    # a frame goes out every FRAMES_PERIOD_S (1 s) after a step every second: a node waits
     # at least until the next step, and not forever
     assert 0.0 < r["gcs_node_to_frame_s_p50"] <= r["gcs_node_to_frame_s_p95"] < 60.0
     # a frame never comes before the optimization that includes the node
@@ -52,3 +53,11 @@ def test_full_team_measures_rtf_and_cpu_of_its_workers() -> None:
     assert r["workers"] >= 1 and r["rtf"] > 0
     # the workers did the robots' work: CPU was spent there
     assert r["cpu_s_per_robot_mission_s"] > 0 and r["cpu_s_sim_gcs_per_mission_s"] > 0
+
+
+def test_the_radio_measurement_broadcasts_frames_at_the_period_asked() -> None:
+    slow = simulate(robots=8, duration_s=12.0, drain_s=2.0, frames_period_s=2.0)
+    fast = simulate(robots=8, duration_s=12.0, drain_s=2.0, frames_period_s=1.0)
+    # twice the broadcasts: more downlink, the same uplink per node
+    assert fast["downlink_bps_per_robot_100"] > 1.3 * slow["downlink_bps_per_robot_100"]
+    assert fast["uplink_bytes_per_node"] == pytest.approx(slow["uplink_bytes_per_node"], rel=0.1)
