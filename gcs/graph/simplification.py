@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gcs.graph import se2
-from gcs.graph.dijkstra_projection import Adjacency, dijkstra_projection
+from gcs.graph.dijkstra_projection import Adjacency, projected_trace
 from gcs.graph.g2o import merge_gaussian_edges, reverse_edge
 
 __all__ = ["SimplificationConfig", "SimplifiedGraph", "merge_parallel_edges", "simplify_graph"]
@@ -128,8 +128,7 @@ def simplify_graph(
     for e in range(len(mij)):
         a, b = int(mij[e, 0]), int(mij[e, 1])
         threshold = alpha * float(np.trace(mcov[e]))
-        proj = dijkstra_projection(adjacency, a, target=b, max_trace=threshold)
-        if not proj.reached[b] or np.trace(proj.covariances[b]) > threshold:
+        if projected_trace(adjacency, a, b, threshold) > threshold:  # inf: not reached
             adjacency.add(a, b, zero_residual[e], mcov[e], edge_index=e)
             kept.append(e)
     idx = np.array(kept, dtype=np.int64)

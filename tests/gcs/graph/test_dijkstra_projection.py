@@ -5,7 +5,12 @@ import numpy as np
 import pytest
 
 from gcs.graph import se2
-from gcs.graph.dijkstra_projection import Adjacency, dijkstra_projection, relative_covariance
+from gcs.graph.dijkstra_projection import (
+    Adjacency,
+    dijkstra_projection,
+    projected_trace,
+    relative_covariance,
+)
 
 
 def random_graph(seed: int, n: int, loops: int):
@@ -131,3 +136,19 @@ def test_incremental_adjacency_equals_bulk() -> None:
         grown.add(0, 40, z[0], cov[0])
     with pytest.raises(ValueError, match="endpoints"):
         Adjacency.from_arrays(3, np.array([[0, 3]]), z[:1], cov[:1])
+
+
+def test_projected_trace_is_the_projections_trace_at_the_target_query_after_query() -> None:
+    truth, ij, z, cov = random_graph(5, 60, 25)
+    adj = Adjacency.from_arrays(60, ij, z, cov)
+    rng = np.random.default_rng(9)
+    for _ in range(40):  # the scratch arrays are reused: every query starts clean
+        a, b = (int(v) for v in rng.choice(60, 2, replace=False))
+        limit = float(rng.choice([np.inf, rng.uniform(0.0, 0.5)]))
+        full = dijkstra_projection(adj, a, target=b, max_trace=limit)
+        want = float(np.trace(full.covariances[b])) if full.reached[b] else np.inf
+        assert projected_trace(adj, a, b, limit) == want
+    best, done, _cov, _touched = adj.scratch()
+    assert np.all(np.isinf(best)) and not done.any()
+    with pytest.raises(ValueError, match="out of range"):
+        projected_trace(adj, 0, 60, 1.0)
