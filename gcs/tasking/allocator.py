@@ -43,7 +43,12 @@ from scipy.optimize import linear_sum_assignment
 
 from gcs.mapping.rasterization import OccupancyMap
 from gcs.tasking.disruptor_planner import DisruptorConfig, dispatch_disruptor, spread_positions
-from gcs.tasking.exploration_planner import ExplorationConfig, Explorer, plan_exploration
+from gcs.tasking.exploration_planner import (
+    ExplorationConfig,
+    Explorer,
+    plan_exploration,
+    return_leg,
+)
 from gcs.tasking.frontiers import Frontiers, find_frontiers
 from gcs.tasking.hostile_planner import HostileConfig, HostileLock, evasion_goal, view_positions
 from gcs.tasking.information_gain import information_gain
@@ -62,6 +67,7 @@ from protocol.messages import (
     TaskState,
     TaskStatus,
 )
+from protocol.operator import OPERATOR_TASK_IDS_FROM
 from protocol.se2 import inverse, transform_points
 
 __all__ = [
@@ -143,6 +149,14 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # the station merges at 1.5 m): once one is neutralized the others are too, and only one
     # of them has a disruptor at a time (the robot's laser snaps to its own detection)
     duplicate_m: float = 4.0
+    # radio contact (exploration.return_to_contact): where the GCS heard a robot within
+    # contact_fresh_s of now is a point of contact, kept on a contact_bin_m lattice
+    contact_fresh_s: float = 3.0
+    contact_bin_m: float = 1.0
+    # an exploring robot this close to its goal is there (its task goes on: the way back to
+    # contact), and re-planned; a goal reached whose frontier is still there is not given to
+    # that robot again (what is left there cannot be seen from it)
+    goal_reached_m: float = 1.0
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
     highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
@@ -161,6 +175,9 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "neutralize_retry_s",
             "shadow_retry_s",
             "duplicate_m",
+            "contact_fresh_s",
+            "contact_bin_m",
+            "goal_reached_m",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -171,6 +188,13 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError("tasking lost_after_s must be >= silent_after_s")
         if self.goal_failures_global < 1:
             raise ValueError("tasking goal_failures_global must be >= 1")
+        # the robots tell the planners' tasks from the operators' by id (an operator's task is
+        # semi-autonomous time, paper 7): the planners' ids must stay below the operators'
+        if not (0 < self.first_task_id < OPERATOR_TASK_IDS_FROM):
+            raise ValueError(
+                f"tasking first_task_id must be > 0 and below the operators' task ids "
+                f"({OPERATOR_TASK_IDS_FROM}), got {self.first_task_id}"
+            )
 
 
 @dataclass
@@ -303,6 +327,9 @@ class TaskAllocator:
         self._hostile_at: dict[int, tuple[float, float]] = {}
         self._spread_at_s = -math.inf
         self._spread_key: tuple[int, ...] = ()
+        # points of radio contact (lattice cells of contact_bin_m) and their centres
+        self._contact_bins: set[tuple[int, int]] = set()
+        self._contact_xy: list[tuple[float, float]] = []
 
     # ---- the step ---------------------------------------------------------------------------
 
@@ -345,6 +372,8 @@ class TaskAllocator:
 
     def _new_id(self) -> int:
         tid = self._next_id
+        if tid >= OPERATOR_TASK_IDS_FROM:  # about 2e9 tasks: never in a mission, but say so
+            raise RuntimeError(f"task id {tid} reached the operators' range")
         self._next_id += 1
         self.stats.tasks_issued += 1
         return tid
@@ -360,7 +389,10 @@ class TaskAllocator:
         waypoints_in_map: NDArray[np.float64],
         purpose: str,
         hazard_id: int | None = None,
+        goal_in_map: tuple[float, float] | None = None,
     ) -> None:
+        """Send ``r`` through ``waypoints_in_map``; its goal is the last unless ``goal_in_map``
+        says otherwise (an exploration goal with the way back after it)."""
         assert r.map_from_odom is not None
         wps = np.asarray(waypoints_in_map, dtype=np.float64).reshape(-1, 2)
         odom_from_map = inverse(np.asarray(r.map_from_odom, dtype=np.float64))
@@ -369,7 +401,7 @@ class TaskAllocator:
         legs = np.vstack([np.asarray(self._position(r)), wps])
         length = float(np.hypot(*np.diff(legs, axis=0).T).sum())
         timeout = self.config.goal_timeout_base_s + length / self.config.assumed_speed_m_s
-        goal = (float(wps[-1, 0]), float(wps[-1, 1]))
+        goal = goal_in_map if goal_in_map is not None else (float(wps[-1, 0]), float(wps[-1, 1]))
         self.assignments[r.robot_id] = Assignment(tid, purpose, ctx.now_s, goal, hazard_id, timeout)
         ctx.out.append(
             (r.robot_id, GoToTask(tid, ctx.now_s, [(float(x), float(y)) for x, y in in_odom]))
@@ -539,10 +571,24 @@ class TaskAllocator:
                 )
                 continue
             ctx.available[rid] = r
+            if quiet_s <= cfg.contact_fresh_s:
+                self._contact(pos[0], pos[1])
             cell = ctx.grid.snap(pos[:2], cfg.snap_m)
             if cell is not None:
                 ctx.cells[rid] = cell
             self._close_task(ctx, r)
+
+    def _contact(self, x: float, y: float) -> None:
+        b = self.config.contact_bin_m
+        key = (int(math.floor(x / b)), int(math.floor(y / b)))
+        if key not in self._contact_bins:
+            self._contact_bins.add(key)
+            self._contact_xy.append(((key[0] + 0.5) * b, (key[1] + 0.5) * b))
+
+    @property
+    def contact_in_map(self) -> NDArray[np.float64]:
+        """``(C, 2)`` points of radio contact: where the GCS heard robots at once."""
+        return np.asarray(self._contact_xy, dtype=np.float64).reshape(-1, 2)
 
     def _shadowed(self, ctx: _Ctx, rid: int) -> None:
         """Robot ``rid`` just fell silent: the hostile it was on its way to watch is not given
@@ -720,7 +766,14 @@ class TaskAllocator:
                 and (rid in viewers or self._purpose(rid) not in ("hostile_view", "evade"))
                 and ctx.now_s - shadowed.get(rid, -math.inf) >= self.config.shadow_retry_s
             }
-            views = view_positions(ctx.grid, h.position_in_map, pool, cfg)
+            views = view_positions(
+                ctx.grid,
+                h.position_in_map,
+                pool,
+                cfg,
+                contact_in_map=self.contact_in_map,
+                contact_radius_m=self.config.exploration.contact_radius_m,
+            )
             self._hostile_at[hid] = h.position_in_map
             for rid, p in views.items():
                 cur = self.assignments.get(rid)
@@ -932,12 +985,29 @@ class TaskAllocator:
             if purpose in ("evade", "hostile_view"):
                 continue
             if purpose == "explore" and a is not None and a.goal_in_map is not None:
-                if frontiers.near(a.goal_in_map, ctx.grid, cfg.frontier_gone_m):
+                gone = not frontiers.near(a.goal_in_map, ctx.grid, cfg.frontier_gone_m)
+                there = math.dist(self._position(r), a.goal_in_map) <= cfg.goal_reached_m
+                if not (gone or there):
                     claimed.append(a.goal_in_map)
                     continue
-                self._event(
-                    ctx, "frontier_gone", rid, f"robot {rid}: the frontier at its goal is explored"
-                )
+                if gone:
+                    self._event(
+                        ctx,
+                        "frontier_gone",
+                        rid,
+                        f"robot {rid}: the frontier at its goal is explored",
+                    )
+                else:
+                    # at its goal and the frontier is still there: what is left cannot be
+                    # seen from here; not this goal again for this robot
+                    self.stats.goals_reached += 1
+                    self._failed_goals.setdefault(rid, []).append(a.goal_in_map)
+                    self._event(
+                        ctx,
+                        "goal_reached",
+                        rid,
+                        f"robot {rid} at its goal, frontier still there: re-planned",
+                    )
             if rid not in ctx.cells:
                 if rid not in self._no_start:
                     self._no_start.add(rid)
@@ -982,8 +1052,18 @@ class TaskAllocator:
             self.stats.explored = True
         elif not plan.explored:
             self.stats.explored = False
+        contact = self.contact_in_map
         for rid, g in plan.goals.items():
-            self._goto(ctx, sensors[rid], g.waypoints_in_map, "explore")
+            wps = g.waypoints_in_map
+            if cfg.exploration.return_to_contact:
+                back = return_leg(
+                    wps,
+                    self._position(sensors[rid]),
+                    contact,
+                    radius_m=cfg.exploration.contact_radius_m,
+                )
+                wps = np.vstack([wps, back])
+            self._goto(ctx, sensors[rid], wps, "explore", goal_in_map=g.goal_in_map)
         for rid in plan.unassigned:
             if (self._purpose(rid) or "").split(":")[0] != "park":
                 self._event(ctx, "park", rid, f"robot {rid}: no frontier goal, parked")

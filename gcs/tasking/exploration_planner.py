@@ -10,10 +10,14 @@ The utility of goal ``g`` for robot ``r`` is ``gain_m2(g) - distance_weight_m2_p
 distance_m(r, g)``; goals with less than ``min_gain_m2`` to see are not worth a trip. Greedy
 assignment: the best (robot, goal) pair over every robot still waiting is taken first, then
 goals within ``goal_separation_m`` of it are withdrawn (two robots would see the same ground),
-and so on. Phase 1 uses grid travel distances bounded by ``near_radius_m``; robots left without
-a goal then search the whole map through the highway: enter it at the waypoint nearest the
-robot, leave at the one nearest the goal (:class:`~gcs.tasking.trajectory_graph.TrajectoryGraph`),
-or, if the highway does not reach, by an unbounded grid search (``far_grid_fallback``).
+and so on; then two robots swap goals while that shortens their travel (routes that cross
+jam where robots stand close, at the start). Phase 1 uses grid travel distances bounded by
+``near_radius_m``; robots left without a goal then search the whole map through the highway:
+enter it at the waypoint nearest the robot, leave at the one nearest the goal
+(:class:`~gcs.tasking.trajectory_graph.TrajectoryGraph`), or, if the highway does not reach, by
+an unbounded grid search (``far_grid_fallback``).
+
+Radio shadows: :func:`return_leg` gives each goal the way back to where the GCS heard robots.
 
 Failure memory: each robot carries goals it failed to reach (``blacklist_in_map``); candidates
 within ``blacklist_radius_m`` of one are never offered to that robot again. Goals claimed by
@@ -41,6 +45,7 @@ __all__ = [
     "ExplorationPlan",
     "Explorer",
     "plan_exploration",
+    "return_leg",
 ]
 
 
@@ -55,6 +60,10 @@ class ExplorationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
     blacklist_radius_m: float = 2.0
     path_tolerance_m: float = 0.5
     far_grid_fallback: bool = True
+    # the way back to radio contact after the goal (see return_leg): the GCS re-plans a robot
+    # it hears long before it drives it; one it does not hear comes back by itself
+    return_to_contact: bool = True
+    contact_radius_m: float = 2.0
 
     def __post_init__(self) -> None:
         for name in ("near_radius_m", "sensor_range_m", "path_tolerance_m"):
@@ -62,6 +71,7 @@ class ExplorationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"exploration {name} must be finite and > 0, got {v}")
         for name in (
+            "contact_radius_m",
             "distance_weight_m2_per_m",
             "min_gain_m2",
             "goal_separation_m",
@@ -136,6 +146,32 @@ def _greedy(
     return out
 
 
+def _uncross(util: NDArray[np.float64], pairs: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Greedy pairs improved by swapping goals between two robots while that raises the sum
+    of their utilities (the goals' gains stay, so the sum of travel falls): greedy choice
+    can hand two robots side by side each other's side, and their routes cross (at the
+    start, where robots stand close, crossing routes jam: each waits for the other)."""
+    out = list(pairs)
+    for _ in range(len(out) ** 2 + 1):  # each swap raises the total: this ends sooner
+        best = 0.0
+        swap: tuple[int, int] | None = None
+        for a in range(len(out)):
+            for b in range(a + 1, len(out)):
+                (i, ga), (j, gb) = out[a], out[b]
+                new = util[i, gb] + util[j, ga]
+                if not np.isfinite(new):
+                    continue
+                gain = new - (util[i, ga] + util[j, gb])
+                if gain > best + 1e-9:
+                    best, swap = gain, (a, b)
+        if swap is None:
+            break
+        a, b = swap
+        (i, ga), (j, gb) = out[a], out[b]
+        out[a], out[b] = (i, gb), (j, ga)
+    return out
+
+
 def _grid_waypoints(
     grid: PlanningGrid,
     dist: GridDistances,
@@ -202,7 +238,7 @@ def plan_exploration(
         u = gains_c - cfg.distance_weight_m2_per_m * dist + base
         u[_blacklisted(e, goals_c, cfg.blacklist_radius_m)] = -np.inf
         util[i] = u
-    for i, j in _greedy(util, goals_c, cfg.goal_separation_m):
+    for i, j in _uncross(util, _greedy(util, goals_c, cfg.goal_separation_m)):
         e = explorers[i]
         goal = goals_c[j]
         cell = (int(cells_c[j, 0]), int(cells_c[j, 1]))
@@ -276,3 +312,56 @@ def plan_exploration(
                 e.robot_id, (float(goal[0]), float(goal[1])), wps, cost_m, float(gains_c[j]), via_hw
             )
     return ExplorationPlan(out, False, [e.robot_id for e in explorers if e.robot_id not in out])
+
+
+def return_leg(
+    waypoints_in_map: NDArray[np.float64],
+    start_in_map: tuple[float, float],
+    contact_in_map: NDArray[np.float64],
+    *,
+    radius_m: float,
+    step_m: float = 0.5,
+) -> NDArray[np.float64]:
+    """The way back from a goal to radio contact: ``(K, 2)`` waypoints to append to
+    ``waypoints_in_map`` (which end at the goal; the robot starts at ``start_in_map``), empty
+    when the goal itself is within ``radius_m`` of a point of ``contact_in_map`` ``(C, 2)``
+    (places where the GCS heard a robot at once).
+
+    Why: MAGIC's radio had shadows (paper 4.1, 8) and a robot that finishes its task out of
+    contact waits for the link before it gives up and backs out (``robot/comms_watchdog.py``:
+    a minute in a 300 s mission); the GCS cannot re-task a robot it does not hear. So every
+    exploration goal is a round trip: out along the route, then back along it to the last
+    point of the route near a point of contact (walking back from the goal). A robot the GCS
+    hears is re-planned when its goal's frontier is gone or it is at its goal, long before it
+    drives the way back; one in a shadow explores it and comes back with what it saw, which
+    the link then delivers (store and forward). ``O(route points x contact points)``."""
+    wps = np.asarray(waypoints_in_map, dtype=np.float64).reshape(-1, 2)
+    contact = np.asarray(contact_in_map, dtype=np.float64).reshape(-1, 2)
+    if len(wps) == 0 or len(contact) == 0:
+        return np.zeros((0, 2))
+    route = np.vstack([np.asarray(start_in_map, dtype=np.float64).reshape(1, 2), wps])
+    # the route densified at ``step_m``, walked back from the goal; ``vertex`` marks where
+    # each dense point lies (vertex index of the segment it is on)
+    pts = [route[-1:]]
+    seg = [np.asarray([len(route) - 1])]
+    for i in range(len(route) - 1, 0, -1):
+        a, b = route[i], route[i - 1]
+        n = max(1, int(math.ceil(math.hypot(*(b - a)) / step_m)))
+        t = np.arange(1, n + 1)[:, None] / n
+        pts.append(a + (b - a) * t)
+        seg.append(np.full(n, i - 1))
+    dense = np.vstack(pts)
+    vertex = np.concatenate(seg)
+    near = np.zeros(len(dense), dtype=bool)
+    for chunk in range(0, len(contact), 4096):  # bounded memory on long missions
+        c = contact[chunk : chunk + 4096]
+        d2 = (dense[:, None, 0] - c[None, :, 0]) ** 2 + (dense[:, None, 1] - c[None, :, 1]) ** 2
+        near |= (d2 <= radius_m**2).any(axis=1)
+    hit = np.flatnonzero(near)
+    k = int(hit[0]) if hit.size else len(dense) - 1  # none: all the way back to the start
+    if k == 0:
+        return np.zeros((0, 2))
+    # back through the route's vertices passed on the way, then to the point of contact
+    back = [route[j] for j in range(len(route) - 2, int(vertex[k]), -1)]
+    back.append(dense[k])
+    return np.asarray(back, dtype=np.float64).reshape(-1, 2)

@@ -59,9 +59,15 @@ def view_positions(
     hostile_in_map: ArrayLike,
     robots_in_map: dict[int, tuple[float, float]],
     config: HostileConfig,
+    *,
+    contact_in_map: ArrayLike | None = None,
+    contact_radius_m: float = 2.0,
 ) -> dict[int, tuple[float, float]]:
     """``robot_id -> view position`` for up to ``viewers`` of ``robots_in_map`` (the nearest
-    first); robots with no admissible cell are left out."""
+    first); robots with no admissible cell are left out. With ``contact_in_map`` ``(C, 2)``
+    (where the GCS heard robots at once), cells within ``contact_radius_m`` of one come
+    first, nearest first, then the others: the lock counts only sightings the GCS hears
+    (a watcher in a radio shadow cannot hold it)."""
     h = np.asarray(hostile_in_map, dtype=np.float64).reshape(2)
     if not robots_in_map:
         return {}
@@ -81,6 +87,13 @@ def view_positions(
     pts = pts[ok]
     if len(pts) == 0:
         return {}
+    heard = np.zeros(len(pts), dtype=bool)
+    contact = np.zeros((0, 2)) if contact_in_map is None else np.asarray(contact_in_map)
+    contact = contact.astype(np.float64).reshape(-1, 2)
+    if len(contact):
+        near = np.abs(contact - h).max(axis=1) <= config.view_range_m + contact_radius_m
+        for c in contact[near]:
+            heard |= np.hypot(*(pts - c).T) <= contact_radius_m
     order = sorted(robots_in_map, key=lambda rid: math.dist(robots_in_map[rid], h))
     out: dict[int, tuple[float, float]] = {}
     bearings: list[float] = []
@@ -93,9 +106,9 @@ def view_positions(
         for b in bearings:
             sep = np.abs((bearing - b + np.pi) % (2 * np.pi) - np.pi)
             dist = np.where(sep >= config.min_bearing_sep_rad, dist, np.inf)
-        for j in np.argsort(dist):
+        for j in np.lexsort((dist, ~heard)):
             if not np.isfinite(dist[j]):
-                break
+                continue
             if line_of_sight(grid, pts[j], h):
                 out[rid] = (float(pts[j, 0]), float(pts[j, 1]))
                 bearings.append(float(bearing[j]))

@@ -9,7 +9,7 @@ import pytest
 from gcs.ground_station import GroundStation, GroundStationConfig
 from gcs.mapping.rasterization import UNKNOWN
 from gcs.mission_control import MissionControl, MissionControlConfig, tasking_state
-from gcs.tasking.allocator import Role, TaskingConfig
+from gcs.tasking.allocator import Role, TaskingConfig, TaskingEvent
 from protocol.messages import AutonomyMode, GoToTask, HazardUpdate, Telemetry
 from protocol.se2 import compose, transform_points
 from tests.gcs.test_ground_station import grid_msg, nodes_along, straight
@@ -63,8 +63,12 @@ def test_goals_go_to_the_frontier_in_each_robots_private_frame() -> None:
     assert frames and set(tasks) == {0, 1, 2}
     occupancy = control.station.rasterize()
     for rid, task in tasks.items():
-        goal_in_map = transform_points(MAP_FROM_ODOM1 * rid, np.asarray(task.waypoints_in_odom))
-        end = goal_in_map[-1]
+        wps_in_map = transform_points(MAP_FROM_ODOM1 * rid, np.asarray(task.waypoints_in_odom))
+        goal = control.allocator.assignments[rid].goal_in_map
+        assert goal is not None
+        # out to the goal (then back towards where the robot was heard)
+        assert np.hypot(*(wps_in_map - np.asarray(goal)).T).min() < 1e-3
+        end = np.asarray(goal)
         # the goal is on the edge of what the map knows: unknown cells within 1.5 m of it
         res = occupancy.resolution_m
         offsets = np.stack(np.meshgrid(np.arange(-15, 16), np.arange(-15, 16)), -1).reshape(-1, 2)
@@ -104,7 +108,7 @@ def test_roles_come_from_the_roster_and_estimation_only_sends_no_task() -> None:
 
 
 def test_a_robot_that_falls_silent_is_written_off_and_gets_nothing_more() -> None:
-    events = []
+    events: list[TaskingEvent] = []
     tasking = TaskingConfig(silent_after_s=3.0, lost_after_s=6.0)
     control = _team(MissionControlConfig(plan_period_s=1.0, tasking=tasking))
     control.on_event = events.append
@@ -160,6 +164,7 @@ def test_no_frontier_beyond_the_area_of_operations() -> None:
     out = control.step(now_s=1.0, budget_s=1.0)
     goals = [m for _, m in out if isinstance(m, GoToTask)]
     assert len(goals) == 1
-    end = np.asarray(goals[0].waypoints_in_odom[-1])
-    assert -1.0 < end[0] < 12.0 and -3.0 < end[1] < 3.0, end
-    assert end[0] > 4.0  # along the corridor, where the map does not reach yet
+    wps = np.asarray(goals[0].waypoints_in_odom)
+    assert ((-1.0 < wps[:, 0]) & (wps[:, 0] < 12.0)).all(), wps
+    assert ((-3.0 < wps[:, 1]) & (wps[:, 1] < 3.0)).all(), wps
+    assert wps[:, 0].max() > 4.0  # along the corridor, where the map does not reach yet

@@ -74,7 +74,10 @@ def test_single_frontier_goal_leaves_in_the_robots_odom_frame() -> None:
     wps = goals_in_map(out, {1: r})[1]
     goal = alloc.assignments[1].goal_in_map
     assert goal is not None
-    assert np.allclose(wps[-1], goal, atol=1e-3)
+    at_goal = np.flatnonzero(np.hypot(*(wps - np.asarray(goal)).T) < 1e-3)
+    assert at_goal.size == 1  # out to the goal, then the way back to where it was heard
+    back = wps[at_goal[0] + 1 :]
+    assert len(back) and math.dist(back[-1], (6.0, 6.0)) <= 2.0 + 0.75
     assert goal[0] > 11.0 and abs(goal[1] - 6.0) < 1.2  # at the door, in map
     # the raw odom numbers are not the map ones (the frame is not the identity)
     assert not np.allclose(msg.waypoints_in_odom[-1], goal, atol=1.0)
@@ -402,6 +405,40 @@ def test_a_goal_whose_frontier_is_gone_is_replaced() -> None:
     assert len(out) == 1 and new is not None and new[0] > 34.0
 
 
+def test_a_robot_at_its_goal_is_replanned_and_not_sent_there_again() -> None:
+    """The way back to contact follows the goal: a robot the GCS hears at its goal is given
+    the next one (not left to drive back); a goal reached whose frontier stays is not
+    offered to that robot again."""
+    v = corridor()
+    r = robot(1, (15.0, 3.0), heard=0.0)
+    alloc = TaskAllocator()
+    out = alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)
+    goal = alloc.assignments[1].goal_in_map
+    assert goal is not None and goal[0] < 6.0
+    wps = goals_in_map(out, {1: r})[1]
+    assert wps[-1][0] > goal[0] + 5.0  # the way back east, towards where it was heard
+    # there, heard, the map unchanged (the frontier is still there)
+    r.pose_in_map = (goal[0] + 0.3, goal[1], 0.0)
+    r.last_heard_s = 2.0
+    out = alloc.plan(TaskingState(occupancy(v), [r]), now_s=2.0)
+    assert [e.kind for e in alloc.events] == ["goal_reached"]
+    new = alloc.assignments[1].goal_in_map
+    assert len(out) == 1 and new is not None
+    assert math.dist(new, goal) > alloc.config.exploration.blacklist_radius_m
+    assert new[0] > 34.0  # the other end
+    assert alloc.stats.goals_reached == 1
+
+
+def test_first_task_id_stays_below_the_operators_ids() -> None:
+    from protocol.operator import OPERATOR_TASK_IDS_FROM
+
+    with pytest.raises(ValueError, match="first_task_id must be > 0 and below the operators"):
+        TaskingConfig(first_task_id=OPERATOR_TASK_IDS_FROM)
+    with pytest.raises(ValueError, match="first_task_id"):
+        TaskingConfig(first_task_id=0)
+    assert TaskingConfig(first_task_id=OPERATOR_TASK_IDS_FROM - 1).first_task_id > 0
+
+
 def test_a_planning_failure_sends_nothing_and_keeps_the_memory() -> None:
     v = corridor()
     r = robot(1, (15.0, 3.0))
@@ -489,7 +526,7 @@ def test_a_frontier_reached_through_the_highway_is_not_explored_away() -> None:
     assert not alloc.stats.explored
     assert not [e for e in alloc.events if e.kind in ("explored", "park")]
     wps = goals_in_map(out, {1: r})[1]
-    assert wps[-1][0] > 28.0  # the east frontier at x = 30
+    assert wps[:, 0].max() > 28.0  # the east frontier at x = 30 (then the way back)
     # without the highway the pocket is all the robot can reach: explored, parked
     alloc = TaskAllocator()
     out = alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)

@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gcs.tasking.exploration_planner import ExplorationConfig, Explorer, plan_exploration
+from gcs.tasking.exploration_planner import (
+    ExplorationConfig,
+    Explorer,
+    _uncross,
+    plan_exploration,
+    return_leg,
+)
 from gcs.tasking.frontiers import find_frontiers
 from gcs.tasking.information_gain import information_gain
 from gcs.tasking.planning_grid import coarsen
@@ -97,3 +103,39 @@ def test_far_goals_route_through_the_highway() -> None:
     # without a highway the planner falls back to a full grid search and finds the same end
     plan = _plan(g, {1: (2.0, 3.0)})
     assert plan.goals[1].goal_in_map[0] > 64.0 and not plan.goals[1].via_highway
+
+
+def test_the_way_back_ends_at_the_last_point_of_contact_on_the_route() -> None:
+    # out east along y = 0, then north to the goal (10, 8); heard along x <= 4 only
+    wps = np.asarray([[10.0, 0.0], [10.0, 8.0]])
+    contact = np.asarray([[0.0, 0.0], [2.0, 0.0], [4.0, 0.0]])
+    back = return_leg(wps, (0.0, 0.0), contact, radius_m=1.0)
+    # back through the corner, then along the road to 1 m from the last point of contact
+    assert np.allclose(back[0], (10.0, 0.0))
+    assert np.allclose(back[-1], (5.0, 0.0), atol=0.26)
+    assert len(back) == 2
+    # heard near the corner: back only to the corner's neighbourhood, down the last leg
+    back = return_leg(wps, (0.0, 0.0), np.asarray([[10.0, 1.0]]), radius_m=1.5)
+    assert len(back) == 1 and np.allclose(back[0], (10.0, 2.5), atol=0.26)
+    # the goal itself is in contact: no way back
+    assert return_leg(wps, (0.0, 0.0), np.asarray([[10.5, 8.0]]), radius_m=1.0).shape == (0, 2)
+    # heard nowhere on the route: all the way back to the start
+    back = return_leg(wps, (0.0, 0.0), np.asarray([[50.0, 50.0]]), radius_m=1.0)
+    assert np.allclose(back, [[10.0, 0.0], [0.0, 0.0]])
+    assert return_leg(wps, (0.0, 0.0), np.zeros((0, 2)), radius_m=1.0).shape == (0, 2)
+
+
+def test_greedy_pairs_whose_routes_cross_swap_goals() -> None:
+    # robot 0 at (0, 0) between goal a (1, 0) and goal b (-1, 0); robot 1 at (3, 0). Greedy
+    # takes 0 -> a (the best pair), leaving 1 the far goal b across robot 0: 1 + 4 m of
+    # travel; swapped, 1 + 2 m (same gains)
+    robots = np.asarray([[0.0, 0.0], [3.0, 0.0]])
+    goals = np.asarray([[1.0, 0.0], [-1.0, 0.0]])
+    gains = np.asarray([10.0, 9.0])
+    util = gains[None, :] - 2.0 * np.hypot(*(robots[:, None, :] - goals[None, :, :]).T).T
+    greedy = [(0, 0), (1, 1)]
+    assert _uncross(util, greedy) == [(0, 1), (1, 0)]
+    # already the best pairing: kept; a swap onto a forbidden goal (-inf) is never made
+    assert _uncross(util, [(0, 1), (1, 0)]) == [(0, 1), (1, 0)]
+    util[0, 1] = -np.inf
+    assert _uncross(util, greedy) == greedy

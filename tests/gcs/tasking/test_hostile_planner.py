@@ -42,3 +42,20 @@ def test_lock_needs_two_robots_for_30_s_without_a_break() -> None:
     for t in np.arange(23.0, 53.5, 0.5):
         st = lock.update(9, {1: float(t), 2: float(t)}, float(t))
     assert st.locked and st.locked_at_s == 53.0
+
+
+def test_views_where_the_gcs_hears_robots_come_first() -> None:
+    v = blank(40, 40, FREE)
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    h = (20.0, 20.0)
+    robots = {1: (20.0, 35.0)}  # north of the hostile
+    north = view_positions(g, h, robots, CFG)[1]
+    assert north[1] > 25.0  # nearest: on its own side
+    # heard only south of the hostile (a radio shadow to the north): the view goes south
+    contact = np.asarray([[20.0, 11.0], [19.0, 11.0]])
+    south = view_positions(g, h, robots, CFG, contact_in_map=contact, contact_radius_m=2.0)[1]
+    assert min(math.dist(south, c) for c in contact) <= 2.0
+    assert CFG.blast_radius_m + CFG.margin_m <= math.dist(south, h) <= CFG.view_range_m
+    # no heard cell in the ring: the nearest view as before
+    far = np.asarray([[0.0, 0.0]])
+    assert view_positions(g, h, robots, CFG, contact_in_map=far) == {1: north}
