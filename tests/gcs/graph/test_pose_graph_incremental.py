@@ -9,7 +9,13 @@ import pytest
 
 from gcs.graph import se2
 from gcs.graph.keys import pose_key
-from gcs.graph.pose_graph import PoseGraph, PoseGraphError, Provenance
+from gcs.graph.pose_graph import (
+    AutoSimplifyConfig,
+    PoseGraph,
+    PoseGraphConfig,
+    PoseGraphError,
+    Provenance,
+)
 from tests.gcs.graph.test_pose_graph import LOOP_COV, drive, trajectory
 
 
@@ -121,3 +127,40 @@ def test_set_estimate_names_a_missing_pose_and_refuses_non_finite_values() -> No
     mixed.insert(gtsam.symbol("q", 1), gtsam.Point2(1.0, 2.0))
     g.set_estimate(mixed)
     assert all(np.array_equal(g.pose(k), se2.pose_vec(values.atPose2(k))) for k in a)
+
+
+def test_the_graph_simplifies_itself_when_due_and_keeps_its_optimum() -> None:
+    rng = np.random.default_rng(4)
+    auto = AutoSimplifyConfig(min_poses=60, max_edges_per_pose=1.2, min_interval_s=100.0)
+    g = PoseGraph(PoseGraphConfig(auto_simplify=auto))
+    assert not g.simplify_due(1000.0)  # no poses: too small
+    out = trajectory(rng, 40, np.zeros(3))
+    truth = np.vstack([out, out[-2::-1]])  # out and back: 79 poses
+    keys = drive(g, 0, truth, np.zeros(3), rng)
+    # the way back re-observes the way out: closures, each one twice
+    for k in range(0, 38, 2):
+        for _ in range(2):
+            g.add_edge(
+                keys[k],
+                keys[78 - k],
+                a_from_b=rng.normal(0, [0.02, 0.02, 0.01]),
+                covariance=LOOP_COV,
+                provenance=Provenance.LOOP_AUTO,
+                time_s=90.0,
+            )
+    assert g.relative_edge_count() == 78 + 38 > 1.2 * g.node_count
+    g.optimize()
+    before = {k: g.pose(k) for k in keys}
+    mark = g.change_mark()
+    assert g.simplify_due(200.0)
+    removed = g.simplify_if_due(200.0)
+    assert removed and g.relative_edge_count() == 78 + 38 - len(removed)
+    assert all(e.provenance is Provenance.LOOP_AUTO for e in removed)  # the chain stays
+    assert g.additions_since(mark) is None  # consumers rebuild their copies
+    g.optimize()
+    assert max(float(np.abs(g.pose(k) - p).max()) for k, p in before.items()) < 1e-4
+    # not again before min_interval_s, and never without the policy
+    assert g.simplify_if_due(250.0) == [] and not g.simplify_due(250.0)
+    assert not PoseGraph().simplify_due(1e9)
+    with pytest.raises(ValueError, match="max_edges_per_pose"):
+        AutoSimplifyConfig(max_edges_per_pose=0.0)
