@@ -120,6 +120,17 @@ class Adjacency:
         adj.num_edges = m
         return adj
 
+    def add_nodes(self, count: int) -> None:
+        """Append ``count`` nodes without edges (indices ``n .. n + count - 1``): a mirror of
+        a growing graph extends its adjacency instead of rebuilding it
+        (:meth:`gcs.graph.pose_graph.PoseGraph.additions_since`)."""
+        if count < 0:
+            raise ValueError(f"add_nodes: count must be >= 0, got {count}")
+        if count:
+            self.head = np.concatenate([self.head, np.full(count, -1, dtype=np.int64)])
+            self.n += count
+            self._scratch = None
+
     def _grow(self) -> None:
         cap = 2 * len(self.next)
         self.next = np.concatenate([self.next, np.full(cap - len(self.next), -1, np.int64)])

@@ -152,3 +152,22 @@ def test_projected_trace_is_the_projections_trace_at_the_target_query_after_quer
     assert np.all(np.isinf(best)) and not done.any()
     with pytest.raises(ValueError, match="out of range"):
         projected_trace(adj, 0, 60, 1.0)
+
+
+def test_an_adjacency_grown_node_by_node_projects_as_one_built_whole() -> None:
+    truth, ij, z, cov = random_graph(6, 50, 20)
+    whole = Adjacency.from_arrays(50, ij, z, cov)
+    grown = Adjacency(0)
+    for m, (i, j) in enumerate(ij.tolist()):
+        if max(i, j) >= grown.n:
+            grown.add_nodes(max(i, j) + 1 - grown.n)
+        grown.add(i, j, z[m], cov[m], edge_index=m)
+    assert grown.n == 50 and grown.num_edges == whole.num_edges
+    a = dijkstra_projection(whole, 3)
+    b = dijkstra_projection(grown, 3)
+    assert np.allclose(a.covariances, b.covariances) and np.allclose(a.poses, b.poses)
+    assert projected_trace(grown, 3, 40, np.inf) == pytest.approx(
+        float(np.trace(a.covariances[40]))
+    )
+    with pytest.raises(ValueError, match="count must be >= 0"):
+        grown.add_nodes(-1)
