@@ -134,6 +134,13 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     # (it drops when the walker turns at a corner of its route, off its own line: small world
     # seed 0, the robot drove on to 5 m of the unlabelled hostile, whose disk had vanished)
     hostile_memory_s: float = 20.0
+    # a new track within hostile_reid_m (+ hostile_reid_m_s per second since) of where a
+    # dropped hostile track would be now is that hostile, for the keep-out (the tracker drops
+    # a walker it misses for a few sweeps, behind the robot or a corner, and the new track
+    # needs two colour tests: robots evading it lost it that way, and it walked on at them)
+    hostile_reid_m: float = 1.5
+    hostile_reid_m_s: float = 0.3
+    hostile_reid_s: float = 10.0  # ... within this long of the drop
     # raw cylinder sightings kept this long for a fresh look at an object (the disruptor's
     # laser aims at what it sees now, not at a fused position carrying the odometry drift
     # since the object was first seen: small world, 0.58 m and 1.8 deg after 9.5 m on sand)
@@ -311,6 +318,9 @@ class OnboardPerception:
         self._reported_at: dict[int, float] = {}  # detection id of people -> last report
         self._had_hostiles = False
         self._hostile_until: dict[int, float] = {}  # track -> end of its hostile keep-out
+        # hostile tracks the tracker dropped: (x, y, vx, vy, time_s, until_s), odom
+        self._lost_hostiles: list[tuple[float, float, float, float, float, float]] = []
+        self._hostile_last: dict[int, tuple[float, float, float, float, float]] = {}
         self._detections: list[OdomDetection] = []
         self._fiducials: list[FiducialSighting] = []
         self._thumbs: dict[int, _Thumb] = {}
@@ -585,12 +595,42 @@ class OnboardPerception:
         ]
         self._civilians_seen = civilians[-64:]
         live = {t.track_id for t in self.lidar.tracker.tracks}
+        for k, until in self._hostile_until.items():
+            final = self._hostile_last.get(k)
+            if k not in live and until >= time_s and final is not None:
+                x, y, vx, vy, seen_s = final
+                self._lost_hostiles.append((x, y, vx, vy, seen_s, until))
+        self._lost_hostiles = [
+            g for g in self._lost_hostiles if min(g[5], g[4] + cfg.hostile_reid_s) >= time_s
+        ][-16:]
         self._hostile_until = {
             k: v for k, v in self._hostile_until.items() if k in live and v >= time_s
         }
+        self._hostile_last = {k: v for k, v in self._hostile_last.items() if k in live}
+        for t in self.lidar.tracker.tracks:
+            if t.kind != 0 or t.track_id in self._hostile_until or not t.confirmed:
+                continue
+            for i, (x, y, vx, vy, seen_s, until) in enumerate(self._lost_hostiles):
+                age = max(0.0, t.time_s - seen_s)
+                gate = cfg.hostile_reid_m + cfg.hostile_reid_m_s * age
+                p = t.position_m
+                if math.hypot(p[0] - x - vx * age, p[1] - y - vy * age) <= gate:
+                    self._hostile_until[t.track_id] = until  # that hostile, for the keep-out
+                    del self._lost_hostiles[i]
+                    break
         for t in self.lidar.tracker.tracks:
             if t.kind == ObjectKind.HOSTILE:
                 self._hostile_until[t.track_id] = time_s + cfg.hostile_memory_s
+            if t.track_id in self._hostile_until:
+                v = _track_velocity(t, cfg.velocity_window_s)
+                p = t.position_m
+                self._hostile_last[t.track_id] = (
+                    float(p[0]),
+                    float(p[1]),
+                    float(v[0]),
+                    float(v[1]),
+                    float(t.time_s),
+                )
             swapped = t.kind != 0 and _jumped(t, cfg.velocity_window_s, cfg.label_jump_m)
             # a hostile where a civilian stands: the labels conflict; look again
             conflict = t.kind == ObjectKind.HOSTILE and any(

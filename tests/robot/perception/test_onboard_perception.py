@@ -129,3 +129,41 @@ def test_a_hostile_that_turns_keeps_its_keep_out_while_it_is_re_coloured() -> No
     assert len(p.own_hazards_in_odom()) == 1  # 9.4 s after its last hostile label
     p.on_control(13.6, np.zeros(3))
     assert p.own_hazards_in_odom() == []
+
+
+def _walk(p: OnboardPerception, t0: float, t1: float, xy0: tuple[float, float]) -> None:
+    """A walker at 0.6 m/s along +x from ``xy0`` at ``t0``, one measurement per 1.25 s sweep
+    until ``t1``, through the perception's tracker and people bookkeeping."""
+    t = t0
+    while t < t1 + 1e-9:
+        p.lidar.tracker.update(t, [[xy0[0] + 0.6 * (t - t0), xy0[1]]])
+        p._now = t
+        p._report_people(t)
+        t += 1.25
+
+
+def test_a_hostile_track_dropped_and_found_again_on_its_way_keeps_its_keep_out() -> None:
+    """The tracker drops a hostile it misses for a few sweeps (behind the robot); the new
+    track where the walker would be now is that hostile for the keep-out at once (no colour
+    test yet); a track elsewhere is not."""
+    p = OnboardPerception(0)
+    _walk(p, 0.0, 5.0, (0.0, 0.0))
+    (track,) = p.lidar.tracker.confirmed()
+    p.lidar.tracker.set_kind(track.track_id, int(ObjectKind.HOSTILE))
+    _walk(p, 6.25, 6.25, (3.75, 0.0))  # labelled, measured once more
+    assert len(p.hostile_tracks_in_odom(6.25)) == 1
+    for k in range(1, 7):  # six sweeps unseen: the tracker drops it
+        p.lidar.tracker.update(6.25 + 1.25 * k, np.zeros((0, 2)))
+        p._report_people(6.25 + 1.25 * k)
+    assert not p.lidar.tracker.tracks and not len(p.hostile_tracks_in_odom(13.75))
+    # seen again 9 s after its last sighting, where its walk has taken it (+5.4 m), and a
+    # second walker 4 m to the side
+    for t in (15.0, 16.25, 17.5):
+        p.lidar.tracker.update(t, [[3.75 + 0.6 * (t - 6.25), 0.0], [3.75 + 0.6 * (t - 6.25), 4.0]])
+        p._now = t
+        p._report_people(t)
+    hostiles = p.hostile_tracks_in_odom(17.5)
+    assert len(hostiles) == 1, hostiles
+    assert abs(hostiles[0, 1]) < 0.5 and hostiles[0, 0] > 9.0, hostiles
+    kinds = {kind for kind, _, _ in p.own_hazards_in_odom()}
+    assert kinds == {ObjectKind.HOSTILE}
