@@ -149,9 +149,13 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # the station merges at 1.5 m): once one is neutralized the others are too, and only one
     # of them has a disruptor at a time (the robot's laser snaps to its own detection)
     duplicate_m: float = 4.0
-    # radio contact (exploration.return_to_contact): where the GCS heard a robot within
-    # contact_fresh_s of now is a point of contact, kept on a contact_bin_m lattice
+    # radio contact (exploration.return_to_contact): where a robot is while the GCS has heard
+    # it at most contact_fresh_s apart for contact_steady_s is a point of contact, kept on a
+    # contact_bin_m lattice. Steady: a robot just back from a shadow is heard at the shadow's
+    # fringe, and the pose the GCS has of it is still one from the shadow (its backlog
+    # drains first): small world seed 0, a robot sent back to such a point sat there 40 s
     contact_fresh_s: float = 3.0
+    contact_steady_s: float = 10.0
     contact_bin_m: float = 1.0
     # an exploring robot this close to its goal is there (its task goes on: the way back to
     # contact), and re-planned; a goal reached whose frontier is still there is not given to
@@ -176,6 +180,7 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "shadow_retry_s",
             "duplicate_m",
             "contact_fresh_s",
+            "contact_steady_s",
             "contact_bin_m",
             "goal_reached_m",
         ):
@@ -330,6 +335,7 @@ class TaskAllocator:
         # points of radio contact (lattice cells of contact_bin_m) and their centres
         self._contact_bins: set[tuple[int, int]] = set()
         self._contact_xy: list[tuple[float, float]] = []
+        self._heard_since: dict[int, float] = {}  # robot -> heard without a gap since
 
     # ---- the step ---------------------------------------------------------------------------
 
@@ -536,6 +542,10 @@ class TaskAllocator:
         cfg = self.config
         for rid, r in ctx.robots.items():
             quiet_s = ctx.now_s - r.last_heard_s
+            if quiet_s > cfg.contact_fresh_s:
+                self._heard_since.pop(rid, None)
+            else:
+                self._heard_since.setdefault(rid, ctx.now_s)
             lost = r.lost or quiet_s > cfg.lost_after_s
             silent = quiet_s > cfg.silent_after_s
             if lost and rid not in self._lost:
@@ -571,7 +581,7 @@ class TaskAllocator:
                 )
                 continue
             ctx.available[rid] = r
-            if quiet_s <= cfg.contact_fresh_s:
+            if ctx.now_s - self._heard_since.get(rid, math.inf) >= cfg.contact_steady_s:
                 self._contact(pos[0], pos[1])
             cell = ctx.grid.snap(pos[:2], cfg.snap_m)
             if cell is not None:

@@ -429,6 +429,39 @@ def test_a_robot_at_its_goal_is_replanned_and_not_sent_there_again() -> None:
     assert alloc.stats.goals_reached == 1
 
 
+def test_points_of_contact_are_where_robots_were_heard_steadily() -> None:
+    """A robot heard without a gap for contact_steady_s marks where it is as a point of
+    contact; one just back from a silence does not (it is on the shadow's fringe)."""
+    v = corridor()
+    box(v, 34.5, 0.5, 35.0, 5.5, OCCUPIED)  # closed at the east: the frontier is west
+    cfg = TaskingConfig()
+    r = robot(1, (20.0, 3.0), heard=0.0)
+    alloc = TaskAllocator(cfg)
+    t = 0.0
+    while t <= cfg.contact_steady_s + 1.0:
+        r.last_heard_s = t
+        alloc.plan(TaskingState(occupancy(v), [r]), now_s=t)
+        t += 1.0
+    contact = alloc.contact_in_map
+    assert len(contact) == 1 and math.dist(contact[0], (20.0, 3.0)) < 1.0
+    # silent 20 s, heard again elsewhere: not a point of contact until heard steadily
+    r.pose_in_map = (28.0, 3.0, 0.0)
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=t + 20.0)
+    r.last_heard_s = t + 21.0
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=t + 21.0)
+    assert len(alloc.contact_in_map) == 1
+    # a goal west: the way back ends at the point of contact on the way, not where the
+    # robot is (heard just now, at the fringe of a shadow)
+    alloc.assignments.clear()
+    out = alloc.plan(TaskingState(occupancy(v), [r]), now_s=t + 22.0)
+    r.last_heard_s = t + 22.0
+    wps = goals_in_map(out, {1: r})[1]
+    goal = alloc.assignments[1].goal_in_map
+    assert goal is not None and goal[0] < 6.0
+    assert math.dist(wps[-1], contact[0]) <= cfg.exploration.contact_radius_m + 0.5
+    assert wps[-1][0] < 25.0
+
+
 def test_first_task_id_stays_below_the_operators_ids() -> None:
     from protocol.operator import OPERATOR_TASK_IDS_FROM
 
