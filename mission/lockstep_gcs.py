@@ -156,21 +156,25 @@ class _Figures:
 class _Server:
     """The GCS process's side (module docstring)."""
 
-    def __init__(self, args: argparse.Namespace, setup: GcsSetup, incarnation: int) -> None:
+    def __init__(
+        self,
+        args: argparse.Namespace,
+        setup: GcsSetup,
+        incarnation: int,
+        link: Any,
+        clock: Any,
+    ) -> None:
         from gcs.ground_station import GroundStation, GroundStationConfig
         from gcs.journal import GcsJournal, JournaledStation, resume_control
         from gcs.mission_control import MissionControl, MissionControlConfig
         from gcs.node import LinkLedger, restore_link_state
         from mission.assembly import GcsGround
-        from protocol.clock import ManualClock
-        from protocol.config import load_config
-        from protocol.link import Link, LinkConfig
-        from protocol.radio import RadioConfig
 
         t0 = time.perf_counter()
         self.incarnation = incarnation
         self.setup = setup
-        self.clock = ManualClock()
+        self.clock = clock
+        self.link = link
         self.figures = _Figures(setup.robots)
         journal_path = Path(args.run_dir) / "journal.sqlite"
         mission_cfg = msgspec.msgpack.decode(setup.mission, type=MissionControlConfig)
@@ -198,15 +202,6 @@ class _Server:
             journal=journal,
             journal_uplink=False,  # journaled on arrival, before the acknowledgement
         )
-        radio = load_config(setup.radio_path, RadioConfig)
-        cfg = LinkConfig(
-            connect=tuple(args.connect),
-            listen=tuple(args.listen),
-            mode=args.mode,
-            radio=radio,
-            pump_period_s=0.0,
-        )
-        self.link = Link(cfg, mission=args.mission, clock=self.clock, seed=setup.ground_link_seed)
         self._next_t = 0.0
         self.ledger = LinkLedger()
         self.radio = self.link.gcs_endpoint(on_message=self._arrived)
@@ -215,6 +210,12 @@ class _Server:
             self.ledger = LinkLedger.from_journal(journal)
             restore_link_state(self.radio, journal, self.ledger)
         self.rebuild_s = time.perf_counter() - t0
+        print(
+            f"gcs process {incarnation}: {'resumed' if args.resume else 'started'} in "
+            f"{self.rebuild_s:.2f} s",
+            file=sys.stderr,
+            flush=True,
+        )
         self._last_link_s = -1.0
         self._inbox: queue.SimpleQueue[tuple[str, bytes]] = queue.SimpleQueue()
         self._encoder = msgspec.msgpack.Encoder()
@@ -318,6 +319,65 @@ class _Server:
         self.journal.close()
 
 
+def _warm_up(setup: GcsSetup) -> float:
+    """What a resume runs for the first time in a process, run once by a standby while it
+    waits: a small synthetic mission through a station of the run's configuration (nodes,
+    grids, steps with loop closing, a rasterization) saved and loaded as a checkpoint is.
+    numba compiles the rasterizer's and the loop closer's kernels on first use (3.8 of a
+    4.8 s resume, measured); afterwards they are ready. Returns the wall seconds it took."""
+    import math as _math
+
+    import numpy as np
+
+    from compression import encode_grid, origin_cells_of
+    from gcs.ground_station import GroundStation, GroundStationConfig
+    from gcs.journal import load_station, save_station
+    from gcs.loops.synthetic_scenes import random_world, scan_grid, scan_points
+    from protocol.messages import PoseNode, TerrainGrid
+    from protocol.se2 import relative
+
+    t0 = time.perf_counter()
+    config = msgspec.msgpack.decode(setup.station, type=GroundStationConfig)
+    station = GroundStation(config)
+    rid = config.graph.map_robot_id
+    rng = np.random.default_rng(0)
+    world = random_world(rng, size_m=30.0)
+    poses = [(x, 0.5, 0.0) for x in np.arange(-4.0, 4.01, 1.0)]
+    poses += [(x, -0.5, _math.pi) for x in np.arange(4.0, -4.01, -1.0)]
+    cov = (1e-4, 0.0, 0.0, 1e-4, 0.0, 1e-4)
+    for i, pose in enumerate(poses):
+        delta = (0.0, 0.0, 0.0) if i == 0 else tuple(relative(poses[i - 1], pose))
+        station.handle(rid, PoseNode(i, float(i), pose, delta, cov), now_s=float(i))  # type: ignore[arg-type]
+        grid, origin = scan_grid(scan_points(world, np.asarray(pose), rng=rng))
+        data = encode_grid(grid, origin_cells=origin_cells_of(origin, 0.1))
+        station.handle(rid, TerrainGrid(i, 0.1, data), now_s=float(i))
+        station.step(now_s=float(i), budget_s=_math.inf)
+    again = load_station(save_station(station))
+    again.step(now_s=float(len(poses)), budget_s=_math.inf)
+    again.rasterize()
+    return time.perf_counter() - t0
+
+
+def _open_link(args: argparse.Namespace, setup: GcsSetup) -> tuple[Any, Any]:
+    """The GCS's zenoh link (a standby opens it before it is needed: a session and its
+    routes take a while) on a mission clock of its own."""
+    from protocol.clock import ManualClock
+    from protocol.config import load_config
+    from protocol.link import Link, LinkConfig
+    from protocol.radio import RadioConfig
+
+    radio = load_config(setup.radio_path, RadioConfig)
+    cfg = LinkConfig(
+        connect=tuple(args.connect),
+        listen=tuple(args.listen),
+        mode=args.mode,
+        radio=radio,
+        pump_period_s=0.0,
+    )
+    clock = ManualClock()
+    return Link(cfg, mission=args.mission, clock=clock, seed=setup.ground_link_seed), clock
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m mission.lockstep_gcs",
@@ -350,6 +410,7 @@ def main(argv: list[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     incarnation = args.incarnation
+    link, clock = _open_link(args, setup)
     if args.standby:
         # the libraries a resume needs, loaded while the GCS it stands in for still runs
         import gcs.journal  # noqa: F401
@@ -358,12 +419,22 @@ def main(argv: list[str] | None = None) -> int:
         import mission.assembly  # noqa: F401
         import protocol.link  # noqa: F401
 
+        try:
+            warm_s = _warm_up(setup)
+            print(f"gcs standby: warmed up in {warm_s:.2f} s", file=sys.stderr, flush=True)
+        except Exception as err:  # noqa: BLE001 - a cold resume is slower, not wrong
+            print(f"gcs standby: no warm-up ({type(err).__name__}: {err})", file=sys.stderr)
         line = sys.stdin.readline()
         if not line.strip():
+            link.close()
             return 0  # the run ended: never needed
         incarnation = int(line)
         args.resume = True
-    server = _Server(args, setup, incarnation)
+    try:
+        server = _Server(args, setup, incarnation, link, clock)
+    except BaseException:
+        link.close()
+        raise
     try:
         server.wait_for_robots(60.0)
         server.answer(0.0, "hello")
