@@ -23,8 +23,9 @@ Metrics:
   at mission pace: the station works as one thread in real time, a step every second with
   its default loop-closing budget, each message handled when it has arrived and the station
   is free (between steps: a step starts on its tick unless handling or the last step still
-  holds the station), frames every ``FRAMES_PERIOD_S`` (1 s; the radio measurement
-  broadcasts them as often). ``gcs_node_to_frame_s_p95_100`` (<= 2.0): from a node's arrival
+  holds the station; the step is given its tick's mission time, as ``magic run``'s lockstep
+  gives it), frames every ``FRAMES_PERIOD_S`` (1 s; the radio measurement broadcasts them as
+  often). ``gcs_node_to_frame_s_p95_100`` (<= 2.0): from a node's arrival
   to the end of the first step that sends a ``map_from_odom`` of its robot computed with it
   (the step's wall time counted; when the station falls behind, the wait for it too);
   ``_p50``; ``gcs_node_to_estimate_s_p95_100`` to the end of the first step whose
@@ -363,7 +364,10 @@ def gcs_latency(
         # a fraction of a CPU second, so a CPU-paced station gets its budget in CPU terms
         slowdown = max(1.0, wall_used / cpu_used) if cpu_paced and cpu_used > 0 else 1.0
         w0, c0, p0 = clock(), time.process_time(), time.perf_counter()
-        out = station.step(now_s=start, budget_s=cfg.loop_budget_s * slowdown)
+        # the step is the one of tick k, as the lockstep assembly steps the station (on
+        # mission time k * period_s): its frames period counts in ticks, not in the moment
+        # its work could start (that is when the work is timed from)
+        out = station.step(now_s=k * period_s, budget_s=cfg.loop_budget_s * slowdown)
         w = clock() - w0
         cpu_used = 0.9 * cpu_used + (time.process_time() - c0)
         wall_used = 0.9 * wall_used + (time.perf_counter() - p0)
@@ -411,24 +415,39 @@ def _child(fn_name: str, kwargs: dict[str, Any], conn: Any) -> None:
         conn.send(("error", f"{type(err).__name__}: {err}"))
 
 
-def _in_child(fn_name: str, **kwargs: Any) -> dict[str, Any]:
-    """``fn_name(**kwargs)`` in a fresh process (its own peak memory, no state shared)."""
-    from mission.bench import BenchError
-
+def _start_child(fn_name: str, **kwargs: Any) -> tuple[Any, Any]:
+    """Start ``fn_name(**kwargs)`` in a fresh process (its own peak memory, no state shared);
+    :func:`_finish_child` collects it."""
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(fn_name, kwargs, child))
     proc.start()
     child.close()
+    return proc, parent
+
+
+def _finish_child(fn_name: str, proc: Any, parent: Any) -> dict[str, Any]:
+    from mission.bench import BenchError
+
     try:
         status, value = parent.recv()
     except EOFError:
         proc.join()
         raise BenchError(f"{fn_name} child process died (exit status {proc.exitcode})") from None
+    except BaseException:  # a stop (^C, SIGTERM): the child goes too
+        proc.terminate()
+        proc.join(10)
+        raise
     proc.join()
     if status != "ok":
         raise BenchError(f"{fn_name} failed: {value}")
     return value  # type: ignore[no-any-return]
+
+
+def _in_child(fn_name: str, **kwargs: Any) -> dict[str, Any]:
+    """``fn_name(**kwargs)`` in a fresh process (its own peak memory, no state shared)."""
+    proc, parent = _start_child(fn_name, **kwargs)
+    return _finish_child(fn_name, proc, parent)
 
 
 def _profile_lines(text: str, n: int = 8) -> Iterator[str]:
@@ -453,15 +472,24 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
 
     load = os.getloadavg()[0]
     metrics: dict[str, float] = {"load_avg_1m": load}
-    radio_s = 60.0 if quick else 600.0
-    progress(f"radio: {ROBOTS} robots, {radio_s:.0f} mission-s through the real link")
-    radio = radio_scale.simulate(robots=ROBOTS, duration_s=radio_s, frames_period_s=FRAMES_PERIOD_S)
-    for name in ("radio_use_frac_100", "downlink_bps_per_robot_100", "uplink_bytes_per_node"):
-        metrics[name] = radio[name]
-
+    # the GCS's child starts first: its traffic is generated while the radio runs here
+    # (neither measurement depends on the other's load: bytes, and CPU-paced steps)
     gcs_s = 60.0 if quick else 300.0
     progress(f"GCS: {ROBOTS} robots' synthetic traffic, {gcs_s:.0f} mission-s, in a child")
-    gcs = _in_child("gcs_latency", robots=ROBOTS, duration_s=gcs_s)
+    child = _start_child("gcs_latency", robots=ROBOTS, duration_s=gcs_s)
+    radio_s = 60.0 if quick else 600.0
+    progress(f"radio: {ROBOTS} robots, {radio_s:.0f} mission-s through the real link")
+    try:
+        radio = radio_scale.simulate(
+            robots=ROBOTS, duration_s=radio_s, frames_period_s=FRAMES_PERIOD_S
+        )
+    except BaseException:
+        child[0].terminate()
+        child[0].join(10)
+        raise
+    for name in ("radio_use_frac_100", "downlink_bps_per_robot_100", "uplink_bytes_per_node"):
+        metrics[name] = radio[name]
+    gcs = _finish_child("gcs_latency", *child)
     for key, value in gcs.items():
         if key != "profile":
             metrics[f"{key}_100"] = float(value)
