@@ -330,6 +330,8 @@ class TaskAllocator:
         self._lost: set[int] = set()
         self._lock = HostileLock(self.config.hostile)
         self._hostile_at: dict[int, tuple[float, float]] = {}
+        self._watch_since: dict[int, float] = {}  # hostile -> its current watch began
+        self._watch_paused: dict[int, float] = {}  # hostile -> not watched before
         self._spread_at_s = -math.inf
         self._spread_key: tuple[int, ...] = ()
         # points of radio contact (lattice cells of contact_bin_m) and their centres
@@ -736,15 +738,53 @@ class TaskAllocator:
 
     # ---- 3: hostiles ----------------------------------------------------------------------------
 
+    def _release_viewers(self, hid: int) -> None:
+        for rid, a in list(self.assignments.items()):
+            if a.purpose == "hostile_view" and a.hazard_id == hid:
+                del self.assignments[rid]
+
     def _hostiles(self, ctx: _Ctx) -> None:
         cfg = self.config.hostile
-        for h in [
-            h for h in ctx.state.hazards if h.kind in (ObjectKind.HOSTILE, ObjectKind.MOBILE_OOI)
-        ]:
+        seen = ctx.state.hostile_seen_s
+
+        def last_seen(h: Hazard) -> float:
+            return max(seen.get(h.hazard_id, {}).values(), default=-math.inf)
+
+        watched: list[tuple[float, float]] = []
+        # the latest seen first: of sightings of one walking hostile, the freshest is watched
+        for h in sorted(
+            (h for h in ctx.state.hazards if h.kind in (ObjectKind.HOSTILE, ObjectKind.MOBILE_OOI)),
+            key=lambda h: (-last_seen(h), h.hazard_id),
+        ):
             hid = h.hazard_id
             if hid in self.neutralized or hid in ctx.state.neutralized_hazard_ids:
+                watched.append(h.position_in_map)  # its other sightings are done with it
                 continue
-            st = self._lock.update(hid, ctx.state.hostile_seen_s.get(hid, {}), ctx.now_s)
+            st = self._lock.update(hid, seen.get(hid, {}), ctx.now_s)
+            if not st.locked and any(
+                math.dist(h.position_in_map, w) < cfg.same_hostile_m for w in watched
+            ):
+                self._release_viewers(hid)  # another sighting of one handled (or paused)
+                continue
+            watched.append(h.position_in_map)
+            if not st.locked and ctx.now_s < self._watch_paused.get(hid, -math.inf):
+                self._release_viewers(hid)
+                continue
+            if not st.locked and st.since_s is None:
+                began = self._watch_since.setdefault(hid, ctx.now_s)
+                if ctx.now_s - began > cfg.watch_budget_s:
+                    del self._watch_since[hid]
+                    self._watch_paused[hid] = ctx.now_s + cfg.watch_pause_s
+                    self._release_viewers(hid)
+                    self._event(
+                        ctx,
+                        "hostile_paused",
+                        None,
+                        f"hostile {hid}: no lock begun in {cfg.watch_budget_s:g} s, not "
+                        f"watched for {cfg.watch_pause_s:g} s",
+                        hid,
+                    )
+                    continue
             if st.locked:
                 if hid not in self.neutralized:
                     self.neutralized.add(hid)
@@ -756,9 +796,7 @@ class TaskAllocator:
                         f"hostile {hid} held in view {cfg.lock_s:.0f} s",
                         hid,
                     )
-                for rid, a in list(self.assignments.items()):
-                    if a.purpose == "hostile_view" and a.hazard_id == hid:
-                        del self.assignments[rid]
+                self._release_viewers(hid)
                 continue
             viewers = [
                 rid

@@ -40,9 +40,25 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     viewers: int = 2
     min_bearing_sep_rad: float = 0.6
     replan_move_m: float = 2.0
+    # a watch that has not started the lock (two robots seeing the hostile) within
+    # watch_budget_s is paused for watch_pause_s: its robots explore meanwhile (small world
+    # seed 7: every sensor robot chased one hostile in and out of radio shadows from 166 s
+    # to the end, no lock, and exploration stood still at 0.85)
+    watch_budget_s: float = 75.0
+    watch_pause_s: float = 120.0
+    # hostile sightings this close are one hostile (it walks: its hazards spread), watched once
+    same_hostile_m: float = 8.0
 
     def __post_init__(self) -> None:
-        for name in ("blast_radius_m", "view_range_m", "lock_s", "view_gap_s"):
+        for name in (
+            "blast_radius_m",
+            "view_range_m",
+            "lock_s",
+            "view_gap_s",
+            "watch_budget_s",
+            "watch_pause_s",
+            "same_hostile_m",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"hostile {name} must be finite and > 0, got {v}")

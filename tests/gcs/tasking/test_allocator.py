@@ -27,7 +27,7 @@ from protocol.messages import (
     TaskStatus,
 )
 from protocol.se2 import transform_points
-from tests.gcs.tasking.maps import FREE, OCCUPIED, blank, box, occupancy, room
+from tests.gcs.tasking.maps import FREE, OCCUPIED, UNKNOWN, blank, box, occupancy, room
 
 
 def robot(
@@ -339,6 +339,42 @@ def test_hostile_gets_two_watchers_and_robots_keep_out_of_its_blast() -> None:
         alloc.plan(TaskingState(occupancy(v), rs, hazards=[hostile], hostile_seen_s=seen), now_s=t)
     assert alloc.stats.hostiles_locked == 1 and 8 in alloc.neutralized
     assert all(a.purpose != "hostile_view" for a in alloc.assignments.values())
+
+
+def test_a_watch_that_never_starts_the_lock_is_paused_and_sightings_of_one_are_one() -> None:
+    v = blank(40, 40, FREE)
+    box(v, 0.0, 0.0, 40.0, 2.0, UNKNOWN)  # a frontier to explore meanwhile
+    rs = [robot(1, (20.0, 35.0)), robot(2, (5.0, 20.0)), robot(3, (35.0, 20.0))]
+    # one walking hostile seen twice, 4 m apart: one watch, two watchers (not four)
+    older = Hazard(8, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    newer = Hazard(9, ObjectKind.HOSTILE, (24.0, 20.0), 5.0)
+    cfg = TaskingConfig()
+    alloc = TaskAllocator(cfg)
+    t = 0.0
+    kinds: list[str] = []
+    while t <= cfg.hostile.watch_budget_s + 4.0:
+        for r in rs:
+            r.last_heard_s = t
+        seen = {8: {1: 0.0}, 9: {1: 1.0}}  # seen once, never by two robots at a time
+        state = TaskingState(occupancy(v), rs, hazards=[older, newer], hostile_seen_s=seen)
+        alloc.plan(state, now_s=t)
+        kinds += [e.kind for e in alloc.events]
+        watching = {a.hazard_id for a in alloc.assignments.values() if a.purpose == "hostile_view"}
+        if "hostile_paused" not in kinds:
+            assert watching == {9}
+            assert sum(a.purpose == "hostile_view" for a in alloc.assignments.values()) == 2
+        t += 2.0
+    # no lock begun within the budget: paused, its watchers explore
+    assert kinds.count("hostile_paused") == 1
+    assert all(a.purpose != "hostile_view" for a in alloc.assignments.values())
+    assert sum(a.purpose == "explore" for a in alloc.assignments.values()) >= 2
+    # watched again after the pause
+    t += cfg.hostile.watch_pause_s
+    for r in rs:
+        r.last_heard_s = t
+    state = TaskingState(occupancy(v), rs, hazards=[older, newer], hostile_seen_s=seen)
+    alloc.plan(state, now_s=t)
+    assert sum(a.purpose == "hostile_view" for a in alloc.assignments.values()) == 2
 
 
 def test_an_empty_map_is_not_explored_and_bad_input_is_named() -> None:
