@@ -60,7 +60,10 @@ class _Watch:
                     if isinstance(task, GoToTask):
                         mfo = control.station.graph.map_from_odom(rid)
                         goal = transform_points(mfo, np.asarray(task.waypoints_in_odom[-1]))
-                        if control.allocator.assignments[rid].purpose == "explore":
+                        a = control.allocator.assignments[rid]
+                        if a.purpose == "explore" and a.goal_in_map is not None:
+                            # the frontier goal (the task then comes back towards contact)
+                            goal = np.asarray(a.goal_in_map)
                             self.unknown_at_goal.append(_unknown_near(occupancy, goal, 2.0))
                     self.tasks.append((now_s, rid, task, goal))
                 return out
