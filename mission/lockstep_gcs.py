@@ -619,17 +619,12 @@ class RemoteGcs:
             self.events.extend(figures.get("events", []))
 
     def close(self) -> None:
-        for p in (self.standby, self.proc):
-            if p is None or p.poll() is not None:
-                continue
-            if p is self.standby and p.stdin is not None:
-                try:
-                    p.stdin.write(b"\n")
-                    p.stdin.flush()
-                except OSError:
-                    pass
-            else:
-                p.terminate()
+        """End the GCS process (SIGTERM: it closes its journal) and the standby (SIGKILL: it
+        holds nothing, and may still be warming up)."""
+        if self.standby is not None and self.standby.poll() is None:
+            self.standby.kill()
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
         for p in (self.standby, self.proc):
             if p is None:
                 continue
@@ -640,7 +635,7 @@ class RemoteGcs:
                 p.wait()
         for f in self._stderr:
             f.close()
-        self._sub.close() if hasattr(self._sub, "close") else None
+        self._sub.close()
 
 
 def _journal_size(setup: GcsSetup) -> int:
