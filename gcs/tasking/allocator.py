@@ -161,6 +161,11 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # contact), and re-planned; a goal reached whose frontier is still there is not given to
     # that robot again (what is left there cannot be seen from it)
     goal_reached_m: float = 1.0
+    # an exploring robot the GCS hears that has not moved stall_m in stall_s is stuck (two
+    # robots jammed in a passage, say: small world seed 0, a robot 45 s within 5 m beside an
+    # idle disruptor): its goal counts as failed for it and it gets another
+    stall_s: float = 20.0
+    stall_m: float = 1.0
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
     highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
@@ -183,6 +188,8 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "contact_steady_s",
             "contact_bin_m",
             "goal_reached_m",
+            "stall_s",
+            "stall_m",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -338,6 +345,8 @@ class TaskAllocator:
         self._contact_bins: set[tuple[int, int]] = set()
         self._contact_xy: list[tuple[float, float]] = []
         self._heard_since: dict[int, float] = {}  # robot -> heard without a gap since
+        # robot -> (task id, when, where) it last moved stall_m on its exploration task
+        self._progress: dict[int, tuple[int, float, tuple[float, float]]] = {}
 
     # ---- the step ---------------------------------------------------------------------------
 
@@ -1035,10 +1044,21 @@ class TaskAllocator:
             if purpose == "explore" and a is not None and a.goal_in_map is not None:
                 gone = not frontiers.near(a.goal_in_map, ctx.grid, cfg.frontier_gone_m)
                 there = math.dist(self._position(r), a.goal_in_map) <= cfg.goal_reached_m
-                if not (gone or there):
+                stalled = self._stalled(ctx, r, a)
+                if not (gone or there or stalled):
                     claimed.append(a.goal_in_map)
                     continue
-                if gone:
+                if stalled and not gone:
+                    self.stats.goals_failed += 1
+                    self._failed_goals.setdefault(rid, []).append(a.goal_in_map)
+                    self._event(
+                        ctx,
+                        "stalled",
+                        rid,
+                        f"robot {rid} moved less than {cfg.stall_m:g} m in {cfg.stall_s:g} s "
+                        "towards its goal: another goal",
+                    )
+                elif gone:
                     self._event(
                         ctx,
                         "frontier_gone",
@@ -1116,6 +1136,16 @@ class TaskAllocator:
             if (self._purpose(rid) or "").split(":")[0] != "park":
                 self._event(ctx, "park", rid, f"robot {rid}: no frontier goal, parked")
                 self._idle(ctx, sensors[rid], "park")
+
+    def _stalled(self, ctx: _Ctx, r: RobotInfo, a: Assignment) -> bool:
+        """Whether ``r`` has not moved ``stall_m`` for ``stall_s`` on its task ``a``."""
+        cfg = self.config
+        pos = self._position(r)
+        tid, since_s, at = self._progress.get(r.robot_id, (-1, ctx.now_s, pos))
+        if tid != a.task_id or math.dist(pos, at) >= cfg.stall_m:
+            self._progress[r.robot_id] = (a.task_id, ctx.now_s, pos)
+            return False
+        return ctx.now_s - since_s >= cfg.stall_s
 
     def _globally_failed(self) -> list[tuple[float, float]]:
         cfg = self.config

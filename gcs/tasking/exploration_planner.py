@@ -325,8 +325,8 @@ def return_leg(
     """The way back from a goal to radio contact: ``(K, 2)`` waypoints to append to
     ``waypoints_in_map`` (which end at the goal; the robot starts at ``start_in_map``), empty
     when the goal itself is within ``radius_m`` of a point of ``contact_in_map`` ``(C, 2)``
-    (places where the GCS heard robots steadily); no such point on the route (none known
-    yet, say): all the way back to the start.
+    (places where the GCS heard robots steadily); no such point on the route: all the way
+    back to the start, and on to the point of contact nearest it if there is one.
 
     Why: MAGIC's radio had shadows (paper 4.1, 8) and a robot that finishes its task out of
     contact waits for the link before it gives up and backs out (``robot/comms_watchdog.py``:
@@ -365,4 +365,10 @@ def return_leg(
     # back through the route's vertices passed on the way, then to the point of contact
     back = [route[j] for j in range(len(route) - 2, int(vertex[k]), -1)]
     back.append(dense[k])
+    if not hit.size and len(contact):
+        # the start was not a point of contact either (a robot just back from a shadow is
+        # on its fringe): on to the point of contact nearest the start
+        d = np.hypot(*(contact - route[0]).T)
+        if d.min() > radius_m:
+            back.append(contact[int(np.argmin(d))])
     return np.asarray(back, dtype=np.float64).reshape(-1, 2)

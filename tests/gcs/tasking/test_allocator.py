@@ -498,6 +498,36 @@ def test_points_of_contact_are_where_robots_were_heard_steadily() -> None:
     assert wps[-1][0] < 25.0
 
 
+def test_a_robot_that_does_not_move_towards_its_goal_gets_another() -> None:
+    v = corridor()
+    r = robot(1, (15.0, 3.0))
+    cfg = TaskingConfig()
+    alloc = TaskAllocator(cfg)
+    t = 0.0
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=t)
+    first = alloc.assignments[1].goal_in_map
+    assert first is not None
+    kinds: list[str] = []
+    while t < cfg.stall_s + 4.0:  # heard, a step at a time, but going nowhere
+        t += 2.0
+        r.last_heard_s = t
+        r.pose_in_map = (15.0 + 0.1 * (t % 4.0), 3.0, 0.0)
+        alloc.plan(TaskingState(occupancy(v), [r]), now_s=t)
+        kinds += [e.kind for e in alloc.events]
+    assert kinds.count("stalled") == 1
+    new = alloc.assignments[1].goal_in_map
+    assert new is not None and math.dist(new, first) > cfg.exploration.blacklist_radius_m
+    assert alloc.stats.goals_failed == 1
+    # a robot that moves is not stalled
+    alloc = TaskAllocator(cfg)
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)
+    for k in range(1, 15):
+        r.last_heard_s = 2.0 * k
+        r.pose_in_map = (15.0 - 0.6 * k, 3.0, 0.0)
+        alloc.plan(TaskingState(occupancy(v), [r]), now_s=2.0 * k)
+        assert "stalled" not in [e.kind for e in alloc.events]
+
+
 def test_first_task_id_stays_below_the_operators_ids() -> None:
     from protocol.operator import OPERATOR_TASK_IDS_FROM
 

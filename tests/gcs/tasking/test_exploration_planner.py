@@ -120,8 +120,9 @@ def test_the_way_back_ends_at_the_last_point_of_contact_on_the_route() -> None:
     # the goal itself is in contact: no way back
     assert return_leg(wps, (0.0, 0.0), np.asarray([[10.5, 8.0]]), radius_m=1.0).shape == (0, 2)
     # heard nowhere on the route: all the way back to the start
-    back = return_leg(wps, (0.0, 0.0), np.asarray([[50.0, 50.0]]), radius_m=1.0)
-    assert np.allclose(back, [[10.0, 0.0], [0.0, 0.0]])
+    # then on to the point of contact nearest the start
+    back = return_leg(wps, (0.0, 0.0), np.asarray([[50.0, 50.0], [-5.0, 0.0]]), radius_m=1.0)
+    assert np.allclose(back, [[10.0, 0.0], [0.0, 0.0], [-5.0, 0.0]])
     back = return_leg(wps, (0.0, 0.0), np.zeros((0, 2)), radius_m=1.0)  # none known yet
     assert np.allclose(back, [[10.0, 0.0], [0.0, 0.0]])
 
