@@ -270,7 +270,7 @@ def test_the_gcs_in_its_own_process_gives_the_same_mission() -> None:
     from protocol.link import LinkConfig
     from protocol.loopback import free_loopback_port, unique_mission
 
-    config = RunConfig(duration_s=8.0, seed=2)
+    config = RunConfig(duration_s=6.0, seed=2)
     in_process = run_mission(config).fields()
     report = run_mission(
         msgspec.structs.replace(config, robot_processes=True, workers=1, gcs_process=True),
@@ -320,21 +320,22 @@ def test_a_gcs_process_killed_with_sigkill_is_restarted_and_loses_nothing(
         remote, team = asm.remote_gcs, asm.team
         assert isinstance(team, TeamOverProcesses)
         first_pid = remote.pid
-        steps = int(round(12.0 / asm.sim.config.step_s))
+        steps = int(round(8.0 / asm.sim.config.step_s))
         for k in range(steps):
             if k == steps // 2:
+                at_kill = remote.figures["gcs"]["gcs_pose_nodes"]
                 team.step(remote.kill)  # SIGKILL during its turn
             else:
                 team.report_link = k == steps - 1
                 asm.step()
         assert remote.restarts == 1 and remote.pid != first_pid
-        assert remote.restart_s[0] < 5.0
+        assert remote.restart_s[0] < 10.0  # 0.3-0.5 s warm (magic bench chaos); loaded CI
         lost, in_flight, first = _reliable_lost(team.robot_done(), remote.figures["recv"])
         assert lost == 0, first
         nodes = remote.figures["gcs"]["gcs_pose_nodes"]
     reader = GcsJournal.open(journal)
     station, _ = rebuild_station(reader)
     reader.close()
-    assert station.stats.pose_nodes >= nodes > 10  # the mission went on after the kill
+    assert station.stats.pose_nodes >= nodes > at_kill  # the mission went on after the kill
     diff = compare_replay(journal, station)
     assert diff.nodes_equal and diff.edges_equal and diff.pose_diff_max_m <= 1e-9
