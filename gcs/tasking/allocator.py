@@ -603,8 +603,9 @@ class TaskAllocator:
         b = self.config.contact_bin_m
         key = (int(math.floor(x / b)), int(math.floor(y / b)))
         if key not in self._contact_bins:
+            # the robot's own position, not the bin's centre: a centre may be in a wall
             self._contact_bins.add(key)
-            self._contact_xy.append(((key[0] + 0.5) * b, (key[1] + 0.5) * b))
+            self._contact_xy.append((float(x), float(y)))
 
     @property
     def contact_in_map(self) -> NDArray[np.float64]:
@@ -1130,6 +1131,15 @@ class TaskAllocator:
                     contact,
                     radius_m=cfg.exploration.contact_radius_m,
                 )
+                if len(back):
+                    # where the way back ends is driven to: a traversable cell (the GCS's
+                    # map moved under a point of contact, say), else the robot's start
+                    cell = ctx.grid.snap(back[-1], cfg.snap_m)
+                    back[-1] = (
+                        ctx.grid.centers_of([cell])[0]
+                        if cell is not None
+                        else np.asarray(self._position(sensors[rid]))
+                    )
                 wps = np.vstack([wps, back])
             self._goto(ctx, sensors[rid], wps, "explore", goal_in_map=g.goal_in_map)
         for rid in plan.unassigned:
