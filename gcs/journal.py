@@ -103,6 +103,27 @@ _READS_FORMATS = ("1", "2")
 
 log = logging.getLogger(__name__)
 
+
+def _code_fingerprint() -> str:
+    """A digest of the station's code as loaded (this project's ``gcs``, ``protocol`` and
+    ``compression`` sources, read when this module is imported): a checkpoint pickles the
+    station's objects, and another version of their classes may expect attributes a saved
+    one lacks, so a checkpoint saved by other code is not loaded (the journal replays)."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for package in ("gcs", "protocol", "compression"):
+        for path in sorted((root / package).rglob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode())
+            try:
+                digest.update(path.read_bytes())
+            except OSError:
+                digest.update(b"?")
+    return digest.hexdigest()[:16]
+
+
+#: :func:`_code_fingerprint` of the code this process runs
+CODE_FINGERPRINT = _code_fingerprint()
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS records (
@@ -363,7 +384,11 @@ class GcsJournal:
             self._last_checkpoint_s = float(now_s)
             return self.event("checkpoint", now_s, {"bytes": 0, "error": str(err)})
         digest = hashlib.sha256(state).digest()
-        fields: dict[str, Any] = {"bytes": len(state), "sha256": digest.hex()}
+        fields: dict[str, Any] = {
+            "bytes": len(state),
+            "sha256": digest.hex(),
+            "code": CODE_FINGERPRINT,
+        }
         fields.update(tasking if tasking is not None else self._tasking())
         seq = self.event("checkpoint", now_s, fields)
         self._conn.execute("DELETE FROM checkpoints")
@@ -418,6 +443,12 @@ class GcsJournal:
             return None
         seq, time_s, digest, state = int(row[0]), float(row[1]), bytes(row[2]), bytes(row[3])
         where = f"{self.path}: checkpoint at record {seq} (t={time_s:.3f} s)"
+        rec = self.record(seq)
+        code = rec.json().get("code") if rec is not None else None
+        if code is not None and code != CODE_FINGERPRINT:
+            raise JournalError(
+                f"{where}: saved by other code (station code {code}, this is {CODE_FINGERPRINT})"
+            )
         if hashlib.sha256(state).digest() != digest:
             raise JournalError(f"{where}: SHA-256 mismatch, the saved state is damaged")
         try:

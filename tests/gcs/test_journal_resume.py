@@ -329,3 +329,35 @@ def test_a_resume_reads_only_what_follows_the_checkpoint_and_the_link_ledger(
     again = LinkLedger.from_journal(resumed.journal)
     assert again.up == ledger.up and again.records_read == 4
     resumed.journal.close()
+
+
+def test_a_checkpoint_saved_by_other_code_is_not_loaded(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A checkpoint pickles the station's objects: one saved by another version of the code
+    (whose classes may lack attributes this one has) is refused, and the journal replays."""
+    import json
+
+    from gcs.journal import CODE_FINGERPRINT
+
+    path = tmp_path / "journal.sqlite"
+    ground = _ground(_journal(path, checkpoint_period_s=5.0))
+    _turns(ground, _mission(seed=4), 0, 8)
+    assert ground.journal is not None
+    ground.journal.close()
+    reader = GcsJournal.open(path)
+    seq = reader.latest_checkpoint()[0]  # type: ignore[index]
+    body = json.loads(reader.record(seq).body)  # type: ignore[union-attr]
+    assert body["code"] == CODE_FINGERPRINT
+    reader.close()
+    with sqlite3.connect(path) as conn:
+        body["code"] = "0123456789abcdef"
+        conn.execute("UPDATE records SET body = ? WHERE seq = ?", (json.dumps(body).encode(), seq))
+    reader = GcsJournal.open(path)
+    with pytest.raises(JournalError, match="saved by other code"):
+        reader.latest_checkpoint()
+    with caplog.at_level("WARNING", logger="gcs.journal"):
+        station, summary = rebuild_station(reader)
+    reader.close()
+    assert summary.checkpoint_seq == 0 and "replaying the whole journal" in caplog.text
+    assert compare_stations(ground.station, station).pose_diff_max_m <= 1e-9
