@@ -39,9 +39,10 @@ from dataclasses import dataclass, field
 import msgspec
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
 
-from gcs.mapping.rasterization import OccupancyMap
+from gcs.mapping.rasterization import OCCUPIED, OccupancyMap
 from gcs.tasking.disruptor_planner import DisruptorConfig, dispatch_disruptor, spread_positions
 from gcs.tasking.exploration_planner import (
     ExplorationConfig,
@@ -988,6 +989,9 @@ class TaskAllocator:
         # the explored highway reachable by these disruptors
         dist, _ = ctx.highway.distances(access[access >= 0], ctx.blocked)
         region: NDArray[np.bool_] = np.asarray(np.isfinite(dist).any(axis=0), dtype=bool)
+        wide = region & self._clear_of_obstacles(ctx, cfg.park_clearance_m)
+        if wide.any():
+            region = wide
         centres = spread_positions(
             ctx.highway, len(idle), region=region, blocked=ctx.blocked, config=cfg
         )
@@ -1016,6 +1020,19 @@ class TaskAllocator:
                 ctx, "spread", rid, f"idle disruptor {rid} to highway waypoint {int(centres[j])}"
             )
             self._goto(ctx, mine[rid], ctx.highway.nodes_in_map[path], "spread")
+
+    @staticmethod
+    def _clear_of_obstacles(ctx: _Ctx, clearance_m: float) -> NDArray[np.bool_]:
+        """Highway waypoints at least ``clearance_m`` from every occupied planning cell."""
+        grid = ctx.grid
+        out = np.zeros(ctx.highway.size, dtype=bool)
+        if ctx.highway.size == 0 or grid.values.size == 0:
+            return out
+        clear_m = ndimage.distance_transform_edt(grid.values != OCCUPIED) * grid.resolution_m
+        cells = grid.cells_of(ctx.highway.nodes_in_map)
+        inside = grid.inside(cells)
+        out[inside] = clear_m[cells[inside, 0], cells[inside, 1]] >= clearance_m
+        return out
 
     # ---- 5: exploration -----------------------------------------------------------------------
 

@@ -68,6 +68,11 @@ class DisruptorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     # OOI at 1.4 deg of heading error. Small world seed 0: a pose 9.7 m off, laser never on
     # target in 40 s; the next one, 5.3 m off, neutralized it (seed 7: 8.8-9.8 m, none)
     preferred_range_m: float = 6.0
+    # idle disruptors wait on highway waypoints at least this far from obstacles: the
+    # highway's centre is where everyone drives, and a disruptor waiting in a passage blocks
+    # it (small world seed 0: a sensor robot jammed 'deadlock' beside the spread disruptor
+    # from 100 s to 240 s); none so clear: any waypoint
+    park_clearance_m: float = 2.0
 
     def __post_init__(self) -> None:
         for name in ("trigger_radius_m", "laser_range_m", "hold_s", "path_tolerance_m"):
@@ -89,6 +94,10 @@ class DisruptorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
                 f"trigger_radius_m + standoff_margin_m "
                 f"({self.trigger_radius_m + self.standoff_margin_m}) and be <= laser_range_m "
                 f"({self.laser_range_m})"
+            )
+        if not (math.isfinite(self.park_clearance_m) and self.park_clearance_m >= 0):
+            raise ValueError(
+                f"disruptor park_clearance_m must be finite and >= 0, got {self.park_clearance_m}"
             )
         if not (math.isfinite(self.los_clear_m) and self.los_clear_m >= 0):
             raise ValueError(

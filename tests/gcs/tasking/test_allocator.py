@@ -315,6 +315,32 @@ def test_idle_disruptors_spread_over_the_highway() -> None:
     assert ends[0] == pytest.approx(10.5, abs=2.5) and ends[1] == pytest.approx(30.5, abs=2.5)
 
 
+def test_an_idle_disruptor_waits_in_the_open_not_in_a_passage() -> None:
+    # a road through a 2 m passage (x 10-30) between two open yards; the highway's medoid
+    # is in the passage, where the disruptor would block everyone's way
+    v = blank(40, 20, FREE)
+    box(v, 10.0, 0.0, 30.0, 9.0, OCCUPIED)
+    box(v, 10.0, 11.0, 30.0, 20.0, OCCUPIED)
+    xs = np.arange(2.0, 38.0, 0.5)
+    road = np.stack([xs, np.full_like(xs, 10.0)], 1)
+    d = robot(21, (2.0, 10.0), Role.DISRUPTOR)
+    state = TaskingState(
+        occupancy(v),
+        [d],
+        trajectory_robot_ids=np.ones(len(xs), dtype=np.int64),
+        trajectory_keys=np.arange(len(xs)),
+        trajectory_xy_in_map=road,
+    )
+    alloc = TaskAllocator()
+    wps = goals_in_map(alloc.plan(state, now_s=0.0), {21: d})[21]
+    end = wps[-1]
+    assert not 8.0 <= end[0] <= 32.0, end  # in a yard, clear of the passage
+    # without the clearance rule the medoid is in the passage
+    cfg = TaskingConfig(disruptor=DisruptorConfig(park_clearance_m=0.0))
+    wps = goals_in_map(TaskAllocator(cfg).plan(state, now_s=0.0), {21: d})[21]
+    assert 15.0 <= wps[-1][0] <= 25.0
+
+
 def test_hostile_gets_two_watchers_and_robots_keep_out_of_its_blast() -> None:
     v = blank(40, 40, FREE)
     rs = [robot(1, (20.0, 23.0)), robot(2, (20.0, 35.0)), robot(3, (5.0, 20.0))]
