@@ -1308,6 +1308,28 @@ class PoseGraph:
             robot, index = split_key(key) if 0 <= key < (1 << 56) else (None, None)
             raise PoseGraphError(f"{what}: unknown pose (robot {robot}, index {index})")
 
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """Unpickle; a graph pickled before the incremental views (issue 16) gets them built
+        from its nodes and edges, and iSAM2 re-seeded at the next solve."""
+        self.__dict__.update(state)
+        d = self.__dict__
+        if "_node_log" not in d:
+            d["_node_log"] = sorted(self._nodes)
+            d["_edge_log"] = list(self._edges)
+        d.setdefault("_epoch", 0)
+        d.setdefault("_estimate_revision", 0)
+        d.setdefault("_moved", collections.deque(maxlen=_MOVED_LOG))
+        d.setdefault("_last_simplified_s", -math.inf)
+        d.setdefault("_relative_count", None)
+        d.setdefault("_prior_cache", None)
+        d.setdefault("_est_cache", None)
+        d.setdefault("_isam", None)
+        if "_isam_mark" not in d:
+            d.pop("_isam_edges", None)
+            d.pop("_isam_keys", None)
+            d["_isam_mark"] = None
+            d["_isam_stale"] = True
+
     def __deepcopy__(self, memo: dict[int, object]) -> PoseGraph:
         other = PoseGraph(self.config)
         other.restore(self.snapshot())

@@ -164,3 +164,29 @@ def test_the_graph_simplifies_itself_when_due_and_keeps_its_optimum() -> None:
     assert not PoseGraph().simplify_due(1e9)
     with pytest.raises(ValueError, match="max_edges_per_pose"):
         AutoSimplifyConfig(max_edges_per_pose=0.0)
+
+
+def test_a_graph_pickled_before_the_incremental_views_loads_and_solves() -> None:
+    import pickle
+
+    rng = np.random.default_rng(5)
+    g, a, b = _two_robots(rng, 10)
+    g.optimize_incremental()
+    state = dict(g.__dict__)
+    state.pop("_isam", None)  # a GTSAM object: not what this test is about
+    for name in ("_node_log", "_edge_log", "_epoch", "_estimate_revision", "_moved",
+                 "_last_simplified_s", "_relative_count", "_prior_cache", "_est_cache",
+                 "_isam_mark"):  # fmt: skip
+        state.pop(name)
+    state["_isam_edges"], state["_isam_keys"] = set(g._edges), set(g._nodes)  # the old ones
+    old = PoseGraph.__new__(PoseGraph)
+    old.__setstate__(pickle.loads(pickle.dumps(state)))
+    assert old._isam_stale and not hasattr(old, "_isam_edges")
+    mark = old.change_mark()
+    k = old.add_pose(0, odom_from_base=(9.0, 0.0, 0.0), time_s=20.0, odometry_covariance=LOOP_COV)
+    assert old.additions_since(mark).node_keys == [k]  # type: ignore[union-attr]
+    assert old.optimize_incremental() is None
+    g.add_pose(0, odom_from_base=(9.0, 0.0, 0.0), time_s=20.0, odometry_covariance=LOOP_COV)
+    g.optimize()
+    old.optimize()
+    assert all(np.allclose(old.pose(key), g.pose(key), atol=1e-9) for key in a + b + [k])
