@@ -325,8 +325,8 @@ def return_leg(
     """The way back from a goal to radio contact: ``(K, 2)`` waypoints to append to
     ``waypoints_in_map`` (which end at the goal; the robot starts at ``start_in_map``), empty
     when the goal itself is within ``radius_m`` of a point of ``contact_in_map`` ``(C, 2)``
-    (places where the GCS heard robots steadily); no such point on the route: all the way
-    back to the start, and on to the point of contact nearest it if there is one.
+    (places where the GCS heard robots steadily), or when none is known yet; no such point
+    on the route: all the way back to the start, then on to the point of contact nearest it.
 
     Why: MAGIC's radio had shadows (paper 4.1, 8) and a robot that finishes its task out of
     contact waits for the link before it gives up and backs out (``robot/comms_watchdog.py``:
@@ -338,8 +338,8 @@ def return_leg(
     the link then delivers (store and forward). ``O(route points x contact points)``."""
     wps = np.asarray(waypoints_in_map, dtype=np.float64).reshape(-1, 2)
     contact = np.asarray(contact_in_map, dtype=np.float64).reshape(-1, 2)
-    if len(wps) == 0:
-        return np.zeros((0, 2))
+    if len(wps) == 0 or len(contact) == 0:
+        return np.zeros((0, 2))  # where the radio reaches is not known yet: no guess
     route = np.vstack([np.asarray(start_in_map, dtype=np.float64).reshape(1, 2), wps])
     # the route densified at ``step_m``, walked back from the goal; ``vertex`` marks where
     # each dense point lies (vertex index of the segment it is on)
