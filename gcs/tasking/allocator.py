@@ -167,6 +167,9 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # idle disruptor): its goal counts as failed for it and it gets another
     stall_s: float = 20.0
     stall_m: float = 1.0
+    # ... or has not come stall_m nearer its goal in stall_progress_s (a robot backing off
+    # and retrying, to and fro: seed 0, 50 s within 3 m)
+    stall_progress_s: float = 40.0
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
     highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
@@ -191,6 +194,7 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "goal_reached_m",
             "stall_s",
             "stall_m",
+            "stall_progress_s",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -348,6 +352,8 @@ class TaskAllocator:
         self._heard_since: dict[int, float] = {}  # robot -> heard without a gap since
         # robot -> (task id, when, where) it last moved stall_m on its exploration task
         self._progress: dict[int, tuple[int, float, tuple[float, float]]] = {}
+        # robot -> (task id, when, distance) it last came stall_m nearer its goal
+        self._nearer: dict[int, tuple[int, float, float]] = {}
 
     # ---- the step ---------------------------------------------------------------------------
 
@@ -1073,8 +1079,8 @@ class TaskAllocator:
                         ctx,
                         "stalled",
                         rid,
-                        f"robot {rid} moved less than {cfg.stall_m:g} m in {cfg.stall_s:g} s "
-                        "towards its goal: another goal",
+                        f"robot {rid} stuck on its way ({cfg.stall_m:g} m moved in "
+                        f"{cfg.stall_s:g} s or nearer in {cfg.stall_progress_s:g} s): another goal",
                     )
                 elif gone:
                     self._event(
@@ -1168,6 +1174,12 @@ class TaskAllocator:
         """Whether ``r`` has not moved ``stall_m`` for ``stall_s`` on its task ``a``."""
         cfg = self.config
         pos = self._position(r)
+        to_goal = math.inf if a.goal_in_map is None else math.dist(pos, a.goal_in_map)
+        ntid, nearer_s, best = self._nearer.get(r.robot_id, (-1, ctx.now_s, to_goal))
+        if ntid != a.task_id or to_goal <= best - cfg.stall_m:
+            self._nearer[r.robot_id] = (a.task_id, ctx.now_s, to_goal)
+        elif ctx.now_s - nearer_s >= cfg.stall_progress_s:
+            return True
         tid, since_s, at = self._progress.get(r.robot_id, (-1, ctx.now_s, pos))
         if tid != a.task_id or math.dist(pos, at) >= cfg.stall_m:
             self._progress[r.robot_id] = (a.task_id, ctx.now_s, pos)

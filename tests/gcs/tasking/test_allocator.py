@@ -539,6 +539,18 @@ def test_a_robot_that_does_not_move_towards_its_goal_gets_another() -> None:
     new = alloc.assignments[1].goal_in_map
     assert new is not None and math.dist(new, first) > cfg.exploration.blacklist_radius_m
     assert alloc.stats.goals_failed == 1
+    # to and fro (backing off and retrying): moving, but no nearer in stall_progress_s
+    alloc = TaskAllocator(cfg)
+    r.pose_in_map = (15.0, 3.0, 0.0)
+    t, kinds = 0.0, []
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=t)
+    while t < cfg.stall_progress_s + 4.0:
+        t += 2.0
+        r.last_heard_s = t
+        r.pose_in_map = (15.0 - 1.5 * (t % 4.0 == 0.0), 3.0, 0.0)
+        alloc.plan(TaskingState(occupancy(v), [r]), now_s=t)
+        kinds += [e.kind for e in alloc.events]
+    assert kinds.count("stalled") == 1
     # a robot that moves is not stalled
     alloc = TaskAllocator(cfg)
     alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)
