@@ -134,13 +134,14 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     ``prune_chi2`` (3 dof) are removed, and the latest
     ``max_rejected_kept`` hypotheses the graph check rejected are checked again.
 
-    ``grid_window_m``: how much of the robot's travel each node's grid spans (0: one sweep,
-    as the project's robots send; a logger with a 180-degree laser joins its last metres of
-    scans, e.g. the replay's 2 m). Those scans were joined by the odometry the robot reported,
-    so a turn-scale error bends the grid; a match whose grids' bend exceeds
-    ``max_grid_distortion_rad`` (5 deg: a closure off by more is false) waits for a tighter
-    turn-scale fit (at most ``max_deferred_kept``), and an admitted one carries the bend in its
-    heading variance (:meth:`LoopCloser._grid_distortion_rad`).
+    ``grid_window_m``: how much of the robot's travel each node's grid spans (0: one sweep, as
+    the project's robots send; a logger with a 180-degree laser joins its last metres of scans,
+    e.g. the replay's 2 m), and ``grid_window_rad`` how much turning at most (the scans go back
+    no further than the odometry turned this much; inf: unbounded). Those scans were joined by
+    the odometry the robot reported, so a turn-scale error bends the grid; a match whose grids'
+    bend exceeds ``max_grid_distortion_rad`` (5 deg: a closure off by more is false) waits for a
+    tighter turn-scale fit (at most ``max_deferred_kept``), and an admitted one carries the bend
+    in its heading variance (:meth:`LoopCloser._grid_distortion_rad`).
 
     ``matches_per_s``, ``candidate_max_age_s`` and ``validation.expiry_s`` are in nominal
     seconds of the progress clock: ``nominal_s_per_node`` per pose node added (module
@@ -178,6 +179,8 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     edge_floor_sigma_yaw_rad: float = math.radians(0.5)
     min_scan_points: int = 20
     grid_window_m: float = 0.0
+    grid_window_rad: float = math.inf
+    max_turn_scale_yaw_rad: float = math.radians(20.0)
     max_grid_distortion_rad: float = math.radians(5.0)
     # long-loop candidate source (gcs.loops.long_loop_search, issue 19 item 5)
     long_loops: LongLoopConfig = msgspec.field(default_factory=LongLoopConfig)
@@ -226,6 +229,12 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
         if not (math.isfinite(self.grid_window_m) and self.grid_window_m >= 0):
             raise ValueError(f"grid_window_m: expected >= 0, got {self.grid_window_m}")
+        if not (math.isfinite(self.max_turn_scale_yaw_rad) and self.max_turn_scale_yaw_rad >= 0):
+            raise ValueError(
+                f"max_turn_scale_yaw_rad: expected >= 0, got {self.max_turn_scale_yaw_rad}"
+            )
+        if not self.grid_window_rad > 0:  # inf: the grids' turning is not bounded
+            raise ValueError(f"grid_window_rad: expected > 0, got {self.grid_window_rad}")
         if not (math.isfinite(self.max_grid_distortion_rad) and self.max_grid_distortion_rad > 0):
             raise ValueError(
                 f"max_grid_distortion_rad: expected > 0, got {self.max_grid_distortion_rad}"
@@ -686,7 +695,7 @@ class LoopCloser:
             indices=mirror.indices,
             has_scan=has_scan,
             poses=proj.poses,
-            covariances=proj.covariances,
+            covariances=self._with_turn_scale_error(key, mirror, proj.covariances),
             config=c,
         )
         for cand in found:
@@ -709,6 +718,51 @@ class LoopCloser:
         # ---- long-loop candidate source (gcs.loops.long_loop_search, issue 19 item 5) ----
         if self.long_loops is not None:
             self._propose_long_loops(key, mirror, progress_s)
+
+    def _with_turn_scale_error(
+        self, key: int, mirror: _Mirror, covariances: FloatArray
+    ) -> FloatArray:
+        """The projection's covariances with the robot's turn-scale error along its own chain
+        added to the yaw of its nodes: ``(e T)^2`` for the odometry's turning ``T`` from
+        ``key``, ``e`` what is known of the scale error (:meth:`_turn_scale_error`). The
+        odometry's stated sigmas do not hold a scale error, so without it a biased robot's
+        windows miss the truth after long turns: its matches return look-alikes near the
+        guess, and the fit that would remove the bias starves (Intel with turns scaled by
+        1.08: 4 closures and no fit). At most ``max_turn_scale_yaw_rad`` (a yaw sigma of 20
+        deg, windows of 60 deg): wider windows over a symmetric hall took its look-alikes,
+        turned by 90 or 180 deg, and fitted a scale of 1.30 to an unbiased robot."""
+        robot = split_key(key)[0]
+        chain = self._chain(robot)
+        if chain is None:
+            return covariances
+        first, turn, _var, _dist = chain
+        i = key - first
+        if not 0 <= i < len(turn):
+            return covariances
+        rows = mirror.keys - first
+        ok = (mirror.robot_ids == robot) & (rows >= 0) & (rows < len(turn))
+        ok &= np.isfinite(covariances[:, 2, 2])
+        if not ok.any():
+            return covariances
+        err = self._turn_scale_error(robot)
+        out = np.array(covariances, copy=True)
+        sd = np.minimum(err * np.abs(turn[rows[ok]] - turn[i]), self.config.max_turn_scale_yaw_rad)
+        out[ok, 2, 2] += sd**2
+        return out
+
+    def _turn_scale_error(self, robot: int) -> float:
+        """How far the robot's turn scale may be from the one its graph odometry uses: before
+        any fit the prior's ``prior_sigma``; after one, the fit's distance from the scale in
+        use (1 until a correction is applied) with its statistical standard deviation (as
+        :meth:`_grid_distortion_rad`: the single-closure floor widened the synthetic city's
+        windows by 3 x 1.5 % of two laps' turning, and look-alike streets came in)."""
+        fit = self._turn_scales.get(robot)
+        applied = self._applied_scales.get(robot)
+        if fit is None:
+            return applied.sigma if applied is not None else self.config.odometry_bias.prior_sigma
+        ref = applied.scale if applied is not None else 1.0
+        spread = fit.sigma if fit.statistical_sigma is None else fit.statistical_sigma
+        return math.hypot(fit.scale - ref, spread)
 
     def _propose_long_loops(self, key: int, mirror: _Mirror, progress_s: float) -> None:
         """Place-recognition matches of ``key`` become hypotheses like any other: they reach
@@ -956,13 +1010,16 @@ class LoopCloser:
             self._turn_scales[robot] = est
             refitted = True
             in_use = self._applied_scales.get(robot)
-            # is there a bias at all (apply_sigma from 1), then: is the better estimate
-            # different (reapply_sigma from the one in use)
-            k, ref = (cfg.apply_sigma, 1.0) if in_use is None else (cfg.reapply_sigma, in_use.scale)
-            if est.used < cfg.min_used or abs(est.scale - ref) <= k * max(
-                est.sigma if est.statistical_sigma is None else est.statistical_sigma,
-                0.5 * est.sigma,
-            ):
+            # is there a bias at all (apply_sigma from 1, not below half the floored sigma:
+            # one stretch's shared noise must not start a correction), then: is the better
+            # estimate (refitted only on refit_growth times the evidence) different
+            # (reapply_sigma of its statistical sigma from the one in use)
+            stat = est.sigma if est.statistical_sigma is None else est.statistical_sigma
+            if in_use is None:
+                differs = abs(est.scale - 1.0) > cfg.apply_sigma * max(stat, 0.5 * est.sigma)
+            else:
+                differs = abs(est.scale - in_use.scale) > cfg.reapply_sigma * stat
+            if est.used < cfg.min_used or not differs:
                 continue
             self.graph.set_odometry_correction(
                 robot, functools.partial(debias_odometry, estimate=est)
@@ -1212,7 +1269,8 @@ class LoopCloser:
         nodes of the last ``grid_window_m`` of travel before it (one node more: the scans
         between two nodes belong to the window too): the largest in magnitude, and the mean
         (signed; the grid's content is turned by ``(1 - s)`` times it on average). 0, 0 for
-        an unknown node or one-sweep grids."""
+        an unknown node or one-sweep grids. A grid bounded in turning (``grid_window_rad``)
+        stops at the first node back that turned beyond it."""
         if self.config.grid_window_m <= 0.0:
             return 0.0, 0.0  # one sweep per grid: nothing joined by odometry
         robot = split_key(key)[0]
@@ -1226,6 +1284,12 @@ class LoopCloser:
         j = int(np.searchsorted(dist, dist[i] - self.config.grid_window_m, side="left"))
         j = max(0, min(j, i) - 1)
         back = turn[j : i + 1] - turn[i]
+        cap = self.config.grid_window_rad
+        beyond = np.flatnonzero(np.abs(back) > cap)
+        if len(beyond):
+            # the scans stop where the turning reached the cap: the node beyond it bounds
+            # the last stretch, clipped to the cap
+            back = np.clip(back[beyond[-1] :], -cap, cap)
         return float(np.max(np.abs(back))), float(np.mean(back))
 
     def _grid_distortion_rad(self, key_a: int, key_b: int) -> float:

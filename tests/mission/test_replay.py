@@ -158,6 +158,35 @@ def test_messages_follow_the_node_rule_and_carry_the_scan() -> None:
     assert near_wall.mean() > 0.9  # the rest are the boxes' faces
 
 
+def test_a_grid_holds_no_scan_the_odometry_turned_beyond_its_bound() -> None:
+    """A grid joins scans by the reported odometry, so a turn-scale error bends it by the turning
+    it spans: it goes back only ``aggregate_max_turn_rad`` (40 deg), not round a 90 deg corner."""
+    log = synthetic_log(laps=0.5)
+    odom = log.odometry_in_log
+    corner = int(np.flatnonzero(np.abs(np.diff(odom[:, 2])) > 1.0)[0]) + 1  # first scan past it
+    assert ScanGridConfig().aggregate_max_turn_rad == pytest.approx(math.radians(40.0))
+    capped = {n.scan: n for n in replay_messages(log, ReplayConfig())}
+    unbounded = ScanGridConfig(aggregate_max_turn_rad=math.inf)
+    free = {n.scan: n for n in replay_messages(log, ReplayConfig(grid=unbounded))}
+    k = min(scan for scan in capped if scan > corner)
+    expect, _ = scan_grid(
+        np.concatenate(
+            [
+                transform_points(
+                    relative(odom[k], odom[j]), log.points_in_base(j, max_range_m=10.0)
+                )
+                for j in range(corner, k + 1)
+            ]
+        ),
+        resolution_m=0.1,
+    )
+    np.testing.assert_array_equal(decode_grid(capped[k].terrain_grid.data), expect)
+    # unbounded, the scans of the 2 m before the corner join it too
+    assert decode_grid(free[k].terrain_grid.data).sum() > expect.sum() + 50
+    with pytest.raises(ValueError, match="aggregate_max_turn_rad"):
+        ScanGridConfig(aggregate_max_turn_rad=0.0)
+
+
 def test_odometry_noise_is_seeded_and_drawn_from_the_node_model() -> None:
     log = synthetic_log(laps=2.0, step_m=0.3)
     clean, inc, model = replay_odometry(log, ReplayConfig())

@@ -148,8 +148,19 @@ def test_the_bend_bound_follows_the_turning_in_the_grid_and_the_scale_fit() -> N
         0.1 * 1.5 * math.pi, rel=1e-3
     )
     assert off._grid_distortion_rad(keys[spin], keys[straight]) == 0.0
+    # a grid bounded in turning (the replay's 30 deg) bends by at most the scale error times it
+    capped = LoopCloser(
+        graph, LoopCloserConfig(grid_window_m=GRID_WINDOW_M, grid_window_rad=math.radians(30.0))
+    )
+    assert math.degrees(capped._window_turn_rad(keys[spin])) == pytest.approx(30.0)
+    assert capped._window_turn_rad(keys[straight]) == 0.0
+    assert capped._grid_distortion_rad(keys[spin], keys[straight]) == pytest.approx(
+        0.1 * math.radians(30.0), rel=1e-3
+    )
     with pytest.raises(ValueError, match="grid_window_m"):
         LoopCloserConfig(grid_window_m=-1.0)
+    with pytest.raises(ValueError, match="grid_window_rad"):
+        LoopCloserConfig(grid_window_rad=0.0)
     with pytest.raises(ValueError, match="max_grid_distortion_rad"):
         LoopCloserConfig(max_grid_distortion_rad=0.0)
 

@@ -107,3 +107,32 @@ def test_configuration_is_checked() -> None:
         OdometryBiasConfig(window_k_sigma=0.0)
     with pytest.raises(msgspec.ValidationError):
         msgspec.convert({"odometry_bias": {"bogus": 1}}, LoopCloserConfig)
+
+
+def test_candidate_windows_hold_the_turn_scale_error_along_the_chain() -> None:
+    """The odometry's sigmas hold no scale error: the candidates' yaw variance gets
+    ``(e T)^2`` for the turning ``T`` between the two nodes, ``e`` the prior before a fit,
+    up to a bound."""
+    graph = PoseGraph(PoseGraphConfig(map_robot_id=0))
+    closer = LoopCloser(graph, LoopCloserConfig())
+    keys = [graph.add_pose(0, odom_from_base=np.zeros(3), time_s=0.0)]
+    for t in range(1, 13):  # a full turn on a 3 m circle, 30 deg a step
+        yaw = math.radians(30.0 * t)
+        pose = np.array([3 * math.sin(yaw), 3 - 3 * math.cos(yaw), float(se2.wrap_angle(yaw))])
+        keys.append(
+            graph.add_pose(
+                0, odom_from_base=pose, time_s=float(t), odometry_covariance=np.diag([1e-4] * 3)
+            )
+        )
+    closer.step(now_s=13.0, budget_s=0.0)
+    mirror = closer._sync()
+    proj = closer._projection(keys[-1], max_trace=math.inf)
+    widened = closer._with_turn_scale_error(keys[-1], mirror, proj.covariances)
+    extra = widened[:, 2, 2] - proj.covariances[:, 2, 2]
+    turned = np.radians(30.0 * (12 - np.arange(13)))  # from each node to the last
+    order = [mirror.index[k] for k in keys]
+    # at most a 20 deg sigma (max_turn_scale_yaw_rad): a symmetric hall's look-alikes
+    expect = np.minimum(0.1 * turned, math.radians(20.0)) ** 2
+    np.testing.assert_allclose(extra[order], expect, rtol=1e-9, atol=1e-12)
+    assert expect[0] < (0.1 * turned[0]) ** 2  # the whole turn's 36 deg was capped
+    assert np.array_equal(widened[:, :2, :2], proj.covariances[:, :2, :2])
