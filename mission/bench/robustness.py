@@ -60,14 +60,15 @@ scores the replay part's clean runs (and, in the full run, its gap runs) rather 
 them again.
 
 The suite reports its own cost: ``bench_wall_s`` and ``bench_cpu_s`` (this process, every
-thread), so a run on a loaded machine says how loaded it was. Measured (quick, load average
-20..28 on the 2 cores): 115..127 s CPU, 4.7..8.2 min wall (was 182 s CPU with the loop-less
-prefixes and a second ACES replay); the four turn-scale rows of ACES and Freiburg 079 take
-half to two thirds of its wall time (ACES 113 and 121 s against 14 s clean: under cProfile
-90 % of such a run is ``cycle_validation``'s search over conflicting hypotheses), every other
-row 3..14 s wall.
-Clean rows 0 false closures, ATE 0.094 / 0.147 / 0.144 m against odometry's 0.372 / 2.712 /
-0.443 m (Intel / ACES / Freiburg 079).
+thread), so a run on a loaded machine says how loaded it was. Measured (quick, 4035a0d, load
+average 10..20 on the 2 cores): 49 s CPU, 4 min wall (79 s before the grids' turning bound:
+ACES's turn-scale rows spent 90 % of 25..41 s in ``cycle_validation``'s search over
+conflicting hypotheses; now 11..20 s), every other row 2..9 s.
+Clean rows 0 false closures, ATE 0.063 / 0.178 / 0.138 m against odometry's 0.372 / 2.712 /
+0.443 m (Intel / ACES / Freiburg 079); turns x0.92 / x1.08 0.079 / 0.068, 0.256 / 0.246,
+0.127 / 0.273 m. Two false closures: ACES x0.92 nodes 310-141, 0.08 m and 5.2 deg (grids bent
+within the closer's 5 deg gate, plus the match's own noise), and Freiburg 079 x1.08 nodes
+124-61, 0.93 m and 3.0 deg (a look-alike, there before the turning bound too).
 """
 
 from __future__ import annotations
