@@ -237,7 +237,10 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     ``max_node_interval_s``: largest plausible step (s) between a robot's consecutive node
     times; ``clock_fallback_step_s``: the substitute step (s) before a robot has plausible ones.
     ``fiducial_standin_sigma_*``: added to a fiducial's covariance when the teammate's latest
-    node stands in for where it was (:meth:`GroundStation._teammate_node`).
+    node stands in for where it was (:meth:`GroundStation._teammate_node`), each growing with
+    the time since the teammate's last known pose at the team's top speed and turn rate
+    (``fiducial_standin_speed_m_s``, ``fiducial_standin_turn_rate_rad_s``): a teammate silent
+    for 25 s may be 25 m away from its last node.
     ``odometry_check``: the scan check of odometry edges (:class:`OdometryCheckConfig`).
     ``raster`` / ``near_raster``: the global map is the near map laid over the far one
     (:mod:`gcs.mapping.overlay`; ``near_raster`` None: the far one alone).
@@ -267,6 +270,8 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     fiducials_link_only: bool = False
     fiducial_standin_sigma_xy_m: float = 0.5
     fiducial_standin_sigma_yaw_rad: float = 0.2
+    fiducial_standin_speed_m_s: float = 1.0
+    fiducial_standin_turn_rate_rad_s: float = 1.2
     min_grid_resolution_m: float = 0.02
     max_grid_resolution_m: float = 1.0
     gap_covariance_scale: float = 4.0
@@ -294,6 +299,8 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
             "clock_fallback_step_s",
             "fiducial_standin_sigma_xy_m",
             "fiducial_standin_sigma_yaw_rad",
+            "fiducial_standin_speed_m_s",
+            "fiducial_standin_turn_rate_rad_s",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -931,17 +938,25 @@ class GroundStation:
         about where: the edge to node ``i`` (the last node not after ``seen_s``) puts the
         teammate half way along that step, with the variance of a uniform position along it
         (``d d^T / 12``) added to the covariance (exact when the two agree: a teammate
-        standing still). With nothing after ``seen_s`` the latest node stands in and the
-        covariance grows by ``fiducial_standin_sigma_*``."""
+        standing still). With nothing after ``seen_s`` the teammate's latest known pose (its
+        latest node, or a later telemetry pose composed onto it) stands in, and the covariance
+        grows by ``fiducial_standin_sigma_*`` plus what the teammate could have driven and
+        turned since that pose (a stale stand-in with a fixed 0.5 m sigma once tied two robots
+        19 m and 41 deg apart)."""
         times = other.times
         poses = other.poses_in_odom
         j = bisect.bisect_right(times, seen_s)
         cfg = self.config
-        standin = np.diag(
-            [cfg.fiducial_standin_sigma_xy_m**2] * 2 + [cfg.fiducial_standin_sigma_yaw_rad**2]
-        )
+
+        def standin(since_s: float) -> np.ndarray:
+            stale_s = abs(seen_s - since_s)
+            xy = cfg.fiducial_standin_sigma_xy_m + cfg.fiducial_standin_speed_m_s * stale_s
+            turn_rad = cfg.fiducial_standin_turn_rate_rad_s * stale_s
+            yaw = cfg.fiducial_standin_sigma_yaw_rad + turn_rad
+            return np.diag([xy**2, xy**2, min(yaw, math.pi) ** 2])
+
         if j == 0:
-            return 0, z, cov + standin
+            return 0, z, cov + standin(times[0])
         node = poses[j - 1]
         if seen_s <= times[j - 1]:  # seen at the node's own time
             return j - 1, z, cov
@@ -953,8 +968,10 @@ class GroundStation:
             t0, p0 = tt[k - 1], other.telemetry_poses[k - 1]
         if k < len(tt) and tt[k] < t1:
             t1, p1 = tt[k], other.telemetry_poses[k]
-        if p1 is None:
-            return j - 1, z, cov + standin
+        if p1 is None:  # nothing after seen_s: the latest known pose stands in
+            node_from_p0 = np.asarray(relative(node, p0), dtype=float)
+            a_from_node = np.asarray(compose(z, inverse(node_from_p0)), dtype=float)
+            return j - 1, a_from_node, cov + standin(t0)
         if seen_s <= t0:
             d = np.zeros(3)
         else:

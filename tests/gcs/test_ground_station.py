@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import msgspec
 import numpy as np
 import pytest
@@ -517,3 +519,12 @@ def test_a_fiducial_waits_for_the_teammate_node_of_its_time() -> None:
     assert gs2.stats.fiducials == 0
     gs2.step(now_s=11.5)
     assert gs2.stats.fiducials == 1 and gs2.stats.rejected_total == 0
+    # ... but it may have driven since its last node (t=2 s, seen at 6 s): the stand-in's
+    # sigma grows by the top speed and turn rate over those 4 s (a fixed 0.5 m tied two robots
+    # 19 m apart in a mission whose teammate had gone silent)
+    (edge,) = gs2.graph.edges(Provenance.FIDUCIAL)
+    sigma = np.sqrt(np.diag(edge.covariance))
+    cfg = gs2.config
+    stale_xy = cfg.fiducial_standin_sigma_xy_m + 4.0 * cfg.fiducial_standin_speed_m_s
+    assert edge.key_b == gs2.key_of(0, 2) and sigma[0] >= stale_xy and sigma[1] >= stale_xy
+    assert sigma[2] >= min(math.pi, 0.2 + 4.0 * cfg.fiducial_standin_turn_rate_rad_s) - 1e-9
