@@ -147,6 +147,9 @@ _TELEMETRY_MEMORY = 64
 #: radius 2.5 m for static OOIs and hostiles, plus a margin the robot adds itself).
 HAZARD_KINDS = {ObjectKind.STATIC_OOI: 2.5, ObjectKind.HOSTILE: 5.0, ObjectKind.MOBILE_OOI: 5.0}
 
+#: Sightings of a static hazard kept to place it under the current estimate (the latest).
+MAX_HAZARD_ANCHORS = 64
+
 #: Hazards that move: their position is the latest sighting, not the mean of the sightings.
 MOVING_KINDS = (ObjectKind.HOSTILE, ObjectKind.MOBILE_OOI)
 
@@ -514,6 +517,9 @@ class GroundStation:
         self.last_loop_report: LoopClosingReport | None = None
         self.hazards: list[Hazard] = []
         self._sightings: list[int] = []  # per hazard, detections merged into it
+        # per hazard, the (pose key, position in that pose's base) of its latest sightings of
+        # a static kind: its position follows the estimate (:meth:`_reexpress_hazards`)
+        self._anchors: list[list[tuple[int, np.ndarray]]] = []
         # moving hazards: hazard id -> robot id -> mission time of that robot's latest sighting
         self._hostile_seen: dict[int, dict[int, float]] = {}
         self._handle_now_s = 0.0
@@ -1072,11 +1078,15 @@ class GroundStation:
                 self.hazards[i] = Hazard(
                     h.hazard_id, h.kind, (float(mean[0]), float(mean[1])), h.radius_m
                 )
+                anchors = self._anchors[i]
+                anchors.append((key, p.copy()))
+                del anchors[: max(0, len(anchors) - MAX_HAZARD_ANCHORS)]
                 return
         self.hazards.append(
             Hazard(len(self.hazards) + 1, msg.kind, (float(xy[0]), float(xy[1])), radius)
         )
         self._sightings.append(1)
+        self._anchors.append([(key, p.copy())])
 
     def _on_moving_sighting(
         self, robot_id: int, msg: Detection, xy: np.ndarray, radius: float
@@ -1094,6 +1104,7 @@ class GroundStation:
             hazard = Hazard(len(self.hazards) + 1, msg.kind, (float(xy[0]), float(xy[1])), radius)
             self.hazards.append(hazard)
             self._sightings.append(1)
+            self._anchors.append([])  # a walker's position is its latest sighting's
         else:
             h = self.hazards[best]
             self._sightings[best] += 1
@@ -1306,6 +1317,7 @@ class GroundStation:
         self.stats.optimizations += 1
         if fault is None:
             self._dirty = False
+            self._reexpress_hazards()
             return
         self.stats.solver_faults += 1
         line = f"solver fault: {fault.error}; {fault.action}"
@@ -1313,6 +1325,28 @@ class GroundStation:
         if fault.recovered:
             self.stats.solver_recoveries += 1
             self._dirty = False
+            self._reexpress_hazards()
+
+    def _reexpress_hazards(self) -> None:
+        """Each static hazard where its sightings put it under the current estimate (the mean
+        over its anchored sightings): a hazard placed by a robot's pose before a closure moved
+        that pose follows it, as the map does, and a later sighting of the same object from
+        another robot merges with it instead of making a second hazard. The kind and radius
+        are kept (an operator may have relabelled it)."""
+        for i, anchors in enumerate(self._anchors):
+            points = []
+            for key, p in anchors:
+                try:
+                    points.append(transform_points(self.graph.pose(key), p[None, :])[0])
+                except PoseGraphError:  # a node rewound out of the graph
+                    continue
+            if not points:
+                continue
+            mean = np.mean(points, axis=0)
+            h = self.hazards[i]
+            self.hazards[i] = Hazard(
+                h.hazard_id, h.kind, (float(mean[0]), float(mean[1])), h.radius_m
+            )
 
     def _downlink(self, now_s: float) -> list[tuple[int, Any]]:
         out: list[tuple[int, Any]] = []

@@ -11,6 +11,7 @@ import pytest
 from compression import encode_grid, origin_cells_of
 from gcs.graph.pose_graph import Provenance
 from gcs.ground_station import GroundStation, GroundStationConfig
+from gcs.loops.correlative_matcher import MatchResult
 from protocol.messages import (
     Detection,
     FiducialObservation,
@@ -151,6 +152,29 @@ def test_dangerous_detections_become_hazards_in_map() -> None:
     np.testing.assert_allclose(h.position_in_map, (0.0, 1.0 + 4.15), atol=1e-5)  # the mean
     assert h.radius_m == 2.5
     assert gs.stats.detections == 3
+
+
+def test_a_static_hazard_follows_the_pose_it_was_seen_from() -> None:
+    # placed from node 2's estimate; a closure then moves node 2: the hazard moves with it (as
+    # the map does), so sightings from robots whose poses a closure corrected agree again
+    gs = GroundStation()
+    for msg in nodes_along(straight(3)):
+        gs.handle(0, msg, now_s=0.0)
+    det = Detection(1, 2, 2.0, ObjectKind.STATIC_OOI, (3.0, 0.0), (0.1, 0, 0.1), 0.3, 0.5, 0.9)
+    assert gs.handle(0, det, now_s=0.0)
+    gs.step(now_s=1.0)
+    k0, k2 = gs.key_of(0, 0), gs.key_of(0, 2)
+    assert k0 is not None and k2 is not None
+    before = np.asarray(gs.hazards[0].position_in_map)
+    a_from_b = np.asarray(relative(gs.graph.pose(k0), gs.graph.pose(k2))) + (0.0, 1.0, 0.0)
+    tight = np.diag([1e-4, 1e-4, 1e-6])
+    result = MatchResult(a_from_b, a_from_b, tight, 100, 0.9, 1)
+    gs.accept_closure(k0, k2, result, now_s=1.0)
+    gs.step(now_s=2.0)
+    moved = np.asarray(gs.graph.pose(k2))
+    expected = compose(moved, np.array([3.0, 0.0, 0.0]))[:2]
+    assert np.linalg.norm(expected - before) > 0.2  # the closure moved node 2
+    np.testing.assert_allclose(gs.hazards[0].position_in_map, expected, atol=1e-6)
 
 
 def test_the_global_map_is_rasterized_from_the_grids_at_their_posteriors() -> None:
