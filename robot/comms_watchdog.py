@@ -280,6 +280,13 @@ class LinkAwareTasks:
         )
         return out
 
+    def fail(self, now_s: float, detail: str) -> list[TaskStatus]:
+        """The robot cannot carry out the task (:meth:`TaskExecutor.fail`). While it is
+        suspended the robot is pursuing the watchdog's goal, not the task's: nothing fails."""
+        if self.watchdog.suspended:
+            return []
+        return self.executor.fail(now_s, detail)
+
     def _describe(self, state: LinkState, now_s: float) -> str:
         wd = self.watchdog
         cfg = wd.config

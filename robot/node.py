@@ -210,6 +210,8 @@ class NodeStats:
     stuck_recoveries: int = 0
     keepout_stops: int = 0
     deadlocks: int = 0  # teammate deadlocks detected and backed off from
+    trail_backoffs: int = 0  # back-offs that followed the trail, reversed (no planned way)
+    deadlock_failures: int = 0  # tasks failed because no escape from a deadlock worked
     evasions: int = 0  # times it backed away from a hostile coming close
     yields: int = 0  # plans not taken: the path got blocked and the detour was long
     memory_refreshes: int = 0  # older sweeps forgotten: the newest saw the blocked way clear
@@ -705,6 +707,14 @@ class RobotNode:
                 self.stats.plans += 1
                 reachable = beyond_map
         if self.deadlock.phase is Phase.BACKOFF and not result.ok:
+            trail = self.deadlock.trail_back_path(pose[:2])
+            if len(trail) >= 2:
+                # the planner finds no way back over today's map, but the trail was driven
+                # moments ago: follow it, reversed (issue 14: a robot sat in a room backing
+                # off to a point its map had closed, never moving)
+                self.stats.trail_backoffs += 1
+                self.follower.set_path(trail)
+                return
             self.deadlock.abort_backoff(self._now)  # no way back: hold where we are
             self.follower.set_path(np.zeros((0, 2)))
             self._planned_goal = None
@@ -1069,6 +1079,18 @@ class RobotNode:
             return
         before = self.deadlock.phase
         phase = self.deadlock.update(now, pose, intent.waypoints_in_odom[0])
+        if self.deadlock.exhausted:
+            # every escape failed: say so, so the GCS gives another goal rather than the
+            # robot retrying this one for minutes (issue 14)
+            reason = self.deadlock.exhaustion_reason
+            log.info("robot %d: task failed: %s", self.robot_id, reason)
+            self.stats.deadlock_failures += 1
+            for status in self.tasks.fail(now, reason):
+                self._report(status)
+            self.deadlock.reset()
+            self.follower.set_path(np.zeros((0, 2)))
+            self._planned_goal = None
+            return
         if phase is Phase.DEADLOCKED:
             self.stats.deadlocks += 1
             classes, geometry = self._current_map()

@@ -32,7 +32,17 @@ breaks that symmetry; this module does, the way shared media do (random back-off
 The draws come from ``numpy.random.default_rng(seed)``, the node seeds it with its robot id,
 so a seeded mission is repeatable and two robots never draw alike. After ``max_attempts``
 deadlocks on one goal the breaker stops interfering (:attr:`DeadlockBreaker.gave_up`): the
-task's own no-path timeout reports the failure.
+task's own no-path timeout reports the failure, or the breaker does
+(:attr:`DeadlockBreaker.exhausted`) when the robot stalls once more.
+
+**Escapes that fail** (issue 14, small world seed 0: a robot sat 170 s in a room backing off to
+the same trail point without moving): a back-off whose plan finds no way to its target follows
+the trail itself, reversed (:meth:`DeadlockBreaker.trail_back_path`: ground just driven). A
+back-off that ends (arrived, timed out or aborted) less than ``escape_min_motion_m`` from where
+the deadlock struck is a failed escape, and the next back-off tries another trail point (the
+roomiest one not yet tried, nearest first); ``max_failed_escapes`` in a row make the breaker
+:attr:`DeadlockBreaker.exhausted`, and the node reports the task failed with that reason, so
+the GCS gives another goal instead of the robot retrying the same one for minutes.
 
 Pure logic over the robot's pose in ``odom``, metres and seconds; the node calls
 :meth:`DeadlockBreaker.update` every control period and, when it returns
@@ -80,6 +90,8 @@ class DeadlockConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
     yield_detour_m: float = 4.0
     yield_lookahead_m: float = 10.0
     yield_budget_s: float = 30.0
+    escape_min_motion_m: float = 0.5
+    max_failed_escapes: int = 2
 
     def __post_init__(self) -> None:
         for name in (
@@ -116,6 +128,15 @@ class DeadlockConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
             raise ValueError(
                 f"deadlock.backoff_min_m ({self.backoff_min_m}) exceeds backoff_max_m "
                 f"({self.backoff_max_m})"
+            )
+        if not (math.isfinite(self.escape_min_motion_m) and self.escape_min_motion_m >= 0):
+            raise ValueError(
+                f"deadlock.escape_min_motion_m must be finite and >= 0, got "
+                f"{self.escape_min_motion_m}"
+            )
+        if self.max_failed_escapes < 1:
+            raise ValueError(
+                f"deadlock.max_failed_escapes must be >= 1, got {self.max_failed_escapes}"
             )
         if self.max_attempts < 1:
             raise ValueError(f"deadlock.max_attempts must be >= 1, got {self.max_attempts}")
@@ -207,6 +228,31 @@ class DeadlockBreaker:
         self._hold_until_s = -math.inf
         self._stall_s = self._draw_stall()
         self._block_closest_m = math.inf
+        self.failed_escapes = 0  # back-offs in a row on this goal that did not move the robot
+        self._stuck_xy: NDArray[np.float64] | None = None  # where the deadlock struck
+        self._tried: list[NDArray[np.float64]] = []  # back-off targets tried on this goal
+        self._stalled_after_giving_up = False
+
+    @property
+    def exhausted(self) -> bool:
+        """Nothing more to try on this goal: ``max_failed_escapes`` back-offs in a row did not
+        move the robot, or it gave up and then stalled again. The node reports the task
+        failed (:attr:`exhaustion_reason`)."""
+        return (
+            self.failed_escapes >= self.config.max_failed_escapes or self._stalled_after_giving_up
+        )
+
+    @property
+    def exhaustion_reason(self) -> str:
+        """Why :attr:`exhausted` (empty when it is not)."""
+        if self.failed_escapes >= self.config.max_failed_escapes:
+            return (
+                f"deadlocked: {self.failed_escapes} back-offs in a row could not move the "
+                f"robot {self.config.escape_min_motion_m:g} m"
+            )
+        if self._stalled_after_giving_up:
+            return f"deadlocked: no progress after {self.attempts} back-offs"
+        return ""
 
     @property
     def gave_up(self) -> bool:
@@ -225,6 +271,7 @@ class DeadlockBreaker:
         self.backoff_target_in_odom = None
         self._goal = None
         self._motion.clear()
+        self._forget_escapes()
 
     def update(self, now_s: float, pose_in_odom: ArrayLike, goal_in_odom: ArrayLike) -> Phase:
         """One control period at ``pose_in_odom`` pursuing ``goal_in_odom``; returns the phase
@@ -238,6 +285,7 @@ class DeadlockBreaker:
             self.attempts = 0
             self.phase = Phase.DRIVE
             self.backoff_target_in_odom = None
+            self._forget_escapes()
             self._restart(now_s, xy)
         if not cfg.enabled:
             return self.phase
@@ -245,6 +293,7 @@ class DeadlockBreaker:
             target = self.backoff_target_in_odom
             arrived = target is None or float(np.hypot(*(xy - target))) <= cfg.arrive_m
             if arrived or now_s - self._phase_since_s >= cfg.backoff_timeout_s:
+                self._end_escape(xy)
                 self._hold(now_s)
             return self.phase
         if self.phase is Phase.HOLD:
@@ -261,13 +310,16 @@ class DeadlockBreaker:
         self._motion.append((now_s, xy))
         while self._motion and self._motion[0][0] < now_s - self._stall_s:
             self._motion.popleft()
-        if self.gave_up:
-            return self.phase
         waited = now_s - self._best_t
         pts = np.array([p for _, p in self._motion])
         spread = float(np.max(np.hypot(*(pts - pts[0]).T))) if len(pts) else 0.0
         stalled = waited >= self._stall_s and spread < cfg.stall_motion_m
+        if self.gave_up:
+            if stalled or waited >= cfg.livelock_s:
+                self._stalled_after_giving_up = True
+            return self.phase
         if stalled or waited >= cfg.livelock_s:
+            self._stuck_xy = xy.copy()
             self.phase = Phase.DEADLOCKED
             self.deadlocks += 1
             self.attempts += 1
@@ -303,19 +355,41 @@ class DeadlockBreaker:
                 f"{obs.dtype} {obs.shape}"
             )
         chosen = self._choose(obs, geometry, min_back_m=cfg.backoff_min_m)
+        if chosen is not None and self.failed_escapes > 0:
+            chosen = self._choose_untried(obs, geometry) or chosen
         self._phase_since_s = now_s
         if chosen is None:
+            self.failed_escapes += 1  # nowhere to back off to
             self._hold(now_s)
             return None
         self.phase = Phase.BACKOFF
         self.backoff_target_in_odom, self._target_back_m = chosen
+        self._tried.append(chosen[0].copy())
         return self.backoff_target_in_odom
 
     def abort_backoff(self, now_s: float) -> None:
         """The way back turned out to be blocked (no path to the target): hold here."""
         if self.phase is Phase.BACKOFF:
             self.backoff_target_in_odom = None
+            self.failed_escapes += 1
             self._hold(now_s)
+
+    def trail_back_path(self, position_in_odom: ArrayLike) -> NDArray[np.float64]:
+        """``(K, 2)`` the trail reversed (newest first) from the robot back to the back-off
+        target: ground the robot has just driven, so known passable when the planner, over a
+        map that has since closed it (a doorway's dilated jambs, a teammate's ghost), finds no
+        way; from the trail point nearest ``position_in_odom``. Empty when not backing off or
+        no trail is left between the robot and the target."""
+        pos = _xy("position_in_odom", position_in_odom)
+        target = self.backoff_target_in_odom
+        trail = self.trail_in_odom[::-1]
+        if self.phase is not Phase.BACKOFF or target is None or len(trail) < 2:
+            return np.zeros((0, 2))
+        end = int(np.argmin(np.hypot(*(trail - target).T)))
+        start = int(np.argmin(np.hypot(*(trail[: end + 1] - pos).T)))
+        if end - start < 1:
+            return np.zeros((0, 2))
+        return np.array(trail[start : end + 1], dtype=np.float64)
 
     def refine_backoff(
         self, obstacle: NDArray[np.bool_], geometry: GridGeometry
@@ -347,6 +421,48 @@ class DeadlockBreaker:
             self._trail.append(xy.copy())
             while len(self._trail) > cfg.trail_length_m / cfg.trail_spacing_m:
                 self._trail.popleft()
+
+    def _forget_escapes(self) -> None:
+        self.failed_escapes = 0
+        self._stuck_xy = None
+        self._tried = []
+        self._stalled_after_giving_up = False
+
+    def _end_escape(self, xy: NDArray[np.float64]) -> None:
+        """A back-off ended at ``xy``: count it failed when it left the robot where it was."""
+        start = self._stuck_xy
+        if start is not None and float(np.hypot(*(xy - start))) < self.config.escape_min_motion_m:
+            self.failed_escapes += 1
+        else:
+            self.failed_escapes = 0
+
+    def _choose_untried(
+        self, obstacle: NDArray[np.bool_], geometry: GridGeometry
+    ) -> tuple[NDArray[np.float64], float] | None:
+        """After a failed escape: the nearest trail point at least ``backoff_min_m`` back and
+        ``arrive_m`` from every target tried, preferring those with passing room."""
+        cfg = self.config
+        trail = self.trail_in_odom[::-1]
+        if len(trail) < 2:
+            return None
+        back = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(trail, axis=0).T))])
+        pick = (back >= cfg.backoff_min_m - 1e-9) & (back <= cfg.backoff_max_m)
+        for t in self._tried:
+            pick &= np.hypot(*(trail - t).T) > cfg.arrive_m
+        rc = geometry.cell_of(trail)
+        pick &= (
+            (rc[:, 0] >= 0)
+            & (rc[:, 0] < geometry.rows)
+            & (rc[:, 1] >= 0)
+            & (rc[:, 1] < geometry.cols)
+        )
+        idx = np.flatnonzero(pick)
+        if len(idx) == 0:
+            return None
+        room = clearance_field(obstacle, resolution_m=geometry.resolution_m)[rc[idx, 0], rc[idx, 1]]
+        roomy = idx[room >= cfg.passing_clearance_m]
+        best = int(roomy[0]) if len(roomy) else int(idx[int(np.argmax(room))])
+        return np.asarray(trail[best], dtype=np.float64), float(back[best])
 
     def _restart(self, now_s: float, xy: NDArray[np.float64]) -> None:
         assert self._goal is not None

@@ -217,6 +217,15 @@ class TaskExecutor:
 
     # ------------------------------------------------------------------ progress
 
+    def fail(self, now_s: float, detail: str) -> list[TaskStatus]:
+        """The robot cannot carry out its current task (``detail`` says why, e.g. a deadlock
+        it could not break): end it FAILED, so the GCS gives another. No report without one."""
+        act = self._active
+        if act is None or act.paused or isinstance(act.task, TeleopTask):
+            return []
+        self._active = None
+        return [self._status(act.task.task_id, TaskState.FAILED, now_s, detail)]
+
     def update(
         self,
         now_s: float,

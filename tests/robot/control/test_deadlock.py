@@ -201,3 +201,62 @@ def test_a_blocked_way_back_holds_at_once() -> None:
     assert b.start_backoff(t, np.zeros(GEO.shape, bool), GEO) is not None
     b.abort_backoff(t)
     assert b.phase is Phase.HOLD and b.backoff_target_in_odom is None
+
+
+def test_backoffs_that_cannot_move_the_robot_try_elsewhere_then_exhaust() -> None:
+    # issue 14: a robot backing off again and again to one trail point without moving
+    cfg = DeadlockConfig(
+        stall_s=2.0, stall_jitter_s=0.0, hold_s=0.5, hold_spread_s=0.0, backoff_timeout_s=3.0
+    )
+    b = DeadlockBreaker(cfg, seed=0)
+    goal = (30.0, 0.0)
+    t = _drive_straight(b, goal, 6.0)
+    empty = np.zeros(GEO.shape, dtype=bool)
+    here = (5.9, 0.0)
+    t, phase = _stand(b, here, goal, t, 10.0)
+    assert phase is Phase.DEADLOCKED
+    first = b.start_backoff(t, empty, GEO)
+    assert first is not None
+    # the way back is the trail, reversed, from the robot to the target
+    path = b.trail_back_path(here)
+    assert path[0][0] == pytest.approx(5.9, abs=0.11) and np.allclose(path[-1], first)
+    assert np.all(np.diff(path[:, 0]) < 0)
+    t, phase = _stand(b, here, goal, t, 3.2)  # the back-off times out: the robot never moved
+    assert phase is Phase.HOLD and b.failed_escapes == 1 and not b.exhausted
+    t, phase = _stand(b, here, goal, t, 10.0)
+    assert phase is Phase.DEADLOCKED
+    second = b.start_backoff(t, empty, GEO)
+    assert second is not None and float(np.hypot(*(second - first))) > cfg.arrive_m
+    t, phase = _stand(b, here, goal, t, 3.2)
+    assert b.exhausted and "could not move" in b.exhaustion_reason
+    b.reset()
+    assert not b.exhausted and b.failed_escapes == 0
+
+
+def test_a_backoff_that_moves_clears_the_failures_and_giving_up_then_stalling_exhausts() -> None:
+    cfg = DeadlockConfig(
+        stall_s=2.0, stall_jitter_s=0.0, hold_s=0.5, hold_spread_s=0.0, max_attempts=2
+    )
+    b = DeadlockBreaker(cfg, seed=0)
+    goal = (30.0, 0.0)
+    t = _drive_straight(b, goal, 6.0)
+    empty = np.zeros(GEO.shape, dtype=bool)
+    for _ in range(2):
+        t, phase = _stand(b, (5.9, 0.0), goal, t, 10.0)
+        assert phase is Phase.DEADLOCKED
+        target = b.start_backoff(t, empty, GEO)
+        assert target is not None
+        t, phase = _stand(b, target, goal, t, 2.0)  # arrived: it moved
+        assert b.failed_escapes == 0 and not b.exhausted
+    assert b.gave_up
+    t, phase = _stand(b, (5.9, 0.0), goal, t, 10.0)
+    assert phase is Phase.DRIVE and b.exhausted and "no progress" in b.exhaustion_reason
+    assert b.update(t, (5.9, 0.0), (0.0, 30.0)) is Phase.DRIVE and not b.exhausted
+
+
+def test_trail_back_path_is_empty_unless_backing_off() -> None:
+    b = DeadlockBreaker(DeadlockConfig(stall_s=2.0, stall_jitter_s=0.0), seed=0)
+    _drive_straight(b, (30.0, 0.0), 3.0)
+    assert b.trail_back_path((2.9, 0.0)).shape == (0, 2)
+    with pytest.raises(ValueError, match="position_in_odom"):
+        b.trail_back_path((math.inf, 0.0))

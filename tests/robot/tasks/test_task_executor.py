@@ -169,3 +169,13 @@ def test_operator_tasks_drive_semi_autonomously_until_the_planners_task_again() 
     assert ex.intent.mode is AutonomyMode.SEMI_AUTONOMOUS
     ex.submit(GoToTask(1_000_001, 4.0, [(5.0, 0.0)]), 4.0, ORIGIN)  # the planners' again
     assert ex.intent.mode is AutonomyMode.AUTONOMOUS
+
+
+def test_fail_ends_the_task_with_the_reason_and_needs_a_task() -> None:
+    ex = TaskExecutor()
+    assert ex.fail(1.0, "deadlocked") == []
+    ex.submit(GoToTask(1, 0.0, [(10.0, 0.0)]), 0.0, ORIGIN)
+    (status,) = ex.fail(2.0, "deadlocked: 2 back-offs in a row could not move the robot")
+    assert status.task_id == 1 and status.state is TaskState.FAILED
+    assert "could not move" in status.detail
+    assert ex.current_task_id == 0 and ex.fail(3.0, "again") == []
