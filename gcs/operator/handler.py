@@ -47,6 +47,7 @@ from protocol.messages import (
     AutonomyMode,
     GoToTask,
     Hazard,
+    IdleTask,
     NeutralizeTask,
     ObjectKind,
     ParameterUpdate,
@@ -289,17 +290,22 @@ class CommandHandler:
 
     def _auto(self, c: Command, ctx: OperatorContext) -> Outcome:
         robots = self._robots(c.target, ctx)
+        out = []
         for r in robots:
             self.operator_controlled.discard(r)
             self.paused.pop(r, None)
-            self.operator_tasks.pop(r, None)
+            if self.operator_tasks.pop(r, None) is not None and ctx.allocator is not None:
+                # the robot drops the operator's goal now and stands, autonomous, until the
+                # planners' next task (it drove on semi-autonomous to the operator's goal)
+                out.append((r, IdleTask(self._new_id(), ctx.now_s)))
         self._release_allocator(ctx, robots)
         tail = (
             "the planners task them at their next plan"
             if ctx.allocator is not None
             else "no task allocator runs at this GCS: they keep their current task"
         )
-        return Outcome("ok", f"robot(s) {_ids(robots)} back to the planners; {tail}")
+        dropped = f"; operator goal dropped by robot(s) {_ids([r for r, _ in out])}" if out else ""
+        return Outcome("ok", f"robot(s) {_ids(robots)} back to the planners; {tail}{dropped}", out)
 
     def _pause(self, c: Command, ctx: OperatorContext) -> Outcome:
         robots = self._robots(c.target, ctx)

@@ -16,6 +16,7 @@ from protocol.messages import (
     AutonomyMode,
     Detection,
     GoToTask,
+    IdleTask,
     NeutralizeTask,
     ObjectKind,
     ParameterUpdate,
@@ -94,6 +95,12 @@ def test_pause_resume_auto_and_who_controls() -> None:
     alloc.assignments = assignments  # type: ignore[attr-defined]
     out = h.handle(parse_line("auto 0"), _ctx(gs, allocator=alloc))
     assert out.status == "ok" and h.held_robots() == set() and assignments == {}
+    # robot 0 was on the operator's goal: it drops it now (autonomous again at once), rather
+    # than driving on semi-autonomous until the planners' next task
+    assert [(r, type(m)) for r, m in out.downlink] == [(0, IdleTask)]
+    assert "operator goal dropped by robot(s) 0" in out.text
+    again = h.handle(parse_line("auto 0"), _ctx(gs, allocator=alloc))
+    assert again.downlink == []  # nothing of the operator's left to drop
 
 
 def test_neutralize_needs_a_disruptor_and_a_static_ooi_then_approves() -> None:
