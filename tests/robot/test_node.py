@@ -158,3 +158,35 @@ def test_a_robot_inside_a_keepout_disk_drives_out_never_deeper(sim: Simulator) -
             break
     assert statuses(sent, 4)[-1] is TaskState.SUCCEEDED
     assert closest >= 1.5 - 0.2  # odometry and control error, not a step towards it
+
+
+def test_cheap_perception_steps_are_timed_every_nth_call_and_counted_n_times(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import time
+
+    from robot.node import RobotNodeConfig
+
+    with pytest.raises(ValueError, match="perception_cpu_sample_every"):
+        RobotNodeConfig(perception_cpu_sample_every=0)
+    node = RobotNode(0, send=[].append, config=RobotNodeConfig(perception_cpu_sample_every=4))
+    reads: list[float] = []
+    real = time.thread_time
+
+    def counted() -> float:
+        reads.append(real())
+        return reads[-1]
+
+    monkeypatch.setattr("robot.node.time.thread_time", counted)
+
+    def busy() -> None:
+        t0 = real()
+        while real() - t0 < 0.002:  # 2 ms of CPU
+            pass
+
+    for _ in range(8):
+        node._perceive(busy, sampled="control")
+    assert len(reads) == 4  # calls 0 and 4 of that kind, two reads each
+    assert 8 * 0.002 * 0.8 <= node.stats.perception_cpu_s <= 8 * 0.002 * 3
+    node._perceive(busy)  # an unsampled step is always timed
+    assert len(reads) == 6
