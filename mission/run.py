@@ -65,6 +65,8 @@ from robot.node import RobotNodeConfig
 from sim.simulator import Simulator, SimulatorConfig, load_world_config
 
 if TYPE_CHECKING:
+    from gcs.ground_station import GroundStation
+    from mission.report.recorder import MissionRecorder
     from protocol.link import LinkConfig
 
 __all__ = [
@@ -535,6 +537,21 @@ def run_mission(
         return report
 
 
+def _sample_into(rec: MissionRecorder, asm: Assembly, station: GroundStation) -> None:
+    """One report sample of the run now: the simulator, the station and the robots' modes."""
+    modes = {}
+    for rid in asm.sim.robot_ids:
+        t = station.telemetry(rid)
+        modes[rid] = None if t is None else t.mode
+    rec.sample(
+        asm.sim.time_s,
+        sim=asm.sim,
+        station=station,
+        link_bytes=asm.link_bytes(),
+        modes=modes,
+    )
+
+
 class _RemoteRecording:
     """The mission recorder of a run whose GCS is in its own process: the truth track every
     step, and one sample at the end, of the station rebuilt from the GCS's journal (the
@@ -568,17 +585,7 @@ class _RemoteRecording:
             station, _ = rebuild_station(reader)
         finally:
             reader.close()
-        modes = {}
-        for rid in self.asm.sim.robot_ids:
-            t = station.telemetry(rid)
-            modes[rid] = None if t is None else t.mode
-        self.rec.sample(
-            self.asm.sim.time_s,
-            sim=self.asm.sim,
-            station=station,
-            link_bytes=self.asm.link_bytes(),
-            modes=modes,
-        )
+        _sample_into(self.rec, self.asm, station)
         return self.rec.finish(sim=self.asm.sim, station=station)
 
 
@@ -648,18 +655,7 @@ class _Recording:
             self._sample()
 
     def _sample(self) -> None:
-        station = self.gcs.station
-        modes = {}
-        for rid in self.asm.sim.robot_ids:
-            t = station.telemetry(rid)
-            modes[rid] = None if t is None else t.mode
-        self.rec.sample(
-            self.asm.sim.time_s,
-            sim=self.asm.sim,
-            station=station,
-            link_bytes=self.asm.link_bytes(),
-            modes=modes,
-        )
+        _sample_into(self.rec, self.asm, self.gcs.station)
 
     def finish(self) -> dict[str, float]:
         self._sample()
