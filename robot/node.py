@@ -130,6 +130,10 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     calibrate_still_s: float = 3.0  # hold still at start so the gyro bias is learned (4.3.1)
     deskew_samples: int = 16  # odometry poses interpolated across a sweep
     backup_s: float = 1.5  # stuck recovery: reverse this long
+    # a sweep replans only when the path is no longer clear in it, or the plan is older than
+    # replan_period_s, or there is no good plan (issue 14 profile: 12.5k replans, one per
+    # sweep, 24 s of the robot nodes' 105 CPU-s); the goal changing replans at once
+    replan_period_s: float = 2.0
     # the cheap, frequent perception steps (each control period, each frame batch's flush)
     # are timed every Nth call and counted N times: a CPU-time clock read costs 13.5 us here,
     # more than the step (issue 14 profile: 103k reads, 15 s of the robots' 105 CPU-s)
@@ -303,6 +307,7 @@ class RobotNode:
         self._evade_goal: np.ndarray | None = None
         self._evading = False
         self._evade_refresh = False
+        self._planned_at_s = -math.inf  # when _replan last planned
         # own hostile tracks as last seen: (x, y, vx, vy, seen_s), odom; and where they are now
         self._ghosts: list[tuple[float, float, float, float, float]] = []
         self._own_hostiles = np.zeros((0, 4))
@@ -551,7 +556,34 @@ class RobotNode:
             self._perceive(lambda: self._perceive_sweep(sweep, poses, roll, pitch))
             self._perceive(self._flush_perception)
         self._evade_refresh = self._evading  # the hostile moved: a new goal from this map
-        self._replan(force=True)
+        if self._sweep_replan_due():
+            self._replan(force=True)
+
+    def _sweep_replan_due(self) -> bool:
+        """Whether a new sweep calls for a new plan: the plan is old, absent, not a path to
+        the goal, or part of a deadlock's, an evasion's or a yield's business, or the newest
+        sweep blocks the path ahead. A clear path to the same goal is kept."""
+        if (
+            self._planned_goal is None
+            or not self._path_found
+            or self._evading
+            or self._yield_since_s is not None
+            or self.deadlock.phase is not Phase.DRIVE
+            or not self.follower.has_path
+            or self._latest is None
+            or self._now - self._planned_at_s >= self.config.replan_period_s
+        ):
+            return True
+        latest, geometry = self._latest
+        block_m = path_block_distance(
+            self.follower.remaining_path_in_odom,
+            self.odometry.pose_in_odom[:2],
+            latest,
+            geometry,
+            robot_radius_m=self.config.planner.robot_radius_m,
+            lookahead_m=math.inf,
+        )
+        return math.isfinite(block_m)
 
     def _perceive_sweep(
         self, sweep: LidarSweep, poses: np.ndarray, roll: float, pitch: float
@@ -715,6 +747,7 @@ class RobotNode:
         cost = self.traversability.cost_multiplier(geometry) if len(self.traversability) else None
         result = self.planner.plan(classes, geometry, pose[:2], clipped, cost_multiplier=cost)
         self.stats.plans += 1
+        self._planned_at_s = self._now
         self._planned_goal = goal
         reachable = True
         if not result.ok:

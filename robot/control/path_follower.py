@@ -100,6 +100,11 @@ class PathFollower:
     def has_path(self) -> bool:
         return len(self._path) > 0
 
+    @property
+    def remaining_path_in_odom(self) -> np.ndarray:
+        """``(K, 2)`` the path still ahead, from the segment last reached (empty: none)."""
+        return self._path[self._progress :]
+
     def _lookahead_point(self, pos: np.ndarray) -> tuple[np.ndarray, float]:
         """The point ``lookahead_m`` of arc length beyond ``pos``'s projection onto the path,
         and the straight distance to the goal. Progress only moves forward along the path
