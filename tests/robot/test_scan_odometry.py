@@ -1,0 +1,130 @@
+"""Laser-aided odometry (robot.odometry.scan_odometry): a turn-scale error in the odometry is
+taken out by the scans; a step without a usable scan keeps the odometry."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robot.odometry.scan_odometry import (
+    ScanOdometryConfig,
+    ScanOdometryStats,
+    match_step,
+    refine_odometry,
+)
+
+#: A 12 x 8 m room with three boxes (x0, y0, x1, y1): asymmetric, so every pose looks different.
+_BOXES = [
+    (-6.0, -4.0, 6.0, 4.0),
+    (-3.0, 1.5, -2.2, 2.3),
+    (2.0, -2.5, 3.2, -1.9),
+    (4.5, 2.0, 5.0, 3.5),
+]
+
+
+def _segments() -> np.ndarray:
+    segs = []
+    for x0, y0, x1, y1 in _BOXES:
+        segs += [(x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)]
+    return np.array(segs)
+
+
+def _scan(pose: np.ndarray, segs: np.ndarray, beams: int = 181) -> np.ndarray:
+    """Endpoints in base of a 180-degree laser at ``pose`` (nearest wall per beam)."""
+    ang = np.linspace(-math.pi / 2, math.pi / 2, beams)
+    d = np.stack([np.cos(ang + pose[2]), np.sin(ang + pose[2])], axis=1)  # (B, 2)
+    p = segs[:, :2]
+    e = segs[:, 2:] - p  # (S, 2)
+    w = p[None, :, :] - pose[None, None, :2]  # (1, S, 2)
+    den = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) / den
+        u = (w[..., 0] * d[:, None, 1] - w[..., 1] * d[:, None, 0]) / den
+    ok = (np.abs(den) > 1e-12) & (t > 0.05) & (u >= 0) & (u <= 1)
+    r = np.where(ok, t, np.inf).min(axis=1)
+    keep = np.isfinite(r) & (r < 10.0)
+    return np.stack([r[keep] * np.cos(ang[keep]), r[keep] * np.sin(ang[keep])], axis=1)
+
+
+def _chain(steps: np.ndarray, start: np.ndarray) -> np.ndarray:
+    out = [start]
+    for dx, dy, dyaw in steps:
+        x, y, yaw = out[-1]
+        c, s = math.cos(yaw), math.sin(yaw)
+        out.append(np.array([x + c * dx - s * dy, y + s * dx + c * dy, yaw + dyaw]))
+    return np.array(out)
+
+
+def _truth() -> np.ndarray:
+    """A drive with a full turn in place and a curve: 0.1 m / 3 deg steps."""
+    steps = [(0.1, 0.0, 0.0)] * 10 + [(0.0, 0.0, math.radians(6.0))] * 30
+    steps += [(0.1, 0.0, math.radians(3.0))] * 20
+    return _chain(np.array(steps), np.array([-4.0, -1.0, 0.0]))
+
+
+def test_a_turn_scale_error_is_taken_out_by_the_scans() -> None:
+    truth = _truth()
+    segs = _segments()
+    scans = [_scan(p, segs) for p in truth]
+    true_steps = np.array([_rel(a, b) for a, b in zip(truth[:-1], truth[1:], strict=True)])
+    odom = _chain(true_steps * [1.0, 1.0, 1.08], truth[0])  # a gyro reading turns 8 % long
+    stats = ScanOdometryStats()
+    refined = refine_odometry(odom, scans, ScanOdometryConfig(), stats)
+    assert stats.matched >= len(truth) - 3
+    end_yaw_odom = abs(_wrap(odom[-1, 2] - truth[-1, 2]))
+    end_yaw = abs(_wrap(refined[-1, 2] - truth[-1, 2]))
+    assert end_yaw_odom > math.radians(19.0)  # 8 % of 240 deg
+    assert end_yaw < math.radians(1.5)
+    assert np.hypot(*(refined[-1, :2] - truth[-1, :2])) < 0.15
+    assert np.allclose(refined[0], odom[0])
+
+
+def test_a_step_without_a_scan_keeps_the_odometry() -> None:
+    truth = _truth()[:12]
+    segs = _segments()
+    scans = [_scan(p, segs) for p in truth]
+    scans[5] = np.zeros((0, 2))  # the laser lost one sweep
+    odom = truth + np.array([0.0, 0.0, 0.0])
+    stats = ScanOdometryStats()
+    refined = refine_odometry(odom, scans, ScanOdometryConfig(), stats)
+    assert stats.weak == 1
+    step_odom = _rel(odom[4], odom[5])
+    step_refined = _rel(refined[4], refined[5])
+    assert np.allclose(step_odom, step_refined, atol=1e-9)
+    # matched steps of exact odometry stay within the search's resolution of it
+    assert np.abs(refined[:, :2] - truth[:, :2]).max() < 0.03
+
+
+def test_a_corridor_keeps_the_odometry_along_it_and_measures_the_heading() -> None:
+    # two long parallel walls: along the corridor the scan says nothing
+    segs = np.array([(-50.0, -1.0, 50.0, -1.0), (-50.0, 1.0, 50.0, 1.0)])
+    pose = np.array([0.0, 0.0, 0.0])
+    scan_map = _scan(pose, segs, beams=361)
+    truth_next = np.array([0.1, 0.0, 0.0])
+    predicted = np.array([0.2, 0.05, math.radians(1.5)])  # 0.1 m long, 5 cm aside, 1.5 deg off
+    found = match_step(scan_map, _scan(truth_next, segs, 361), predicted, 0.0, ScanOdometryConfig())
+    assert found is not None
+    pose_m, cov = found
+    assert abs(pose_m[1] - truth_next[1]) < 0.03
+    assert abs(pose_m[2] - truth_next[2]) < math.radians(0.3)
+    assert cov[0, 0] > 10 * cov[1, 1]  # along the corridor: flat response
+
+
+def test_bad_input_is_named() -> None:
+    with pytest.raises(ValueError, match="2 scans for 3"):
+        refine_odometry(np.zeros((3, 3)), [np.zeros((0, 2))] * 2)
+    with pytest.raises(ValueError, match="sigma_m"):
+        ScanOdometryConfig(sigma_m=0.0)
+    assert refine_odometry(np.zeros((0, 3)), []).shape == (0, 3)
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, _wrap(b[2] - a[2])])
+
+
+def _wrap(a: float) -> float:
+    return math.atan2(math.sin(a), math.cos(a))
