@@ -436,6 +436,14 @@ class DeadlockBreaker:
         else:
             self.failed_escapes = 0
 
+    def _far(self, pick: NDArray[np.bool_], trail: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """``pick`` narrowed to trail points ``backoff_min_m`` from the robot in a straight
+        line when any is: a trail that coiled in a nook (seed 0 after issue 14's first fix: a
+        robot wiggling in a dead end) has points far back along it that are beside the robot,
+        and backing off to one moves it nowhere."""
+        far = pick & (np.hypot(*(trail - trail[0]).T) >= self.config.backoff_min_m - 1e-9)
+        return far if far.any() else pick
+
     def _choose_untried(
         self, obstacle: NDArray[np.bool_], geometry: GridGeometry
     ) -> tuple[NDArray[np.float64], float] | None:
@@ -446,7 +454,7 @@ class DeadlockBreaker:
         if len(trail) < 2:
             return None
         back = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(trail, axis=0).T))])
-        pick = (back >= cfg.backoff_min_m - 1e-9) & (back <= cfg.backoff_max_m)
+        pick = self._far((back >= cfg.backoff_min_m - 1e-9) & (back <= cfg.backoff_max_m), trail)
         for t in self._tried:
             pick &= np.hypot(*(trail - t).T) > cfg.arrive_m
         rc = geometry.cell_of(trail)
@@ -498,7 +506,7 @@ class DeadlockBreaker:
         if len(trail) < 2:
             return None
         back = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(trail, axis=0).T))])
-        pick = (back >= min_back_m - 1e-9) & (back <= cfg.backoff_max_m)
+        pick = self._far((back >= min_back_m - 1e-9) & (back <= cfg.backoff_max_m), trail)
         if not pick.any():
             if roomy_only:
                 return None

@@ -260,3 +260,18 @@ def test_trail_back_path_is_empty_unless_backing_off() -> None:
     assert b.trail_back_path((2.9, 0.0)).shape == (0, 2)
     with pytest.raises(ValueError, match="position_in_odom"):
         b.trail_back_path((math.inf, 0.0))
+
+
+def test_backoff_target_is_away_from_the_robot_when_the_trail_coiled() -> None:
+    b = DeadlockBreaker(DeadlockConfig(stall_s=2.0, stall_jitter_s=0.0, backoff_min_m=1.5), seed=0)
+    goal = (30.0, 0.0)
+    t = _drive_straight(b, goal, 4.0)  # in along y=0 to x=4, then a tight loop in a nook
+    for k in range(60):
+        a = k * 2 * math.pi / 30
+        xy = (4.0 + 0.3 * math.sin(a), 0.3 - 0.3 * math.cos(a))
+        b.update(t, xy, goal)
+        t += 0.1
+    t, phase = _stand(b, (4.0, 0.0), goal, t, 10.0)
+    assert phase is Phase.DEADLOCKED
+    target = b.start_backoff(t, np.zeros(GEO.shape, dtype=bool), GEO)
+    assert target is not None and float(np.hypot(target[0] - 4.0, target[1])) >= 1.5 - 1e-6
