@@ -54,6 +54,13 @@ def replay_parser(epilog: str | None = None) -> argparse.ArgumentParser:
         "(unitless); default: the config's, 1",
     )
     p.add_argument(
+        "--no-scan-odometry",
+        action="store_true",
+        help="use the log's odometry as reported, not refined by matching each scan against "
+        "the last few (paper 4.1's laser-aided odometry); default: the config's scan_odometry, "
+        "on",
+    )
+    p.add_argument(
         "--scans", type=int, metavar="N", help="replay only the first N scans; default: all"
     )
     p.add_argument(

@@ -56,7 +56,10 @@ class ScanOdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     weak-match test. ``odometry_sigma_m``/``odometry_sigma_m_per_m`` and
     ``odometry_sigma_rad``/``odometry_turn_share_sigma`` the odometry step's standard deviation
     for the fusion; ``response_temperature`` scales the response into a likelihood (points
-    are not independent: a mean over them times this).
+    are not independent: a mean over them times this). A step longer than ``max_step_m`` or
+    turning more than ``max_step_rad`` (lost scans in between) is not matched: it keeps the
+    odometry and the local map starts again from its scan (what the window around the
+    prediction holds is no longer the same place).
     """
 
     max_shift_m: float = 0.2
@@ -80,6 +83,8 @@ class ScanOdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     odometry_sigma_rad: float = math.radians(1.0)
     odometry_turn_share_sigma: float = 0.20
     response_temperature: float = 40.0
+    max_step_m: float = 3.0
+    max_step_rad: float = math.radians(120.0)
 
     def __post_init__(self) -> None:
         positive = {
@@ -94,6 +99,8 @@ class ScanOdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
             "odometry_sigma_m": self.odometry_sigma_m,
             "odometry_sigma_rad": self.odometry_sigma_rad,
             "response_temperature": self.response_temperature,
+            "max_step_m": self.max_step_m,
+            "max_step_rad": self.max_step_rad,
         }
         for name, value in positive.items():
             if not (math.isfinite(value) and value > 0):
@@ -308,6 +315,13 @@ def refine_odometry(
         step = _relative(odom[k - 1], odom[k])
         predicted = _compose(out[k - 1], step)
         current = prepared(k)
+        if math.hypot(step[0], step[1]) > cfg.max_step_m or abs(step[2]) > cfg.max_step_rad:
+            out[k] = predicted
+            st.weak += 1
+            keyframes.clear()
+            keyframes.append(_transform(out[k], current))
+            last_key = out[k].copy()
+            continue
         map_pts = np.concatenate(list(keyframes))
         found = match_step(map_pts, current, predicted, float(step[2]), cfg)
         if found is None:

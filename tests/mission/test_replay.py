@@ -19,6 +19,7 @@ from mission.replay import (
     ScanGridConfig,
     replay_messages,
     replay_odometry,
+    robot_odometry,
     run_replay,
     scan_grid,
 )
@@ -131,9 +132,12 @@ def test_messages_follow_the_node_rule_and_carry_the_scan() -> None:
     assert grid.shape == (header.height, header.width)
     # The grid holds the scans of the last 2 m: this one and the six before (0.3 m apart).
     assert n.scan >= 6 and cfg.grid.aggregate_m == 2.0
+    # placed by the chain the robot's nodes use (laser-aided by default: robot_odometry)
+    chain = robot_odometry(log, cfg)[0]
+    np.testing.assert_allclose(n.pose_node.pose_in_odom, chain[n.scan], atol=1e-9)
     recent = [
         transform_points(
-            relative(log.odometry_in_log[n.scan], log.odometry_in_log[j]),
+            relative(chain[n.scan], chain[j]),
             log.points_in_base(j, max_range_m=10.0),
         )
         for j in range(n.scan - 6, n.scan + 1)
@@ -162,7 +166,7 @@ def test_a_grid_holds_no_scan_the_odometry_turned_beyond_its_bound() -> None:
     """A grid joins scans by the reported odometry, so a turn-scale error bends it by the turning
     it spans: it goes back only ``aggregate_max_turn_rad`` (40 deg), not round a 90 deg corner."""
     log = synthetic_log(laps=0.5)
-    odom = log.odometry_in_log
+    odom = robot_odometry(log, ReplayConfig())[0]
     corner = int(np.flatnonzero(np.abs(np.diff(odom[:, 2])) > 1.0)[0]) + 1  # first scan past it
     assert ScanGridConfig().aggregate_max_turn_rad == pytest.approx(math.radians(40.0))
     capped = {n.scan: n for n in replay_messages(log, ReplayConfig())}
@@ -185,6 +189,31 @@ def test_a_grid_holds_no_scan_the_odometry_turned_beyond_its_bound() -> None:
     assert decode_grid(free[k].terrain_grid.data).sum() > expect.sum() + 50
     with pytest.raises(ValueError, match="aggregate_max_turn_rad"):
         ScanGridConfig(aggregate_max_turn_rad=0.0)
+
+
+def test_laser_aided_odometry_takes_out_a_turn_scale_error() -> None:
+    """Paper 4.1: the robot's odometry is laser-aided. A gyro reading turns 8 % long bends the
+    reported chain; the replay's nodes (scan_odometry, on by default) stay on the true path,
+    and with it off they follow the reported odometry."""
+    from mission.bench.perturbations import scale_turns
+
+    log = scale_turns(synthetic_log(laps=0.5), 1.08)
+    truth = log.laser_in_log
+    reported = replay_odometry(log, ReplayConfig())[0]
+    chain = robot_odometry(log, ReplayConfig())[0]
+    off = ReplayConfig(scan_odometry=None)
+    np.testing.assert_array_equal(robot_odometry(log, off)[0], reported)
+
+    def worst_yaw(poses: np.ndarray) -> float:
+        return float(np.abs(relative(truth, poses)[:, 2]).max())
+
+    assert worst_yaw(reported) > math.radians(7.0)  # 8 % of a 90 deg corner
+    assert worst_yaw(chain) < math.radians(1.5)
+    assert float(np.abs(relative(truth, chain)[:, :2]).max()) < 0.2
+    nodes = replay_messages(log, ReplayConfig())
+    np.testing.assert_allclose(
+        [n.pose_node.pose_in_odom for n in nodes], chain[[n.scan for n in nodes]], atol=1e-9
+    )
 
 
 def test_odometry_noise_is_seeded_and_drawn_from_the_node_model() -> None:
@@ -224,7 +253,10 @@ def test_replay_through_the_ground_station_evaluates_against_the_reference(
 ) -> None:
     log = synthetic_log(laps=1.2)
     # A budget that never binds: the result does not depend on how busy the machine is.
-    cfg = ReplayConfig(noise=OdometryNoiseConfig(scale=2.0, seed=4), step_budget_s=5.0)
+    # The odometry as reported (not laser-aided): what the GCS must correct is its drift.
+    cfg = ReplayConfig(
+        noise=OdometryNoiseConfig(scale=2.0, seed=4), step_budget_s=5.0, scan_odometry=None
+    )
     lines: list[tuple[int, int, str]] = []
     res = run_replay(
         log, config=cfg, out_dir=tmp_path, progress=lambda d, n, t: lines.append((d, n, t))
@@ -365,6 +397,8 @@ def test_magic_replay_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main([*argv, "--quiet", "--scans", "20"]) == 0
     out, err = capsys.readouterr()
     assert "20 scans" in out and err == ""
+    assert main([*argv, "--quiet", "--scans", "20", "--no-scan-odometry"]) == 0
+    assert "20 scans" in capsys.readouterr().out
     (tmp_path / "bad.log").write_text("FLASER 3 1 1\n")
     assert main(["replay", "--carmen", str(tmp_path / "bad.log")]) == 2
     assert "bad.log:1: FLASER with 3 beams" in capsys.readouterr().err
@@ -467,7 +501,8 @@ def test_help_names_every_default(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["--help"])
     text = " ".join(capsys.readouterr().out.split())
-    for option in ("--relations", "--out", "--odom-noise", "--seed", "--scans", "--progress-every"):
+    options = ("--relations", "--out", "--odom-noise", "--seed", "--scans", "--progress-every")
+    for option in (*options, "--no-scan-odometry"):
         block = text.split(option, 2)[-1][:200]
         assert "default" in block, option
 
@@ -564,7 +599,7 @@ def test_an_odometry_gap_widens_the_covariance_only_across_it() -> None:
     from mission.replay import odometry_gaps
 
     log = synthetic_log(laps=0.7)
-    cfg = ReplayConfig()
+    cfg = ReplayConfig(scan_odometry=None)  # node deltas compared with the reported odometry's
     assert odometry_gaps(log, cfg).lines == []
     # 30 s between two scans is a gap in time (unless only distance gaps are asked for).
     t = log.time_s.copy()

@@ -93,6 +93,14 @@ def test_a_step_without_a_scan_keeps_the_odometry() -> None:
     step_odom = _rel(odom[4], odom[5])
     step_refined = _rel(refined[4], refined[5])
     assert np.allclose(step_odom, step_refined, atol=1e-9)
+    # a step across lost scans (longer than max_step_m) is not matched either
+    jumped = refine_odometry(
+        odom,
+        scans,
+        ScanOdometryConfig(max_step_m=0.05, max_step_rad=0.01),
+        stats := ScanOdometryStats(),
+    )
+    assert stats.matched == 0 and np.allclose(jumped, odom)
     # matched steps of exact odometry stay within the search's resolution of it
     assert np.abs(refined[:, :2] - truth[:, :2]).max() < 0.03
 
