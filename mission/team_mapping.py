@@ -114,6 +114,9 @@ class TeamMappingReport:
     closure_errors_m: list[float] = field(default_factory=list)
     ate_rmse_m: float = math.nan
     ate_rmse_prior_m: float = math.nan  # odometry + hints only, before any loop closure
+    # the same nodes with the loop closures taken out and the graph re-solved: what the
+    # closures bought, on the nodes ate_rmse_m scores (path noise moves both together)
+    ate_rmse_without_closures_m: float = math.nan
 
 
 def shared_waypoints(
@@ -254,6 +257,13 @@ def _score(
     report.nodes = len(keys)
     report.grids = station.stats.terrain_grids
     report.ate_rmse_m = ate_rmse_m(est, true_in_map) if len(keys) >= 3 else math.nan
+    closures = station.graph.edges(Provenance.LOOP_AUTO)
+    if closures and len(keys) >= 3:
+        bare = station.graph.copy()
+        bare.remove_edges([e.edge_id for e in closures])
+        bare.optimize()
+        bare_est = np.array([bare.pose(k) for k in keys])
+        report.ate_rmse_without_closures_m = ate_rmse_m(bare_est, true_in_map)
     report.closures = report.cross_robot_closures = report.false_closures = 0
     report.closure_errors_m = []
     for e in station.graph.edges(Provenance.LOOP_AUTO):
