@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import enum
 import hashlib
 import io
 import json
@@ -725,6 +726,10 @@ class _CheckpointPickler(pickle.Pickler):
         if type(obj) is LoopCloser:
             state = {k: v for k, v in obj.__dict__.items() if k not in _CLOSER_CACHES}
             return (_load_loop_closer, (state,))
+        if isinstance(obj, enum.Enum):
+            # by value, on every Python: 3.11.0-3.11.4 pickle members as getattr(cls, name),
+            # and getattr is no class the loader may run
+            return (type(obj), (obj.value,))
         return NotImplemented
 
 

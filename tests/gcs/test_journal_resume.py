@@ -267,6 +267,27 @@ def test_a_checkpoint_loads_only_what_a_station_is_made_of() -> None:
     assert again.config == station.config and len(again.graph.nodes()) == 0
 
 
+def test_a_checkpoint_loads_on_a_python_that_pickles_enums_by_name(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Python 3.11.0-3.11.4 pickle an enum member as ``getattr(cls, name)``, which the loader
+    refuses: the checkpoint saves members by value on every Python (a fresh clone's system
+    3.11.2 lost every checkpoint to this)."""
+    from gcs.graph.pose_graph import Provenance
+
+    def by_name(self: Provenance, proto: int) -> object:
+        return getattr, (type(self), self.name)
+
+    monkeypatch.setattr(Provenance, "__reduce_ex__", by_name)
+    ground = _ground(None)
+    _turns(ground, _mission(seed=4), 0, 8)
+    assert any(e.provenance is Provenance.ODOMETRY for e in ground.station.graph.edges())
+    state = save_station(ground.station)
+    assert b"getattr" not in state
+    again = load_station(state)
+    assert compare_stations(ground.station, again).pose_diff_max_m == 0.0
+
+
 def test_a_resume_reads_only_what_follows_the_checkpoint_and_the_link_ledger(
     tmp_path: Path,
 ) -> None:
