@@ -47,6 +47,7 @@ from gcs.tasking.disruptor_planner import DisruptorConfig, dispatch_disruptor, s
 from gcs.tasking.exploration_planner import (
     ExplorationConfig,
     Explorer,
+    failed_route_discs,
     plan_exploration,
     return_leg,
 )
@@ -170,6 +171,15 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # ... or has not come stall_m nearer its goal in stall_progress_s (a robot backing off
     # and retrying, to and fro: seed 0, 50 s within 3 m)
     stall_progress_s: float = 40.0
+    # an exploration route that failed (the task failed or timed out, or the robot stalled
+    # on it) is avoided by that robot for avoid_s: discs of avoid_radius_m over the route from
+    # avoid_from_m to avoid_to_m past where the robot was (exploration_planner
+    # .failed_route_discs); the goal alone was blacklisted, and the next goal a few metres
+    # beside it went through the same doorway (small world seed 0: one robot, six goals, 140 s)
+    avoid_s: float = 120.0
+    avoid_from_m: float = 0.5
+    avoid_to_m: float = 3.0
+    avoid_radius_m: float = 0.75
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
     highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
@@ -195,6 +205,8 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "stall_s",
             "stall_m",
             "stall_progress_s",
+            "avoid_s",
+            "avoid_radius_m",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -203,6 +215,11 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError(f"tasking robot_radius_m must be >= 0, got {self.robot_radius_m}")
         if self.lost_after_s < self.silent_after_s:
             raise ValueError("tasking lost_after_s must be >= silent_after_s")
+        if not (0 <= self.avoid_from_m <= self.avoid_to_m and math.isfinite(self.avoid_to_m)):
+            raise ValueError(
+                f"tasking needs 0 <= avoid_from_m <= avoid_to_m (finite), got "
+                f"{self.avoid_from_m}, {self.avoid_to_m}"
+            )
         if self.goal_failures_global < 1:
             raise ValueError("tasking goal_failures_global must be >= 1")
         # the robots tell the planners' tasks from the operators' by id (an operator's task is
@@ -269,6 +286,8 @@ class Assignment:
     goal_in_map: tuple[float, float] | None = None
     hazard_id: int | None = None
     timeout_s: float = math.inf
+    # ``(K, 2)`` the way sent, from where the robot was (``_goto`` tasks)
+    route_in_map: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)
@@ -332,6 +351,8 @@ class TaskAllocator:
         self.highway: TrajectoryGraph | None = None
         self._next_id = self.config.first_task_id
         self._failed_goals: dict[int, list[tuple[float, float]]] = {}
+        # robot -> discs (x, y, radius, until_s) its exploration routes avoid
+        self._avoid: dict[int, list[tuple[float, float, float, float]]] = {}
         self._goal_failures: list[tuple[tuple[float, float], int]] = []
         # hazard -> robot -> when it failed that hazard's neutralization
         self._dispatch_excluded: dict[int, dict[int, float]] = {}
@@ -426,7 +447,9 @@ class TaskAllocator:
         length = float(np.hypot(*np.diff(legs, axis=0).T).sum())
         timeout = self.config.goal_timeout_base_s + length / self.config.assumed_speed_m_s
         goal = goal_in_map if goal_in_map is not None else (float(wps[-1, 0]), float(wps[-1, 1]))
-        self.assignments[r.robot_id] = Assignment(tid, purpose, ctx.now_s, goal, hazard_id, timeout)
+        self.assignments[r.robot_id] = Assignment(
+            tid, purpose, ctx.now_s, goal, hazard_id, timeout, route_in_map=legs
+        )
         ctx.out.append(
             (r.robot_id, GoToTask(tid, ctx.now_s, [(float(x), float(y)) for x, y in in_odom]))
         )
@@ -684,6 +707,7 @@ class TaskAllocator:
             if purpose == "explore" and a.goal_in_map is not None:
                 self._failed_goals.setdefault(r.robot_id, []).append(a.goal_in_map)
                 self._goal_failures.append((a.goal_in_map, r.robot_id))
+                self._avoid_route(ctx, r, a)
             if purpose in ("neutralize_go", "neutralize") and a.hazard_id is not None:
                 self._dispatch_excluded.setdefault(a.hazard_id, {})[r.robot_id] = ctx.now_s
         if purpose == "hostile_view" and ok:
@@ -1075,6 +1099,7 @@ class TaskAllocator:
                 if stalled and not gone:
                     self.stats.goals_failed += 1
                     self._failed_goals.setdefault(rid, []).append(a.goal_in_map)
+                    self._avoid_route(ctx, r, a)
                     self._event(
                         ctx,
                         "stalled",
@@ -1113,12 +1138,15 @@ class TaskAllocator:
                 continue
             self._no_start.discard(rid)
             bl = self._failed_goals.get(rid, []) + global_bad
+            avoid = [d for d in self._avoid.get(rid, []) if d[3] > ctx.now_s]
+            self._avoid[rid] = avoid
             waiting.append(
                 Explorer(
                     rid,
                     ctx.cells[rid],
                     self._position(r),
                     np.asarray(bl, dtype=np.float64).reshape(-1, 2),
+                    np.asarray([d[:3] for d in avoid], dtype=np.float64).reshape(-1, 3),
                 )
             )
         if not waiting:
@@ -1169,6 +1197,40 @@ class TaskAllocator:
             if (self._purpose(rid) or "").split(":")[0] != "park":
                 self._event(ctx, "park", rid, f"robot {rid}: no frontier goal, parked")
                 self._idle(ctx, sensors[rid], "park")
+
+    def _avoid_route(self, ctx: _Ctx, r: RobotInfo, a: Assignment) -> None:
+        """``r``'s route of ``a`` failed: the stretch just ahead of where it is now is avoided
+        by its routes for ``avoid_s`` (see :class:`TaskingConfig`)."""
+        cfg = self.config
+        if a.route_in_map is None or r.pose_in_map is None:
+            return
+        route = a.route_in_map
+        if a.goal_in_map is not None:
+            # the way out only: an exploration route goes on back to radio contact over
+            # the same ground, and what held the robot lies towards the goal
+            at = np.flatnonzero(np.hypot(*(route - np.asarray(a.goal_in_map)).T) < 1e-6)
+            if at.size:
+                route = route[: int(at[0]) + 1]
+        discs = failed_route_discs(
+            route,
+            self._position(r),
+            from_m=cfg.avoid_from_m,
+            to_m=cfg.avoid_to_m,
+            radius_m=cfg.avoid_radius_m,
+        )
+        until = ctx.now_s + cfg.avoid_s
+        self._avoid.setdefault(r.robot_id, []).extend(
+            (float(x), float(y), float(rad), until) for x, y, rad in discs
+        )
+        if len(discs):
+            x, y = discs[0, :2]
+            self._event(
+                ctx,
+                "route_avoided",
+                r.robot_id,
+                f"robot {r.robot_id}: its route failed near ({x:.1f}, {y:.1f}): avoided by it "
+                f"for {cfg.avoid_s:g} s",
+            )
 
     def _stalled(self, ctx: _Ctx, r: RobotInfo, a: Assignment) -> bool:
         """Whether ``r`` has not moved ``stall_m`` for ``stall_s`` on its task ``a``."""

@@ -20,7 +20,12 @@ an unbounded grid search (``far_grid_fallback``).
 Radio shadows: :func:`return_leg` gives each goal the way back to where the GCS heard robots.
 
 Failure memory: each robot carries goals it failed to reach (``blacklist_in_map``); candidates
-within ``blacklist_radius_m`` of one are never offered to that robot again. Goals claimed by
+within ``blacklist_radius_m`` of one are never offered to that robot again. It also carries
+the places where its routes failed (``avoid_in_map``: discs the GCS put where the robot got
+stuck on its way): that robot's searches, on the grid and on the highway, go around them (its
+own cell excepted), so it is not sent again through the door or gap it could not pass to a
+goal a little beside the failed one (small world seed 0: a robot deadlocked on six goals 2-5 m
+apart in a row, each routed through the same doorway, 140 s). Goals claimed by
 robots already under way are withdrawn like assigned ones. No reachable frontier worth a trip
 at all: the plan says ``explored``.
 """
@@ -44,6 +49,7 @@ __all__ = [
     "ExplorationGoal",
     "ExplorationPlan",
     "Explorer",
+    "failed_route_discs",
     "plan_exploration",
     "return_leg",
 ]
@@ -91,6 +97,47 @@ class Explorer:
     cell: tuple[int, int]
     position_in_map: tuple[float, float]
     blacklist_in_map: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    # ``(K, 3)`` discs ``(x_m, y_m, radius_m)`` in map its routes must not enter
+    avoid_in_map: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+def _avoid(e: Explorer) -> NDArray[np.float64]:
+    return np.asarray(e.avoid_in_map, dtype=np.float64).reshape(-1, 3)
+
+
+def _traversable_for(grid: PlanningGrid, e: Explorer) -> NDArray[np.bool_]:
+    """The grid's traversable cells less ``e``'s avoid discs (its own cell kept: it plans
+    from there)."""
+    discs = _avoid(e)
+    if len(discs) == 0:
+        return grid.traversable
+    rows, cols = grid.shape
+    res, (ox, oy) = grid.resolution_m, grid.origin_in_map
+    out: NDArray[np.bool_] = grid.traversable.copy()
+    for cx, cy, r in discs:  # each disc over its bounding window only
+        c0, c1 = max(0, int((cx - r - ox) / res)), min(cols, int((cx + r - ox) / res) + 2)
+        r0, r1 = max(0, int((cy - r - oy) / res)), min(rows, int((cy + r - oy) / res) + 2)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        rr, cc = np.mgrid[r0:r1, c0:c1]
+        inside = np.hypot(ox + (cc + 0.5) * res - cx, oy + (rr + 0.5) * res - cy) <= r
+        out[r0:r1, c0:c1] &= ~inside
+    out[e.cell] = grid.traversable[e.cell]
+    return out
+
+
+def _highway_blocked_for(
+    highway: TrajectoryGraph, blocked: NDArray[np.bool_] | None, e: Explorer
+) -> NDArray[np.bool_] | None:
+    """``blocked`` waypoints plus those in ``e``'s avoid discs."""
+    discs = _avoid(e)
+    if len(discs) == 0 or highway.size == 0:
+        return blocked
+    out = np.zeros(highway.size, dtype=bool) if blocked is None else blocked.copy()
+    xy = highway.nodes_in_map
+    for x, y, r in discs:
+        out |= np.hypot(xy[:, 0] - x, xy[:, 1] - y) <= r
+    return out
 
 
 @dataclass(frozen=True)
@@ -127,6 +174,14 @@ def _blacklisted(ex: Explorer, goals: NDArray[np.float64], r: float) -> NDArray[
         return np.zeros(len(goals), dtype=bool)
     d = np.hypot(goals[:, None, 0] - bl[None, :, 0], goals[:, None, 1] - bl[None, :, 1])
     out: NDArray[np.bool_] = np.asarray((d <= r).any(axis=1), dtype=bool)
+    return out
+
+
+def _in_avoid(e: Explorer, goals: NDArray[np.float64]) -> NDArray[np.bool_]:
+    discs = _avoid(e)
+    out = np.zeros(len(goals), dtype=bool)
+    for x, y, r in discs:
+        out |= np.hypot(goals[:, 0] - x, goals[:, 1] - y) <= r
     return out
 
 
@@ -226,17 +281,16 @@ def plan_exploration(
         return ExplorationPlan(out, False, [])
 
     # phase 1: bounded grid search around each robot
+    trav = [_traversable_for(grid, e) for e in explorers]
     near = [
-        grid_distances(
-            grid.traversable, e.cell, resolution_m=grid.resolution_m, limit_m=cfg.near_radius_m
-        )
-        for e in explorers
+        grid_distances(t, e.cell, resolution_m=grid.resolution_m, limit_m=cfg.near_radius_m)
+        for e, t in zip(explorers, trav, strict=True)
     ]
     util = np.full((len(explorers), len(cand)), -np.inf)
     for i, (e, d) in enumerate(zip(explorers, near, strict=True)):
         dist = d.at(cells_c)
         u = gains_c - cfg.distance_weight_m2_per_m * dist + base
-        u[_blacklisted(e, goals_c, cfg.blacklist_radius_m)] = -np.inf
+        u[_blacklisted(e, goals_c, cfg.blacklist_radius_m) | _in_avoid(e, goals_c)] = -np.inf
         util[i] = u
     for i, j in _uncross(util, _greedy(util, goals_c, cfg.goal_separation_m)):
         e = explorers[i]
@@ -259,21 +313,22 @@ def plan_exploration(
     if rest:
         util = np.full((len(rest), len(cand)), -np.inf)
         plans: dict[tuple[int, int], tuple[NDArray[np.float64], float, bool]] = {}
-        goal_node = (
-            highway.nearest(goals_c, highway_blocked)
-            if highway is not None and highway.size
-            else None
-        )
+        own_blocked: dict[int, NDArray[np.bool_] | None] = {}
+        goal_nodes: dict[int, NDArray[np.int64] | None] = {}
         far_grid: dict[int, GridDistances] = {}
         for row, i in enumerate(rest):
             e = explorers[i]
             pos = np.asarray(e.position_in_map, dtype=np.float64)
             cost = np.full(len(cand), np.inf)
             via = np.zeros(len(cand), dtype=bool)
-            if goal_node is not None and highway is not None:
-                rn = int(highway.nearest(pos, highway_blocked)[0])
+            goal_node = None
+            if highway is not None and highway.size:
+                hb = _highway_blocked_for(highway, highway_blocked, e)
+                own_blocked[i] = hb
+                goal_node = highway.nearest(goals_c, hb)
+                rn = int(highway.nearest(pos, hb)[0])
                 if rn >= 0:
-                    hd, _ = highway.distances([rn], highway_blocked)
+                    hd, _ = highway.distances([rn], hb)
                     ok = goal_node >= 0
                     gn = goal_node[ok]
                     cost[ok] = (
@@ -282,13 +337,14 @@ def plan_exploration(
                         + np.hypot(*(highway.nodes_in_map[gn] - goals_c[ok]).T)
                     )
                     via[ok] = np.isfinite(cost[ok])
+            goal_nodes[i] = goal_node
             if cfg.far_grid_fallback and not np.isfinite(cost).any():
-                fd = grid_distances(grid.traversable, e.cell, resolution_m=grid.resolution_m)
+                fd = grid_distances(trav[i], e.cell, resolution_m=grid.resolution_m)
                 far_grid[i] = fd
                 cost = fd.at(cells_c)
                 via[:] = False
             u = gains_c - cfg.distance_weight_m2_per_m * cost + base
-            u[_blacklisted(e, goals_c, cfg.blacklist_radius_m)] = -np.inf
+            u[_blacklisted(e, goals_c, cfg.blacklist_radius_m) | _in_avoid(e, goals_c)] = -np.inf
             util[row] = u
             for jj in np.flatnonzero(np.isfinite(u)).tolist():
                 plans[(row, jj)] = (pos, float(cost[jj]), bool(via[jj]))
@@ -297,10 +353,12 @@ def plan_exploration(
             e = explorers[i]
             goal = goals_c[j]
             pos, cost_m, via_hw = plans[(row, j)]
-            if via_hw and highway is not None and goal_node is not None:
-                rn = int(highway.nearest(pos, highway_blocked)[0])
-                _, pred = highway.distances([rn], highway_blocked)
-                nodes = highway.path(pred[0], int(goal_node[j]))
+            gnodes = goal_nodes[i]
+            if via_hw and highway is not None and gnodes is not None:
+                hb = own_blocked[i]
+                rn = int(highway.nearest(pos, hb)[0])
+                _, pred = highway.distances([rn], hb)
+                nodes = highway.path(pred[0], int(gnodes[j]))
                 pts = simplify_path(
                     np.vstack([highway.nodes_in_map[nodes], goal]), cfg.path_tolerance_m
                 )
@@ -312,6 +370,44 @@ def plan_exploration(
                 e.robot_id, (float(goal[0]), float(goal[1])), wps, cost_m, float(gains_c[j]), via_hw
             )
     return ExplorationPlan(out, False, [e.robot_id for e in explorers if e.robot_id not in out])
+
+
+def failed_route_discs(
+    route_in_map: NDArray[np.float64],
+    position_in_map: tuple[float, float],
+    *,
+    from_m: float,
+    to_m: float,
+    radius_m: float,
+    step_m: float = 0.5,
+) -> NDArray[np.float64]:
+    """``(K, 3)`` discs ``(x_m, y_m, radius_m)`` over the stretch of a failed route
+    ``route_in_map`` ``(N, 2)`` (its start first) from ``from_m`` to ``to_m`` past the route's
+    point nearest ``position_in_map`` (where the robot was when the route failed: what held
+    it is just ahead), cut at the route's end; empty for a route of fewer than two points.
+
+    The robot that failed is then routed around that stretch (:class:`Explorer`'s
+    ``avoid_in_map``): a doorway narrower than the GCS's map shows, a gap its own map closes,
+    a spot where it keeps deadlocking. ``O(N + (to_m - from_m) / step_m)``."""
+    route = np.asarray(route_in_map, dtype=np.float64).reshape(-1, 2)
+    if len(route) < 2 or to_m < from_m:
+        return np.zeros((0, 3))
+    a, b = route[:-1], route[1:]
+    ab = b - a
+    seg_len = np.hypot(ab[:, 0], ab[:, 1])
+    p = np.asarray(position_in_map, dtype=np.float64)
+    t = np.clip(((p - a) * ab).sum(axis=1) / np.maximum(seg_len**2, 1e-12), 0.0, 1.0)
+    foot = a + ab * t[:, None]
+    k = int(np.argmin(np.hypot(*(foot - p).T)))
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+    s0 = cum[k] + t[k] * seg_len[k]
+    s = np.arange(s0 + from_m, min(s0 + to_m, cum[-1]) + 1e-9, step_m)
+    if s.size == 0:
+        return np.zeros((0, 3))
+    j = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg_len) - 1)
+    frac = (s - cum[j]) / np.maximum(seg_len[j], 1e-12)
+    pts = a[j] + ab[j] * frac[:, None]
+    return np.column_stack([pts, np.full(len(pts), radius_m)])
 
 
 def return_leg(

@@ -686,3 +686,62 @@ def test_a_neutralization_pose_keeps_out_of_done_ooi_sightings_too() -> None:
     keepout = 2.5 + DisruptorConfig().standoff_margin_m
     assert math.dist(goal, (21.0, 3.5)) >= keepout
     assert math.dist(goal, (14.0, 6.0)) >= keepout
+
+
+def _door_rooms() -> np.ndarray:
+    """A corridor (y 1-3) under a hall (y 4-6 known free, unknown beyond y 6) through two
+    doors in the 1 m wall between them: A at x 8-9.5, B at x 21-22.5."""
+    v = blank(30, 12)
+    box(v, 0.0, 0.5, 30.0, 7.0, OCCUPIED)
+    box(v, 0.5, 1.0, 29.5, 3.0, FREE)  # the corridor
+    box(v, 0.5, 4.0, 29.5, 6.0, FREE)  # the hall's known strip
+    box(v, 0.5, 6.0, 29.5, 12.0, UNKNOWN)  # the hall beyond: the frontier along y 6
+    box(v, 8.0, 3.0, 9.5, 4.0, FREE)  # door A
+    box(v, 21.0, 3.0, 22.5, 4.0, FREE)  # door B
+    return v
+
+
+def _dense(route: np.ndarray, step_m: float = 0.1) -> np.ndarray:
+    pts = [route[:1]]
+    for a, b in zip(route[:-1], route[1:], strict=True):
+        n = max(1, int(math.ceil(math.dist(a, b) / step_m)))
+        pts.append(a + (b - a) * (np.arange(1, n + 1)[:, None] / n))
+    return np.vstack(pts)
+
+
+def test_a_robot_whose_route_failed_is_not_sent_through_the_same_door_again() -> None:
+    """Known answer: robot 1 in the corridor beside door A is sent through A; it reports the
+    task failed there (deadlocked). Its next goal, wherever on the hall's frontier, goes
+    through door B: through A, goals a few metres beside the failed one were the nearest
+    (the goal alone was blacklisted: a robot failed six of them in a row, small world seed
+    0). After ``avoid_s`` door A is its again."""
+    occ = occupancy(_door_rooms())
+    cfg = TaskingConfig()
+    r = robot(1, (9.0, 2.0))
+    alloc = TaskAllocator(cfg)
+    out = alloc.plan(TaskingState(occ, [r]), now_s=0.0)
+    first = goals_in_map(out, {1: r})[1]
+    door_a = np.asarray([8.75, 3.5])
+    assert np.hypot(*(_dense(np.vstack([[9.0, 2.0], first])) - door_a).T).min() < 0.5
+    # it got as far as the doorway, then deadlocked
+    r.pose_in_map = (8.9, 2.9, 1.57)
+    r.last_heard_s = 30.0
+    report(r, out[0][1], TaskState.FAILED, 30.0, "deadlocked")
+    out = alloc.plan(TaskingState(occ, [r]), now_s=30.0)
+    assert [e.kind for e in alloc.events][:2] == ["task_failed", "route_avoided"]
+    second = goals_in_map(out, {1: r})[1]
+    goal = alloc.assignments[1].goal_in_map
+    assert goal is not None and goal[1] > 5.0
+    route = _dense(
+        np.vstack([[8.9, 2.9], second[: int(np.argmin(np.hypot(*(second - goal).T))) + 1]])
+    )
+    # into the hall (y > 3.4: past the wall) only east of x 15: through door B, not A
+    assert (route[route[:, 1] > 3.4, 0] > 15.0).all()
+    assert np.hypot(*(route - [21.75, 3.5]).T).min() < 0.75  # the door is 1.5 m wide
+    # the door is the robot's again once avoid_s is over
+    r.last_heard_s = 31.0 + cfg.avoid_s
+    report(r, out[0][1], TaskState.FAILED, r.last_heard_s, "deadlocked")
+    r.pose_in_map = (15.0, 2.0, 0.0)
+    alloc.plan(TaskingState(occ, [r]), now_s=r.last_heard_s)
+    assert all(until > r.last_heard_s for *_, until in alloc._avoid[1])
+    assert all(math.dist((x, y), door_a) > 1.0 for x, y, *_ in alloc._avoid[1])

@@ -9,6 +9,7 @@ from gcs.tasking.exploration_planner import (
     ExplorationConfig,
     Explorer,
     _uncross,
+    failed_route_discs,
     plan_exploration,
     return_leg,
 )
@@ -141,3 +142,33 @@ def test_greedy_pairs_whose_routes_cross_swap_goals() -> None:
     assert _uncross(util, [(0, 1), (1, 0)]) == [(0, 1), (1, 0)]
     util[0, 1] = -np.inf
     assert _uncross(util, greedy) == greedy
+
+
+def test_failed_route_discs_lie_ahead_of_the_robot_on_the_way_out() -> None:
+    route = np.asarray([[0.0, 0.0], [4.0, 0.0], [4.0, 4.0]])
+    d = failed_route_discs(route, (3.0, 0.3), from_m=0.5, to_m=3.0, radius_m=0.75)
+    # from 3.5 m along (x 3.5) to 6 m along (the corner, then 2 m up)
+    assert np.allclose(d[0], [3.5, 0.0, 0.75]) and np.allclose(d[-1], [4.0, 2.0, 0.75])
+    assert np.allclose(np.diff(d[:, :2], axis=0).__abs__().sum(axis=1), 0.5)
+    # cut at the route's end; nothing from a single point
+    d = failed_route_discs(route, (4.0, 3.0), from_m=0.5, to_m=3.0, radius_m=0.75)
+    assert np.allclose(d[:, :2], [[4.0, 3.5], [4.0, 4.0]])
+    assert failed_route_discs(route[:1], (0, 0), from_m=0, to_m=1, radius_m=1).shape == (0, 3)
+
+
+def test_an_explorers_avoid_discs_route_it_around_or_elsewhere() -> None:
+    """Known answer: the corridor's west end is behind a disc for robot 1 only, so robot 1
+    gets the east end however much nearer the west is; a robot without it goes west."""
+    g = corridor()
+    disc = np.asarray([[10.0, 3.0, 2.5]])
+    plan = _plan(g, {1: (14.0, 3.0), 2: (17.0, 3.0)})
+    assert plan.goals[1].goal_in_map[0] < 6.0  # the nearer, west
+    f = find_frontiers(g, [g.snap((14.0, 3.0), 1.0)])
+    gains = information_gain(g, f.goal_cells, sensor_range_m=CFG.sensor_range_m)
+    ex = [Explorer(1, g.snap((14.0, 3.0), 1.0), (14.0, 3.0), avoid_in_map=disc)]
+    plan = plan_exploration(g, f, gains, ex, config=CFG)
+    assert plan.goals[1].goal_in_map[0] > 34.0
+    # another robot with no discs still goes west
+    ex2 = [Explorer(2, g.snap((14.0, 3.0), 1.0), (14.0, 3.0))]
+    assert plan_exploration(g, f, gains, ex2, config=CFG).goals[2].goal_in_map[0] < 6.0
+    assert np.hypot(*(plan.goals[1].waypoints_in_map - disc[0, :2]).T).min() > 2.5
