@@ -212,6 +212,7 @@ class GcsJournal:
         row = conn.execute("SELECT MAX(seq) FROM records").fetchone()
         self._seq = int(row[0] or 0)
         self._committed_seq = self._seq
+        self._meta_dirty = False  # a meta entry written since the last commit
         self._last_sync_wall_s = time.monotonic()
         #: the planners' task bookkeeping (:func:`step_control`): tasks sent per robot and the
         #: last task id journaled, saved with each checkpoint (:func:`resume_control`)
@@ -350,10 +351,11 @@ class GcsJournal:
         the last one is ``sync_period_s`` or more ago, so a power loss takes at most that.
         Only when something was appended since (the GCS calls this every spin, 20 a second:
         an idle one writes nothing). Returns whether anything was committed."""
-        if self._seq == self._committed_seq:
+        if self._seq == self._committed_seq and not self._meta_dirty:
             return False
         self._conn.commit()
         self._committed_seq = self._seq
+        self._meta_dirty = False
         now = time.monotonic()
         if now - self._last_sync_wall_s >= self.sync_period_s:
             self._last_sync_wall_s = now
@@ -480,6 +482,13 @@ class GcsJournal:
 
     def meta(self) -> dict[str, str]:
         return dict(self._conn.execute("SELECT key, value FROM meta").fetchall())
+
+    def set_meta(self, key: str, value: str) -> None:
+        """Write (or overwrite) the meta entry ``key``; durable with the next :meth:`commit`,
+        together with the records appended before it (a lockstep GCS marks there the last
+        step it finished: :mod:`mission.lockstep_gcs`). Replays ignore meta entries."""
+        self._conn.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (str(key), str(value)))
+        self._meta_dirty = True
 
     def station_config(self) -> GroundStationConfig:
         from gcs.ground_station import GroundStationConfig

@@ -153,6 +153,25 @@ class _Figures:
         )
 
 
+#: The journal's meta entry naming the last step whose exchange it holds whole.
+THROUGH_META = "lockstep_through_s"
+
+
+class _StepJournal:
+    """The GCS process's journal as its ground side sees it: everything the journal does,
+    but the ground side's commit at the end of its turn is held back, so that a step is
+    committed once, at its end (:meth:`_Server.end`)."""
+
+    def __init__(self, journal: Any) -> None:
+        self._journal = journal
+
+    def commit(self) -> bool:
+        return False
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._journal, name)
+
+
 class _Server:
     """The GCS process's side (module docstring)."""
 
@@ -194,12 +213,21 @@ class _Server:
                 hinted.add_start_hint(rid, map_from_odom=mfo, sigma_xy_m=sxy, sigma_yaw_rad=syaw)
             control = MissionControl(station, mission_cfg)
         self.journal = journal
+        #: the last step whose exchange the journal holds whole (a resumed GCS does not take
+        #: that step's turn again: :meth:`turn`)
+        self.through_s = -math.inf
+        if args.resume:
+            try:
+                self.through_s = float(journal.meta().get(THROUGH_META, "-inf"))
+            except ValueError:
+                log.warning("gcs process: journal meta %s unreadable: ignored", THROUGH_META)
         self.ground = GcsGround(
             control,
             lockstep=True,
             step_period_s=setup.step_period_s,
             taps=[self.figures.tap],
-            journal=journal,
+            # one commit per step, at its end (the ground side's own commit is held back)
+            journal=_StepJournal(journal),  # type: ignore[arg-type]
             journal_uplink=False,  # journaled on arrival, before the acknowledgement
         )
         self._next_t = 0.0
@@ -259,6 +287,12 @@ class _Server:
         self.clock.set(go.time_s)
         for rid, grant in go.grants.items():
             self.radio.set_grant(rid, grant)
+        if go.time_s <= self.through_s:
+            # the GCS that died finished this step's exchange (journaled, committed) before
+            # it could answer: its turn is not taken twice (its downlink is resent from the
+            # journal, :func:`gcs.node.restore_link_state`)
+            self.answer(go.time_s, "turn")
+            return
         out = self.ground.turn(go.time_s)
         # as Assembly._ground_turn: the station's shared HazardUpdate as one broadcast
         shared: dict[int, int] = {}
@@ -281,7 +315,10 @@ class _Server:
             task_id = getattr(msg, "task_id", None)
             if isinstance(task_id, int) and type(msg).__name__ not in ("PauseTask", "ResumeTask"):
                 self.figures.sent.setdefault(rid, set()).add(task_id)
-        self.journal.commit()
+        # not committed here: the turn's records (its step, decisions, downlink, a checkpoint)
+        # are committed with the step's end, before anything of the step goes on the air. A
+        # GCS killed before that leaves the journal as the previous step ended, whenever in
+        # the turn the kill struck, so a resume is repeatable (it takes this turn again)
         self.answer(go.time_s, "turn")
 
     def end(self, end: GcsEnd) -> None:
@@ -296,7 +333,11 @@ class _Server:
             snap["ledger"] = self.ledger.to_json()
             self.journal.event("link", end.time_s, snap)
         self.ledger.journal_held(self.radio, self.journal, end.time_s)
-        self.journal.commit()  # before the acknowledgements the pump sends
+        self.through_s = max(self.through_s, end.time_s)
+        self.journal.set_meta(THROUGH_META, repr(self.through_s))
+        # the step's one commit (its turn's records too), before the acknowledgements and
+        # the downlink the pump sends
+        self.journal.commit()
         self.link.pump()
         self.answer(end.time_s, "end", self.figures.encode(self.ground.control, self.radio))
 

@@ -1,0 +1,111 @@
+"""The GCS in its own process (``magic run --gcs-process``, :mod:`mission.lockstep_gcs`):
+a run whose GCS process is killed is repeatable, wherever in the step the kill strikes."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+
+def _killed_run(run_dir: Path, *, seed: int, duration_s: float, kill: str) -> dict[str, Any]:
+    """A small-world lockstep run, the GCS in its own process, SIGKILLed at the middle step:
+    ``kill`` ``"at_go"`` right after its turn was asked for (mid-turn), ``"after_turn"`` once
+    it answered its turn (the turn's step, plan and downlink made). Returns what the journal
+    holds after the kill and the robots' last task reports."""
+    from gcs.journal import GcsJournal
+    from mission.assembly import assemble
+    from mission.bench.chaos import _floor_loss
+    from mission.config import config_path, load_config
+    from mission.lockstep import TeamOverProcesses, seed_streams
+    from protocol.link import LinkConfig
+    from protocol.loopback import free_loopback_port, unique_mission
+    from protocol.radio import RadioConfig
+    from sim.simulator import load_world_config
+
+    world = load_world_config(config_path("world/small.yaml", "world"))
+    radio_path = config_path("radio/magic2010.yaml", "radio")
+    journal = run_dir / "journal.sqlite"
+    with assemble(
+        world,
+        seeds=seed_streams(seed),
+        radio=load_config(radio_path, RadioConfig),
+        radio_path=str(radio_path),
+        journal_path=journal,
+        robot_processes=True,
+        workers=1,
+        gcs_process=True,
+        link=LinkConfig(listen=(f"tcp/127.0.0.1:{free_loopback_port()}",)),
+        mission_name=unique_mission("gcs-repeat"),
+        # the station steps every turn: the turn the kill strikes journals a step
+        gcs_step_period_s=0.05,
+    ) as asm:
+        _floor_loss(asm.sim, 0.3)
+        remote, team = asm.remote_gcs, asm.team
+        assert isinstance(team, TeamOverProcesses)
+        steps = int(round(duration_s / asm.sim.config.step_s))
+        kill_step = steps // 2
+        kill_time_s = 0.0
+        for k in range(steps):
+            if k == kill_step:
+                kill_time_s = asm.sim.time_s + asm.sim.config.step_s
+
+                def strike(r: Any = remote, t: float = kill_time_s) -> None:
+                    if kill == "after_turn":
+                        r._wait("turn", t, 60.0, restart=False)
+                    r.kill()
+
+                on_step: Callable[[], None] = strike
+                team.step(on_step)
+            else:
+                team.report_link = k == steps - 1
+                asm.step()
+        assert remote.restarts == 1
+        progress = {int(r): row for r, row in remote.figures["progress"].items()}
+        gcs = dict(remote.figures["gcs"])
+    reader = GcsJournal.open(journal)
+    try:
+        records = [
+            (r.kind, round(r.time_s, 6), r.robot_id, r.body)
+            for r in reader.records()
+            if r.time_s >= kill_time_s - 1.0 and r.kind != "checkpoint"
+        ]
+    finally:
+        reader.close()
+    return {"records": records, "progress": progress, "gcs": gcs, "kill_time_s": kill_time_s}
+
+
+def test_a_killed_gcs_process_resumes_the_same_way_wherever_in_its_turn_it_died(
+    tmp_path: Path,
+) -> None:
+    """Same seed, same step of the kill: the GCS killed before it took its turn and killed
+    after it answered its turn (the turn's station step, plan, tasks and downlink journaled)
+    give the same run afterwards, record for record: a turn is committed with the step's end,
+    so the journal a resume reads does not depend on the kill's moment in the turn. (Before,
+    the turn was committed on its own: a kill after it left it in the journal, and the resumed
+    GCS stepped and planned that time twice.)"""
+    runs = {}
+    for kill in ("at_go", "after_turn"):
+        d = tmp_path / kill
+        d.mkdir()
+        runs[kill] = _killed_run(d, seed=3, duration_s=8.0, kill=kill)
+    a, b = runs["at_go"], runs["after_turn"]
+    assert a["kill_time_s"] == b["kill_time_s"]
+    assert len(a["records"]) > 50  # the mission went on after the kill
+    kinds = {r[0] for r in a["records"]}
+    assert {"uplink", "step", "link"} <= kinds
+    first = next(
+        (i for i, (x, y) in enumerate(zip(a["records"], b["records"], strict=False)) if x != y),
+        None,
+    )
+    assert first is None and len(a["records"]) == len(b["records"]), (
+        f"journals differ from record {first}: "
+        f"{a['records'][first][:3] if first is not None else len(a['records'])} vs "
+        f"{b['records'][first][:3] if first is not None else len(b['records'])}"
+    )
+    assert a["progress"] == b["progress"]
+    assert a["gcs"] == b["gcs"]
