@@ -7,7 +7,9 @@ over two real zenoh sessions on loopback. Each :meth:`TeamInLockstep.step`:
 1. steps the simulator by ``step_s`` and sets the mission clock to its time;
 2. applies the radio model's grants to both ends of every robot's radio;
 3. hands each robot node, in robot-id order, the frames its driver holds and sends its
-   commands back to the simulator (applied at the next step);
+   commands back to the simulator (applied at the next step), and puts its radio in or out
+   of relay mode as the node says (:attr:`~robot.node.RobotNode.radio_relay`: a relay task;
+   :meth:`~sim.simulator.Simulator.set_relay`, from the next radio update);
 4. calls the ground side's ``on_step`` (it may send downlink messages);
 5. exchanges the radio in lockstep (:class:`~protocol.loopback.LockstepRadio`): every link is
    pumped by hand at this mission time, the exchange waits until the other side has received
@@ -25,9 +27,10 @@ give the same poses, events and messages, bit for bit.
 of nodes per process (``magic robot --lockstep --id 0-7``; ``magic run --robot-processes``:
 one worker per core), on this host or others (zenoh endpoints, a router), and gives the same
 run, bit for bit: the per-step counts of :mod:`mission.lockstep_protocol` stand in for the
-ordering zenoh keeps only within one key. Not covered yet: the simulator and the ground side
-in separate processes (``magic sim`` + ``magic gcs``), which needs the ground side to send the
-step's downlink counts and the simulator to wait for them.
+ordering zenoh keeps only within one key; not yet its nodes' relay mode (their step
+reports do not carry it: :mod:`mission.lockstep_protocol`). Not covered yet: the simulator
+and the ground side in separate processes (``magic sim`` + ``magic gcs``), which needs the
+ground side to send the step's downlink counts and the simulator to wait for them.
 
 ``realtime=True`` (hardware in the loop; ``magic run --realtime``) keeps wall-clock delivery:
 links pumped by their own threads every ``pump_period_s`` wall seconds, messages delivered on
@@ -95,6 +98,7 @@ class TeamInLockstep:
         self.realtime = realtime
         self.seeds = seeds
         self.exchange_timeout_s = exchange_timeout_s
+        self._relaying: dict[int, bool] = {}
         self.clock = ManualClock(sim.time_s)
         base = link_config or LinkConfig()
         pump = base.pump_period_s if realtime else 0.0
@@ -167,8 +171,13 @@ class TeamInLockstep:
             self.ground.set_grant(rid, grant)
         for rid in sim.robot_ids:
             driver = self.drivers[rid]
-            for command in self.nodes[rid].process(driver.poll(0.0)):
+            node = self.nodes[rid]
+            for command in node.process(driver.poll(0.0)):
                 driver.send(command)
+            relay = node.radio_relay  # the robot's radio setting (a relay task holds it)
+            if relay != self._relaying.get(rid, False):
+                sim.set_relay(rid, relay)
+                self._relaying[rid] = relay
         if on_step is not None:
             on_step()
         if self.radio is not None:

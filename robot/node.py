@@ -1312,3 +1312,11 @@ class RobotNode:
     @property
     def mode(self) -> AutonomyMode:
         return self.tasks.intent.mode
+
+    @property
+    def radio_relay(self) -> bool:
+        """Whether this robot's radio should be in relay mode, forwarding teammates' traffic
+        (paper 4.1: robots used as relays when a robot leaves radio range): while its task is a
+        :class:`~protocol.messages.RelayTask`. The driver side (the simulator's
+        ``set_relay``, a real radio's mesh setting) applies it."""
+        return self.tasks.executor.relaying

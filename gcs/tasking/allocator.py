@@ -55,6 +55,7 @@ from gcs.tasking.frontiers import Frontiers, find_frontiers
 from gcs.tasking.hostile_planner import HostileConfig, HostileLock, evasion_goal, view_positions
 from gcs.tasking.information_gain import information_gain
 from gcs.tasking.planning_grid import PlanningGrid, coarsen
+from gcs.tasking.relay_planner import relay_spots
 from gcs.tasking.trajectory_graph import (
     TrajectoryGraph,
     TrajectoryGraphConfig,
@@ -66,6 +67,7 @@ from protocol.messages import (
     IdleTask,
     NeutralizeTask,
     ObjectKind,
+    RelayTask,
     TaskState,
     TaskStatus,
 )
@@ -83,7 +85,7 @@ __all__ = [
     "TaskingStats",
 ]
 
-TaskMessage = GoToTask | NeutralizeTask | IdleTask
+TaskMessage = GoToTask | NeutralizeTask | IdleTask | RelayTask
 log = logging.getLogger(__name__)
 _TERMINAL = (TaskState.SUCCEEDED, TaskState.FAILED, TaskState.REJECTED, TaskState.CANCELED)
 
@@ -180,6 +182,10 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     avoid_from_m: float = 0.5
     avoid_to_m: float = 3.0
     avoid_radius_m: float = 0.75
+    # idle disruptors hold where they are sent as radio relays (RelayTask), and one goes to
+    # the relay spot of each sensor robot out of contact (relay_planner.relay_spots) before
+    # spreading (paper 4.1: robots used as relays when a robot leaves radio range)
+    relays: bool = True
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
     highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
@@ -366,7 +372,7 @@ class TaskAllocator:
         self._watch_since: dict[int, float] = {}  # hostile -> its current watch began
         self._watch_paused: dict[int, float] = {}  # hostile -> not watched before
         self._spread_at_s = -math.inf
-        self._spread_key: tuple[int, ...] = ()
+        self._spread_key: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())
         # points of radio contact (lattice cells of contact_bin_m) and their centres
         self._contact_bins: set[tuple[int, int]] = set()
         self._contact_xy: list[tuple[float, float]] = []
@@ -453,6 +459,16 @@ class TaskAllocator:
         ctx.out.append(
             (r.robot_id, GoToTask(tid, ctx.now_s, [(float(x), float(y)) for x, y in in_odom]))
         )
+
+    def _hold_as_relay(self, ctx: _Ctx, r: RobotInfo, a: Assignment) -> None:
+        """``r`` arrived at its spread or relay spot ``a``: hold there with its radio in
+        relay mode (a :class:`RelayTask`; the record stays ``a``'s, done)."""
+        assert r.map_from_odom is not None and a.goal_in_map is not None
+        odom_from_map = inverse(np.asarray(r.map_from_odom, dtype=np.float64))
+        x, y = transform_points(odom_from_map, np.asarray(a.goal_in_map, dtype=np.float64))
+        tid = self._new_id()
+        a.task_id = tid
+        ctx.out.append((r.robot_id, RelayTask(tid, ctx.now_s, (float(x), float(y)))))
 
     def _idle(self, ctx: _Ctx, r: RobotInfo, purpose: str) -> None:
         tid = self._new_id()
@@ -717,6 +733,8 @@ class TaskAllocator:
             # a parked or spread robot stays where it is; keep the record (not re-sent)
             a.timeout_s = math.inf
             a.purpose = purpose + ":done"
+            if purpose == "spread" and self.config.relays and a.goal_in_map is not None:
+                self._hold_as_relay(ctx, r, a)
             return
         self.assignments.pop(r.robot_id, None)
 
@@ -1008,10 +1026,6 @@ class TaskAllocator:
         )
         if not idle or ctx.highway.size == 0:
             return
-        key = tuple(idle)
-        if key == self._spread_key and ctx.now_s - self._spread_at_s < cfg.spread_period_s:
-            return
-        self._spread_key, self._spread_at_s = key, ctx.now_s
         pos = np.asarray([self._position(mine[r]) for r in idle])
         access = ctx.highway.nearest(pos, ctx.blocked)
         if (access < 0).all():
@@ -1019,12 +1033,39 @@ class TaskAllocator:
         # the explored highway reachable by these disruptors
         dist, _ = ctx.highway.distances(access[access >= 0], ctx.blocked)
         region: NDArray[np.bool_] = np.asarray(np.isfinite(dist).any(axis=0), dtype=bool)
+        relay = np.zeros(0, dtype=np.int64)
+        if self.config.relays:
+            # sensor robots out of contact (not disabled), the longest silent first
+            silent = sorted(
+                (
+                    (r.last_heard_s, rid)
+                    for rid, r in ctx.robots.items()
+                    if rid in self._silent
+                    and not r.lost
+                    and r.role == Role.SENSOR
+                    and r.pose_in_map is not None
+                    and all(math.isfinite(v) for v in r.pose_in_map)
+                ),
+            )
+            relay = relay_spots(
+                ctx.highway,
+                [self._position(ctx.robots[rid]) for _, rid in silent],
+                self.contact_in_map,
+                contact_radius_m=self.config.exploration.contact_radius_m,
+                region=region,
+                blocked=ctx.blocked,
+            )[: len(idle)]
+        key = (tuple(idle), tuple(relay.tolist()))
+        if key == self._spread_key and ctx.now_s - self._spread_at_s < cfg.spread_period_s:
+            return
+        self._spread_key, self._spread_at_s = key, ctx.now_s
         wide = region & self._clear_of_obstacles(ctx, cfg.park_clearance_m)
         if wide.any():
             region = wide
         centres = spread_positions(
-            ctx.highway, len(idle), region=region, blocked=ctx.blocked, config=cfg
+            ctx.highway, len(idle) - len(relay), region=region, blocked=ctx.blocked, config=cfg
         )
+        centres = np.concatenate([relay, centres[~np.isin(centres, relay)]]).astype(np.int64)
         if centres.size == 0:
             return
         d_all, pred_all = ctx.highway.distances(np.where(access >= 0, access, 0), ctx.blocked)
@@ -1044,10 +1085,19 @@ class TaskAllocator:
             ):
                 continue
             if math.dist(self._position(mine[rid]), target) < cfg.spread_tolerance_m:
+                if self.config.relays and (a is None or not a.purpose.startswith("spread")):
+                    # there already (never sent): hold here as a relay
+                    here = Assignment(0, "spread:done", ctx.now_s, self._position(mine[rid]))
+                    self.assignments[rid] = here
+                    self._hold_as_relay(ctx, mine[rid], here)
                 continue
             path = ctx.highway.path(pred_all[i], int(centres[j]))
+            why = "relay spot for robots out of contact at" if j < len(relay) else "spread to"
             self._event(
-                ctx, "spread", rid, f"idle disruptor {rid} to highway waypoint {int(centres[j])}"
+                ctx,
+                "spread",
+                rid,
+                f"idle disruptor {rid}: {why} highway waypoint {int(centres[j])}",
             )
             self._goto(ctx, mine[rid], ctx.highway.nodes_in_map[path], "spread")
 

@@ -11,7 +11,9 @@ into planning and motion:
   then, only once ``approved``, hold the laser pointer on it; 15 s of continuous line of sight
   succeed, a break resets the count. Re-sending the same task id with ``approved=True`` is how
   the operator approves.
-* ``RelayTask``: drive to the position and hold there (active until replaced).
+* ``RelayTask``: drive to the position and hold there (active until replaced); the robot's
+  radio is in relay mode meanwhile (:attr:`TaskExecutor.relaying`: it forwards teammates'
+  traffic to the GCS, paper 4.1's robots used as relays).
 * ``TeleopTask``: drive at the given velocities for the duration (conservative: the node stops
   before obstacles); ``PauseTask``/``ResumeTask`` freeze and continue the current task;
   ``IdleTask`` cancels it.
@@ -112,6 +114,12 @@ class TaskExecutor:
     @property
     def current_task_id(self) -> int:
         return 0 if self._active is None else self._active.task.task_id
+
+    @property
+    def relaying(self) -> bool:
+        """Whether the current task is a :class:`RelayTask` (paused or not: a relay holding
+        still forwards): the radio's relay mode."""
+        return self._active is not None and isinstance(self._active.task, RelayTask)
 
     # ------------------------------------------------------------------ input
 

@@ -23,6 +23,7 @@ from protocol.messages import (
     IdleTask,
     NeutralizeTask,
     ObjectKind,
+    RelayTask,
     TaskState,
     TaskStatus,
 )
@@ -745,3 +746,64 @@ def test_a_robot_whose_route_failed_is_not_sent_through_the_same_door_again() ->
     alloc.plan(TaskingState(occ, [r]), now_s=r.last_heard_s)
     assert all(until > r.last_heard_s for *_, until in alloc._avoid[1])
     assert all(math.dist((x, y), door_a) > 1.0 for x, y, *_ in alloc._avoid[1])
+
+
+def test_an_idle_disruptor_holds_as_a_relay_at_the_edge_of_contact_towards_a_silent_robot() -> None:
+    """Known answer (paper 4.1: robots used as relays when one leaves radio range): sensor
+    robot 1 is heard steadily along a road from x 5 to x 20 (points of contact), then drives
+    on to x 38 and falls silent. The idle disruptor at the road's west end goes to the road's
+    waypoint nearest robot 1 among those in contact: x ~20. There it holds in relay mode
+    (a RelayTask at the spot, in its odom). Once robot 1 is back it spreads again."""
+    v = blank(45, 6, FREE)
+    xs = np.arange(0.5, 41.0, 0.5)
+    road = np.stack([xs, np.full_like(xs, 3.0)], 1)
+    cfg = TaskingConfig()
+    s = robot(1, (5.0, 3.0))
+    d = robot(21, (0.5, 3.0), Role.DISRUPTOR, frame=(1.0, 2.0, 0.3))
+
+    def state() -> TaskingState:
+        return TaskingState(
+            occupancy(v),
+            [s, d],
+            trajectory_robot_ids=np.ones(len(xs), dtype=np.int64),
+            trajectory_keys=np.arange(len(xs)),
+            trajectory_xy_in_map=road,
+        )
+
+    alloc = TaskAllocator(cfg)
+    t = 0.0
+    for x in np.arange(5.0, 20.01, 0.5):  # heard every second along the way
+        s.pose_in_map, s.last_heard_s, d.last_heard_s = (float(x), 3.0, 0.0), t, t
+        alloc.plan(state(), now_s=t)
+        t += 1.0
+    assert alloc.contact_in_map[:, 0].max() == pytest.approx(20.0, abs=1.0)
+    # its last message: at x 38 (out of range since), nothing from it for silent_after_s
+    s.pose_in_map = (38.0, 3.0, 0.0)
+    s.last_heard_s = t
+    t += cfg.silent_after_s + 1.0
+    d.last_heard_s = t
+    d.pose_in_map = (0.5, 3.0, 0.0)
+    alloc.assignments.pop(21, None)
+    out = alloc.plan(state(), now_s=t)
+    sent = [m for rid, m in out if rid == 21]
+    assert len(sent) == 1 and isinstance(sent[0], GoToTask)
+    spot = alloc.assignments[21].goal_in_map
+    assert spot is not None and spot[0] == pytest.approx(21.0, abs=1.5)
+    assert any("relay spot" in e.text for e in alloc.events)
+    # there: it holds in relay mode, at the spot in its own frame
+    d.pose_in_map = (spot[0], spot[1], 0.0)
+    report(d, sent[0], TaskState.SUCCEEDED, t + 30.0)
+    d.last_heard_s = t + 30.0
+    out = alloc.plan(state(), now_s=t + 30.0)
+    relay = [m for rid, m in out if rid == 21]
+    assert len(relay) == 1 and isinstance(relay[0], RelayTask)
+    assert d.map_from_odom is not None
+    back = transform_points(d.map_from_odom, np.asarray(relay[0].position_in_odom))
+    assert np.allclose(back, spot, atol=1e-6)
+    # robot 1 heard again: the relay spot is gone, the disruptor spreads again
+    s.last_heard_s = d.last_heard_s = t + 31.0
+    alloc.plan(state(), now_s=t + 31.0)
+    assert not any("relay spot" in e.text for e in alloc.events)
+    # relays off: no relay spot, no relay hold
+    off = TaskAllocator(TaskingConfig(relays=False))
+    assert off.config.relays is False

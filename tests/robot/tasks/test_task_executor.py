@@ -147,11 +147,16 @@ def test_teleop_runs_for_its_duration() -> None:
 
 def test_relay_holds_position() -> None:
     ex = TaskExecutor()
+    assert not ex.relaying
     ex.submit(RelayTask(9, 0.0, (5.0, 5.0)), 0.0, ORIGIN)
+    assert ex.relaying  # the radio relays from the moment the task is taken
     (holding,) = ex.update(10.0, np.array([5.0, 5.2, 0.0]))
     assert holding.state is TaskState.ACTIVE and "relay" in holding.detail
     assert ex.update(100.0, np.array([5.0, 5.2, 0.0])) == []
-    assert ex.current_task_id == 9
+    assert ex.current_task_id == 9 and ex.relaying
+    # another task ends relay mode
+    ex.submit(GoToTask(10, 101.0, [(0.0, 0.0)]), 101.0, np.array([5.0, 5.2, 0.0]))
+    assert not ex.relaying
 
 
 def test_operator_tasks_drive_semi_autonomously_until_the_planners_task_again() -> None:
