@@ -13,6 +13,9 @@ same state (same nodes, edges and poses, given a deterministic run: see below). 
   operator's reclassification of a hazard, :func:`edit_hazard`);
 - ``operator`` and ``decision``: operator commands and planner decisions as JSON objects, for
   their owners to rebuild from (the station ignores them);
+- ``assignments``: the planners' task assignments (robot -> task id, purpose, goal, issue
+  time, timeout, route) whenever a step changed them; a resumed GCS gives its allocator the
+  newest (:func:`resume_control`), so the robots keep the tasks they are carrying out;
 - ``downlink`` and ``link``: the GCS process's reliable downlink messages (frame bytes with
   their sequence numbers) and snapshots of its latest-only streams' sequence numbers, from
   which a resumed ``magic gcs`` continues every robot's streams (the station ignores them);
@@ -157,6 +160,7 @@ _KINDS = frozenset(
         "checkpoint",
         "hazard_edit",
         "held",
+        "assignments",
     }
 )
 
@@ -218,6 +222,9 @@ class GcsJournal:
         #: last task id journaled, saved with each checkpoint (:func:`resume_control`)
         self.tasks_sent: dict[int, int] = {}
         self.last_task_id = 0
+        #: the allocator's assignments as last journaled (an ``assignments`` record is
+        #: written when they change: :func:`step_control`)
+        self.assignments: dict[str, Any] = {}
         self.unencodable = 0  # messages that are no protocol message (refused by the station)
 
     # ---- opening ----------------------------------------------------------------------------
@@ -943,9 +950,52 @@ def step_control(
                 robot_id=int(rid),
             )
             journal.note_task(int(rid), task_id)
+    assignments = _assignments_json(control.allocator)
+    if assignments != journal.assignments:
+        journal.event("assignments", now_s, {"robots": assignments})
+        journal.assignments = assignments
     if journal.checkpoint_due(now_s):
         journal.checkpoint(control.station, now_s)
     return out
+
+
+def _assignments_json(allocator: Any) -> dict[str, Any]:
+    """The allocator's task assignments (:class:`~gcs.tasking.allocator.Assignment` by robot)
+    as JSON fields: what a resumed GCS gives back to its allocator (:func:`resume_control`)."""
+    out: dict[str, Any] = {}
+    for rid, a in sorted(getattr(allocator, "assignments", {}).items()):
+        route = a.route_in_map
+        out[str(rid)] = {
+            "task_id": int(a.task_id),
+            "purpose": str(a.purpose),
+            "issued_s": float(a.issued_s),
+            "goal_in_map": None if a.goal_in_map is None else [float(v) for v in a.goal_in_map],
+            "hazard_id": None if a.hazard_id is None else int(a.hazard_id),
+            "timeout_s": None if math.isinf(a.timeout_s) else float(a.timeout_s),
+            "route_in_map": None if route is None else np.asarray(route).tolist(),
+        }
+    return out
+
+
+def _restore_assignments(allocator: Any, fields: dict[str, Any]) -> int:
+    """Give ``allocator`` the assignments of an ``assignments`` record; returns how many."""
+    from gcs.tasking.allocator import Assignment
+
+    restored = {}
+    for rid, f in fields.get("robots", {}).items():
+        goal = f.get("goal_in_map")
+        route = f.get("route_in_map")
+        restored[int(rid)] = Assignment(
+            int(f["task_id"]),
+            str(f["purpose"]),
+            float(f["issued_s"]),
+            None if goal is None else (float(goal[0]), float(goal[1])),
+            None if f.get("hazard_id") is None else int(f["hazard_id"]),
+            math.inf if f.get("timeout_s") is None else float(f["timeout_s"]),
+            None if route is None else np.asarray(route, dtype=np.float64).reshape(-1, 2),
+        )
+    allocator.assignments = restored
+    return len(restored)
 
 
 @dataclass
@@ -975,7 +1025,11 @@ def resume_control(
     robot and the task ids used (new ids start past them, so no robot sees an id twice),
     from the bookkeeping saved with the checkpoint the station loaded from and the
     ``decision`` records after it only (none: every ``decision`` record), so the rebuild
-    reads no more of the journal than the records after the checkpoint."""
+    reads no more of the journal than the records after the checkpoint. And the allocator's
+    assignments as the newest ``assignments`` record left them (one record): without them it
+    gave every robot a new goal at its first plan, throwing away the goals robots were
+    driving to (the chaos bench, seed 7, a kill at 30 s: all four robots' tasks replaced at
+    once)."""
     import msgspec
 
     from gcs.mission_control import MissionControl, MissionControlConfig
@@ -1001,6 +1055,9 @@ def resume_control(
                 last_id = max(last_id, int(f["task_id"]))
         journal.tasks_sent = dict(sent)
         journal.last_task_id = last_id
+        # the allocator's assignments as the last plan left them (one record, the newest)
+        latest = journal.latest_record("assignments")
+        assignments = {} if latest is None else latest.json()
     except BaseException:
         journal.close()
         raise
@@ -1010,4 +1067,7 @@ def resume_control(
         mc = msgspec.structs.replace(mc, tasking=tasking)
     control = MissionControl(station, mc)
     control.tasks_sent.update(sent)
+    if assignments:
+        _restore_assignments(control.allocator, assignments)
+        journal.assignments = _assignments_json(control.allocator)
     return ResumedControl(control, journal, summary, time.perf_counter() - t0)

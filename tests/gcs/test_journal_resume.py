@@ -382,3 +382,45 @@ def test_a_checkpoint_saved_by_other_code_is_not_loaded(
     reader.close()
     assert summary.checkpoint_seq == 0 and "replaying the whole journal" in caplog.text
     assert compare_stations(ground.station, station).pose_diff_max_m <= 1e-9
+
+
+def test_a_resumed_gcs_gives_its_allocator_back_the_robots_assignments(tmp_path: Path) -> None:
+    """The planners' assignments survive a kill (``assignments`` records): the resumed
+    allocator knows which task each robot carries out, its goal, purpose and deadline, and
+    its first plan does not replace them (a fresh allocator gave every robot a new goal)."""
+    items = _mission(seed=4)
+    path = tmp_path / "journal.sqlite"
+    first = _ground(_journal(path))
+    first_tasks = _turns(first, items, 0, 20)
+    assert first_tasks
+    before = dict(first.control.allocator.assignments)
+    assert before, "robots had tasks at the kill"
+    resumed, _ = first.crash_and_resume()
+    after = resumed.control.allocator.assignments
+    assert sorted(after) == sorted(before)
+    for rid, a in before.items():
+        b = after[rid]
+        assert (b.task_id, b.purpose, b.issued_s, b.hazard_id) == (
+            a.task_id,
+            a.purpose,
+            a.issued_s,
+            a.hazard_id,
+        )
+        assert b.timeout_s == a.timeout_s
+        if a.goal_in_map is None:
+            assert b.goal_in_map is None
+        else:
+            assert b.goal_in_map is not None
+            assert np.allclose(b.goal_in_map, a.goal_in_map, atol=0, rtol=0)
+        if a.route_in_map is not None:
+            assert b.route_in_map is not None
+            assert np.array_equal(np.asarray(b.route_in_map), np.asarray(a.route_in_map))
+    # its first plan keeps the robots' live tasks: none is replaced at once
+    again = [m for _, m in resumed.turn(20.0) if hasattr(m, "task_id")]
+    replaced = {m.task_id for m in again} & {a.task_id for a in before.values()}
+    assert not replaced
+    now = resumed.control.allocator.assignments
+    kept = [rid for rid, a in before.items() if rid in now and now[rid].task_id == a.task_id]
+    assert kept, "the robots' tasks go on"
+    assert resumed.journal is not None
+    resumed.journal.close()
