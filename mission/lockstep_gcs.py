@@ -138,16 +138,17 @@ class _Figures:
             "plans": float(control.allocator.stats.plans),
             "explored": float(control.explored),
         }
-        # the reliable uplink streams' receive state (the channels' private state): in order
-        # through, and held in the reorder buffer behind a gap (the chaos bench's accounting)
+        # the reliable uplink streams' receive state: in order through, and held in the
+        # reorder buffer behind a gap (the chaos bench's accounting)
+        reliable = [
+            name
+            for name, spec in STREAMS[Direction.UP].items()
+            if spec.reliability is Reliability.RELIABLE
+        ]
         recv: dict[int, dict[str, Any]] = {}
         for rid in self.rows:
             ch = radio.channel(rid)
-            recv[rid] = {
-                name: [rs.delivered_through, sorted(rs.buffer)]
-                for name, rs in ch._recv.items()
-                if STREAMS[Direction.UP][name].reliability is Reliability.RELIABLE
-            }
+            recv[rid] = {name: list(ch.receive_state(name)) for name in reliable}
         return msgspec.msgpack.encode(
             {"progress": progress, "gcs": gcs, "events": new, "recv": recv}
         )

@@ -131,13 +131,12 @@ class _Ledger:
         ground = asm.team.ground
         assert ground is not None, "the GCS in this process"
         for rid, ep in asm.team.radios.items():  # type: ignore[union-attr]
-            # private state of the radio channels (no public accessor): the robot's
-            # unacknowledged messages are still on their way, not lost
-            for stream, st in ep.channel._send.items():
-                in_flight.update((rid, stream, seq) for seq in st.unacked)
-            # selectively acknowledged, in the GCS's reorder buffer behind a gap
-            for stream, rs in ground.channel(rid)._recv.items():
-                in_flight.update((rid, stream, seq) for seq in rs.buffer)
+            for stream in _RELIABLE_UP:
+                # the robot's unacknowledged messages are still on their way, not lost
+                in_flight.update((rid, stream, seq) for seq in ep.channel.unacked_seqs(stream))
+                # selectively acknowledged, in the GCS's reorder buffer behind a gap
+                _, held = ground.channel(rid).receive_state(stream)
+                in_flight.update((rid, stream, seq) for seq in held)
         lost = flying = 0
         first: list[Any] = []
         for key, ident in self.sent.items():

@@ -280,3 +280,62 @@ def test_packet_is_what_poll_returns() -> None:
     robot.send(status(1))
     (pkt,) = robot.poll(0.0)
     assert isinstance(pkt, Packet) and pkt.stream == "task_status"
+
+
+def test_a_task_lost_on_the_air_is_resent_within_a_second_and_acked_at_once() -> None:
+    """Tasks and their reports (``PROMPT_STREAMS``) are acknowledged promptly and resent
+    after ``prompt_rto_s`` (1 s), not after the delayed acks' 9 s: a robot waiting for a
+    lost task stood idle that long."""
+    from protocol.radio_channel import PROMPT_STREAMS
+
+    assert {"task", "task_status"} <= PROMPT_STREAMS
+    robot, gcs = make_pair(rate_bps=9600.0)
+    gcs.send(GoToTask(5, 0.0, [(1.0, 2.0)]))
+    t, lost = 0.0, []
+    while not lost:  # the first transmission never reaches the robot
+        t += 0.05
+        lost = gcs.poll(t)
+    assert [p.stream for p in lost] == ["task"]
+    sent_s, got = t, []
+    while not got and t < 30.0:
+        t += 0.05
+        got += [m for p in gcs.poll(t) for m in robot.receive(p.stream, p.payload, t)]
+    assert [m.task_id for m in got] == [5]
+    assert t - sent_s <= gcs.config.prompt_rto_s + 0.1  # was rto_initial_s (10 s) and more
+    # the robot acknowledges it at once (ack_prompt_delay_s), and it is not resent again
+    heard = t
+    while gcs.held_bytes and t < heard + 2.0:
+        t += 0.05
+        for p in robot.poll(t):
+            gcs.receive(p.stream, p.payload, t)
+    assert gcs.held_bytes == 0 and t <= heard + robot.config.ack_prompt_delay_s + 0.1
+    assert gcs.stats.retransmitted == 1
+    with pytest.raises(ValueError, match="prompt_rto_s"):
+        ReliabilityConfig(prompt_rto_s=0.05)
+
+
+def test_the_public_state_accessors_restore_a_channel_as_it_was() -> None:
+    """What a resumed GCS reads and restores (``gcs.node.restore_link_state``): a channel
+    given another's receive state, sequence numbers and decoder reference drops what that one
+    delivered, delivers the held message once its gap is filled, and numbers on."""
+    robot, gcs = make_pair()
+    for i in range(1, 5):
+        robot.send(status(i))
+    packets = robot.poll(0.0)
+    for p in packets[:2] + packets[3:]:  # the third is lost: the fourth is held
+        gcs.receive(p.stream, p.payload, 0.0)
+    assert gcs.receive_state("task_status") == (2, [4])
+    assert robot.unacked_seqs("task_status") == [1, 2, 3, 4]
+    gcs.send(GoToTask(1, 0.0, []))
+    assert gcs.next_seq("task") == 2
+    fresh = RadioChannel(7, Direction.DOWN, seed=9)
+    through, held = gcs.receive_state("task_status")
+    fresh.restore_received("task_status", through, {4: status(4)})
+    fresh.restore_next_seq("task", gcs.next_seq("task"))
+    fresh.prime_decoder("task_status", status(2))  # no decoder on this stream: ignored
+    assert fresh.receive("task_status", packets[0].payload, 1.0) == []  # delivered before
+    got = fresh.receive("task_status", packets[2].payload, 1.0)
+    assert [m.task_id for m in got] == [3, 4]
+    assert fresh.send(GoToTask(2, 1.0, [])) == 2
+    with pytest.raises(ValueError, match="next_seq"):
+        fresh.restore_next_seq("task", 0)
