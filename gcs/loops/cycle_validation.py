@@ -25,6 +25,21 @@ expires, or an edge accepted elsewhere lets the graph check reject it). So no ac
 closure lies on a tested cycle that failed, with the graph or with other hypotheses; what
 remains is the paper's caveat, errors that cancel around a cycle ("this seldom occurs").
 
+Groups (issue 19 item 4). Cycles are tested one at a time, each at its own 99% quantile, so a
+set of hypotheses accepted together can disagree beyond its noise while each of its cycles
+passes, and one wrong member blocks its right partners until it expires. So the hypotheses
+joined by the tested cycles form groups, and each group is tested as a whole: a least-squares
+fit of its hypotheses (floored) and a spanning forest of the tightest links between their nodes
+(links along one robot's chain share its odometry: only a forest of them is independent) has
+at its optimum a chi-square on ``3 (E - V + C)`` degrees of freedom (the group's independent
+cycles; ``E`` edges, ``V`` nodes, ``C`` connected parts), tested at ``group_quantile``. A group
+that fails, or holds a failing cycle, loses its largest contributor to the chi-square (among
+the members of failing cycles, when there are some) and is tested again, as long as a larger
+group than the outliers removed, and at least two hypotheses, would remain. A group that
+passes promotes its members that lie on a consistent cycle of ``min_cycle_hypotheses`` or
+more, and its outliers are rejected (they disagree with a group that agrees without them); a
+group that never passes promotes nothing, as before. ``group_test = False``: cycles alone.
+
 Hypotheses older than ``expiry_s`` (on the caller's clock: the loop closer's progress clock, not
 message time) without a confirming cycle are dropped (they cost search time and, the older, the
 likelier an erroneous cycle, paper 4.5), as are the oldest beyond ``max_hypotheses``.
@@ -38,6 +53,7 @@ GTSAM's ``BetweenFactorPose2`` convention).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -45,12 +61,14 @@ from typing import Any
 
 import msgspec
 import numpy as np
+import scipy.stats
 from numpy.typing import NDArray
 
 from gcs.graph import se2
 
 __all__ = [
     "CycleCheck",
+    "GroupCheck",
     "CycleValidationConfig",
     "CycleValidator",
     "Hypothesis",
@@ -75,6 +93,10 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
 
     ``floor_sigma_xy_m`` / ``floor_sigma_yaw_rad`` floor every hypothesis's covariance in the
     test (a matcher's response surface can be overconfident).
+
+    ``group_test`` tests the hypotheses a set of cycles joins as one group (module docstring,
+    "Groups") at the ``group_quantile`` of chi-square, fitting it in at most
+    ``group_max_iterations`` Gauss-Newton steps.
     """
 
     chi2_threshold: float = 11.34
@@ -86,6 +108,9 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     max_search_steps: int = 20_000
     floor_sigma_xy_m: float = 0.05
     floor_sigma_yaw_rad: float = math.radians(1.0)
+    group_test: bool = True
+    group_quantile: float = 0.99
+    group_max_iterations: int = 10
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.chi2_threshold) and self.chi2_threshold > 0):
@@ -105,6 +130,12 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
             )
         if not (self.floor_sigma_xy_m >= 0 and self.floor_sigma_yaw_rad >= 0):
             raise ValueError("covariance floors must be >= 0")
+        if not 0.5 <= self.group_quantile < 1.0:
+            raise ValueError(f"group_quantile: expected in [0.5, 1), got {self.group_quantile}")
+        if self.group_max_iterations < 1:
+            raise ValueError(
+                f"group_max_iterations: expected >= 1, got {self.group_max_iterations}"
+            )
 
 
 @dataclass(frozen=True)
@@ -130,14 +161,36 @@ class CycleCheck:
     consistent: bool
 
 
+@dataclass(frozen=True)
+class GroupCheck:
+    """One group test (module docstring, "Groups"): the hypotheses tested together, the
+    chi-square of their joint fit, its degrees of freedom, the verdict and the outliers
+    already removed from the group before this test."""
+
+    hyp_ids: tuple[int, ...]
+    chi2: float
+    dof: int
+    consistent: bool
+    removed: tuple[int, ...] = ()
+
+
 @dataclass
 class ValidationResult:
     """What one :meth:`CycleValidator.validate` call decided."""
 
     accepted: list[Hypothesis] = field(default_factory=list)
-    rejected: list[Hypothesis] = field(default_factory=list)  # contradicted by the graph
+    # contradicted by the graph, or the outlier of a group that agrees without it
+    rejected: list[Hypothesis] = field(default_factory=list)
     expired: list[Hypothesis] = field(default_factory=list)
     cycles: list[CycleCheck] = field(default_factory=list)
+    groups: list[GroupCheck] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class _GroupFit:
+    chi2: float
+    dof: int
+    contribution: dict[int, float]
 
 
 def compose_with_covariance(steps: Iterable[Link]) -> Link:
@@ -256,23 +309,31 @@ class CycleValidator:
             return out
         self._searched = state
         searched = []
-        for ids, pose, cov in self._search(links):
+        link_cache: dict[int, dict[int, _T]] = {}
+        for ids, pose, cov in self._search(links, link_cache):
             chi2 = _chi2(pose, cov)
             check = CycleCheck(ids, chi2, chi2 <= cfg.chi2_threshold)
             out.cycles.append(check)
             searched.append(check)
-        # a failing cycle blocks all its members: which one is wrong is unknown
+        # a failing cycle blocks all its members: which one is wrong is unknown (unless the
+        # group test below finds it)
         blocked: set[int] = set()
         for c in searched:
             if not c.consistent:
                 blocked.update(c.hyp_ids)
         promoted: set[int] = set()
-        for c in searched:
-            if not c.consistent or len(c.hyp_ids) < cfg.min_cycle_hypotheses:
-                continue
-            if blocked.intersection(c.hyp_ids):
-                continue
-            promoted.update(c.hyp_ids)
+        if cfg.group_test:
+            promoted, outliers = self._group_verdicts(searched, links, link_cache, out)
+            blocked -= promoted
+            for i in sorted(outliers):
+                out.rejected.append(self._pop(i))
+        else:
+            for c in searched:
+                if not c.consistent or len(c.hyp_ids) < cfg.min_cycle_hypotheses:
+                    continue
+                if blocked.intersection(c.hyp_ids):
+                    continue
+                promoted.update(c.hyp_ids)
         if cfg.min_cycle_hypotheses <= 1:
             promoted.update(
                 c.hyp_ids[0]
@@ -287,7 +348,117 @@ class CycleValidator:
         self._checked.pop(hyp_id, None)
         return self._pending.pop(hyp_id)
 
-    def _search(self, links: LinksFn) -> list[tuple[tuple[int, ...], FloatArray, FloatArray]]:
+    def _group_verdicts(
+        self,
+        searched: list[CycleCheck],
+        links: LinksFn,
+        link_cache: dict[int, dict[int, _T]],
+        out: ValidationResult,
+    ) -> tuple[set[int], set[int]]:
+        """The group test (module docstring, "Groups"): ``(promoted, outliers)`` over the
+        groups of hypotheses joined by the cycles in ``searched``; each group tested is
+        appended to ``out.groups``."""
+        cfg = self.config
+        need = max(cfg.min_cycle_hypotheses, 2)
+        parent: dict[int, int] = {}
+
+        def find(i: int) -> int:
+            while parent.setdefault(i, i) != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for c in searched:
+            if len(c.hyp_ids) >= 2:
+                for i in c.hyp_ids[1:]:
+                    parent[find(i)] = find(c.hyp_ids[0])
+        groups: dict[int, set[int]] = {}
+        for i in list(parent):
+            groups.setdefault(find(i), set()).add(i)
+        promoted: set[int] = set()
+        outliers: set[int] = set()
+        for members in sorted(groups.values(), key=min):
+            members = set(members)
+            removed: list[int] = []
+            while True:
+                inner = [c for c in searched if len(c.hyp_ids) >= 2 and members >= set(c.hyp_ids)]
+                failing = [c for c in inner if not c.consistent]
+                fit = self._group_fit(members, links, link_cache)
+                ok = not failing and fit.chi2 <= _chi2_quantile(cfg.group_quantile, fit.dof)
+                out.groups.append(
+                    GroupCheck(tuple(sorted(members)), fit.chi2, fit.dof, ok, tuple(removed))
+                )
+                if ok:
+                    break
+                # one more outlier out, if a larger consistent group would remain
+                if len(members) - 1 < need or len(removed) + 1 >= len(members) - 1:
+                    members = set()
+                    break
+                suspects = {i for c in failing for i in c.hyp_ids} or members
+                worst = max(sorted(suspects), key=lambda i: fit.contribution.get(i, 0.0))
+                members.discard(worst)
+                removed.append(worst)
+            confirmed = {
+                i
+                for c in searched
+                if c.consistent
+                and len(c.hyp_ids) >= cfg.min_cycle_hypotheses
+                and members >= set(c.hyp_ids)
+                for i in c.hyp_ids
+            }
+            if confirmed:
+                promoted |= confirmed
+                outliers.update(removed)
+        return promoted, outliers
+
+    def _group_fit(
+        self, members: set[int], links: LinksFn, link_cache: dict[int, dict[int, _T]]
+    ) -> _GroupFit:
+        """Least squares over the group's hypotheses and the graph's links between their
+        nodes (a spanning forest of the tightest links: links along one chain share its
+        odometry, so only a forest of them is independent); chi-square at the optimum,
+        degrees of freedom ``3 (E - V + C)`` and each hypothesis's share of the chi-square."""
+        hyps = [self._pending[i] for i in sorted(members)]
+        nodes = sorted({k for h in hyps for k in (h.key_a, h.key_b)})
+        col = {k: i for i, k in enumerate(nodes)}
+        edges: list[tuple[int, int, FloatArray, FloatArray, int]] = []
+        for h in hyps:
+            z, cov = self._floored(h)
+            edges.append((col[h.key_a], col[h.key_b], z, cov, h.hyp_id))
+        candidates: list[tuple[float, int, int, _T]] = []
+        for a in nodes:
+            if a not in link_cache:
+                found = {k: _to_t(*v) for k, v in links(a).items()}
+                found.setdefault(a, _ZERO)
+                link_cache[a] = found
+            for b, t in link_cache[a].items():
+                if b != a and b in col and a < b:
+                    candidates.append((t[3] + t[6] + t[8], a, b, t))
+        parent = list(range(len(nodes)))
+
+        def find(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for _, a, b, t in sorted(candidates, key=lambda c: (c[0], c[1], c[2])):
+            ra, rb = find(col[a]), find(col[b])
+            if ra != rb:
+                parent[ra] = rb
+                z, cov = _from_t(t)
+                edges.append((col[a], col[b], z, cov, -1))
+        for i, j, *_ in edges:
+            parent[find(i)] = find(j)
+        roots = sorted({find(i) for i in range(len(nodes))})
+        dof = 3 * (len(edges) - len(nodes) + len(roots))
+        poses = _initial_poses(len(nodes), edges, roots)
+        chi2, contribution = _solve_group(poses, edges, roots, self.config.group_max_iterations)
+        return _GroupFit(chi2, dof, contribution)
+
+    def _search(
+        self, links: LinksFn, link_cache: dict[int, dict[int, _T]] | None = None
+    ) -> list[tuple[tuple[int, ...], FloatArray, FloatArray]]:
         """Depth-limited search for cycles ``h, link, h, link, ...`` of 2 or more hypotheses.
 
         A cycle is searched from its lowest-id hypothesis, traversed from ``key_a`` to
@@ -302,7 +473,8 @@ class CycleValidator:
         depth = cfg.max_cycle_hypotheses
         if len(self._pending) > cfg.deep_search_max_pending:
             depth = min(depth, 2)
-        link_cache: dict[int, dict[int, _T]] = {}
+        if link_cache is None:
+            link_cache = {}
         while True:
             found = self._search_depth(links, depth, link_cache)
             if found is not None:
@@ -427,3 +599,118 @@ def _compose_t(p: _T, z: _T) -> _T:
 def _compose2(first: Link, step: Link) -> Link:
     """``first * step`` with ``cov = Ad(step^-1) cov_first Ad(step^-1)' + cov_step``."""
     return _from_t(_compose_t(_to_t(*first), _to_t(*step)))
+
+
+@functools.cache
+def _chi2_quantile(q: float, dof: int) -> float:
+    return float(scipy.stats.chi2.ppf(q, dof)) if dof > 0 else math.inf
+
+
+_Edge = tuple[int, int, FloatArray, FloatArray, int]
+
+
+def _initial_poses(n: int, edges: list[_Edge], roots: list[int]) -> FloatArray:
+    """Poses of the group's nodes composed along a breadth-first tree from each component's
+    root (the root at the origin: a group's fit is relative)."""
+    poses = np.zeros((n, 3))
+    adj: dict[int, list[tuple[int, FloatArray, bool]]] = {}
+    for i, j, z, _cov, _h in edges:
+        adj.setdefault(i, []).append((j, z, True))
+        adj.setdefault(j, []).append((i, z, False))
+    seen = [False] * n
+    for r in roots:
+        # the component's root: find() gave a representative; any member is as good
+        queue = [r]
+        seen[r] = True
+        while queue:
+            i = queue.pop()
+            for j, z, forward in adj.get(i, []):
+                if seen[j]:
+                    continue
+                seen[j] = True
+                poses[j] = se2.compose(poses[i], z if forward else se2.inverse(z))
+                queue.append(j)
+    return poses
+
+
+def _solve_group(
+    poses: FloatArray, edges: list[_Edge], roots: list[int], iterations: int
+) -> tuple[float, dict[int, float]]:
+    """Gauss-Newton on the group's poses (each component's root held), error of an edge
+    ``i -> j`` with measurement ``z``: ``(Rz' (Ri' (tj - ti) - tz), wrap(thj - thi - thz))``
+    weighted by its covariance. Returns the chi-square at the end and each hypothesis's part
+    of it (by hypothesis id; links are ``-1`` and left out)."""
+    n = len(poses)
+    info = [np.linalg.inv(cov) for _i, _j, _z, cov, _h in edges]
+    held = np.zeros(3 * n, dtype=bool)
+    for root in roots:
+        held[3 * root : 3 * root + 3] = True
+    free = ~held
+
+    def residuals(x: FloatArray) -> list[FloatArray]:
+        out = []
+        for i, j, z, _cov, _h in edges:
+            ci, si = math.cos(x[i, 2]), math.sin(x[i, 2])
+            cz, sz = math.cos(z[2]), math.sin(z[2])
+            dx, dy = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1]
+            ux, uy = ci * dx + si * dy - z[0], -si * dx + ci * dy - z[1]
+            out.append(
+                np.array(
+                    [
+                        cz * ux + sz * uy,
+                        -sz * ux + cz * uy,
+                        float(se2.wrap_angle(x[j, 2] - x[i, 2] - z[2])),
+                    ]
+                )
+            )
+        return out
+
+    def total(res: list[FloatArray]) -> float:
+        return float(sum(r @ w @ r for r, w in zip(res, info, strict=True)))
+
+    x = poses.copy()
+    res = residuals(x)
+    chi2 = total(res)
+    for _ in range(iterations):
+        h = np.zeros((3 * n, 3 * n))
+        g = np.zeros(3 * n)
+        for (i, j, z, _cov, _hid), r, w in zip(edges, res, info, strict=True):
+            ci, si = math.cos(x[i, 2]), math.sin(x[i, 2])
+            cz, sz = math.cos(z[2]), math.sin(z[2])
+            rz_t = np.array([[cz, sz], [-sz, cz]])
+            ri_t = np.array([[ci, si], [-si, ci]])
+            dri_t = np.array([[-si, ci], [-ci, -si]])
+            d = x[j, :2] - x[i, :2]
+            jac_i = np.zeros((3, 3))
+            jac_j = np.zeros((3, 3))
+            jac_i[:2, :2] = -rz_t @ ri_t
+            jac_i[:2, 2] = rz_t @ dri_t @ d
+            jac_i[2, 2] = -1.0
+            jac_j[:2, :2] = rz_t @ ri_t
+            jac_j[2, 2] = 1.0
+            blocks = ((i, jac_i), (j, jac_j))
+            for a, ja in blocks:
+                g[3 * a : 3 * a + 3] += ja.T @ w @ r
+                for b, jb in blocks:
+                    h[3 * a : 3 * a + 3, 3 * b : 3 * b + 3] += ja.T @ w @ jb
+        try:
+            step = np.linalg.solve(h[np.ix_(free, free)], -g[free])
+        except np.linalg.LinAlgError:
+            break
+        trial = x.copy()
+        trial.reshape(-1)[free] += step
+        trial[:, 2] = se2.wrap_angle(trial[:, 2])
+        trial_res = residuals(trial)
+        trial_chi2 = total(trial_res)
+        if trial_chi2 > chi2:  # a step that makes things worse is not taken
+            break
+        done = chi2 - trial_chi2 < 1e-9 * max(chi2, 1.0)
+        x, res, chi2 = trial, trial_res, trial_chi2
+        if done:
+            break
+    contribution = {
+        hid: float(r @ w @ r)
+        for (_i, _j, _z, _cov, hid), r, w in zip(edges, res, info, strict=True)
+        if hid >= 0
+    }
+    return chi2, contribution
