@@ -57,12 +57,22 @@ from mission.lockstep_protocol import (
     gcs_go_key,
 )
 
-__all__ = ["GcsSetup", "RemoteGcs", "main"]
+__all__ = ["GcsSetup", "OperatorSetup", "RemoteGcs", "main"]
 
 log = logging.getLogger(__name__)
 
 #: The file in the run directory the orchestrator writes the GCS's setup to.
 SETUP_FILE = "gcs_setup.msgpack"
+
+
+class OperatorSetup(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
+    """The operator station the GCS process serves consoles and views with
+    (:class:`gcs.operator.service.OperatorService`, as ``magic run`` attaches it in process):
+    ``key_file``: the operators' HMAC key file (None: the default); ``views``: rerun sinks
+    (``"save run.rrd"``, ``"spawn"``, ...)."""
+
+    key_file: str | None = None
+    views: list[str] = msgspec.field(default_factory=list)
 
 
 class GcsSetup(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -81,6 +91,8 @@ class GcsSetup(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=
     radio_path: str
     ground_link_seed: int
     seed: int
+    #: consoles and views (None: none): ``magic console`` then reaches this process's GCS
+    operator: OperatorSetup | None = None
 
 
 class _Figures:
@@ -231,6 +243,17 @@ class _Server:
             journal=_StepJournal(journal),  # type: ignore[arg-type]
             journal_uplink=False,  # journaled on arrival, before the acknowledgement
         )
+        if setup.operator is not None:  # consoles and views, as in process (issue 15)
+            from gcs.operator.service import OperatorService
+
+            self.ground.attach_operator(
+                OperatorService(
+                    link,
+                    key_file=setup.operator.key_file,
+                    views=list(setup.operator.views) or None,
+                    control=control,
+                )
+            )
         self._next_t = 0.0
         self.ledger = LinkLedger()
         self.radio = self.link.gcs_endpoint(on_message=self._arrived)
@@ -357,6 +380,8 @@ class _Server:
                 log.warning("gcs process: bad lockstep message: %s", err)
 
     def close(self) -> None:
+        if self.ground.operator is not None:
+            self.ground.operator.close(self.ground.station)  # last picture, views flushed
         self.link.close()
         self.journal.close()
 

@@ -109,3 +109,94 @@ def test_a_killed_gcs_process_resumes_the_same_way_wherever_in_its_turn_it_died(
     )
     assert a["progress"] == b["progress"]
     assert a["gcs"] == b["gcs"]
+
+
+def test_a_console_reaches_the_gcs_in_its_own_process(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``GcsSetup.operator``: the GCS process serves consoles as the in-process GCS does: a
+    ``magic console``'s signed command, over zenoh to the GCS process, is carried out at its
+    next turn (a PauseTask to robot 0, on the radio) and answered; its status reaches the
+    console; the command is journaled."""
+    import threading
+
+    import msgspec
+
+    import mission.lockstep_gcs as lg
+    from gcs.console.client import ConsoleClient
+    from gcs.journal import GcsJournal
+    from mission.assembly import assemble
+    from mission.config import config_path, load_config
+    from mission.lockstep import seed_streams
+    from protocol import operator as op
+    from protocol.link import Link, LinkConfig
+    from protocol.loopback import free_loopback_port, unique_mission
+    from protocol.radio import RadioConfig
+    from sim.simulator import load_world_config
+
+    key_file = tmp_path / "operator.key"
+    key = op.load_or_create_key(key_file, create=True)
+    plain = lg.RemoteGcs
+
+    class WithConsoles(plain):  # type: ignore[misc, valid-type]
+        def __init__(self, link: Any, mission: str, run_dir: Path, setup: Any, **kw: Any):
+            setup = msgspec.structs.replace(
+                setup, operator=lg.OperatorSetup(key_file=str(key_file))
+            )
+            super().__init__(link, mission, run_dir, setup, **kw)
+
+    monkeypatch.setattr(lg, "RemoteGcs", WithConsoles)
+    world = load_world_config(config_path("world/small.yaml", "world"))
+    radio_path = config_path("radio/magic2010.yaml", "radio")
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    mission = unique_mission("gcs-console")
+    journal = tmp_path / "journal.sqlite"
+    with assemble(
+        world,
+        seeds=seed_streams(1),
+        radio=load_config(radio_path, RadioConfig),
+        radio_path=str(radio_path),
+        journal_path=journal,
+        robot_processes=True,
+        workers=1,
+        gcs_process=True,
+        gcs_standby=False,
+        link=LinkConfig(listen=(endpoint,)),
+        mission_name=mission,
+    ) as asm:
+        console_link = Link(LinkConfig(connect=(endpoint,), pump_period_s=0.0), mission=mission)
+        client = ConsoleClient(console_link, "alice", key)
+        replies: list[Any] = []
+
+        def operate() -> None:
+            if client.wait_for_status(lambda s: bool(s.robots), 120.0):
+                replies.append(client.send(op.Command("pause", "0"), timeout_s=120.0))
+
+        thread = threading.Thread(target=operate, daemon=True)
+        thread.start()
+        try:
+            steps = 0
+            while thread.is_alive() and steps < 2000:
+                asm.step()
+                steps += 1
+            thread.join(1.0)
+            assert replies and replies[0] is not None, "no reply from the GCS process"
+            reply = replies[0]
+            assert reply.status == "ok", reply
+            assert len(reply.task_ids) == 1
+            for _ in range(40):  # the PauseTask goes out on the radio with the next steps
+                asm.step()
+        finally:
+            client.close()
+            console_link.close()
+    reader = GcsJournal.open(journal)
+    try:
+        ops = [r.json() for r in reader.records(kind="operator")]
+        downs = [r for r in reader.records(kind="downlink") if r.robot_id == 0]
+    finally:
+        reader.close()
+    assert any("pause" in str(f) for f in ops), ops
+    from protocol.messages import Direction, PauseTask, decode_frame
+
+    paused = [decode_frame(r.body, Direction.DOWN).msg for r in downs]
+    assert any(isinstance(m, PauseTask) and m.task_id == reply.task_ids[0] for m in paused)
