@@ -490,10 +490,32 @@ class _FreeGroup:
             p.close()
 
 
+#: Set to a directory: the process runs under cProfile and writes ``robot_<pid>.prof`` there
+#: when it ends (a worker of ``magic run`` or ``magic bench scale``: where its CPU goes).
+PROFILE_DIR_ENV = "MAGIC_ROBOT_PROFILE_DIR"
+
+
 def main(argv: list[str]) -> int:
     """``magic robot``: 0 at the end, 2 on bad arguments or configuration, an id the
     simulator does not have or that another process hosts, an endpoint in use or that does
-    not answer (one line on stderr), 130 / 143 on SIGINT / SIGTERM."""
+    not answer (one line on stderr), 130 / 143 on SIGINT / SIGTERM. With
+    ``$MAGIC_ROBOT_PROFILE_DIR`` set, profiled (:data:`PROFILE_DIR_ENV`)."""
+    out_dir = os.environ.get(PROFILE_DIR_ENV)
+    if not out_dir:
+        return _main(argv)
+    import cProfile
+
+    profiler = cProfile.Profile()
+    profiler.enable()
+    try:
+        return _main(argv)
+    finally:
+        profiler.disable()
+        os.makedirs(out_dir, exist_ok=True)
+        profiler.dump_stats(os.path.join(out_dir, f"robot_{os.getpid()}.prof"))
+
+
+def _main(argv: list[str]) -> int:
     try:
         args = robot_parser().parse_args(argv)
     except SystemExit as exit_:

@@ -102,6 +102,7 @@ class Scene:
         geometry: RobotGeometry | None = None,
         ray_threads: int = 2,
         ray_workers: int = 0,
+        analytic_ground: bool = True,
     ) -> None:
         self.world = world
         self.geometry = geometry or RobotGeometry()
@@ -128,6 +129,24 @@ class Scene:
         g = pb.createMultiBody(0, -1, vis, basePosition=(W / 2, Hh / 2, -0.05), physicsClientId=c)
         self.ground_body = int(g)
         self.body_kind[g] = ("solid", "ground")
+        self._ground_xy_m = (W / 2 - he[0], Hh / 2 - he[1], W / 2 + he[0], Hh / 2 + he[1])
+        #: The ground's pixels are filled in after rendering (:meth:`render`), not drawn by
+        #: TinyRenderer: its two screen-wide triangles were ~45 % of a render's time.
+        self.analytic_ground = analytic_ground
+        self.ground_rgb: np.ndarray | None = None
+        if analytic_ground:
+            # the shaded colour, as TinyRenderer draws it (the only body yet): seen from above
+            self.ground_rgb = self._render_raw(
+                np.array([W / 2, Hh / 2, 5.0]),
+                np.array([0.0, 0.0, -1.0]),
+                np.array([0.0, 1.0, 0.0]),
+                8,
+                8,
+                8.0,
+                0.05,
+                80.0,
+            )[0][4, 4].copy()
+            pb.changeVisualShape(g, -1, rgbaColor=(0.42, 0.5, 0.38, 0.0), physicsClientId=c)
         tops = [s.center_m[2] + s.half_extents_m[2] for s in world.solids]
         tops += [o.ground_z_m + o.height_m for o in world.oois]
         tops += [h.height_m + 1.0 for h in world.humans]
@@ -305,7 +324,7 @@ class Scene:
             m = world_from_base[rid]
             q = _quat_from_matrix(m[:3, :3])
             if hidden is not None and hidden[rid]:
-                under = [float(m[0, 3]), float(m[1, 3]), -20.0]
+                under = [float(m[0, 3]), float(m[1, 3]), _HIDDEN_Z_M]
                 pb.resetBasePositionAndOrientation(chassis, under, q, physicsClientId=c)
                 pb.resetBasePositionAndOrientation(head, under, q, physicsClientId=c)
                 continue
@@ -320,7 +339,7 @@ class Scene:
         self._state_version += 1
         for hid, b in enumerate(self.human_body):
             h = self.world.humans[hid]
-            z = -20.0 if hidden[hid] else float(z_m[hid]) + h.height_m / 2
+            z = _HIDDEN_Z_M if hidden[hid] else float(z_m[hid]) + h.height_m / 2
             pb.resetBasePositionAndOrientation(
                 b, (float(xy_m[hid, 0]), float(xy_m[hid, 1]), z), (0, 0, 0, 1), physicsClientId=c
             )
@@ -335,7 +354,7 @@ class Scene:
         self._state.hidden_oois.add(ooi_id)
         self._state_version += 1
         pb.resetBasePositionAndOrientation(
-            self.ooi_body[ooi_id], (0, 0, -30), (0, 0, 0, 1), physicsClientId=self.client
+            self.ooi_body[ooi_id], (0, 0, _HIDDEN_Z_M), (0, 0, 0, 1), physicsClientId=self.client
         )
 
     def sync(self) -> None:
@@ -427,7 +446,65 @@ class Scene:
         far_m: float = 80.0,
     ) -> np.ndarray:
         """RGB image ``(H, W, 3)`` uint8 from a pinhole camera at ``eye_m`` looking along
-        ``forward`` (TinyRenderer, CPU). Principal point at the image centre."""
+        ``forward`` (TinyRenderer, CPU). Principal point at the image centre.
+
+        With :attr:`analytic_ground` the ground plane is not rasterized: the pixels nothing
+        was drawn on whose ray meets ``z = 0`` (within the ground's extent and the far plane)
+        get its shaded colour, exactly the pixels and the colour TinyRenderer gives it (its
+        pixel (i, j) samples the ray through (i + 1, j + 1) of the viewport; nothing is
+        below the ground: hidden bodies go to ``_HIDDEN_Z_M``)."""
+        rgb, depth = self._render_raw(eye_m, forward, up, width_px, height_px, fy_px, near_m, far_m)
+        if self.ground_rgb is not None:
+            rgb[self._ground_pixels(depth, eye_m, forward, up, fy_px, near_m, far_m)] = (
+                self.ground_rgb
+            )
+        return rgb
+
+    def _ground_pixels(
+        self,
+        depth: np.ndarray,
+        eye_m: np.ndarray,
+        forward: np.ndarray,
+        up: np.ndarray,
+        fy_px: float,
+        near_m: float,
+        far_m: float,
+    ) -> np.ndarray:
+        """Boolean ``(H, W)``: background pixels whose ray meets the ground plane."""
+        h, w = depth.shape
+        eye = np.asarray(eye_m, dtype=np.float64)
+        f = np.asarray(forward, dtype=np.float64)
+        u = np.asarray(up, dtype=np.float64)
+        r = np.cross(f, u)
+        # the ray through pixel (i, j) is f + x_i r + y_j u (depth along f is its parameter)
+        x = (2.0 * (np.arange(w) + 1.0) / w - 1.0) * (w / 2 / fy_px)
+        y = (1.0 - 2.0 * (np.arange(h) + 1.0) / h) * (h / 2 / fy_px)
+        dz = f[2] + x[None, :] * r[2] + y[:, None] * u[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(dz < 0, -eye[2] / dz, np.inf)
+        hit = (t >= near_m) & (t <= far_m) & (depth >= 1.0)
+        if hit.any():
+            x0, y0, x1, y1 = self._ground_xy_m
+            rows, cols = np.nonzero(hit)
+            tt = t[rows, cols]
+            px = eye[0] + tt * (f[0] + x[cols] * r[0] + y[rows] * u[0])
+            py = eye[1] + tt * (f[1] + x[cols] * r[1] + y[rows] * u[1])
+            inside = (px >= x0) & (px <= x1) & (py >= y0) & (py <= y1)
+            hit[rows[~inside], cols[~inside]] = False
+        return hit
+
+    def _render_raw(
+        self,
+        eye_m: np.ndarray,
+        forward: np.ndarray,
+        up: np.ndarray,
+        width_px: int,
+        height_px: int,
+        fy_px: float,
+        near_m: float,
+        far_m: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """TinyRenderer's RGB ``(H, W, 3)`` and depth buffer ``(H, W)`` (1 where nothing)."""
         target = eye_m + forward
         view = pb.computeViewMatrix(eye_m.tolist(), target.tolist(), up.tolist())
         vfov_deg = math.degrees(2 * math.atan(height_px / 2 / fy_px))
@@ -438,6 +515,7 @@ class Scene:
             view,
             proj,
             renderer=pb.ER_TINY_RENDERER,
+            flags=pb.ER_NO_SEGMENTATION_MASK,  # not used: ~10 % of a render
             shadow=0,
             lightDirection=self.light_direction,
             lightAmbientCoeff=self.light_ambient,
@@ -446,7 +524,8 @@ class Scene:
             physicsClientId=self.client,
         )
         rgba = np.reshape(np.asarray(out[2], dtype=np.uint8), (height_px, width_px, 4))
-        return np.ascontiguousarray(rgba[:, :, :3])
+        depth = np.reshape(np.asarray(out[3], dtype=np.float32), (height_px, width_px))
+        return np.ascontiguousarray(rgba[:, :, :3]), depth
 
     def close(self) -> None:
         for w in self._workers:
@@ -460,6 +539,10 @@ class Scene:
             self.client = -1
         self._tmp.cleanup()
 
+
+#: Where hidden bodies go: below the ground, beyond any camera's far plane (the ground is not
+#: drawn: :meth:`Scene.render`) and any ray (clipped at the ground).
+_HIDDEN_Z_M = -1000.0
 
 #: Below this many rays a cast stays in process (the round trip would cost more).
 _PARALLEL_MIN_RAYS = 3000
