@@ -109,6 +109,11 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     fiducial_period_s: float = 1.0
     fiducial_width_px: int = 640
     fiducial_height_px: int = 480
+    # a teammate's pose (a fine image) is asked again at most this often: a coarse image that
+    # shows only teammates asked about within it asks for no fine image (issue 16: in a crowd
+    # every coarse image shows tags; their fine images were 3/4 of a 64-robot team's renders
+    # and most of its tag-fitting CPU, for the same pairs again and again). 0: every time.
+    fiducial_refresh_s: float = 3.0
     candidate_max_range_m: float = 10.0
     retest_after_s: float = 2.0
     wait_for_frame_s: float = 8.0  # a candidate no frame shows whole waits this long for one
@@ -155,6 +160,10 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"perception.{name} must be > 0, got {v}")
+        if not (math.isfinite(self.fiducial_refresh_s) and self.fiducial_refresh_s >= 0):
+            raise ValueError(
+                f"perception.fiducial_refresh_s must be >= 0, got {self.fiducial_refresh_s}"
+            )
         if not (math.isfinite(self.fiducial_period_s) and self.fiducial_period_s >= 0):
             raise ValueError(
                 f"perception.fiducial_period_s must be >= 0, got {self.fiducial_period_s}"
@@ -208,6 +217,7 @@ class PerceptionStats:
     fiducials: int = 0
     fiducial_dropped: int = 0
     fiducial_fine_images: int = 0  # fine images asked for a teammate's tag seen coarse
+    fiducial_fine_skipped: int = 0  # coarse tags of teammates asked about lately (no image)
     thumbnails: int = 0
     thumbnail_unknown: int = 0
     sweep_cpu_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
@@ -304,6 +314,8 @@ class OnboardPerception:
         self.pan_phase_s: float | None = None
         self._last_frame_s = -math.inf
         self._last_fiducial_ask_s = -math.inf
+        self._last_coarse_frame_s = -math.inf  # the newest frame a coarse image was asked of
+        self._fine_asked_s: dict[int, float] = {}  # teammate -> when its pose was last asked
         self._next_request_id = 1
         self._queued: list[ImageRequest] = []
         self._emitted_at, self._emitted = -math.inf, 0  # requests sent at one mission time
@@ -436,7 +448,10 @@ class OnboardPerception:
         if (
             self.pan_phase_s is not None
             and cfg.fiducial_period_s > 0
-            and now_s - self._last_fiducial_ask_s >= cfg.fiducial_period_s
+            # any coarse image is searched for tags: one asked (for a candidate) of a frame
+            # within the period covers the pan as well as an image of now would
+            and now_s - max(self._last_fiducial_ask_s, self._last_coarse_frame_s)
+            >= cfg.fiducial_period_s
         ):
             self._ask(now_s, [])
             self._last_fiducial_ask_s = now_s
@@ -472,6 +487,8 @@ class OnboardPerception:
         rid = self._next_request_id
         self._next_request_id += 1
         self._queued.append(ImageRequest(rid, float(frame_time_s), w, h))
+        if not fine:
+            self._last_coarse_frame_s = max(self._last_coarse_frame_s, float(frame_time_s))
         self._pending[rid] = _Request(rid, frame_time_s, self._now, jobs, fine)
         self.stats.images_requested += 1
 
@@ -894,9 +911,20 @@ class OnboardPerception:
             except ValueError:
                 tags = []
             ipr = cfg.fiducial.layout.ids_per_robot
-            if any(t.tag_id // ipr != self.robot_id for t in tags):
+            mates = {t.tag_id // ipr for t in tags} - {self.robot_id}
+            due = [
+                m
+                for m in mates
+                if self._now - self._fine_asked_s.get(m, -math.inf) >= cfg.fiducial_refresh_s
+            ]
+            if due:
+                # the fine image shows every teammate of this frame: all of them are asked
+                for m in mates:
+                    self._fine_asked_s[m] = self._now
                 self._ask(float(image.time_s), [], fine=True)
                 self.stats.fiducial_fine_images += 1
+            elif mates:
+                self.stats.fiducial_fine_skipped += 1
             return
         try:
             sightings, dropped = estimate_teammates(

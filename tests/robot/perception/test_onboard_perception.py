@@ -167,3 +167,63 @@ def test_a_hostile_track_dropped_and_found_again_on_its_way_keeps_its_keep_out()
     assert abs(hostiles[0, 1]) < 0.5 and hostiles[0, 0] > 9.0, hostiles
     kinds = {kind for kind, _, _ in p.own_hazards_in_odom()}
     assert kinds == {ObjectKind.HOSTILE}
+
+
+def _tag_image(request_id: int, time_s: float, mates: list[int]) -> CameraImage:
+    """A coarse image showing one head face of each teammate in ``mates``."""
+    import cv2
+
+    from sim.apriltag import tag_texture
+
+    img = _image(request_id, time_s)
+    for k, mate in enumerate(mates):
+        face = cv2.resize(tag_texture(4 * mate), (60, 60), interpolation=cv2.INTER_AREA)
+        img.rgb[90:150, 20 + 90 * k : 80 + 90 * k] = face
+    return img
+
+
+def test_a_teammates_pose_is_asked_again_only_after_the_refresh() -> None:
+    """A coarse image showing a teammate's tag asks for a fine image of its frame, unless that
+    teammate's pose was asked within ``fiducial_refresh_s``; a teammate new to the robot is
+    asked at once, and the fine image is asked for every teammate it shows."""
+    cfg = PerceptionConfig(fiducial_period_s=0.0, fiducial_refresh_s=3.0, image_timeout_s=60.0)
+    p = OnboardPerception(0, cfg)
+
+    def coarse(t: float, mates: list[int]) -> bool:
+        """Whether the image of ``mates`` at ``t`` asked for a fine image."""
+        p._now = t
+        p._ask(t, [])
+        (req,) = p.take_requests()
+        p.on_image(_tag_image(req.request_id, t, mates), _pose_at)
+        fine = p.take_requests()
+        assert all(r.width_px == cfg.fiducial_width_px for r in fine)
+        return len(fine) == 1
+
+    assert coarse(1.0, [1])
+    assert not coarse(2.0, [1])  # asked 1 s ago
+    assert coarse(2.5, [1, 2])  # 2 is new: one fine image for both
+    assert not coarse(4.1, [1])  # 1.6 s since the last
+    assert not coarse(5.0, [2])
+    assert coarse(5.6, [1])  # 3.1 s
+    assert not coarse(6.0, [])  # no tag: nothing to ask
+    assert p.stats.fiducial_fine_images == 3 and p.stats.fiducial_fine_skipped == 3
+    every = OnboardPerception(0, PerceptionConfig(fiducial_period_s=0.0, fiducial_refresh_s=0.0))
+    p = every
+    assert coarse(1.0, [1]) and coarse(1.05, [1])  # 0: every time
+
+
+def test_an_image_asked_for_a_candidate_stands_for_the_periodic_tag_image() -> None:
+    """Every coarse image is searched for tags: the periodic image of now comes a period
+    after the newest frame any coarse image was asked of."""
+    from robot.perception.onboard_perception import _Job
+
+    p = OnboardPerception(0, PerceptionConfig(fiducial_period_s=1.0, image_timeout_s=60.0))
+    p.pan_phase_s = PHASE_S
+    p.on_control(10.0, np.zeros(3))
+    assert [r.time_s for r in p.take_requests()] == [10.0]  # the periodic one
+    p._ask(10.4, [_Job("cylinder", (3.0, 0.0), 0.3, 0.8)])  # a candidate's frame
+    assert [r.time_s for r in p.take_requests()] == [10.4]
+    p.on_control(11.05, np.zeros(3))
+    assert p.take_requests() == []  # 0.65 s after the candidate's frame
+    p.on_control(11.45, np.zeros(3))
+    assert [r.time_s for r in p.take_requests()] == [11.45]
