@@ -128,3 +128,47 @@ def test_the_analytic_ground_gives_the_pixels_tinyrenderer_draws() -> None:
     finally:
         fast.close()
         drawn.close()
+
+
+def test_culled_bodies_leave_the_image_unchanged() -> None:
+    """Bodies outside the camera's frustum are made transparent for the render
+    (TinyRenderer skips them) and the image is the one with every body drawn: posts all
+    around, near and beyond the far plane's depth at the frustum's corners, robots that move
+    (one hidden), a detonated object; later views bring culled bodies back."""
+    rng = np.random.default_rng(3)
+    posts = [
+        box("post", x - 0.2, y - 0.2, x + 0.2, y + 0.2, float(rng.uniform(0.5, 3.0)))
+        for x, y in rng.uniform(0.0, 120.0, (60, 2))
+    ]
+    oois = [Ooi(0, "static_ooi", (12.0, 8.0), 0.25, 0.8, (1, 0.3, 0, 1))]
+    robots = [(float(x), float(y), float(t), "sensor") for x, y, t in rng.uniform(5, 60, (6, 3))]
+    world = make_world(solids=posts, oois=oois, robots=robots, size_m=(120.0, 120.0))
+    culled, full = Scene(world), Scene(world, cull=False)
+    try:
+        mats = np.concatenate([_robot_at(x, y) for x, y, _, _ in robots])
+        differ = drawn_min = 0
+        for step in range(8):
+            mats[:, 0, 3] += 0.7  # the robots move on
+            hidden = np.arange(len(robots)) == step % len(robots)
+            for s in (culled, full):
+                s.set_robot_poses(mats, hidden=hidden)
+                if step == 4:
+                    s.hide_ooi(0)
+            eye = np.array([*rng.uniform(0.0, 30.0, 2), rng.uniform(0.5, 2.0)])
+            yaw = rng.uniform(0.0, 2 * np.pi)
+            f = np.array([np.cos(yaw), np.sin(yaw), rng.uniform(-0.3, 0.1)])
+            f /= np.linalg.norm(f)
+            side = np.cross(f, [0.0, 0.0, 1.0])
+            up = np.cross(side / np.linalg.norm(side), f)
+            kw = dict(
+                eye_m=eye, forward=f, up=up, width_px=160, height_px=120,
+                fy_px=80 / np.tan(np.radians(30.0)), near_m=0.05, far_m=80.0,
+            )  # fmt: skip
+            a, b = culled.render(**kw), full.render(**kw)
+            differ += int((a != b).any(axis=2).sum())
+            drawn_min = max(drawn_min, len(posts) - int(culled._cull_drawn.sum()))
+        assert differ == 0
+        assert drawn_min > 10  # bodies were culled
+    finally:
+        culled.close()
+        full.close()
