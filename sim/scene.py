@@ -93,6 +93,11 @@ class Scene:
 
     ``body_kind[body_id]`` is ``("solid", kind)``, ``("ooi", ooi_id)``, ``("human",
     human_id)`` or ``("robot", robot_id)``.
+
+    ``analytic_ground`` and ``cull`` (the simulator's scenes: issue 16, speed) make
+    :meth:`render` fill the ground in after rasterizing and skip the bodies outside the
+    frustum; its images are the same. They leave the scene's own bodies so: a caller drawing
+    with ``getCameraImage`` itself (training) keeps both off.
     """
 
     def __init__(
@@ -102,8 +107,8 @@ class Scene:
         geometry: RobotGeometry | None = None,
         ray_threads: int = 2,
         ray_workers: int = 0,
-        analytic_ground: bool = True,
-        cull: bool = True,
+        analytic_ground: bool = False,
+        cull: bool = False,
     ) -> None:
         self.world = world
         self.geometry = geometry or RobotGeometry()

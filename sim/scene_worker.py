@@ -82,7 +82,8 @@ def serve_setup(rx: Connection, tx: Connection) -> Scene | None:
     told instead)."""
     world, geometry = rx.recv()
     try:
-        scene = Scene(world, geometry=geometry, ray_threads=1)
+        # drawn as the simulator's own scene draws (the same pixels either way)
+        scene = Scene(world, geometry=geometry, ray_threads=1, analytic_ground=True, cull=True)
     except Exception as err:  # noqa: BLE001 - reported to the parent
         tx.send(repr(err))
         return None

@@ -305,7 +305,12 @@ class Simulator:
         if workers < 0:
             workers = 1 if (os.cpu_count() or 1) >= 2 and len(self.world.robots) >= 16 else 0
         self.scene = Scene(
-            self.world, geometry=self.geometry, ray_threads=cfg.ray_threads, ray_workers=workers
+            self.world,
+            geometry=self.geometry,
+            ray_threads=cfg.ray_threads,
+            ray_workers=workers,
+            analytic_ground=True,
+            cull=True,
         )
         renderers = cfg.render_workers
         if renderers < 0:

@@ -98,7 +98,7 @@ def test_the_analytic_ground_gives_the_pixels_tinyrenderer_draws() -> None:
     pixel but a few on its outline, in views along the ground, down at it and over the
     world's edge; a hidden robot (under the ground) stays out of view."""
     world = _world()
-    fast, drawn = Scene(world), Scene(world, analytic_ground=False)
+    fast, drawn = Scene(world, analytic_ground=True), Scene(world)
     try:
         assert fast.ground_rgb is not None and drawn.ground_rgb is None
         poses = np.concatenate([_robot_at(4.0, 10.0), _robot_at(8.0, 12.0)])
@@ -143,7 +143,7 @@ def test_culled_bodies_leave_the_image_unchanged() -> None:
     oois = [Ooi(0, "static_ooi", (12.0, 8.0), 0.25, 0.8, (1, 0.3, 0, 1))]
     robots = [(float(x), float(y), float(t), "sensor") for x, y, t in rng.uniform(5, 60, (6, 3))]
     world = make_world(solids=posts, oois=oois, robots=robots, size_m=(120.0, 120.0))
-    culled, full = Scene(world), Scene(world, cull=False)
+    culled, full = Scene(world, cull=True), Scene(world)
     try:
         mats = np.concatenate([_robot_at(x, y) for x, y, _, _ in robots])
         differ = drawn_min = 0
