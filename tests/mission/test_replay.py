@@ -191,6 +191,45 @@ def test_a_grid_holds_no_scan_the_odometry_turned_beyond_its_bound() -> None:
         ScanGridConfig(aggregate_max_turn_rad=0.0)
 
 
+def test_a_grid_cut_by_lost_scans_is_completed_forward() -> None:
+    """The first node after an odometry gap has no past within reach to join: its grid holds
+    the scans that follow it, up to the window's travel (2 m), never across another gap; a
+    node whose window is not cut by a gap is built as before, from its past alone."""
+    from mission.bench.perturbations import drop_scans
+    from mission.replay import odometry_gaps
+
+    log = drop_scans(synthetic_log(laps=0.7), 30, 15)  # 4.5 m lost, 1.5 m before a corner
+    cfg = ReplayConfig(scan_odometry=None)
+    assert odometry_gaps(log, cfg).steps.tolist() == [29]
+    odom = robot_odometry(log, cfg)[0]
+    done = {n.scan: n for n in replay_messages(log, cfg)}
+    cut = ReplayConfig(scan_odometry=None, grid=ScanGridConfig(complete_after_gap=False))
+    alone = {n.scan: n for n in replay_messages(log, cut)}
+    assert 30 in done  # the node that ends the gap
+    increments = replay_odometry(log, cfg)[1]
+    travel = np.concatenate([[0.0], np.cumsum([abs(i.distance_m) for i in increments])])
+    turned = np.concatenate([[0.0], np.cumsum(np.angle(np.exp(1j * np.diff(odom[:, 2]))))])
+    ahead = [30]
+    for j in range(31, len(log)):  # as far as 2 m of travel and 40 deg of turning reach
+        if travel[j] - travel[30] > 2.0 or abs(turned[j] - turned[30]) > math.radians(40):
+            break
+        ahead.append(j)
+    assert len(ahead) > 3
+
+    def grid_of(k: int, scans: list[int]) -> np.ndarray:
+        pts = [
+            transform_points(relative(odom[k], odom[j]), log.points_in_base(j, max_range_m=10.0))
+            for j in scans
+        ]
+        return scan_grid(np.concatenate(pts), resolution_m=0.1)[0]
+
+    np.testing.assert_array_equal(decode_grid(done[30].terrain_grid.data), grid_of(30, ahead))
+    np.testing.assert_array_equal(decode_grid(alone[30].terrain_grid.data), grid_of(30, [30]))
+    # before the gap and well after it, nothing changes
+    for k in [k for k in done if k < 30 or travel[k] - travel[30] > 2.5]:
+        assert done[k].terrain_grid.data == alone[k].terrain_grid.data
+
+
 def test_laser_aided_odometry_takes_out_a_turn_scale_error() -> None:
     """Paper 4.1: the robot's odometry is laser-aided. A gyro reading turns 8 % long bends the
     reported chain; the replay's nodes (scan_odometry, on by default) stay on the true path,
