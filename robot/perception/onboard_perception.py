@@ -114,6 +114,10 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     # every coarse image shows tags; their fine images were 3/4 of a 64-robot team's renders
     # and most of its tag-fitting CPU, for the same pairs again and again). 0: every time.
     fiducial_refresh_s: float = 3.0
+    # the two images that settle the pan schedule's phase are asked this small (square, px):
+    # only their pan angle is used, and a 64-robot team's first second was mostly their
+    # renders (issue 16); 0: at the memory's size (searched for tags like any other)
+    phase_probe_px: int = 16
     candidate_max_range_m: float = 10.0
     retest_after_s: float = 2.0
     wait_for_frame_s: float = 8.0  # a candidate no frame shows whole waits this long for one
@@ -167,6 +171,10 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
         if not (math.isfinite(self.fiducial_period_s) and self.fiducial_period_s >= 0):
             raise ValueError(
                 f"perception.fiducial_period_s must be >= 0, got {self.fiducial_period_s}"
+            )
+        if self.phase_probe_px != 0 and not 16 <= self.phase_probe_px <= 2048:
+            raise ValueError(
+                f"perception.phase_probe_px must be 0 or in [16, 2048], got {self.phase_probe_px}"
             )
         if not 1 <= self.max_requests_per_step <= 4:
             raise ValueError("perception.max_requests_per_step must be in [1, 4]")
@@ -428,7 +436,7 @@ class OnboardPerception:
         if self.pan_phase_s is None:
             # two images a few tenths of a second apart settle the schedule's phase
             if self._bootstrap_asks < 2 and now_s - self._last_fiducial_ask_s >= 0.4:
-                self._ask(now_s, [])
+                self._ask(now_s, [], probe=cfg.phase_probe_px > 0)
                 self._last_fiducial_ask_s = now_s
                 self._bootstrap_asks += 1
             elif self._bootstrap_asks >= 2 and not self._pending and not self._queued:
@@ -477,17 +485,22 @@ class OnboardPerception:
         if ready:
             self._ask(frame.time_s, ready)
 
-    def _ask(self, frame_time_s: float, jobs: list[_Job], *, fine: bool = False) -> None:
+    def _ask(
+        self, frame_time_s: float, jobs: list[_Job], *, fine: bool = False, probe: bool = False
+    ) -> None:
+        """Ask for the image of ``frame_time_s``: fine (a teammate's pose), a phase probe
+        (its pan angle only: ``phase_probe_px`` square) or coarse (the memory's size)."""
         cfg = self.config
-        w, h = (
-            (cfg.fiducial_width_px, cfg.fiducial_height_px)
-            if fine
-            else (cfg.memory.width_px, cfg.memory.height_px)
-        )
+        if fine:
+            w, h = cfg.fiducial_width_px, cfg.fiducial_height_px
+        elif probe:
+            w = h = cfg.phase_probe_px
+        else:
+            w, h = cfg.memory.width_px, cfg.memory.height_px
         rid = self._next_request_id
         self._next_request_id += 1
         self._queued.append(ImageRequest(rid, float(frame_time_s), w, h))
-        if not fine:
+        if not (fine or probe):
             self._last_coarse_frame_s = max(self._last_coarse_frame_s, float(frame_time_s))
         self._pending[rid] = _Request(rid, frame_time_s, self._now, jobs, fine)
         self.stats.images_requested += 1
