@@ -48,7 +48,7 @@ from numpy.typing import NDArray
 from protocol.messages import DetectionImage, ObjectKind, ThumbnailRequest
 from protocol.se2 import relative
 from protocol.sensors import CameraImage, ImageRequest
-from robot.perception.camera_model import Intrinsics, fit_pan_phase, pan_at
+from robot.perception.camera_model import Intrinsics, base_from_camera, fit_pan_phase, pan_at
 from robot.perception.colour_classifier import (
     DEFAULT_THRESHOLDS_PATH as COLOUR_THRESHOLDS_PATH,
 )
@@ -61,6 +61,7 @@ from robot.perception.colour_classifier import (
 )
 from robot.perception.fiducial_detector import (
     FiducialConfig,
+    TagDetection,
     TeammateSighting,
     detect_tags,
     estimate_teammates,
@@ -118,6 +119,14 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     # only their pan angle is used, and a 64-robot team's first second was mostly their
     # renders (issue 16); 0: at the memory's size (searched for tags like any other)
     phase_probe_px: int = 16
+    # a LIDAR candidate (cylinder or person) where a teammate's tag was seen lately is that
+    # teammate, not asked about (issue 16: in a crowd most candidates were teammates, each an
+    # image): within teammate_radius_m + teammate_speed_m_s x the time between the sighting
+    # and the sweep, for sightings at most teammate_memory_s old (0: off). Positions from the
+    # tags of every image: bearing from the tag's centre, range from its height in pixels.
+    teammate_memory_s: float = 1.5
+    teammate_radius_m: float = 0.7
+    teammate_speed_m_s: float = 1.0
     candidate_max_range_m: float = 10.0
     retest_after_s: float = 2.0
     wait_for_frame_s: float = 8.0  # a candidate no frame shows whole waits this long for one
@@ -172,6 +181,10 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             raise ValueError(
                 f"perception.fiducial_period_s must be >= 0, got {self.fiducial_period_s}"
             )
+        for name in ("teammate_memory_s", "teammate_radius_m", "teammate_speed_m_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"perception.{name} must be >= 0, got {v}")
         if self.phase_probe_px != 0 and not 16 <= self.phase_probe_px <= 2048:
             raise ValueError(
                 f"perception.phase_probe_px must be 0 or in [16, 2048], got {self.phase_probe_px}"
@@ -226,6 +239,7 @@ class PerceptionStats:
     fiducial_dropped: int = 0
     fiducial_fine_images: int = 0  # fine images asked for a teammate's tag seen coarse
     fiducial_fine_skipped: int = 0  # coarse tags of teammates asked about lately (no image)
+    teammate_candidates: int = 0  # LIDAR candidates at a teammate just seen (no image)
     thumbnails: int = 0
     thumbnail_unknown: int = 0
     sweep_cpu_ms: deque[float] = field(default_factory=lambda: deque(maxlen=2000))
@@ -324,6 +338,8 @@ class OnboardPerception:
         self._last_fiducial_ask_s = -math.inf
         self._last_coarse_frame_s = -math.inf  # the newest frame a coarse image was asked of
         self._fine_asked_s: dict[int, float] = {}  # teammate -> when its pose was last asked
+        # where teammates' heads were seen: (time_s, x, y) in odom, newest last
+        self._teammates_seen: deque[tuple[float, float, float]] = deque(maxlen=256)
         self._next_request_id = 1
         self._queued: list[ImageRequest] = []
         self._emitted_at, self._emitted = -math.inf, 0  # requests sent at one mission time
@@ -555,6 +571,9 @@ class OnboardPerception:
                 continue
             if not self._may_test(xy, time_s) or self._job_pending(xy):
                 continue
+            if self._at_teammate(xy, time_s):
+                self.stats.teammate_candidates += 1
+                continue
             job = _Job("cylinder", xy, float(cand.radius_m), float(max(cand.height_m, 0.3)), 0, rng)
             frame = self.memory.choose(Candidate(xy, job.radius_m, job.height_m))
             if frame is None:
@@ -589,6 +608,10 @@ class OnboardPerception:
             return
         if any(j.track_id == track.track_id for q in self._pending.values() for j in q.jobs):
             return
+        p_now = track.position_m
+        if self._at_teammate((float(p_now[0]), float(p_now[1])), track.time_s):
+            self.stats.teammate_candidates += 1
+            return
         for frame in reversed(self.memory.frames):
             if time_s - frame.time_s > cfg.person_frame_window_s:
                 break
@@ -601,6 +624,67 @@ class OnboardPerception:
                 self._person_tested[track.track_id] = (n + 1, time_s)
                 jobs.append((frame, job))
                 return
+
+    def _at_teammate(self, xy: tuple[float, float], time_s: float) -> bool:
+        """Whether a teammate's head was seen near ``xy`` (odom) close to ``time_s``."""
+        cfg = self.config
+        if cfg.teammate_memory_s <= 0:
+            return False
+        for t, x, y in reversed(self._teammates_seen):
+            dt = abs(time_s - t)
+            if dt > cfg.teammate_memory_s:
+                continue
+            if (
+                math.hypot(x - xy[0], y - xy[1])
+                <= cfg.teammate_radius_m + cfg.teammate_speed_m_s * dt
+            ):
+                return True
+        return False
+
+    def _note_teammates(
+        self,
+        tags: list[TagDetection],
+        image: CameraImage,
+        intr: Intrinsics,
+        pose: tuple[float, float, float],
+    ) -> None:
+        """Place the heads of the teammates whose tags ``image`` shows (odom, at the image's
+        time; ``pose``: the robot then): along the ray through the tag's centre, at the depth
+        its height in pixels gives (a head face is vertical: its height does not shrink as
+        it turns away, its width does)."""
+        cfg = self.config
+        ipr = cfg.fiducial.layout.ids_per_robot
+        size_m = cfg.fiducial.layout.tag_size_m
+        m = None
+        for tag in tags:
+            if tag.tag_id // ipr == self.robot_id:
+                continue
+            c = np.asarray(tag.corners_px, dtype=np.float64).reshape(4, 2)
+            h_px = 0.5 * (float(np.hypot(*(c[3] - c[0]))) + float(np.hypot(*(c[2] - c[1]))))
+            if not h_px >= 2.0:
+                continue
+            if m is None:
+                m = base_from_camera(
+                    image.camera_pan_rad, image.camera_tilt_rad, cfg.memory.mount.camera_in_base_m
+                )
+            depth = intr.fy_px * size_m / h_px
+            u, v = c.mean(axis=0)
+            cam = np.array(
+                [
+                    (u - intr.cx_px) / intr.fx_px * depth,
+                    (v - intr.cy_px) / intr.fy_px * depth,
+                    depth,
+                ]
+            )
+            bx, by = (m[:3, :3] @ cam + m[:3, 3])[:2]
+            cth, sth = math.cos(pose[2]), math.sin(pose[2])
+            self._teammates_seen.append(
+                (
+                    float(image.time_s),
+                    pose[0] + cth * float(bx) - sth * float(by),
+                    pose[1] + sth * float(bx) + cth * float(by),
+                )
+            )
 
     def _at_known_object(self, track: PersonTrack) -> bool:
         """A "person" standing where a static object is known is that object (a vat's
@@ -923,6 +1007,7 @@ class OnboardPerception:
                 tags = detect_tags(rgb)
             except ValueError:
                 tags = []
+            self._note_teammates(tags, image, intr, pose_t)
             ipr = cfg.fiducial.layout.ids_per_robot
             mates = {t.tag_id // ipr for t in tags} - {self.robot_id}
             due = [
@@ -953,9 +1038,18 @@ class OnboardPerception:
             log.warning("robot %d: fiducial search skipped: %s", self.robot_id, err)
             return
         self.stats.fiducial_dropped += dropped
+        cth, sth = math.cos(pose_t[2]), math.sin(pose_t[2])
         for s in sightings:
             self._fiducials.append(FiducialSighting(s, float(image.time_s), pose_t))
             self.stats.fiducials += 1
+            bx, by = s.observed_in_base[0], s.observed_in_base[1]
+            self._teammates_seen.append(
+                (
+                    float(image.time_s),
+                    pose_t[0] + cth * bx - sth * by,
+                    pose_t[1] + sth * bx + cth * by,
+                )
+            )
 
     def _opportunistic_person_jobs(
         self, image: CameraImage, pose: tuple[float, float, float], jobs: list[_Job]

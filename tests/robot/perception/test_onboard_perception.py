@@ -228,3 +228,46 @@ def test_an_image_asked_for_a_candidate_stands_for_the_periodic_tag_image() -> N
     assert p.take_requests() == []  # 0.65 s after the candidate's frame
     p.on_control(11.45, np.zeros(3))
     assert [r.time_s for r in p.take_requests()] == [11.45]
+
+
+def test_a_lidar_candidate_at_a_teammate_just_seen_asks_for_no_image() -> None:
+    """An image (a real render, 640x480: a tag's decoding range) showing teammate 1's tag
+    places its head in ``odom`` (bearing from the tag, range from its height in pixels)
+    within 0.3 m of the truth, at 2-3 m and turned; a candidate there then asks for no
+    image, one 3 m aside does, and so does one there after ``teammate_memory_s``."""
+    from sim.camera import CameraConfig, camera_axes, intrinsics
+    from sim.scene import Scene
+    from tests.sim.simworlds import make_world
+
+    cam = CameraConfig()
+    scene = Scene(make_world(robots=((5.0, 10.0, 0.0, "sensor"), (7.0, 10.0, 2.0, "sensor"))))
+    try:
+        for dist, yaw in ((2.0, 2.6), (3.0, 3.1), (3.0, -2.0)):
+            p = OnboardPerception(0, PerceptionConfig(fiducial_period_s=0.0))
+            observer = np.eye(4)
+            observer[:3, 3] = (5.0, 10.0, 0.0)
+            mate = np.eye(4)
+            mate[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+            mate[:3, 3] = (5.0 + dist, 10.3, 0.0)
+            scene.set_robot_poses(np.stack([observer, mate]))
+            eye, fwd, up = camera_axes(
+                observer, np.array(scene.geometry.camera_m), 0.0, cam.tilt_rad
+            )
+            w, h = 640, 480
+            fx, fy, cx, cy = intrinsics(w, h, cam)
+            rgb = scene.render(eye_m=eye, forward=fwd, up=up, width_px=w, height_px=h, fy_px=fy)
+            p._now = 10.0
+            p._ask(10.0, [])
+            (req,) = p.take_requests()
+            image = CameraImage(req.request_id, 10.0, 0.0, cam.tilt_rad, fx, fy, cx, cy, rgb)
+            # the robot's odom is its start: the observer at (5, 10) is (0, 0) in odom
+            p.on_image(image, _pose_at)
+            assert p._teammates_seen, f"teammate at {dist} m not seen"
+            _, x, y = p._teammates_seen[-1]
+            truth = (dist - 0.12 * math.cos(yaw), 0.3 - 0.12 * math.sin(yaw))  # its head
+            assert math.hypot(x - truth[0], y - truth[1]) < 0.3, (dist, (x, y), truth)
+            assert p._at_teammate((dist, 0.3), 10.5)
+            assert not p._at_teammate((dist, 3.3), 10.5)
+            assert not p._at_teammate((dist, 0.3), 12.0)  # 2 s later: asked again
+    finally:
+        scene.close()
