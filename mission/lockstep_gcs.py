@@ -16,6 +16,14 @@ process exchange three messages (:mod:`mission.lockstep_protocol`):
    downlink packets it has put on the air (the robots wait for them at the next step) and
    the figures the run's report shows.
 
+A step is committed once, at its end, with the turn's records (its station step, plans,
+downlink, checkpoint) and a mark of the step (the journal's meta ``lockstep_through_s``):
+nothing of the step went on the air before, so a GCS killed anywhere in it leaves the journal
+as the previous step ended, and a restart is the same run whenever in the turn the kill struck
+(``tests/mission/test_lockstep_gcs.py``); one killed after the commit is not given that
+step's turn again. With ``GcsSetup.operator`` the process serves ``magic console`` and the
+views (:class:`gcs.operator.service.OperatorService`) as the in-process GCS does.
+
 The order of everything the station sees, the radio's exchange and every random draw are
 those of the in-process ground side: same seed, same run, bit for bit (``tests/mission``).
 
@@ -25,8 +33,10 @@ new one, which rebuilds the station from the journal (``--resume``: the latest c
 the records after it, :func:`gcs.journal.resume_control`) and the radio's sequence state
 (:func:`gcs.node.restore_link_state`), and the step goes on: its turn again, the robots'
 uplink of that step retransmitted by their links (what the dead process had acknowledged is
-in the journal). From the restart on the run is no longer the one without it (the
-allocator re-plans from the rebuilt station), and it goes on.
+in the journal). The planners' assignments come back from the journal too, so the robots keep
+their tasks; the rest of the planners' memory starts afresh, so from the restart on the run
+is not quite the one without it, and it goes on (repeatably: same seed, same kill step, same
+run).
 """
 
 from __future__ import annotations

@@ -82,6 +82,24 @@ _RELIABLE_UP = {
 }
 
 
+def _blackouts(
+    world: Any, *, duration_s: float, blackout_s: float, seed: int
+) -> tuple[tuple[int, float, float], ...]:
+    """The faulted runs' radio blackouts: two of ``blackout_s`` per robot of ``world``'s team
+    within the middle 80 % of the mission, drawn from ``seed`` (none for ``blackout_s`` 0)."""
+    if blackout_s <= 0:
+        return ()
+    n = world.robots.sensors + world.robots.disruptors
+    return blackout_schedule(
+        list(range(n)),
+        per_robot=2,
+        duration_s=blackout_s,
+        start_s=0.1 * duration_s,
+        end_s=0.9 * duration_s,
+        seed=seed,
+    )
+
+
 def _floor_loss(sim: Simulator, loss: float) -> None:
     """Every grant the team applies carries at least ``loss`` (fault injection)."""
     grants = sim.radio_grants
@@ -167,17 +185,9 @@ def _mission(
     restart = faults if restart is None else restart
     world = load_world_config(config_path("world/small.yaml", "world"))
     radio = load_config(config_path("radio/magic2010.yaml", "radio"), RadioConfig)
-    n = world.robots.sensors + world.robots.disruptors
-    blackouts: tuple[tuple[int, float, float], ...] = ()
-    if faults and blackout_s > 0:
-        blackouts = blackout_schedule(
-            list(range(n)),
-            per_robot=2,
-            duration_s=blackout_s,
-            start_s=0.1 * duration_s,
-            end_s=0.9 * duration_s,
-            seed=seed,
-        )
+    blackouts = _blackouts(
+        world, duration_s=duration_s, blackout_s=blackout_s if faults else 0.0, seed=seed
+    )
     sim_cfg = SimulatorConfig(radio_blackouts=blackouts)
     ledger = _Ledger()
     journal = run_dir / "journal.sqlite"
@@ -305,8 +315,10 @@ def _mission_gcs_process(
     SIGKILL mid-mission (``kill``) and restarted by the run from its journal. What the GCS
     held at the end is rebuilt from that journal (the latest checkpoint and what follows).
     Without the kill it is the in-process run bit for bit (seed 7, 60 s: explored 0.274, 82
-    nodes, both); after a restart the run diverges (the allocator re-plans), so one seed's
-    exploration moves either way (seed 7: 0.284 here, 0.353 with the in-process crash)."""
+    nodes, both); after a restart it is repeatable (same seed and kill step, same run:
+    a step is journaled whole or not at all, :mod:`mission.lockstep_gcs`) but not the
+    unkilled run (the planners' assignments come back from the journal, the rest of their
+    memory does not)."""
     from gcs.journal import GcsJournal, rebuild_station
     from protocol.link import LinkConfig
     from protocol.loopback import free_loopback_port, unique_mission
@@ -314,17 +326,7 @@ def _mission_gcs_process(
     world = load_world_config(config_path("world/small.yaml", "world"))
     radio_path = config_path("radio/magic2010.yaml", "radio")
     radio = load_config(radio_path, RadioConfig)
-    n = world.robots.sensors + world.robots.disruptors
-    blackouts: tuple[tuple[int, float, float], ...] = ()
-    if blackout_s > 0:
-        blackouts = blackout_schedule(
-            list(range(n)),
-            per_robot=2,
-            duration_s=blackout_s,
-            start_s=0.1 * duration_s,
-            end_s=0.9 * duration_s,
-            seed=seed,
-        )
+    blackouts = _blackouts(world, duration_s=duration_s, blackout_s=blackout_s, seed=seed)
     journal = run_dir / "journal.sqlite"
     t0 = time.perf_counter()
     with assemble(
@@ -571,6 +573,9 @@ def unauthenticated_attempts(
             s.close()
 
 
+#: The message loss every radio grant of a faulted run carries at least.
+LOSS = 0.3
+
 #: The seeds the bench runs (issue 17: the exploration drop of one seed is one draw of the
 #: blackouts and the loss; its median over these is the figure).
 SEEDS = (7, 8)
@@ -618,43 +623,28 @@ def run(
     drops: dict[int, float] = {}
     with tempfile.TemporaryDirectory(prefix="magic-chaos-") as tmp:
         for seed in seeds:
+            # what every run of this seed shares (the clean one draws no faults from it)
+            common: dict[str, Any] = dict(
+                duration_s=duration_s,
+                seed=seed,
+                blackout_s=blackout_s,
+                loss=LOSS,
+                progress=progress,
+            )
             progress(f"chaos: seed {seed}: clean run, {duration_s:g} mission-s")
             clean_dir = Path(tmp) / f"clean-{seed}"
             clean_dir.mkdir()
-            clean = _mission(
-                duration_s=duration_s,
-                seed=seed,
-                faults=False,
-                blackout_s=blackout_s,
-                loss=0.3,
-                run_dir=clean_dir,
-                progress=progress,
-            )
+            clean = _mission(faults=False, run_dir=clean_dir, **common)
             progress(
-                f"chaos: seed {seed}: faulted run (loss 30 %, 2 x {blackout_s:g} s blackouts, "
-                "GCS restart)"
+                f"chaos: seed {seed}: faulted run (loss {LOSS:.0%}, 2 x {blackout_s:g} s "
+                "blackouts, GCS restart)"
             )
             chaos_dir = Path(tmp) / f"chaos-{seed}"
             chaos_dir.mkdir()
             if gcs_process:  # the real thing: the GCS's own process, killed with SIGKILL
-                faulted = _mission_gcs_process(
-                    duration_s=duration_s,
-                    seed=seed,
-                    blackout_s=blackout_s,
-                    loss=0.3,
-                    run_dir=chaos_dir,
-                    progress=progress,
-                )
+                faulted = _mission_gcs_process(run_dir=chaos_dir, **common)
             else:  # the GCS in this process, its crash simulated
-                faulted = _mission(
-                    duration_s=duration_s,
-                    seed=seed,
-                    faults=True,
-                    blackout_s=blackout_s,
-                    loss=0.3,
-                    run_dir=chaos_dir,
-                    progress=progress,
-                )
+                faulted = _mission(faults=True, run_dir=chaos_dir, **common)
             drops[seed] = clean["explored_frac"] - faulted["explored_frac"]
             clean_runs.append(clean)
             faulted_runs.append(faulted)
