@@ -22,6 +22,21 @@ so:
   every sample taken while still is a measurement of it with the gyro's white noise
   (``gyro_noise_density``), so a long stop averages optimally and an old estimate fades at
   the rate the bias really wanders;
+* **slip seen as skid** (optional, ``effective_track_m``): a skid-steer's sides turn the body
+  by their differential over an effective track; on hard ground that matches the gyro, by
+  calibration, and where traction is poor (sand, mud, loose gravel) the body turns less than
+  the wheels ask. The *turn traction* ``gyro yaw / wheel yaw``, a least-squares ratio over the
+  last ``skid_memory_m`` driven (weighted by the wheel turn, so straight stretches carry no
+  weight; at least ``skid_min_turn_rad`` of wheel turn in it), measures that loss; the wheels
+  then over-count distance too, which the encoders alone cannot see. A loss beyond
+  ``skid_deadband`` (hard-ground noise) scales the distance by ``1 - slip_per_skid * loss``
+  (0: no correction) and adds ``(slip_std_per_skid * loss)^2`` per metre driven to the
+  distance variance (a pose node 1 m long then has a standard deviation of
+  ``slip_std_per_skid * loss`` metres: the slip is a share of the distance, the same over the
+  whole node, not noise that averages out), so the pose node's covariance grows where the
+  wheels slip and the GCS trusts scan matches and loop closures over them (paper 4.1, 4.3.1).
+  :meth:`InertialOdometry.observe_displacement` takes the same evidence from the LIDAR (the
+  displacement the sweeps agree on against the wheels'): any slip, turning or not;
 * **roll and pitch** from the gravity vector: a complementary filter integrates the gyro and
   blends towards the accelerometer's gravity direction while the robot is not accelerating.
 
@@ -66,6 +81,19 @@ class OdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
     gravity_time_constant_s: float = 1.0  # attitude pull towards the gravity direction
     gravity_tolerance_m_s2: float = 0.5  # |accel| must be this close to g to trust it
     history_s: float = 20.0  # poses kept for pose_at
+    # slip seen as skid (module docstring): None turns it off
+    effective_track_m: float | None = None
+    skid_memory_m: float = 2.0  # the turn-traction estimate forgets over this distance driven
+    skid_min_turn_rad: float = 0.1  # wheel turn (summed |yaw| within the memory) it needs
+    skid_deadband: float = 0.05  # turn-traction loss below this is hard ground
+    slip_per_skid: float = 0.0  # distance slip per unit of turn-traction loss (correction)
+    slip_std_per_skid: float = 1.0  # distance std (m per sqrt(m) driven) per unit of loss
+    # slip seen by the LIDAR (observe_displacement): the measured shortfall is a traction
+    # factor on later increments, weighted by displacement_gain and forgotten over
+    # traction_memory_m driven; a factor never leaves [min_traction, 1 + (1 - min_traction)/4]
+    displacement_gain: float = 0.0  # 0: measurements only grow the variance
+    traction_memory_m: float = 3.0
+    min_traction: float = 0.5
 
     def __post_init__(self) -> None:
         for name in (
@@ -82,16 +110,34 @@ class OdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
             v = getattr(self, name)
             if not (math.isfinite(v) and 0 <= v < 0.5):
                 raise ValueError(f"{name} must be in [0, 0.5), got {v}")
+        t = self.effective_track_m
+        if t is not None and not (math.isfinite(t) and t > 0):
+            raise ValueError(f"effective_track_m must be finite and > 0 (or None), got {t}")
+        for name in ("skid_memory_m", "skid_min_turn_rad", "traction_memory_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be finite and > 0, got {v}")
+        for name in ("skid_deadband", "slip_per_skid", "slip_std_per_skid"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be finite and >= 0, got {v}")
+        for name in ("displacement_gain", "min_traction"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 <= v <= 1):
+                raise ValueError(f"{name} must be in [0, 1], got {v}")
 
 
 @dataclass(frozen=True, slots=True)
 class OdometryIncrement:
     """Motion between two encoder readings: horizontal distance along the heading (m), the
-    yaw change (rad) and the elapsed time (s). Feeds the pose-node covariance model."""
+    yaw change (rad) and the elapsed time (s); ``distance_var_m2`` the distance's variance
+    from slip the odometry detected (0 when none; module docstring). Feeds the pose-node
+    covariance model."""
 
     distance_m: float
     dyaw_rad: float
     dt_s: float
+    distance_var_m2: float = 0.0
 
 
 class InertialOdometry:
@@ -116,6 +162,11 @@ class InertialOdometry:
         self.distance_m = 0.0
         self.is_still = False
         self.still_time_s = 0.0
+        # turn traction: forgetting sums of wheel yaw^2, gyro yaw * wheel yaw and |wheel yaw|
+        self._skid_ww = 0.0
+        self._skid_gw = 0.0
+        self._skid_turn = 0.0
+        self._traction = 1.0  # LIDAR-measured factor on the distance
 
     # ------------------------------------------------------------------ state
 
@@ -123,6 +174,56 @@ class InertialOdometry:
     def pose_in_odom(self) -> np.ndarray:
         """Current ``odom_from_base`` as ``(x_m, y_m, yaw_rad)``."""
         return np.array([self._x, self._y, float(wrap_angle(self._yaw))])
+
+    @property
+    def turn_traction(self) -> float:
+        """Gyro yaw over wheel yaw over the recent turns (1 on calibrated hard ground; NaN
+        without ``effective_track_m`` or enough turning)."""
+        if self.config.effective_track_m is None:
+            return math.nan
+        if self._skid_turn < self.config.skid_min_turn_rad or self._skid_ww <= 0:
+            return math.nan
+        return self._skid_gw / self._skid_ww
+
+    @property
+    def skid_loss(self) -> float:
+        """Turn-traction loss beyond the dead band (0 on hard ground or without evidence)."""
+        r = self.turn_traction
+        if not math.isfinite(r):
+            return 0.0
+        loss = 1.0 - r
+        return min(loss, 0.9) if loss > self.config.skid_deadband else 0.0
+
+    @property
+    def traction(self) -> float:
+        """The LIDAR-measured distance factor in use (1: none measured)."""
+        return self._traction
+
+    def observe_displacement(
+        self, *, odometry_m: float, measured_m: float, sigma_m: float = 0.05
+    ) -> float:
+        """The LIDAR measured the body moving ``measured_m`` along its path where this
+        odometry claimed ``odometry_m`` over the same interval (e.g. two sweeps matched,
+        :mod:`robot.odometry.scan_displacement`; ``sigma_m`` the measurement's standard
+        deviation). Returns the shortfall beyond ``sigma_m`` (m, >= 0): the error already in
+        the odometry over that interval, for the pose node that holds it
+        (:meth:`robot.odometry.pose_node_maker.PoseNodeMaker.add_distance_variance`); with
+        ``displacement_gain`` > 0 the traction factor on later distances moves towards
+        ``measured / odometry``. Non-finite or non-positive ``odometry_m`` is refused
+        (ValueError)."""
+        cfg = self.config
+        if not (math.isfinite(odometry_m) and odometry_m > 0):
+            raise ValueError(f"observe_displacement: odometry_m must be > 0, got {odometry_m}")
+        if not (math.isfinite(measured_m) and math.isfinite(sigma_m) and sigma_m > 0):
+            raise ValueError(
+                f"observe_displacement: measured_m {measured_m}, sigma_m {sigma_m} not usable"
+            )
+        shortfall = max(0.0, abs(odometry_m - measured_m) - sigma_m)
+        if cfg.displacement_gain > 0:
+            hi = 1.0 + 0.25 * (1.0 - cfg.min_traction)
+            target = min(max(self._traction * measured_m / odometry_m, cfg.min_traction), hi)
+            self._traction += cfg.displacement_gain * (target - self._traction)
+        return shortfall
 
     @property
     def roll_pitch_rad(self) -> tuple[float, float]:
@@ -232,13 +333,30 @@ class InertialOdometry:
         yaw1 = self._yaw_at(t)
         rate = abs(yaw1 - yaw0) / (t - prev.time_s)
         scale = max(0.5, 1.0 - cfg.wheel_slip_frac - cfg.wheel_slip_per_rad_s * rate)
-        ds = 0.5 * (dl + dr) * cfg.m_per_tick * math.cos(self._pitch) * scale
+        wheel_m = 0.5 * (dl + dr) * cfg.m_per_tick
+        var_m2 = 0.0
+        if cfg.effective_track_m is not None:
+            forget = math.exp(-abs(wheel_m) / cfg.skid_memory_m)
+            wheel_yaw = (dr - dl) * cfg.m_per_tick / cfg.effective_track_m
+            self._skid_ww = forget * self._skid_ww + wheel_yaw * wheel_yaw
+            self._skid_gw = forget * self._skid_gw + (yaw1 - yaw0) * wheel_yaw
+            self._skid_turn = forget * self._skid_turn + abs(wheel_yaw)
+            loss = self.skid_loss
+            scale *= 1.0 - min(cfg.slip_per_skid * loss, 0.5)
+            var_m2 += (cfg.slip_std_per_skid * loss) ** 2 * abs(wheel_m)
+        if self._traction != 1.0:
+            scale *= self._traction
+            # the factor relaxes towards 1 as the robot leaves the measured ground
+            self._traction = 1.0 + (self._traction - 1.0) * math.exp(
+                -abs(wheel_m) / cfg.traction_memory_m
+            )
+        ds = wheel_m * math.cos(self._pitch) * scale
         mid = 0.5 * (yaw0 + yaw1)
         self._x += ds * math.cos(mid)
         self._y += ds * math.sin(mid)
         self.distance_m += abs(ds)
         self._pose_hist.append((t, self._x, self._y))
-        return OdometryIncrement(ds, yaw1 - yaw0, t - prev.time_s)
+        return OdometryIncrement(ds, yaw1 - yaw0, t - prev.time_s, var_m2)
 
     def _yaw_at(self, t: float) -> float:
         hist = self._yaw_hist

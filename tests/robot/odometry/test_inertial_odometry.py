@@ -13,7 +13,12 @@ import pytest
 
 from protocol.se2 import wrap_angle
 from protocol.sensors import ImuSample, WheelTicks
-from robot.odometry.inertial_odometry import GRAVITY_M_S2, InertialOdometry, OdometryConfig
+from robot.odometry.inertial_odometry import (
+    GRAVITY_M_S2,
+    InertialOdometry,
+    OdometryConfig,
+    OdometryIncrement,
+)
 from robot.odometry.pose_node_maker import PoseNodeMaker
 
 M_PER_TICK = 0.0007
@@ -183,3 +188,121 @@ def test_pose_nodes_chain_exactly_and_covariance_grows_with_motion() -> None:
         # distance variance grows per metre: 0.03 m std after 1 m (default config)
         d = np.hypot(*n.odom_delta[:2])
         assert math.sqrt(cov[0, 0]) == pytest.approx(0.03 * math.sqrt(d), rel=0.3)
+
+
+def _skid_drive(
+    odo: InertialOdometry,
+    maker: PoseNodeMaker,
+    *,
+    seconds: float,
+    turn_traction: float,
+    distance_traction: float,
+    t0: float = 0.0,
+    pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ticks: tuple[float, float] = (0.0, 0.0),
+) -> tuple[float, tuple[float, float, float], tuple[float, float], list[float]]:
+    """A weaving drive at 0.9 m/s on a skid-steer (effective track 0.6 m) whose body turns
+    ``turn_traction`` and moves ``distance_traction`` of what its wheels ask (the gyro sees the
+    body). Returns the end time, the true pose, the tick counts and each node's distance std."""
+    dt = 0.05
+    t, (x, y, yaw), (left, right) = t0, pose, ticks
+    stds = []
+    for _ in range(int(round(seconds / dt))):
+        t += dt
+        wheel_w = 0.3 * math.sin(2.0 * math.pi * t / 4.0)
+        body_w, body_v = wheel_w * turn_traction, 0.9 * distance_traction
+        x += body_v * dt * math.cos(yaw + 0.5 * body_w * dt)
+        y += body_v * dt * math.sin(yaw + 0.5 * body_w * dt)
+        yaw += body_w * dt
+        left += (0.9 - 0.3 * wheel_w) * dt / M_PER_TICK
+        right += (0.9 + 0.3 * wheel_w) * dt / M_PER_TICK
+        odo.add_imu(ImuSample(t, (0.0, 0.0, body_w), (0.0, 0.0, GRAVITY_M_S2)))
+        inc = odo.add_ticks(WheelTicks(t, int(left), int(right)))
+        if inc is not None:
+            maker.add_increment(inc)
+        if maker.due(odo.pose_in_odom, t):
+            node = maker.make(odo.pose_in_odom, t)
+            stds.append(math.sqrt(node.odom_covariance[0] + node.odom_covariance[3]))
+    return t, (x, y, yaw), (left, right), stds
+
+
+def test_slip_seen_as_skid_grows_the_node_covariance_and_corrects_the_distance() -> None:
+    # hard ground (the wheels' turn is the gyro's), then 12 s of sand: the body turns 83% and
+    # moves 75% of what the wheels ask, as on the simulated robot in its sand pits
+    skid = OdometryConfig(
+        m_per_tick=M_PER_TICK, effective_track_m=0.6, slip_per_skid=1.5, slip_std_per_skid=1.0
+    )
+    results = {}
+    for name, cfg in (("off", OdometryConfig(m_per_tick=M_PER_TICK)), ("skid", skid)):
+        odo, maker = InertialOdometry(cfg), PoseNodeMaker()
+        odo.add_imu(ImuSample(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY_M_S2)))
+        odo.add_ticks(WheelTicks(0.0, 0, 0))
+        t, pose, ticks, hard = _skid_drive(
+            odo, maker, seconds=10.0, turn_traction=1.0, distance_traction=1.0
+        )
+        assert odo.turn_traction == pytest.approx(1.0, abs=0.02) or name == "off"
+        hard_error = math.hypot(odo.pose_in_odom[0] - pose[0], odo.pose_in_odom[1] - pose[1])
+        t, pose, ticks, sand = _skid_drive(
+            odo, maker, seconds=12.0, turn_traction=0.83, distance_traction=0.75,
+            t0=t, pose=pose, ticks=ticks,
+        )  # fmt: skip
+        error = math.hypot(odo.pose_in_odom[0] - pose[0], odo.pose_in_odom[1] - pose[1])
+        results[name] = (hard, hard_error, sand, error, odo)
+    off_hard, off_hard_error, off_sand, off_error, off = results["off"]
+    on_hard, on_hard_error, on_sand, on_error, on = results["skid"]
+    # hard ground: nothing changes (same nodes, same covariances, same pose)
+    assert on_hard == pytest.approx(off_hard, rel=1e-9)
+    assert on_hard_error == pytest.approx(off_hard_error, abs=1e-9)
+    # sand: the loss of turn traction is measured, the nodes say their distance is uncertain
+    assert on.turn_traction == pytest.approx(0.83, abs=0.02)
+    assert math.isnan(off.turn_traction)
+    assert max(off_sand) < 0.05
+    assert np.median(on_sand[-4:]) > 0.15  # each ~1.1 m node slipped ~0.3 m
+    # and the distance is corrected by the calibrated share: most of the 2.7 m error is gone
+    assert off_error > 2.0
+    assert on_error < 0.3 * off_error
+
+
+def test_lidar_measured_displacement_moves_the_traction_and_reports_the_shortfall() -> None:
+    cfg = OdometryConfig(m_per_tick=M_PER_TICK, displacement_gain=0.5, traction_memory_m=3.0)
+    odo = InertialOdometry(cfg)
+    assert odo.observe_displacement(odometry_m=1.0, measured_m=0.98, sigma_m=0.05) == 0.0
+    shortfall = odo.observe_displacement(odometry_m=1.2, measured_m=0.9, sigma_m=0.1)
+    assert shortfall == pytest.approx(0.2)
+    assert odo.traction < 0.9  # half way from ~0.99 towards 0.75
+    # later distances are scaled by it, and it relaxes as the robot drives on
+    odo.add_imu(ImuSample(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY_M_S2)))
+    odo.add_ticks(WheelTicks(0.0, 0, 0))
+    ticks = int(1.0 / M_PER_TICK)
+    inc = odo.add_ticks(WheelTicks(1.0, ticks, ticks))
+    assert inc is not None and inc.distance_m == pytest.approx(0.87, abs=0.02)
+    for k in range(2, 12):
+        odo.add_ticks(WheelTicks(float(k), k * ticks, k * ticks))
+    assert odo.traction == pytest.approx(1.0, abs=0.01)
+    # never below min_traction, whatever a bad match claims; bad input is refused
+    odo.observe_displacement(odometry_m=1.0, measured_m=-5.0)
+    assert odo.traction >= cfg.min_traction
+    with pytest.raises(ValueError, match="odometry_m"):
+        odo.observe_displacement(odometry_m=0.0, measured_m=0.5)
+    with pytest.raises(ValueError, match="measured_m"):
+        odo.observe_displacement(odometry_m=1.0, measured_m=math.nan)
+    # the default (gain 0) only reports: the odometry is as before
+    plain = InertialOdometry(OdometryConfig(m_per_tick=M_PER_TICK))
+    plain.observe_displacement(odometry_m=1.0, measured_m=0.5)
+    assert plain.traction == 1.0
+
+
+def test_a_measured_shortfall_grows_the_next_node_along_its_motion() -> None:
+    maker = PoseNodeMaker()
+    maker.make(np.zeros(3), 0.0)
+    maker.add_increment(OdometryIncrement(0.6, 0.0, 0.5))
+    maker.add_increment(OdometryIncrement(0.6, 0.0, 0.5))
+    maker.add_distance_variance(0.25**2)
+    node = maker.make(np.array([1.2, 0.0, 0.0]), 1.0)
+    c = node.odom_covariance  # upper triangle: xx, xy, xt, yy, yt, tt
+    assert math.sqrt(c[0]) == pytest.approx(math.hypot(0.25, 0.03 * math.sqrt(1.2)), rel=0.02)
+    assert math.sqrt(c[3]) < 0.02  # across the motion: unchanged
+    after = maker.make(np.array([1.2, 0.0, 0.0]), 2.0)  # the next node does not carry it
+    assert after.odom_covariance[0] < 1e-3
+    with pytest.raises(ValueError, match="add_distance_variance"):
+        maker.add_distance_variance(-1.0)
