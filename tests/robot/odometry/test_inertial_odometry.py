@@ -7,6 +7,7 @@ here the sensor models are explicit so each property can be isolated.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -100,7 +101,13 @@ def test_zero_velocity_recalibration_bounds_heading_drift() -> None:
         stop_and_go += [(10.0, 0.0, 0.0), (40.0, 0.5, 0.05 * (-1) ** k)]
     # MEMS-grade gyro: 0.01 rad/s initial bias wandering 2e-5 rad/s/sqrt(s), white noise
     # 3e-4 rad/s/sqrt(Hz); 5% wheel slip noise per sample
-    kw = {"bias0": 0.01, "bias_walk": 2e-5, "gyro_noise": 3e-4, "slip_std": 0.05, "seed": 3}
+    kw: dict[str, Any] = {
+        "bias0": 0.01,
+        "bias_walk": 2e-5,
+        "gyro_noise": 3e-4,
+        "slip_std": 0.05,
+        "seed": 3,
+    }
     odo, truth, dist = drive(stop_and_go, **kw)
     minutes = sum(d for d, _, _ in stop_and_go) / 60.0
     heading_err_deg = abs(math.degrees(float(wrap_angle(odo.pose_in_odom[2] - truth[2]))))
