@@ -75,7 +75,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gcs.graph import se2
-from gcs.graph.dijkstra_projection import Adjacency, ProjectionResult, dijkstra_projection
+from gcs.graph.dijkstra_projection import ProjectionResult, dijkstra_projection
+from gcs.graph.graph_mirror import GraphMirror
 from gcs.graph.keys import split_key
 from gcs.graph.pose_graph import PoseGraph, Provenance
 from gcs.loops.candidate_search import (
@@ -295,19 +296,6 @@ def vector_to_body_covariance(pose: FloatArray, cov_xyt: FloatArray) -> FloatArr
     return body_to_vector_covariance(p, cov_xyt)
 
 
-@dataclass(frozen=True)
-class _Mirror:
-    """The graph's relative edges as arrays, for Dijkstra projections (rebuilt on change)."""
-
-    keys: NDArray[np.int64]
-    index: dict[int, int]
-    adjacency: Adjacency
-    robot_ids: NDArray[np.int64]
-    indices: NDArray[np.int64]
-    signature: tuple[int, int, int]
-    revision: int
-
-
 class LoopCloser:
     """Automatic loop closing over a shared pose graph (module docstring)."""
 
@@ -330,7 +318,11 @@ class LoopCloser:
         self._tokens = float(cfg.max_burst_matches)
         self._progress_s = 0.0  # the progress clock (module docstring)
         self._nodes_seen = 0
-        self._mirror: _Mirror | None = None
+        # the graph's poses and relative edges as arrays, extended by what each step added
+        # (gcs.graph.graph_mirror, issue 16); stale after this closer changed the graph
+        # itself, until the next step syncs it (as a rebuilt copy was before)
+        self._mirror = GraphMirror()
+        self._stale = True
         self._groups: frozenset[frozenset[int]] | None = None
         self._links: dict[int, dict[int, tuple[FloatArray, FloatArray]]] = {}
         self._has_scan_cache: tuple[tuple[int, int], NDArray[np.bool_]] | None = None
@@ -472,7 +464,7 @@ class LoopCloser:
             heapq.heappush(self._queue, item)
         # validation and promotion
         result = self._validator.validate(
-            now_s=progress_s, links=self._links_of, path=self._path, revision=mirror.revision
+            now_s=progress_s, links=self._links_of, path=self._path, revision=mirror.version
         )
         report.validation = result
         for h in result.rejected:  # kept a while: a recalibration may vindicate them
@@ -581,7 +573,7 @@ class LoopCloser:
         returns how many edges were removed. Optimize next."""
         removed = self.graph.rewind(since_s)
         self._validator.clear()
-        self._mirror = None
+        self._stale = True
         self._links.clear()
         return len(removed)
 
@@ -593,7 +585,7 @@ class LoopCloser:
         self._queue.clear()
         self._tried.clear()
         self._sources = sorted(self._scans)
-        self._mirror = None
+        self._stale = True
         self._links.clear()
         self._groups = None
 
@@ -612,31 +604,13 @@ class LoopCloser:
             )
         return self._progress_s
 
-    def _sync(self) -> _Mirror:
-        """Arrays of the graph's relative edges; rebuilt when they changed."""
-        edges = [e for e in self.graph.edges() if e.key_b is not None]
-        nodes = self.graph.nodes()
-        signature = (len(nodes), len(edges), max((e.edge_id for e in edges), default=-1))
-        if self._mirror is not None and self._mirror.signature == signature:
-            return self._mirror
-        keys = np.array([n.key for n in nodes], dtype=np.int64)
-        index = {int(k): i for i, k in enumerate(keys)}
-        ij = np.array([[index[e.key_a], index[e.key_b]] for e in edges], dtype=np.int64)  # type: ignore[index]
-        z = np.array([e.z for e in edges], dtype=np.float64).reshape(-1, 3)
-        cov = np.array([e.covariance for e in edges], dtype=np.float64).reshape(-1, 3, 3)
-        adjacency = Adjacency.from_arrays(len(keys), ij.reshape(-1, 2), z, cov)
-        loops = sorted(e.edge_id for e in edges if e.provenance is not Provenance.ODOMETRY)
-        revision = hash((len(loops), sum(loops), len(edges)))
-        self._mirror = _Mirror(
-            keys=keys,
-            index=index,
-            adjacency=adjacency,
-            robot_ids=np.array([n.robot_id for n in nodes], dtype=np.int64),
-            indices=np.array([n.index for n in nodes], dtype=np.int64),
-            signature=signature,
-            revision=revision,
-        )
-        self._links.clear()
+    def _sync(self) -> GraphMirror:
+        """The graph's relative edges as arrays: extended by what was added since the last
+        step, rebuilt whole only after another change (:class:`GraphMirror`); the cached
+        links are dropped whenever anything changed."""
+        if self._mirror.update(self.graph) or self._stale:
+            self._links.clear()
+        self._stale = False
         return self._mirror
 
     def _resweep_on_merge(self) -> None:
@@ -672,7 +646,6 @@ class LoopCloser:
         self, key: int, *, max_trace: float, target: int | None = None
     ) -> ProjectionResult:
         m = self._mirror
-        assert m is not None
         return dijkstra_projection(
             m.adjacency,
             m.index[key],
@@ -680,7 +653,7 @@ class LoopCloser:
             max_trace=max_trace,
         )
 
-    def _generate(self, key: int, mirror: _Mirror, progress_s: float) -> None:
+    def _generate(self, key: int, mirror: GraphMirror, progress_s: float) -> None:
         if key not in self._scans or key not in mirror.index:
             return
         c = self.config.candidates
@@ -720,7 +693,7 @@ class LoopCloser:
             self._propose_long_loops(key, mirror, progress_s)
 
     def _with_turn_scale_error(
-        self, key: int, mirror: _Mirror, covariances: FloatArray
+        self, key: int, mirror: GraphMirror, covariances: FloatArray
     ) -> FloatArray:
         """The projection's covariances with the robot's turn-scale error along its own chain
         added to the yaw of its nodes: ``(e T)^2`` for the odometry's turning ``T`` from
@@ -764,7 +737,7 @@ class LoopCloser:
         spread = fit.sigma if fit.statistical_sigma is None else fit.statistical_sigma
         return math.hypot(fit.scale - ref, spread)
 
-    def _propose_long_loops(self, key: int, mirror: _Mirror, progress_s: float) -> None:
+    def _propose_long_loops(self, key: int, mirror: GraphMirror, progress_s: float) -> None:
         """Place-recognition matches of ``key`` become hypotheses like any other: they reach
         the graph only through a consistent cycle (min_cycle_hypotheses >= 2)."""
         assert self.long_loops is not None
@@ -817,8 +790,8 @@ class LoopCloser:
             )
         return self._matchers[k]
 
-    def _has_scan(self, mirror: _Mirror) -> NDArray[np.bool_]:
-        stamp = (id(mirror), len(self._scans))
+    def _has_scan(self, mirror: GraphMirror) -> NDArray[np.bool_]:
+        stamp = (mirror.version, len(self._scans))
         if self._has_scan_cache is None or self._has_scan_cache[0] != stamp:
             flags = np.array([int(k) in self._scans for k in mirror.keys], dtype=bool)
             self._has_scan_cache = (stamp, flags)
@@ -941,11 +914,11 @@ class LoopCloser:
             self._closure_bend_var[e.edge_id] = new
         if updates:
             self.graph.update_edges(updates)
-            self._mirror = None
+            self._stale = True
         if bad:
             self.graph.remove_edges(bad)
             self.stats.closures_pruned += len(bad)
-            self._mirror = None
+            self._stale = True
             for eid in bad:
                 self._closure_bend_var.pop(eid, None)
         return bad
@@ -1061,7 +1034,7 @@ class LoopCloser:
                 if h.hyp_id not in pending:
                     self._validator.add(dataclasses.replace(h, time_s=self._progress_s))
             self._sources = sorted(set(self._sources) | set(self._scans))
-            self._mirror = None
+            self._stale = True
             self._links.clear()
         self._rejected.clear()
 
@@ -1158,7 +1131,7 @@ class LoopCloser:
         if bad:
             self.graph.remove_edges(bad)
             self.stats.closures_pruned += len(bad)
-            self._mirror = None
+            self._stale = True
         return bad
 
     def _prune_contradicted(self) -> list[int]:
@@ -1179,7 +1152,7 @@ class LoopCloser:
         if bad:
             self.graph.remove_edges(bad)
             self.stats.closures_pruned += len(bad)
-            self._mirror = None
+            self._stale = True
         return bad
 
     def _links_of(self, key: int) -> dict[int, tuple[FloatArray, FloatArray]]:
@@ -1188,7 +1161,7 @@ class LoopCloser:
             return self._links[key]
         m = self._mirror
         out: dict[int, tuple[FloatArray, FloatArray]] = {}
-        if m is not None and key in m.index:
+        if not self._stale and key in m.index:
             cfg = self.config
             limit = 2 * cfg.link_sigma_xy_m**2 + cfg.link_sigma_yaw_rad**2
             proj = self._projection(key, max_trace=limit)
@@ -1206,7 +1179,7 @@ class LoopCloser:
         """The graph's minimum-uncertainty path ``a_from_b`` (None if not connected within
         ``path_sigma_xy_m``)."""
         m = self._mirror
-        if m is None or key_a not in m.index or key_b not in m.index:
+        if self._stale or key_a not in m.index or key_b not in m.index:
             return None
         s = self.config.path_sigma_xy_m
         proj = self._projection(key_a, max_trace=2 * s**2 + math.pi**2, target=key_b)
