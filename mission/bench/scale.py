@@ -49,7 +49,12 @@ the child to end), which takes the quick run's wall time down by about their len
 
 ``--quick``: the radio over 60 mission-s, the teams on ``magic_phase`` (its 14 robots' site
 crowded to 64 and 100) for 0.5 mission-s after 0.25 s, the GCS over 60 mission-s of
-traffic. Full: 600 mission-s of radio, the teams on ``magic_team100`` for 10 mission-s after
+traffic. That window ends before the first LIDAR sweeps do (1.25 s): it measures the team's
+start (the small images that settle each camera's pan phase, the lockstep's round trips),
+not its work on sweeps and the images they ask for, which the full run's 10 s measure (at
+64 robots on ``magic_phase``, mission-s 1-2 run at about 1/25 of the quick window's rate:
+colour-test and tag renders, the robots' perception; see :mod:`sim.scene`).
+Full: 600 mission-s of radio, the teams on ``magic_team100`` for 10 mission-s after
 1 s, the GCS over 300 mission-s (about 15,000 nodes). On the shared 2-core machine the teams
 alone take minutes (the simulator's camera renders dominate: see the README's scale rows).
 """
