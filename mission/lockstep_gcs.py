@@ -213,6 +213,7 @@ class _Server:
         from mission.assembly import GcsGround
 
         t0 = time.perf_counter()
+        phases = ""  # what a resume spent where (its stderr: the chaos bench's restart time)
         self.incarnation = incarnation
         self.setup = setup
         self.clock = clock
@@ -223,6 +224,7 @@ class _Server:
         if args.resume:
             resumed = resume_control(journal_path, mission_cfg)
             control, journal = resumed.control, resumed.journal
+            phases = f" (journal {resumed.rebuild_s:.2f} s, {resumed.summary.records})"
         else:
             station_cfg = msgspec.msgpack.decode(setup.station, type=GroundStationConfig)
             station = GroundStation(station_cfg)
@@ -269,12 +271,14 @@ class _Server:
         self.radio = self.link.gcs_endpoint(on_message=self._arrived)
         self.radio.hold_arrivals()
         if args.resume:
+            t1 = time.perf_counter()
             self.ledger = LinkLedger.from_journal(journal)
             restore_link_state(self.radio, journal, self.ledger)
+            phases += f" (link state {time.perf_counter() - t1:.2f} s)"
         self.rebuild_s = time.perf_counter() - t0
         print(
             f"gcs process {incarnation}: {'resumed' if args.resume else 'started'} in "
-            f"{self.rebuild_s:.2f} s",
+            f"{self.rebuild_s:.2f} s{phases}",
             file=sys.stderr,
             flush=True,
         )
