@@ -320,7 +320,7 @@ def test_a_gcs_process_killed_with_sigkill_is_restarted_and_loses_nothing(
         remote, team = asm.remote_gcs, asm.team
         assert isinstance(team, TeamOverProcesses)
         first_pid = remote.pid
-        steps = int(round(8.0 / asm.sim.config.step_s))
+        steps = int(round(12.0 / asm.sim.config.step_s))
         for k in range(steps):
             if k == steps // 2:
                 at_kill = remote.figures["gcs"]["gcs_pose_nodes"]
