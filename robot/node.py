@@ -97,7 +97,7 @@ from robot.control.hostile_evasion import (
 )
 from robot.control.keepout import KeepoutConfig, keepout_disks_in_odom, rasterize_disks
 from robot.control.path_follower import FollowerConfig, FollowStatus, PathFollower
-from robot.control.stuck_detector import StuckConfig, StuckDetector, recovery_command
+from robot.control.stuck_detector import StuckConfig, StuckDetector
 from robot.control.traversability import TraversabilityConfig, TraversabilityMap
 from robot.odometry.inertial_odometry import InertialOdometry, OdometryConfig
 from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
@@ -296,10 +296,6 @@ class RobotNode:
         self._latest: tuple[np.ndarray, GridGeometry] | None = None  # newest sweep's obstacles
         self._path_found = True
         self._backup_until_s = -math.inf
-        self._backup_cmd = (-cfg.backup_speed_m_s, 0.0)  # what the backup window drives
-        # the current stuck streak: where it began, recoveries tried (stuck_detector)
-        self._stuck_at: np.ndarray | None = None
-        self._stuck_attempts = 0
         # the fused terrain map of the newest sweep (None: not made since), without the
         # keep-out disks: line of sight for the laser (a static OOI's own keep-out would
         # block every view of it from outside)
@@ -932,7 +928,7 @@ class RobotNode:
         if now - self._start_s < cfg.calibrate_still_s:
             v, w = 0.0, 0.0
         elif now < self._backup_until_s:
-            v, w = self._backup_cmd
+            v, w = -cfg.backup_speed_m_s, 0.0
         elif intent.teleop is not None:
             v, w = intent.teleop
             if (
@@ -960,7 +956,6 @@ class RobotNode:
                 self._planned_goal = None
             if self.stuck.update(now, pose, v, w):
                 self.stats.stuck_recoveries += 1
-                self._backup_cmd = self._stuck_recovery(pose, w)
                 self._backup_until_s = now + cfg.backup_s
                 self.stuck.reset()
                 self.fusion.clear()  # the map that trapped us may be an artifact
@@ -1122,19 +1117,6 @@ class RobotNode:
         if detail and tid:
             self._report(TaskStatus(tid, TaskState.ACTIVE, now, detail))
 
-    def _stuck_recovery(self, pose: np.ndarray, turn_rad_s: float) -> tuple[float, float]:
-        """The next recovery of the stuck streak at ``pose``, stuck commanding
-        ``turn_rad_s`` (a detection farther than
-        ``streak_radius_m`` from the streak's first starts a new one): see
-        :func:`~robot.control.stuck_detector.recovery_command`."""
-        cfg = self.config
-        here = np.asarray(pose[:2], dtype=np.float64)
-        if self._stuck_at is None or np.hypot(*(here - self._stuck_at)) > cfg.stuck.streak_radius_m:
-            self._stuck_at, self._stuck_attempts = here, 0
-        else:
-            self._stuck_attempts += 1
-        return recovery_command(self._stuck_attempts, turn_rad_s, cfg.backup_speed_m_s, cfg.stuck)
-
     def _watch_deadlock(self, now: float, pose: np.ndarray, intent: Any) -> None:
         """Progress towards the current waypoint; a deadlock starts a back-off (see
         :mod:`robot.control.deadlock`)."""
@@ -1172,7 +1154,6 @@ class RobotNode:
             if target is not None:
                 # first reverse a little, straight back the way we came: face to face with
                 # a teammate there is no room to turn around
-                self._backup_cmd = (-self.config.backup_speed_m_s, 0.0)
                 self._backup_until_s = now + self.config.backup_s
             log.info(
                 "robot %d: deadlock on the way to %s; backing off to %s",

@@ -3,13 +3,6 @@
 Stuck when, for ``window_s``, the commanded speed is substantial while the pose moved less
 than ``min_progress_m`` and turned less than ``min_turn_rad``. The node's recovery is to back
 up briefly and replan; the planner's short memory forgets a bad map meanwhile.
-
-A recovery that does not free the robot is not repeated as is (:func:`recovery_command`): a
-robot turning in place in a doorway barely wider than it wedges its corners against the
-jambs, where neither the turn nor reversing moves it (small world seed 0: robot 2 sat 180 s in
-a 1.1 m door, turning clockwise and backing up in turn, its pose frozen). Consecutive stuck
-detections within ``streak_radius_m`` of the first escalate: reverse, then turn against the
-last turn (unwinding the wedge), then a slow forward arc that way, then reverse again.
 """
 
 from __future__ import annotations
@@ -20,7 +13,7 @@ from collections import deque
 import msgspec
 import numpy as np
 
-__all__ = ["StuckConfig", "StuckDetector", "recovery_command"]
+__all__ = ["StuckConfig", "StuckDetector"]
 
 
 class StuckConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -28,26 +21,6 @@ class StuckConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_on
     min_command_m_s: float = 0.2
     min_progress_m: float = 0.15
     min_turn_rad: float = 0.2
-    # stuck detections within this of the first one are one streak (see recovery_command)
-    streak_radius_m: float = 0.5
-    recovery_turn_rad_s: float = 1.0
-    recovery_creep_m_s: float = 0.15
-
-
-def recovery_command(
-    attempt: int, last_turn_rad_s: float, backup_speed_m_s: float, config: StuckConfig
-) -> tuple[float, float]:
-    """``(linear_m_s, angular_rad_s)`` of the ``attempt``-th (0-based) recovery of a stuck
-    streak, after the robot last commanded ``last_turn_rad_s``: 0 reverse straight; 1 turn in
-    place against the last turn (counter-clockwise after a clockwise turn or none); 2 creep
-    forward on an arc that way; then round again."""
-    away = -1.0 if last_turn_rad_s > 0 else 1.0
-    k = attempt % 3
-    if k == 0:
-        return -backup_speed_m_s, 0.0
-    if k == 1:
-        return 0.0, away * config.recovery_turn_rad_s
-    return config.recovery_creep_m_s, away * config.recovery_turn_rad_s
 
 
 class StuckDetector:
