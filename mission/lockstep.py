@@ -347,6 +347,7 @@ class TeamOverProcesses:
         self._tmp = tempfile.TemporaryDirectory(prefix="magic-run-")
         self.server: SimServer | None = None
         self._done: dict[int, StepDone] = {}
+        self._relaying: dict[int, bool] = {}  # as the robots last said (StepDone.relay)
         self._hosts: dict[int, str] = {}
         self._twice: str | None = None
         self._done_cond = threading.Condition()
@@ -525,6 +526,9 @@ class TeamOverProcesses:
         for rid, d in done.items():
             if not self.server.wait_commands(rid, d.commands, self.step_timeout_s):
                 raise TimeoutError(f"robot {rid}'s commands not delivered at {sim.time_s:.2f} s")
+            if d.relay != self._relaying.get(rid, False):  # from the next radio update
+                sim.set_relay(rid, d.relay)
+                self._relaying[rid] = d.relay
         if self.ground is not None:
             self.ground.deliver_held()
             self.ground_link.pump()

@@ -74,6 +74,9 @@ class StepDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fiel
     #: when the go asked (``report_link``): msgpack of ``{stream: [messages the link
     #: accepted, [sequence numbers not acknowledged yet]]}`` of the reliable uplink streams
     link_state: bytes = b""
+    #: the robot's radio in relay mode (:attr:`~robot.node.RobotNode.radio_relay`: a relay
+    #: task holds it); the ground side applies it to the simulator as in one process
+    relay: bool = False
 
 
 class GcsGo(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):

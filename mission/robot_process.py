@@ -254,6 +254,7 @@ class LockstepRobot:
             WORKER_NAME,
             self.radio.packets_in,
             self._link_state() if self._report_link else b"",
+            self.node.radio_relay,
         )
         self.link.publish(self._done_key, self._encoder.encode(done))
 
