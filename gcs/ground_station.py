@@ -244,6 +244,12 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     the time since the teammate's last known pose at the team's top speed and turn rate
     (``fiducial_standin_speed_m_s``, ``fiducial_standin_turn_rate_rad_s``): a teammate silent
     for 25 s may be 25 m away from its last node.
+    ``fiducial_gate_*``: a fiducial between robots whose relative pose the map already holds
+    (one component, or both anchored) is refused (``fiducial_inconsistent``) when it is
+    further from the estimate than its covariance plus ``fiducial_gate_sigma_*`` allow
+    (Mahalanobis above ``fiducial_gate_chi2``, 3 dof; 0: no gate). The sigmas are wide, so the
+    drift a sighting is there to correct passes; what is refused is a tag read off the wrong
+    face (a mission's teammate seen turned by 176 deg, 1.5 m off, tied two robots' maps).
     ``odometry_check``: the scan check of odometry edges (:class:`OdometryCheckConfig`).
     ``raster`` / ``near_raster``: the global map is the near map laid over the far one
     (:mod:`gcs.mapping.overlay`; ``near_raster`` None: the far one alone).
@@ -275,6 +281,9 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     fiducial_standin_sigma_yaw_rad: float = 0.2
     fiducial_standin_speed_m_s: float = 1.0
     fiducial_standin_turn_rate_rad_s: float = 1.2
+    fiducial_gate_sigma_xy_m: float = 2.0
+    fiducial_gate_sigma_yaw_rad: float = 0.5
+    fiducial_gate_chi2: float = 16.27  # chi-square 0.999, 3 dof
     min_grid_resolution_m: float = 0.02
     max_grid_resolution_m: float = 1.0
     gap_covariance_scale: float = 4.0
@@ -304,10 +313,14 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
             "fiducial_standin_sigma_yaw_rad",
             "fiducial_standin_speed_m_s",
             "fiducial_standin_turn_rate_rad_s",
+            "fiducial_gate_sigma_xy_m",
+            "fiducial_gate_sigma_yaw_rad",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v}")
+        if not (math.isfinite(self.fiducial_gate_chi2) and self.fiducial_gate_chi2 >= 0):
+            raise ValueError(f"fiducial_gate_chi2: expected >= 0, got {self.fiducial_gate_chi2}")
         for name in (
             "max_pending_nodes",
             "max_pending_grids",
@@ -906,6 +919,7 @@ class GroundStation:
             self._hold_sighting(track, msg, "unknown_robot", why, own_node=False)
             return
         i, z_i, cov_i = self._teammate_node(other, seen_s, z, cov)
+        self._gate_fiducial(key_a, other.graph_keys[i], z_i, cov_i, what)
         if self.config.fiducials_link_only:
             comp = self.graph.components()
             if comp[key_a] == comp[other.graph_keys[i]]:
@@ -921,6 +935,34 @@ class GroundStation:
         )
         self.stats.fiducials += 1
         self._dirty = True
+
+    def _gate_fiducial(
+        self, key_a: int, key_b: int, z: np.ndarray, cov: np.ndarray, what: str
+    ) -> None:
+        """Raise ``fiducial_inconsistent`` when the map already relates ``key_a`` and
+        ``key_b`` and ``z`` (``a_from_b``) is beyond the gate (config ``fiducial_gate_*``)."""
+        cfg = self.config
+        if not (cfg.fiducial_gate_chi2 > 0):
+            return
+        comp = self.graph.components()
+        ca, cb = comp[key_a], comp[key_b]
+        if ca != cb:
+            anchored = self.graph.anchored_components()
+            if ca not in anchored or cb not in anchored:
+                return  # nothing to compare with: the sighting is what links them
+        predicted = relative(self.graph.pose(key_a), self.graph.pose(key_b))
+        err = np.asarray(relative(predicted, z), dtype=float)
+        err[2] = float(wrap_angle(err[2]))
+        sxy, syaw = cfg.fiducial_gate_sigma_xy_m, cfg.fiducial_gate_sigma_yaw_rad
+        gate = cov + np.diag([sxy**2, sxy**2, syaw**2])
+        value = float(err @ np.linalg.solve(gate, err))
+        if not (value <= cfg.fiducial_gate_chi2):
+            raise _Rejected(
+                "fiducial_inconsistent",
+                f"{what}: {math.hypot(err[0], err[1]):.2f} m and "
+                f"{math.degrees(err[2]):.0f} deg from where the map has that teammate "
+                f"(chi2 {value:.1f} > {cfg.fiducial_gate_chi2})",
+            )
 
     def _keep_telemetry_pose(self, track: _Track, msg: Telemetry) -> None:
         t = float(msg.time_s)

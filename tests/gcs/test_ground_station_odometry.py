@@ -171,3 +171,32 @@ def test_a_fiducial_between_telemetry_poses_of_a_standing_teammate_is_exact() ->
     assert edge.key_b == gs.key_of(1, 2)
     np.testing.assert_allclose(edge.z, seen, atol=1e-6)
     np.testing.assert_allclose(edge.covariance, tag_cov, atol=1e-9)
+
+
+def test_a_fiducial_read_off_the_wrong_face_is_refused_and_a_drifted_one_taken() -> None:
+    """Robots the map already relates (both anchored by start hints): a sighting turned by
+    176 deg (a tag read off the wrong face) is refused with a reason; one 1 m and 10 deg from
+    the estimate (the drift a sighting corrects) is an edge; with the gate off both are."""
+
+    def sighting(gate_chi2: float, dz: tuple[float, float, float]) -> GroundStation:
+        cfg = GroundStationConfig(robots=(0, 1), fiducial_gate_chi2=gate_chi2)
+        gs = GroundStation(cfg)
+        gs.add_start_hint(1, map_from_odom=(2.0, -1.0, 0.0), sigma_xy_m=0.3, sigma_yaw_rad=0.05)
+        for rid in (0, 1):
+            node = PoseNode(0, 0.0, (0.0, 0.0, 0.0), (0.0,) * 3, (0.0,) * 6)  # type: ignore[arg-type]
+            assert gs.handle(rid, node, now_s=0.0)
+        seen = np.array([2.0, -1.0, 0.0]) + np.array(dz)  # robot 1's node 0 from robot 0's
+        cov = covariance_to_upper(np.diag([0.02**2, 0.02**2, 0.01**2]))
+        gs.handle(0, FiducialObservation(0, 0.0, 1, 5, tuple(seen), cov), now_s=0.5)  # type: ignore[arg-type]
+        return gs
+
+    flipped = sighting(16.27, (1.5, 0.3, math.radians(176.0)))
+    assert flipped.stats.rejected["fiducial_inconsistent"] == 1
+    assert not flipped.graph.edges(Provenance.FIDUCIAL)
+    assert "176 deg from where the map has that teammate" in flipped.stats.errors[-1]
+    drifted = sighting(16.27, (1.0, 0.0, math.radians(10.0)))
+    assert len(drifted.graph.edges(Provenance.FIDUCIAL)) == 1
+    ungated = sighting(0.0, (1.5, 0.3, math.radians(176.0)))
+    assert len(ungated.graph.edges(Provenance.FIDUCIAL)) == 1
+    with pytest.raises(ValueError, match="fiducial_gate_chi2"):
+        GroundStationConfig(fiducial_gate_chi2=-1.0)
