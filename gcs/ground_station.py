@@ -248,8 +248,12 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     (one component, or both anchored) is refused (``fiducial_inconsistent``) when it is
     further from the estimate than its covariance plus ``fiducial_gate_sigma_*`` allow
     (Mahalanobis above ``fiducial_gate_chi2``, 3 dof; 0: no gate). The sigmas are wide, so the
-    drift a sighting is there to correct passes; what is refused is a tag read off the wrong
-    face (a mission's teammate seen turned by 176 deg, 1.5 m off, tied two robots' maps).
+    drift a sighting is there to correct passes; what is refused is a sighting the map
+    contradicts beyond any drift (a tag read off the wrong face, a teammate mistaken).
+    ``fiducial_max_sigma_xy_m``: a sighting whose teammate's pose at that time is known only
+    this loosely (a stand-in silent for long) is refused as ``fiducial_stale``: it says
+    nothing (the quick mission bench's seed 7 took one with sigmas 70.6 m and pi rad, which
+    the report then scored a false edge, 1.5 m and 176 deg off).
     ``odometry_check``: the scan check of odometry edges (:class:`OdometryCheckConfig`).
     ``raster`` / ``near_raster``: the global map is the near map laid over the far one
     (:mod:`gcs.mapping.overlay`; ``near_raster`` None: the far one alone).
@@ -284,6 +288,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     fiducial_gate_sigma_xy_m: float = 2.0
     fiducial_gate_sigma_yaw_rad: float = 0.5
     fiducial_gate_chi2: float = 16.27  # chi-square 0.999, 3 dof
+    fiducial_max_sigma_xy_m: float = 5.0
     min_grid_resolution_m: float = 0.02
     max_grid_resolution_m: float = 1.0
     gap_covariance_scale: float = 4.0
@@ -315,6 +320,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
             "fiducial_standin_turn_rate_rad_s",
             "fiducial_gate_sigma_xy_m",
             "fiducial_gate_sigma_yaw_rad",
+            "fiducial_max_sigma_xy_m",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -919,6 +925,13 @@ class GroundStation:
             self._hold_sighting(track, msg, "unknown_robot", why, own_node=False)
             return
         i, z_i, cov_i = self._teammate_node(other, seen_s, z, cov)
+        sigma_xy = math.sqrt(max(cov_i[0, 0], cov_i[1, 1]))
+        if not (sigma_xy <= self.config.fiducial_max_sigma_xy_m):
+            raise _Rejected(
+                "fiducial_stale",
+                f"{what}: robot {msg.observed_robot_id}'s pose at t={seen_s:.1f} s known only to "
+                f"{sigma_xy:.1f} m (its last pose is stale); the sighting says nothing",
+            )
         self._gate_fiducial(key_a, other.graph_keys[i], z_i, cov_i, what)
         if self.config.fiducials_link_only:
             comp = self.graph.components()

@@ -200,3 +200,21 @@ def test_a_fiducial_read_off_the_wrong_face_is_refused_and_a_drifted_one_taken()
     assert len(ungated.graph.edges(Provenance.FIDUCIAL)) == 1
     with pytest.raises(ValueError, match="fiducial_gate_chi2"):
         GroundStationConfig(fiducial_gate_chi2=-1.0)
+
+
+def test_a_fiducial_of_a_long_silent_teammate_is_refused_as_stale() -> None:
+    """Robot 1's last pose node is 30 s older than the sighting: its stand-in could be 30 m
+    away, so the sighting says nothing and is refused with its reason."""
+    gs = GroundStation(GroundStationConfig(robots=(0, 1)))
+    gs.add_start_hint(1, map_from_odom=(2.0, -1.0, 0.0), sigma_xy_m=0.3, sigma_yaw_rad=0.05)
+    for rid in (0, 1):
+        node = PoseNode(0, 0.0, (0.0, 0.0, 0.0), (0.0,) * 3, (0.0,) * 6)  # type: ignore[arg-type]
+        assert gs.handle(rid, node, now_s=0.0)
+    cov = covariance_to_upper(np.diag([0.02**2, 0.02**2, 0.01**2]))
+    for seen_s, stale in ((1.0, 0), (30.0, 1)):
+        tag = FiducialObservation(0, seen_s, 1, 5, (2.0, -1.0, 0.0), cov)  # type: ignore[arg-type]
+        gs.handle(0, tag, now_s=seen_s)
+        gs.step(now_s=seen_s + 6.0)  # it waited fiducial_wait_s for a later node of robot 1
+        assert gs.stats.rejected["fiducial_stale"] == stale
+    assert len(gs.graph.edges(Provenance.FIDUCIAL)) == 1
+    assert "known only to" in gs.stats.errors[-1]
