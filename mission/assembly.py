@@ -306,6 +306,7 @@ def _remote_gcs_factory(
     radio_path: str | None,
     run_dir: Path,
     standby: bool,
+    operator: Any = None,
 ) -> Callable[..., Any]:
     """What starts the GCS process (:class:`mission.lockstep_gcs.RemoteGcs`) once the team's
     link is up: the station and planners configured as :func:`assemble` configures the
@@ -336,6 +337,7 @@ def _remote_gcs_factory(
         radio_path=str(Path(radio_path).resolve()),
         ground_link_seed=seeds.ground_link,
         seed=seeds.seed,
+        operator=operator,
     )
     run_dir.mkdir(parents=True, exist_ok=True)
 
@@ -444,6 +446,7 @@ def assemble(
     mission_name: str | None = None,
     gcs_process: bool = False,
     gcs_standby: bool = True,
+    gcs_operator: Any = None,
 ) -> Iterator[Assembly]:
     """Bring a team up (module docstring); closes everything on exit (links, processes, the
     simulator). ``with_gcs``: the real GCS on the ground side (roles as disruptors from the
@@ -464,7 +467,8 @@ def assemble(
     ``robot_processes`` and ``journal_path``: it journals there, and is restarted from that
     journal if it dies; ``gcs_standby``: a warm spare waits beside it); :attr:`Assembly.gcs`
     is then None and :attr:`Assembly.remote_gcs` its handle. The same run as in one process,
-    bit for bit, until a restart."""
+    bit for bit, until a restart. ``gcs_operator``
+    (:class:`mission.lockstep_gcs.OperatorSetup`): the GCS process serves consoles and views."""
     spread = {
         "workers": workers is not None,
         "remote_robots": bool(remote_robots),
@@ -501,6 +505,7 @@ def assemble(
                 radio_path=radio_path,
                 run_dir=Path(journal_path).parent,
                 standby=gcs_standby,
+                operator=gcs_operator,
             )
             grounds.append(_NoGround())
         elif with_gcs:

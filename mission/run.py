@@ -422,6 +422,7 @@ def run_mission(
     on_step: Callable[[Assembly], None] | None = None,
     out_dir: str | Path | None = None,
     operator: Callable[[Any, Any], Any] | None = None,
+    gcs_operator: Any = None,
     on_console: Callable[[str], None] | None = None,
     link: LinkConfig | None = None,
     mission_name: str | None = None,
@@ -435,7 +436,9 @@ def run_mission(
     ``report.json``, ``report.md``, plots; the metrics in :attr:`RunReport.metrics`); a
     scripted run has no GCS and writes none. ``operator(link, control)``: the operator station
     (:class:`gcs.operator.service.OperatorService`) on the GCS's link, for consoles and views
-    (``magic run`` always has one); ``on_console(line)`` is told the ``magic console`` command
+    (``magic run`` always has one; with ``config.gcs_process``, ``gcs_operator``: the
+    :class:`mission.lockstep_gcs.OperatorSetup` the GCS process serves them with instead);
+    ``on_console(line)`` is told the ``magic console`` command
     that reaches it; its interactions and the robots' autonomy modes go into the report.
     Deterministic unless ``config.realtime`` (see :mod:`mission.lockstep`). ^C or SIGTERM
     (any ``KeyboardInterrupt``) ends the run early: links are closed and the report so far is
@@ -486,6 +489,7 @@ def run_mission(
             link=link,
             worker_link_args=worker_link_args,
             mission_name=mission_name,
+            gcs_operator=gcs_operator if config.gcs_process else None,
         )
         try:
             asm = stack.enter_context(team)
@@ -509,6 +513,10 @@ def run_mission(
                 from gcs.operator.node_hooks import console_command
 
                 on_console(console_command(asm.team.ground_link))
+        if gcs_operator is not None and asm.remote_gcs is not None and on_console is not None:
+            from gcs.operator.node_hooks import console_command
+
+            on_console(console_command(asm.team.ground_link))  # zenoh routes to the GCS's
         recorder: _Recording | _RemoteRecording | None = None
         if out_dir is not None and asm.gcs is not None:
             recorder = _Recording(Path(out_dir), config, asm)
@@ -1097,9 +1105,14 @@ def main(argv: list[str] | None = None) -> int:
             command += f" --operator-key {args.operator_key}"
         console.print(f"magic run: operators: {command}", markup=False, soft_wrap=True)
 
-    if config.gcs_process and not no_consoles:
-        no_consoles = "no consoles for this run: not with --gcs-process (yet)"
-    ops: dict[str, Any] = {} if config.scripted or no_consoles else {"operator": operators}
+    ops: dict[str, Any] = {}
+    if config.gcs_process and not no_consoles:  # the GCS process serves them
+        from gcs.operator.node_hooks import _sinks
+        from mission.lockstep_gcs import OperatorSetup
+
+        ops["gcs_operator"] = OperatorSetup(key_file=args.operator_key, views=_sinks(args))
+    elif not (config.scripted or no_consoles):
+        ops["operator"] = operators
     ops.update(link=link, mission_name=args.mission)
     if config.remote_robots:
         hint = _remote_hint(config, args.mission, link, out_dir)

@@ -111,16 +111,13 @@ def test_a_killed_gcs_process_resumes_the_same_way_wherever_in_its_turn_it_died(
     assert a["gcs"] == b["gcs"]
 
 
-def test_a_console_reaches_the_gcs_in_its_own_process(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """``GcsSetup.operator``: the GCS process serves consoles as the in-process GCS does: a
+def test_a_console_reaches_the_gcs_in_its_own_process(tmp_path: Path) -> None:
+    """``assemble(gcs_operator=...)`` (``magic run --gcs-process``) -> ``GcsSetup.operator``:
+    the GCS process serves consoles as the in-process GCS does: a
     ``magic console``'s signed command, over zenoh to the GCS process, is carried out at its
     next turn (a PauseTask to robot 0, on the radio) and answered; its status reaches the
     console; the command is journaled."""
     import threading
-
-    import msgspec
 
     import mission.lockstep_gcs as lg
     from gcs.console.client import ConsoleClient
@@ -136,16 +133,6 @@ def test_a_console_reaches_the_gcs_in_its_own_process(
 
     key_file = tmp_path / "operator.key"
     key = op.load_or_create_key(key_file, create=True)
-    plain = lg.RemoteGcs
-
-    class WithConsoles(plain):  # type: ignore[misc, valid-type]
-        def __init__(self, link: Any, mission: str, run_dir: Path, setup: Any, **kw: Any):
-            setup = msgspec.structs.replace(
-                setup, operator=lg.OperatorSetup(key_file=str(key_file))
-            )
-            super().__init__(link, mission, run_dir, setup, **kw)
-
-    monkeypatch.setattr(lg, "RemoteGcs", WithConsoles)
     world = load_world_config(config_path("world/small.yaml", "world"))
     radio_path = config_path("radio/magic2010.yaml", "radio")
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
@@ -161,6 +148,7 @@ def test_a_console_reaches_the_gcs_in_its_own_process(
         workers=1,
         gcs_process=True,
         gcs_standby=False,
+        gcs_operator=lg.OperatorSetup(key_file=str(key_file)),  # as magic run --gcs-process
         link=LinkConfig(listen=(endpoint,)),
         mission_name=mission,
     ) as asm:
