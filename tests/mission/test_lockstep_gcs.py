@@ -12,25 +12,25 @@ import pytest
 pytestmark = pytest.mark.slow
 
 
-def _killed_run(run_dir: Path, *, seed: int, duration_s: float, kill: str) -> dict[str, Any]:
-    """A small-world lockstep run, the GCS in its own process, SIGKILLed at the middle step:
-    ``kill`` ``"at_go"`` right after its turn was asked for (mid-turn), ``"after_turn"`` once
-    it answered its turn (the turn's step, plan and downlink made). Returns what the journal
-    holds after the kill and the robots' last task reports."""
-    from gcs.journal import GcsJournal
+def gcs_process_team(
+    journal: Path, *, seed: int, mission: str, endpoint: str | None = None, **kw: Any
+) -> Any:
+    """``assemble`` of the small world's team as ``magic run --gcs-process`` has it: robot
+    nodes in one worker process, the GCS in its own, journaling to ``journal``; this process
+    listening on ``endpoint`` (default a free loopback port) under mission name ``mission``;
+    ``kw`` further :func:`~mission.assembly.assemble` options."""
     from mission.assembly import assemble
-    from mission.bench.chaos import _floor_loss
     from mission.config import config_path, load_config
-    from mission.lockstep import TeamOverProcesses, seed_streams
+    from mission.lockstep import seed_streams
     from protocol.link import LinkConfig
-    from protocol.loopback import free_loopback_port, unique_mission
+    from protocol.loopback import free_loopback_port
     from protocol.radio import RadioConfig
     from sim.simulator import load_world_config
 
     world = load_world_config(config_path("world/small.yaml", "world"))
     radio_path = config_path("radio/magic2010.yaml", "radio")
-    journal = run_dir / "journal.sqlite"
-    with assemble(
+    endpoint = endpoint or f"tcp/127.0.0.1:{free_loopback_port()}"
+    return assemble(
         world,
         seeds=seed_streams(seed),
         radio=load_config(radio_path, RadioConfig),
@@ -39,8 +39,27 @@ def _killed_run(run_dir: Path, *, seed: int, duration_s: float, kill: str) -> di
         robot_processes=True,
         workers=1,
         gcs_process=True,
-        link=LinkConfig(listen=(f"tcp/127.0.0.1:{free_loopback_port()}",)),
-        mission_name=unique_mission("gcs-repeat"),
+        link=LinkConfig(listen=(endpoint,)),
+        mission_name=mission,
+        **kw,
+    )
+
+
+def _killed_run(run_dir: Path, *, seed: int, duration_s: float, kill: str) -> dict[str, Any]:
+    """A small-world lockstep run, the GCS in its own process, SIGKILLed at the middle step:
+    ``kill`` ``"at_go"`` right after its turn was asked for (mid-turn), ``"after_turn"`` once
+    it answered its turn (the turn's step, plan and downlink made). Returns what the journal
+    holds after the kill and the robots' last task reports."""
+    from gcs.journal import GcsJournal
+    from mission.bench.chaos import _floor_loss
+    from mission.lockstep import TeamOverProcesses
+    from protocol.loopback import unique_mission
+
+    journal = run_dir / "journal.sqlite"
+    with gcs_process_team(
+        journal,
+        seed=seed,
+        mission=unique_mission("gcs-repeat"),
         # the station steps every turn: the turn the kill strikes journals a step
         gcs_step_period_s=0.05,
     ) as asm:
@@ -122,35 +141,22 @@ def test_a_console_reaches_the_gcs_in_its_own_process(tmp_path: Path) -> None:
     import mission.lockstep_gcs as lg
     from gcs.console.client import ConsoleClient
     from gcs.journal import GcsJournal
-    from mission.assembly import assemble
-    from mission.config import config_path, load_config
-    from mission.lockstep import seed_streams
     from protocol import operator as op
     from protocol.link import Link, LinkConfig
     from protocol.loopback import free_loopback_port, unique_mission
-    from protocol.radio import RadioConfig
-    from sim.simulator import load_world_config
 
     key_file = tmp_path / "operator.key"
     key = op.load_or_create_key(key_file, create=True)
-    world = load_world_config(config_path("world/small.yaml", "world"))
-    radio_path = config_path("radio/magic2010.yaml", "radio")
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     mission = unique_mission("gcs-console")
     journal = tmp_path / "journal.sqlite"
-    with assemble(
-        world,
-        seeds=seed_streams(1),
-        radio=load_config(radio_path, RadioConfig),
-        radio_path=str(radio_path),
-        journal_path=journal,
-        robot_processes=True,
-        workers=1,
-        gcs_process=True,
+    with gcs_process_team(
+        journal,
+        seed=1,
+        mission=mission,
+        endpoint=endpoint,
         gcs_standby=False,
         gcs_operator=lg.OperatorSetup(key_file=str(key_file)),  # as magic run --gcs-process
-        link=LinkConfig(listen=(endpoint,)),
-        mission_name=mission,
     ) as asm:
         console_link = Link(LinkConfig(connect=(endpoint,), pump_period_s=0.0), mission=mission)
         client = ConsoleClient(console_link, "alice", key)

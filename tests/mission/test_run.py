@@ -291,31 +291,14 @@ def test_a_gcs_process_killed_with_sigkill_is_restarted_and_loses_nothing(
     the robots' links accepted on a reliable stream is journaled or still on its way, and
     the journal replays to the station it rebuilds."""
     from gcs.journal import GcsJournal, rebuild_station
-    from mission.assembly import assemble
     from mission.bench.chaos import _floor_loss, _reliable_lost
-    from mission.config import config_path, load_config
-    from mission.lockstep import TeamOverProcesses, seed_streams
+    from mission.lockstep import TeamOverProcesses
     from mission.mission_replay import compare_replay
-    from protocol.link import LinkConfig
-    from protocol.loopback import free_loopback_port, unique_mission
-    from protocol.radio import RadioConfig
-    from sim.simulator import load_world_config
+    from protocol.loopback import unique_mission
+    from tests.mission.test_lockstep_gcs import gcs_process_team
 
-    world = load_world_config(config_path("world/small.yaml", "world"))
-    radio_path = config_path("radio/magic2010.yaml", "radio")
     journal = tmp_path / "journal.sqlite"
-    with assemble(
-        world,
-        seeds=seed_streams(5),
-        radio=load_config(radio_path, RadioConfig),
-        radio_path=str(radio_path),
-        journal_path=journal,
-        robot_processes=True,
-        workers=1,
-        gcs_process=True,
-        link=LinkConfig(listen=(f"tcp/127.0.0.1:{free_loopback_port()}",)),
-        mission_name=unique_mission("gcs-kill"),
-    ) as asm:
+    with gcs_process_team(journal, seed=5, mission=unique_mission("gcs-kill")) as asm:
         _floor_loss(asm.sim, 0.3)  # messages held behind gaps when it dies
         remote, team = asm.remote_gcs, asm.team
         assert isinstance(team, TeamOverProcesses)
