@@ -143,6 +143,7 @@ CREATE TABLE IF NOT EXISTS checkpoints (
     sha256 BLOB NOT NULL,
     state BLOB NOT NULL
 );
+CREATE INDEX IF NOT EXISTS records_by_kind ON records (kind, seq);
 """
 
 _KINDS = frozenset(

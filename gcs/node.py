@@ -700,6 +700,9 @@ def _main(argv: list[str]) -> int:
     if proc.operator is not None and proc.operator.journal is None:
         proc.operator.journal = proc.journal  # operator commands into the GCS journal
     assert proc.journal is not None
+    if resumed is not None and proc.operator is not None:
+        # paused and operator-controlled robots, approvals and interactions as they were
+        proc.operator.restore_operator(proc.journal)
     if resumed is not None:
         st = proc.link_state
         print(

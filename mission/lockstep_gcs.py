@@ -266,6 +266,10 @@ class _Server:
                     control=control,
                 )
             )
+            if args.resume:
+                # the killed GCS's operator decisions (paused robots, operator tasks,
+                # approvals, interactions), before the planners' first plan
+                self.ground.operator.restore_operator(journal)
         self._next_t = 0.0
         self.ledger = LinkLedger()
         self.radio = self.link.gcs_endpoint(on_message=self._arrived)

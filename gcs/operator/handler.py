@@ -150,6 +150,51 @@ class CommandHandler:
         self.interactions: list[tuple[float, str]] = []  # (mission s, command text)
         self.counts: dict[str, int] = {}
 
+    # ---- saved and restored (a resumed GCS) -----------------------------------------------
+
+    def state(self) -> dict[str, Any]:
+        """What the operators decided, as JSON fields (journaled with each command: a GCS
+        resumed from its journal holds the same robots, approvals and interactions, and
+        counts its task ids on past the killed one's; :meth:`restore`)."""
+        return {
+            "next_task_id": self._next_id,
+            "operator_controlled": sorted(self.operator_controlled),
+            "paused": {str(r): bool(was) for r, was in sorted(self.paused.items())},
+            "approved_hazard_ids": sorted(self.approved_hazard_ids),
+            "reclassified": {str(h): k for h, k in sorted(self.reclassified.items())},
+            "operator_tasks": {
+                str(r): [int(tid), what] for r, (tid, what) in sorted(self.operator_tasks.items())
+            },
+            "interactions": [[float(t), text] for t, text in self.interactions],
+            "counts": dict(sorted(self.counts.items())),
+        }
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Take the decisions :meth:`state` saved (a GCS resumed from its journal). Task ids
+        go on past both the saved next id and this handler's own. ValueError (naming the
+        field) on a state that is not one."""
+        try:
+            next_id = int(state["next_task_id"])
+            controlled = {int(r) for r in state["operator_controlled"]}
+            paused = {int(r): bool(was) for r, was in state["paused"].items()}
+            approved = {int(h) for h in state["approved_hazard_ids"]}
+            reclassified = {int(h): str(k) for h, k in state["reclassified"].items()}
+            tasks = {int(r): (int(v[0]), str(v[1])) for r, v in state["operator_tasks"].items()}
+            interactions = [(float(t), str(text)) for t, text in state["interactions"]]
+            counts = {str(k): int(n) for k, n in state["counts"].items()}
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as err:
+            raise ValueError(f"operator handler state: {type(err).__name__}: {err}") from None
+        if not is_operator_task(next_id):
+            raise ValueError(f"operator handler state: next_task_id {next_id} is no operator id")
+        self._next_id = max(self._next_id, next_id)
+        self.operator_controlled = controlled
+        self.paused = paused
+        self.approved_hazard_ids = approved
+        self.reclassified = reclassified
+        self.operator_tasks = tasks
+        self.interactions = interactions
+        self.counts = counts
+
     # ---- planners' view ------------------------------------------------------------------
 
     def held_robots(self) -> frozenset[int]:

@@ -399,10 +399,47 @@ class OperatorService:
                     "text": text[:500],
                     "interaction": bool(outcome and outcome.interaction),
                     "task_ids": list(outcome.task_ids) if outcome else [],
+                    # what the operators decided after it: a resumed GCS starts from the
+                    # newest (restore_operator)
+                    "handler": self.handler.state(),
                 },
             )
         except Exception:
             log.exception("journaling an operator command failed (the GCS goes on)")
+
+    def restore_operator(self, journal: Any = None, *, record: Any = None) -> bool:
+        """Take back what the operators had decided at the GCS that wrote ``journal`` (a
+        :class:`gcs.journal.GcsJournal`; default this service's): the handler state of its
+        newest ``operator`` record (or of ``record``, one such record), so a resumed GCS
+        holds the same paused and operator-controlled robots, approvals, operator tasks and
+        interactions as the killed one, and the planners plan with them at once. Returns
+        whether there was a state to restore; a damaged one is logged and skipped (the
+        resumed GCS starts with no operator decisions, as before)."""
+        if record is None:
+            journal = journal if journal is not None else self.journal
+            if journal is None:
+                return False
+            record = journal.latest_record("operator")
+        if record is None:
+            return False
+        try:
+            state = record.json().get("handler")
+            if state is None:  # journaled before operator records carried it
+                return False
+            self.handler.restore(state)
+        except Exception as err:  # noqa: BLE001 - a damaged record must not stop a resume
+            log.error("operator state of journal record %s not restored: %s", record.seq, err)
+            return False
+        self._sync_control()
+        log.info(
+            "operator state restored from record %d: paused %s, operator-controlled %s, "
+            "%d interaction(s)",
+            record.seq,
+            sorted(self.handler.paused),
+            sorted(self.handler.operator_controlled),
+            len(self.handler.interactions),
+        )
+        return True
 
     def _set_gcs_parameter(self, name: str, value: float) -> str:
         if name == "status_period_s":

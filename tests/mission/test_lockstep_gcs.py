@@ -194,3 +194,91 @@ def test_a_console_reaches_the_gcs_in_its_own_process(tmp_path: Path) -> None:
 
     paused = [decode_frame(r.body, Direction.DOWN).msg for r in downs]
     assert any(isinstance(m, PauseTask) and m.task_id == reply.task_ids[0] for m in paused)
+
+
+def test_an_operators_pause_holds_across_a_kill_of_the_gcs_process(tmp_path: Path) -> None:
+    """A console pauses robot 0, then the GCS process is killed with SIGKILL: the standby
+    that takes over holds what the operators decided (its status, over zenoh, shows robot 0
+    paused and the one interaction), and its planners give robot 0 no task afterwards (the
+    resumed GCS had forgotten the pause: it tasked the robot to explore again and counted
+    no interaction)."""
+    import threading
+
+    import mission.lockstep_gcs as lg
+    from gcs.console.client import ConsoleClient
+    from gcs.journal import GcsJournal
+    from mission.lockstep import TeamOverProcesses
+    from protocol import operator as op
+    from protocol.link import Link, LinkConfig
+    from protocol.loopback import free_loopback_port, unique_mission
+
+    key_file = tmp_path / "operator.key"
+    key = op.load_or_create_key(key_file, create=True)
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    mission = unique_mission("gcs-pause-kill")
+    journal = tmp_path / "journal.sqlite"
+    with gcs_process_team(
+        journal,
+        seed=1,
+        mission=mission,
+        endpoint=endpoint,
+        gcs_operator=lg.OperatorSetup(key_file=str(key_file)),  # standby too, as magic run
+    ) as asm:
+        remote, team = asm.remote_gcs, asm.team
+        assert isinstance(team, TeamOverProcesses)
+        console_link = Link(LinkConfig(connect=(endpoint,), pump_period_s=0.0), mission=mission)
+        client = ConsoleClient(console_link, "alice", key)
+        replies: list[Any] = []
+
+        def operate() -> None:
+            if client.wait_for_status(lambda s: bool(s.robots), 120.0):
+                replies.append(client.send(op.Command("pause", "0"), timeout_s=120.0))
+
+        def row0(status: Any) -> Any:
+            return next(r for r in status.robots if r.robot_id == 0)
+
+        thread = threading.Thread(target=operate, daemon=True)
+        thread.start()
+        try:
+            steps = 0
+            while thread.is_alive() and steps < 2000:
+                asm.step()
+                steps += 1
+            thread.join(1.0)
+            assert replies and replies[0] is not None and replies[0].status == "ok", replies
+            paused_at_s = replies[0].time_s
+            for _ in range(40):  # the PauseTask on the radio; a status after it
+                asm.step()
+            assert client.wait_for_status(lambda s: s.time_s > paused_at_s, 30.0)
+            before = client.status
+            assert before is not None and row0(before).control == "paused"
+            assert before.interactions == 1
+            first_pid = remote.pid
+            team.step(remote.kill)  # SIGKILL during its turn: the standby takes over
+            killed_at_s = asm.sim.time_s
+            assert remote.restarts == 1 and remote.pid != first_pid
+            after = None
+            for _ in range(400):  # until the resumed GCS's status comes
+                asm.step()
+                st = client.status
+                if st is not None and st.time_s > killed_at_s + 0.5:
+                    after = st
+                    break
+            assert after is not None, "no status from the resumed GCS"
+            for _ in range(100):  # 5 mission-s on: its planners plan meanwhile
+                asm.step()
+        finally:
+            client.close()
+            console_link.close()
+    assert row0(after).control == "paused", row0(after)
+    assert after.interactions == before.interactions == 1
+    reader = GcsJournal.open(journal)
+    try:
+        tasks_to_0 = [
+            (r.time_s, r.json())
+            for r in reader.records(kind="decision")
+            if r.robot_id == 0 and "task_id" in r.json() and r.time_s > paused_at_s
+        ]
+    finally:
+        reader.close()
+    assert tasks_to_0 == [], f"the planners tasked the paused robot: {tasks_to_0}"

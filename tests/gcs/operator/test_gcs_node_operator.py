@@ -162,3 +162,51 @@ def test_commands_kept_and_refused_are_journaled(tmp_path: Path) -> None:
         journal.close()
         other.close()
         gcs_link.close()
+
+
+def test_a_resumed_service_holds_the_journaled_operator_decisions(tmp_path: Path) -> None:
+    """Commands carried out by one service, journaled; a new service on the same journal
+    (a GCS resumed after a kill) restores them: robot 0 still paused, the interactions
+    counted, and the planners' held set (MissionControl.operator_controlled) given back at
+    once. A journal with no operator record restores nothing."""
+    from gcs.ground_station import GroundStation
+    from gcs.journal import GcsJournal
+
+    class Control:  # the planners' sets the service keeps equal to the operators' decisions
+        def __init__(self) -> None:
+            self.operator_controlled: set[int] = set()
+            self.approved: set[int] = set()
+
+    path = tmp_path / "j.sqlite"
+    journal = GcsJournal.create(path, GroundStationConfig())
+    gcs_link, other = open_pair()
+    station = GroundStation()
+    for msg in nodes_along(straight(3)):
+        station.handle(0, msg, now_s=1.0)
+    try:
+        fresh = OperatorService(gcs_link, key=KEY, journal=journal, control=Control())
+        assert not fresh.restore_operator()  # nothing journaled yet
+        fresh.close()
+        service = OperatorService(gcs_link, key=KEY, journal=journal)
+        for seq, cmd in enumerate((op.Command("pause", "0"), op.Command("status"))):
+            signed = op.sign(KEY, gcs_link.mission, "alice", 10**18 + seq, cmd)
+            service._on_command("", op.encode(signed))
+        service.after_step(now_s=3.0, station=station, send=lambda r, m: None)
+        journal.commit()
+        assert service.handler.control_of(0) == "paused"
+        service.close()
+        journal.abandon()  # killed: what was committed is what the next one reads
+        journal = GcsJournal.open(path)
+        control = Control()
+        resumed = OperatorService(gcs_link, key=KEY, journal=journal, control=control)
+        assert resumed.restore_operator()
+        assert resumed.handler.control_of(0) == "paused"
+        assert resumed.handler.paused == service.handler.paused
+        assert resumed.handler.interactions == service.handler.interactions
+        assert resumed.status(station).interactions == 1
+        assert control.operator_controlled == {0}
+        resumed.close()
+    finally:
+        journal.close()
+        other.close()
+        gcs_link.close()

@@ -217,3 +217,38 @@ def test_status_says_how_the_operators_task_stands() -> None:
     assert text == "goto 12,-3: failed (no path to the next waypoint)"
     assert h.handle(parse_line("auto 0"), ctx).status == "ok"
     assert h.task_text(0, ctx.reports[0], None) == "task 7"  # its telemetry's task
+
+
+def test_a_handlers_decisions_survive_a_state_round_trip() -> None:
+    """``state()`` -> JSON -> ``restore()`` (a GCS resumed from its journal): the same held,
+    paused and operator-controlled robots, operator tasks, approvals, reclassifications,
+    interactions and counts; task ids go on past the saved ones; a damaged state is refused
+    naming what is wrong and changes nothing."""
+    import json
+
+    gs = _station()
+    (hz,) = gs.hazards
+    h = CommandHandler(first_task_id=OPERATOR_TASK_IDS_FROM + 1)
+    roles = {0: "disruptor", 1: "sensor"}
+    for line in ("goto 0 12 -3", "pause 0-1", f"approve {hz.hazard_id}"):
+        assert h.handle(parse_line(line), _ctx(gs, roles=roles)).status == "ok", line
+    assert h.handle(parse_line(f"reclassify {hz.hazard_id} hostile"), _ctx(gs)).status == "ok"
+    saved = json.loads(json.dumps(h.state()))
+    again = CommandHandler(first_task_id=OPERATOR_TASK_IDS_FROM + 1)
+    again.restore(saved)
+    for name in ("operator_controlled", "paused", "approved_hazard_ids", "reclassified"):
+        assert getattr(again, name) == getattr(h, name), name
+    assert again.operator_tasks == h.operator_tasks and again.counts == h.counts
+    assert again.interactions == h.interactions and len(again.interactions) == 4
+    assert again.held_robots() == {0, 1} and again.control_of(0) == "paused"
+    # resumed, robot 0 goes back to the operator's control (it had a goto before its pause)
+    out = again.handle(parse_line("resume 0"), _ctx(gs))
+    assert again.control_of(0) == "operator" and again.control_of(1) == "paused"
+    assert out.task_ids[0] == h._next_id  # no task id of the killed GCS's used twice
+    bad = dict(saved, paused=[1, 2])
+    with pytest.raises(ValueError, match="operator handler state"):
+        CommandHandler().restore(bad)
+    fresh = CommandHandler()
+    with pytest.raises(ValueError, match="next_task_id 5 is no operator id"):
+        fresh.restore(dict(saved, next_task_id=5))
+    assert fresh.paused == {} and fresh.interactions == []
