@@ -201,6 +201,21 @@ class ProjectionResult:
 
 
 @numba.njit(cache=True)
+def _stepped_cov(
+    cov_v: np.ndarray, st: np.ndarray, cov_step: np.ndarray, ad: np.ndarray
+) -> np.ndarray:
+    """Covariance of ``x_w = x_v * st`` (in ``w``'s frame): ``Ad cov_v Ad' + cov_step`` with
+    ``Ad`` the adjoint of the inverse step, written into the caller's scratch ``ad`` (its last
+    row stays ``(0, 0, 1)``)."""
+    c, s = math.cos(st[2]), math.sin(st[2])
+    ix = -c * st[0] - s * st[1]
+    iy = s * st[0] - c * st[1]
+    ad[0, 0], ad[0, 1], ad[0, 2] = c, s, iy
+    ad[1, 0], ad[1, 1], ad[1, 2] = -s, c, -ix
+    return ad @ cov_v @ ad.T + cov_step
+
+
+@numba.njit(cache=True)
 def _search(
     head: np.ndarray,
     nxt: np.ndarray,
@@ -248,13 +263,7 @@ def _search(
             w = to[slot]
             if not done[w]:
                 st = step[slot]
-                # Ad of the inverse step: x_w = x_v * step, cov_w = Ad cov_v Ad' + cov_step.
-                c, s = math.cos(st[2]), math.sin(st[2])
-                ix = -c * st[0] - s * st[1]
-                iy = s * st[0] - c * st[1]
-                ad[0, 0], ad[0, 1], ad[0, 2] = c, s, iy
-                ad[1, 0], ad[1, 1], ad[1, 2] = -s, c, -ix
-                cw = ad @ cv @ ad.T + step_cov[slot]
+                cw = _stepped_cov(cv, st, step_cov[slot], ad)
                 t = cw[0, 0] + cw[1, 1] + cw[2, 2]
                 if t < best[w]:
                     best[w] = t
@@ -379,13 +388,7 @@ def _trace_to(
         while slot >= 0:
             w = to[slot]
             if not done[w]:
-                st = step[slot]
-                c, s = math.cos(st[2]), math.sin(st[2])
-                ix = -c * st[0] - s * st[1]
-                iy = s * st[0] - c * st[1]
-                ad[0, 0], ad[0, 1], ad[0, 2] = c, s, iy
-                ad[1, 0], ad[1, 1], ad[1, 2] = -s, c, -ix
-                cw = ad @ cv @ ad.T + step_cov[slot]
+                cw = _stepped_cov(cv, step[slot], step_cov[slot], ad)
                 t = cw[0, 0] + cw[1, 1] + cw[2, 2]
                 if t < best[w]:
                     if best[w] == np.inf:
