@@ -101,7 +101,8 @@ def run_parser(epilog: str | None = None) -> argparse.ArgumentParser:
         "--robot-processes), over the zenoh link, journaling to RUN_DIR/journal.sqlite; if "
         "it dies (kill -9) the run restarts it from the journal (a warm standby takes over) "
         "and goes on, nothing acknowledged lost. The same run as in one process until a "
-        "restart; no consoles yet (default: the GCS in this process)",
+        "restart; consoles reach it, and its standby after a kill, through the printed "
+        "`magic console` line (default: the GCS in this process)",
     )
     spread = p.add_argument_group(
         "across processes and hosts",
