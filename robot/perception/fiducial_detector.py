@@ -43,6 +43,7 @@ __all__ = [
     "detect_tags",
     "estimate_teammates",
     "fiducial_observation",
+    "fit_rows_px",
 ]
 
 _FACE_NORMALS = ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))  # front, left, back, right
@@ -226,6 +227,60 @@ def estimate_teammates(
     return out, dropped
 
 
+def _housing_points(lay: TagLayoutConfig) -> np.ndarray:
+    """``(18, 3)``: where on the teammate's LIDAR housing (its ``base``) the face cue samples."""
+    mx, my, mz = lay.marker_in_base_m
+    e = 0.6 * lay.marker_half_m
+    return np.array(
+        [[mx + a, my + b, mz + c] for a in (-e, 0.0, e) for b in (-e, 0.0, e) for c in (0.0, e)]
+    )
+
+
+def fit_rows_px(
+    detections: Sequence[TagDetection],
+    intrinsics: Intrinsics,
+    *,
+    own_robot_id: int,
+    config: FiducialConfig | None = None,
+) -> float:
+    """How far (pixels of this image, up or down) from the principal point's row the pixels
+    :func:`estimate_teammates` reads for the teammates of ``detections`` lie: their tags'
+    corners and, for each pose the anchor tag admits (IPPE's two, every face the layout
+    leaves possible), the LIDAR housing it samples for the face cue. 0 without teammates.
+
+    A camera's image of a band of rows about its principal point (the same width, focal
+    length and camera; a smaller height) shows exactly those rows of the full image, so an
+    image asked again at a higher resolution to fit these teammates needs only this band
+    (scaled): issue 16, the tall fine images of a crowd's tags."""
+    cfg = config or FiducialConfig()
+    lay = cfg.layout
+    k_mat = intrinsics.matrix()
+    cy = intrinsics.cy_px
+    obj_tag = _tag_points(lay.tag_size_m)
+    housing = _housing_points(lay)
+    dev = 0.0
+    for d in detections:
+        if d.tag_id // lay.ids_per_robot == own_robot_id:
+            continue
+        corners = np.asarray(d.corners_px, dtype=np.float64).reshape(4, 2)
+        dev = max(dev, float(np.abs(corners[:, 1] - cy).max()))
+        ok, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            obj_tag, corners, k_mat, np.zeros(5), flags=cv2.SOLVEPNP_IPPE_SQUARE
+        )
+        if not ok:
+            continue
+        faces = [d.tag_id % 4] if lay.ids_per_robot == 4 else [0, 1, 2, 3]
+        for r, t in zip(rvecs, tvecs, strict=True):
+            cam_from_tag = _to_matrix(r, t)
+            for f in faces:
+                cam_from_team = cam_from_tag @ np.linalg.inv(lay.base_from_tag(f))
+                pc = housing @ cam_from_team[:3, :3].T + cam_from_team[:3, 3]
+                if (pc[:, 2] <= 0).any():
+                    continue
+                dev = max(dev, float(np.abs(_project(pc, k_mat)[:, 1] - cy).max()))
+    return dev
+
+
 def _planar(params: np.ndarray) -> np.ndarray:
     """``(4, 4)`` observer-base-from-teammate-base of ``(x, y, z, yaw)`` (upright teammate)."""
     x, y, z, yaw = params
@@ -312,11 +367,7 @@ def _fit_teammate(
         # the face cue: the black LIDAR housing ahead of the head; sampled on the housing
         # itself (its upper half: the chassis hides its foot), not around it (the chassis top
         # beside it is lighter: 44 measured against the housing's 16-19)
-        mx, my, mz = lay.marker_in_base_m
-        e = 0.6 * lay.marker_half_m
-        pts = np.array(
-            [[mx + a, my + b, mz + c] for a in (-e, 0.0, e) for b in (-e, 0.0, e) for c in (0.0, e)]
-        )
+        pts = _housing_points(lay)
         pc = (cam_from_own @ own_from_team)[:3]
         score = _gray_at(gray, _project(pts @ pc[:3, :3].T + pc[:3, 3], k_mat))
         best.append((score, rms, sol.x, sol.jac, faces_t))

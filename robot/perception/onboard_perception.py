@@ -41,6 +41,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import msgspec
 import numpy as np
 from numpy.typing import NDArray
@@ -65,6 +66,7 @@ from robot.perception.fiducial_detector import (
     TeammateSighting,
     detect_tags,
     estimate_teammates,
+    fit_rows_px,
 )
 from robot.perception.image_memory import Candidate, ImageMemory, ImageMemoryConfig, RememberedFrame
 from robot.perception.lidar_detector import LidarDetector, LidarDetectorConfig
@@ -115,6 +117,15 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     # every coarse image shows tags; their fine images were 3/4 of a 64-robot team's renders
     # and most of its tag-fitting CPU, for the same pairs again and again). 0: every time.
     fiducial_refresh_s: float = 3.0
+    # the fine image is a band of rows about the principal point (same width and focal
+    # length: exactly those rows of the full fine image), as tall as the teammates of the
+    # coarse image need (their tags and the LIDAR housing the face cue samples:
+    # fiducial_detector.fit_rows_px, scaled, plus fiducial_band_margin_px above and below)
+    # and at least fiducial_band_min_px (teammates too far for the coarse image to decode sit
+    # near the horizon: within 6 m, a 3 deg pitch, 85 rows of the middle). Issue 16: a
+    # render's cost grows with its rows (640x240 ~60 % of 640x480). 0: the full height.
+    fiducial_band_min_px: int = 192
+    fiducial_band_margin_px: int = 16
     # the two images that settle the pan schedule's phase are asked this small (square, px):
     # only their pan angle is used, and a 64-robot team's first second was mostly their
     # renders (issue 16). 0 (default): at the memory's size, searched for tags like any other:
@@ -191,6 +202,16 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             raise ValueError(
                 f"perception.phase_probe_px must be 0 or in [16, 2048], got {self.phase_probe_px}"
             )
+        if self.fiducial_band_min_px != 0 and not 16 <= self.fiducial_band_min_px <= 2048:
+            raise ValueError(
+                "perception.fiducial_band_min_px must be 0 or in [16, 2048], got "
+                f"{self.fiducial_band_min_px}"
+            )
+        if self.fiducial_band_margin_px < 0:
+            raise ValueError(
+                "perception.fiducial_band_margin_px must be >= 0, got "
+                f"{self.fiducial_band_margin_px}"
+            )
         if not 1 <= self.max_requests_per_step <= 4:
             raise ValueError("perception.max_requests_per_step must be in [1, 4]")
 
@@ -241,6 +262,7 @@ class PerceptionStats:
     fiducial_dropped: int = 0
     fiducial_fine_images: int = 0  # fine images asked for a teammate's tag seen coarse
     fiducial_fine_skipped: int = 0  # coarse tags of teammates asked about lately (no image)
+    fiducial_fine_rows: int = 0  # rows of the fine images asked (their heights summed)
     teammate_candidates: int = 0  # LIDAR candidates at a teammate just seen (no image)
     thumbnails: int = 0
     thumbnail_unknown: int = 0
@@ -504,13 +526,21 @@ class OnboardPerception:
             self._ask(frame.time_s, ready)
 
     def _ask(
-        self, frame_time_s: float, jobs: list[_Job], *, fine: bool = False, probe: bool = False
+        self,
+        frame_time_s: float,
+        jobs: list[_Job],
+        *,
+        fine: bool = False,
+        probe: bool = False,
+        fine_height_px: int | None = None,
     ) -> None:
-        """Ask for the image of ``frame_time_s``: fine (a teammate's pose), a phase probe
-        (its pan angle only: ``phase_probe_px`` square) or coarse (the memory's size)."""
+        """Ask for the image of ``frame_time_s``: fine (a teammate's pose; ``fine_height_px``
+        rows, default ``fiducial_height_px``), a phase probe (its pan angle only:
+        ``phase_probe_px`` square) or coarse (the memory's size)."""
         cfg = self.config
         if fine:
-            w, h = cfg.fiducial_width_px, cfg.fiducial_height_px
+            w = cfg.fiducial_width_px
+            h = cfg.fiducial_height_px if fine_height_px is None else fine_height_px
         elif probe:
             w = h = cfg.phase_probe_px
         else:
@@ -1021,8 +1051,10 @@ class OnboardPerception:
                 # the fine image shows every teammate of this frame: all of them are asked
                 for m in mates:
                     self._fine_asked_s[m] = self._now
-                self._ask(float(image.time_s), [], fine=True)
+                rows = self._fine_rows(tags, intr)
+                self._ask(float(image.time_s), [], fine=True, fine_height_px=rows)
                 self.stats.fiducial_fine_images += 1
+                self.stats.fiducial_fine_rows += rows
             elif mates:
                 self.stats.fiducial_fine_skipped += 1
             return
@@ -1052,6 +1084,22 @@ class OnboardPerception:
                     pose_t[1] + sth * bx + cth * by,
                 )
             )
+
+    def _fine_rows(self, tags: list[TagDetection], intr: Intrinsics) -> int:
+        """The fine image's height for the teammates of a coarse image's ``tags`` (see
+        ``PerceptionConfig.fiducial_band_min_px``): even, within the full fine height."""
+        cfg = self.config
+        full = cfg.fiducial_height_px
+        if cfg.fiducial_band_min_px <= 0:
+            return full
+        scale = cfg.fiducial_width_px / intr.width_px  # fine pixels per coarse pixel
+        try:
+            dev = fit_rows_px(tags, intr, own_robot_id=self.robot_id, config=cfg.fiducial)
+        except (ValueError, cv2.error):
+            return full
+        half = math.ceil(scale * dev) + cfg.fiducial_band_margin_px
+        rows = max(cfg.fiducial_band_min_px, 2 * half)
+        return int(min(full, rows + rows % 2))
 
     def _opportunistic_person_jobs(
         self, image: CameraImage, pose: tuple[float, float, float], jobs: list[_Job]

@@ -19,6 +19,7 @@ from robot.perception.fiducial_detector import (
     detect_tags,
     estimate_teammates,
     fiducial_observation,
+    fit_rows_px,
 )
 from sim.camera import CameraConfig, camera_axes, intrinsics
 from sim.scene import RobotGeometry, Scene
@@ -45,14 +46,19 @@ def scene() -> Iterator[Scene]:
 
 
 def _render(
-    scene: Scene, observer: np.ndarray, observed: np.ndarray, pan: float = 0.0
+    scene: Scene,
+    observer: np.ndarray,
+    observed: np.ndarray,
+    pan: float = 0.0,
+    size: tuple[int, int] = (W, H),
 ) -> tuple[np.ndarray, Intrinsics]:
     scene.set_robot_poses(np.stack([observer, observed]))
     scene.sync()
     eye, fwd, up = camera_axes(observer, np.array(scene.geometry.camera_m), pan, CAM.tilt_rad)
-    fx, fy, cx, cy = intrinsics(W, H, CAM)
-    rgb = scene.render(eye_m=eye, forward=fwd, up=up, width_px=W, height_px=H, fy_px=fy)
-    return rgb, Intrinsics(fx, fy, cx, cy, W, H)
+    w, h = size
+    fx, fy, cx, cy = intrinsics(w, h, CAM)
+    rgb = scene.render(eye_m=eye, forward=fwd, up=up, width_px=w, height_px=h, fy_px=fy)
+    return rgb, Intrinsics(fx, fy, cx, cy, w, h)
 
 
 def test_layout_defaults_are_the_simulated_robots() -> None:
@@ -93,6 +99,49 @@ def test_teammate_pose_against_truth_up_to_3_m(scene: Scene) -> None:
     assert sent >= 15  # the rest: tag out of view or the heading's face not told apart
     assert np.percentile(pos_err, 95) <= 0.10
     assert len(yaw_err_2face) >= 5 and np.percentile(yaw_err_2face, 95) <= 3.0
+
+
+def test_a_band_of_rows_from_the_coarse_image_gives_the_full_images_sighting(
+    scene: Scene,
+) -> None:
+    """fit_rows_px on a 320x240 image's tags: a 640-wide image of that band (scaled, with the
+    robot's margin and least height) gives the same sighting as the full 640x480 image, and
+    is shorter for a teammate beyond 2 m; the band grows as the teammate comes closer (its
+    LIDAR housing, sampled for the face cue, lies further below the horizon)."""
+    rng = np.random.default_rng(5)
+    rows_by_range: list[tuple[float, int]] = []
+    compared = 0
+    for _ in range(40):
+        r, bearing = rng.uniform(1.0, 3.5), rng.uniform(-0.4, 0.4)
+        observer = _matrix(5.0, 10.0, rng.uniform(-3, 3))
+        rel = _matrix(r * math.cos(bearing), r * math.sin(bearing), rng.uniform(-math.pi, math.pi))
+        coarse, c_intr = _render(scene, observer, observer @ rel, size=(320, 240))
+        tags = detect_tags(coarse)
+        if not tags:
+            continue
+        dev = fit_rows_px(tags, c_intr, own_robot_id=0)
+        # as the robot asks (PerceptionConfig.fiducial_band_*: 16 rows of margin, >= 192)
+        rows = min(H, max(192, 2 * (math.ceil(2 * dev) + 16)))
+        rows_by_range.append((r, rows))
+        full, f_intr = _render(scene, observer, observer @ rel)
+        band, b_intr = _render(scene, observer, observer @ rel, size=(W, rows))
+        off = (H - rows) // 2
+        # the same rows: TinyRenderer's rasterization may differ on a rare edge pixel
+        differ = np.abs(band.astype(int) - full[off : off + rows].astype(int)).max(axis=2) > 0
+        assert differ.mean() < 1e-3
+        a, _ = estimate_teammates(full, f_intr, 0.0, CAM.tilt_rad, own_robot_id=0)
+        b, _ = estimate_teammates(band, b_intr, 0.0, CAM.tilt_rad, own_robot_id=0)
+        assert [s.robot_id for s in a] == [s.robot_id for s in b]
+        for sa, sb in zip(a, b, strict=True):
+            np.testing.assert_allclose(sa.observed_in_base, sb.observed_in_base, atol=1e-3)
+            np.testing.assert_allclose(sa.covariance, sb.covariance, rtol=0.05, atol=1e-9)
+        compared += len(a)
+    assert compared >= 8
+    far = [rows for r, rows in rows_by_range if r > 2.0]
+    near = [rows for r, rows in rows_by_range if r < 1.5]
+    assert far and max(far) < H
+    assert near and np.median(near) > np.median(far)
+    assert fit_rows_px([], c_intr, own_robot_id=0) == 0.0
 
 
 def test_own_tags_and_tagless_images_give_nothing_and_bad_images_are_refused(scene: Scene) -> None:
