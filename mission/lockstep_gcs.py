@@ -205,15 +205,23 @@ class _Server:
         incarnation: int,
         link: Any,
         clock: Any,
+        follower: Any = None,
     ) -> None:
         from gcs.ground_station import GroundStation, GroundStationConfig
-        from gcs.journal import GcsJournal, JournaledStation, resume_control
+        from gcs.journal import GcsJournal, JournaledStation, JournalError, resume_control
         from gcs.mission_control import MissionControl, MissionControlConfig
         from gcs.node import LinkLedger, restore_link_state
         from mission.assembly import GcsGround
 
         t0 = time.perf_counter()
-        phases = ""  # what a resume spent where (its stderr: the chaos bench's restart time)
+        # what a resume spent where (its stderr: the chaos bench's restart time)
+        phases: list[str] = []
+
+        def phase(name: str, since: float) -> float:
+            now = time.perf_counter()
+            phases.append(f"{name} {now - since:.2f} s")
+            return now
+
         self.incarnation = incarnation
         self.setup = setup
         self.clock = clock
@@ -222,9 +230,18 @@ class _Server:
         journal_path = Path(args.run_dir) / "journal.sqlite"
         mission_cfg = msgspec.msgpack.decode(setup.mission, type=MissionControlConfig)
         if args.resume:
-            resumed = resume_control(journal_path, mission_cfg)
+            resumed = None
+            if follower is not None:  # a warm standby: it followed the journal while waiting
+                try:
+                    resumed = follower.take_over(mission_cfg)
+                    how = "followed, last records"
+                except JournalError as err:
+                    print(f"gcs process: {err}; rebuilding instead", file=sys.stderr, flush=True)
+            if resumed is None:
+                resumed = resume_control(journal_path, mission_cfg)
+                how = "rebuilt"
             control, journal = resumed.control, resumed.journal
-            phases = f" (journal {resumed.rebuild_s:.2f} s, {resumed.summary.records})"
+            t = phase(f"journal ({how} {resumed.summary.records})", t0)
         else:
             station_cfg = msgspec.msgpack.decode(setup.station, type=GroundStationConfig)
             station = GroundStation(station_cfg)
@@ -270,19 +287,21 @@ class _Server:
                 # the killed GCS's operator decisions (paused robots, operator tasks,
                 # approvals, interactions), before the planners' first plan
                 self.ground.operator.restore_operator(journal)
+        if args.resume:
+            t = phase("control and operator", t)
         self._next_t = 0.0
         self.ledger = LinkLedger()
         self.radio = self.link.gcs_endpoint(on_message=self._arrived)
         self.radio.hold_arrivals()
         if args.resume:
-            t1 = time.perf_counter()
+            t = phase("radio endpoint", t)
             self.ledger = LinkLedger.from_journal(journal)
             restore_link_state(self.radio, journal, self.ledger)
-            phases += f" (link state {time.perf_counter() - t1:.2f} s)"
+            phase("link state", t)
         self.rebuild_s = time.perf_counter() - t0
         print(
             f"gcs process {incarnation}: {'resumed' if args.resume else 'started'} in "
-            f"{self.rebuild_s:.2f} s{phases}",
+            f"{self.rebuild_s:.2f} s" + (f" ({', '.join(phases)})" if phases else ""),
             file=sys.stderr,
             flush=True,
         )
@@ -305,10 +324,17 @@ class _Server:
         self.ground.on_message(robot_id, msg)
 
     def wait_for_robots(self, timeout_s: float) -> None:
+        t0 = time.perf_counter()
         deadline = time.monotonic() + timeout_s
         for rid in self.setup.robots:
             if not self.radio.wait_for_robot(rid, max(0.1, deadline - time.monotonic())):
                 raise TimeoutError(f"gcs process: robot {rid} never came up")
+        print(
+            f"gcs process {self.incarnation}: robots' downlink matched in "
+            f"{time.perf_counter() - t0:.2f} s",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def answer(self, time_s: float, phase: str, figures: bytes = b"") -> None:
         done = GcsDone(
@@ -443,6 +469,48 @@ def _warm_up(setup: GcsSetup) -> float:
     return time.perf_counter() - t0
 
 
+#: Wall seconds between a standby's reads of the journal it follows.
+FOLLOW_PERIOD_S = 0.25
+
+
+def _follow_until_told(journal_path: Path) -> tuple[str, Any]:
+    """A standby's wait: the line the orchestrator writes on stdin (the incarnation to take
+    over as; empty: the run ended), and meanwhile the journal followed
+    (:class:`gcs.journal.JournalFollower`: its station kept as the running GCS's, every
+    ``FOLLOW_PERIOD_S``), so that taking over applies only the last records instead of
+    everything since the latest checkpoint. Returns the line and the follower (None when it
+    could not follow: the resume then rebuilds from the journal, slower, not wrong)."""
+    from gcs.journal import JournalError, JournalFollower
+
+    lines: queue.SimpleQueue[str] = queue.SimpleQueue()
+    threading.Thread(target=lambda: lines.put(sys.stdin.readline()), daemon=True).start()
+    follower = None
+    try:
+        t0 = time.perf_counter()
+        follower = JournalFollower(journal_path)
+        print(
+            f"gcs standby: following {journal_path} from record {follower.seq} (loaded in "
+            f"{time.perf_counter() - t0:.2f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
+    except JournalError as err:
+        print(f"gcs standby: not following the journal: {err}", file=sys.stderr, flush=True)
+    while True:
+        try:
+            return lines.get(timeout=FOLLOW_PERIOD_S), follower
+        except queue.Empty:
+            pass
+        if follower is None:
+            continue
+        try:
+            follower.catch_up()
+        except JournalError as err:
+            print(f"gcs standby: stopped following: {err}", file=sys.stderr, flush=True)
+            follower.close()
+            follower = None
+
+
 def _open_link(args: argparse.Namespace, setup: GcsSetup) -> tuple[Any, Any]:
     """The GCS's zenoh link (a standby opens it before it is needed: a session and its
     routes take a while) on a mission clock of its own."""
@@ -509,14 +577,19 @@ def main(argv: list[str] | None = None) -> int:
             print(f"gcs standby: warmed up in {warm_s:.2f} s", file=sys.stderr, flush=True)
         except Exception as err:  # noqa: BLE001 - a cold resume is slower, not wrong
             print(f"gcs standby: no warm-up ({type(err).__name__}: {err})", file=sys.stderr)
-        line = sys.stdin.readline()
+        line, follower = _follow_until_told(Path(args.run_dir) / "journal.sqlite")
         if not line.strip():
+            if follower is not None:
+                follower.close()
             link.close()
             return 0  # the run ended: never needed
+        print(f"gcs standby: told at {time.strftime('%H:%M:%S')}", file=sys.stderr, flush=True)
         incarnation = int(line)
         args.resume = True
+    else:
+        follower = None
     try:
-        server = _Server(args, setup, incarnation, link, clock)
+        server = _Server(args, setup, incarnation, link, clock, follower)
     except BaseException:
         link.close()
         raise

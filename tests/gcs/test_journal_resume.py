@@ -424,3 +424,55 @@ def test_a_resumed_gcs_gives_its_allocator_back_the_robots_assignments(tmp_path:
     assert kept, "the robots' tasks go on"
     assert resumed.journal is not None
     resumed.journal.close()
+
+
+def test_a_standby_that_followed_the_journal_takes_over_as_a_rebuild_would(
+    tmp_path: Path,
+) -> None:
+    """A warm standby's :class:`JournalFollower` reads the journal while its writer runs
+    (between the writer's commits, on its own connection; a checkpoint passes meanwhile),
+    never sees what the writer had not committed when it died, and takes over with the
+    station, task bookkeeping and assignments :func:`resume_control` rebuilds from the same
+    journal; the run goes on to the station of a GCS never killed. Taking over applies only
+    what the writer committed after the follower's last read."""
+    from gcs.journal import JournalFollower
+
+    items = _mission(seed=4)
+    never = _ground(_journal(tmp_path / "never.sqlite", checkpoint_period_s=10.0))
+    _turns(never, items, 0, 45)
+
+    path = tmp_path / "journal.sqlite"
+    first = _ground(_journal(path, checkpoint_period_s=10.0))
+    _turns(first, items, 0, 4)
+    follower = JournalFollower(path)
+    assert follower.seq == first.journal.last_seq  # type: ignore[union-attr]
+    for t in range(4, 24, 3):
+        _turns(first, items, t, t + 3)
+        assert follower.catch_up() > 0
+    _turns(first, items, 24, 25)  # committed after the follower's last read
+    assert first.journal is not None
+    committed = first.journal.last_seq
+    first.journal.event("decision", 25.0, {"task": "GoToTask", "task_id": 99}, robot_id=0)
+    first.journal.abandon()  # killed: the record above was never committed
+    scratch = tmp_path / "scratch.sqlite"  # the journal as the kill left it, to rebuild
+    with sqlite3.connect(scratch) as copy, sqlite3.connect(path) as src:
+        src.backup(copy)
+
+    took = follower.take_over(first.control.config)
+    assert took.summary.last_seq == committed == took.journal.last_seq
+    assert 0 < sum(took.summary.records.values()) < committed / 10  # the last records only
+    rebuilt = resume_control(scratch, first.control.config)
+    for other in (first.control, rebuilt.control):
+        at_kill = compare_stations(other.station, took.control.station)
+        assert at_kill.nodes_equal and at_kill.edges_equal and at_kill.pose_diff_max_m == 0.0
+    assert took.control.tasks_sent == rebuilt.control.tasks_sent == first.control.tasks_sent
+    assert took.control.allocator._next_id == rebuilt.control.allocator._next_id
+    assert took.journal.assignments == rebuilt.journal.assignments
+    rebuilt.journal.close()
+
+    ground = GcsGround(took.control, lockstep=True, step_period_s=1.0, journal=took.journal)
+    _turns(ground, items, 25, 45)
+    end = compare_stations(never.station, ground.station)
+    assert end.nodes_equal and end.edges_equal and end.pose_diff_max_m <= 1e-9, end
+    took.journal.close()
+    assert compare_replay(path, ground.station).pose_diff_max_m <= 1e-9
