@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import cv2
 import msgspec
 import numpy as np
-from scipy.optimize import least_squares
 
 from protocol.messages import FiducialObservation, covariance_to_upper
 from robot.perception.camera_model import Intrinsics, base_from_camera
@@ -296,6 +295,85 @@ def _project(points_cam: np.ndarray, k: np.ndarray) -> np.ndarray:
     return points_cam[:, :2] / z * [k[0, 0], k[1, 1]] + [k[0, 2], k[1, 2]]
 
 
+def _fit_planar(
+    x0: np.ndarray, obj: np.ndarray, cam_from_own: np.ndarray, k_mat: np.ndarray, img: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Levenberg-Marquardt over ``(x, y, z, yaw)``: the teammate's ``base`` in the observer's
+    whose points ``obj`` (its ``base``) project onto ``img`` (``(N, 2)`` px) through
+    ``cam_from_own`` and ``k_mat``. Returns the parameters, the residual ``(2N,)`` and its
+    analytic Jacobian ``(2N, 4)`` there. Written out (4 parameters, a few dozen residuals):
+    scipy's ``least_squares`` spent most of a tag fit in its own overhead and forward
+    differences (issue 16: a 64-robot crowd's first second was mostly tag fits on board)."""
+    a = cam_from_own[:3, :3]
+    a0 = cam_from_own[:3, 3]
+    fx, fy = k_mat[0, 0], k_mat[1, 1]
+    cx, cy = k_mat[0, 2], k_mat[1, 2]
+    ox, oy, oz = obj[:, 0], obj[:, 1], obj[:, 2]
+    target = img.reshape(-1)
+
+    def evaluate(p: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        c, s_ = math.cos(p[3]), math.sin(p[3])
+        bx = c * ox - s_ * oy
+        by = s_ * ox + c * oy
+        pc = (
+            np.outer(bx + p[0], a[:, 0])
+            + np.outer(by + p[1], a[:, 1])
+            + np.outer(oz + p[2], a[:, 2])
+            + a0
+        )
+        z = np.maximum(pc[:, 2], 1e-6)
+        xz, yz = pc[:, 0] / z, pc[:, 1] / z
+        r = np.empty(2 * len(ox))
+        r[0::2] = xz * fx + cx
+        r[1::2] = yz * fy + cy
+        r -= target
+        if not jacobian:
+            return r, None
+        # d(camera point)/d(x, y, z) = the columns of a; d/d(yaw) = a (-by, bx, 0)
+        d = np.empty((len(ox), 3, 4))
+        d[:, :, :3] = a
+        d[:, :, 3] = np.outer(-by, a[:, 0]) + np.outer(bx, a[:, 1])
+        jac = np.empty((2 * len(ox), 4))
+        jac[0::2] = fx * (d[:, 0, :] - xz[:, None] * d[:, 2, :]) / z[:, None]
+        jac[1::2] = fy * (d[:, 1, :] - yz[:, None] * d[:, 2, :]) / z[:, None]
+        return r, jac
+
+    p = np.asarray(x0, dtype=np.float64).copy()
+    r, jac = evaluate(p, True)
+    assert jac is not None
+    cost = float(r @ r)
+    lam = 1e-3
+    for _ in range(100):
+        jtj = jac.T @ jac
+        g = jac.T @ r
+        if float(np.abs(g).max()) < 1e-12:
+            break
+        diag = np.diag(np.maximum(np.diag(jtj), 1e-12))
+        try:
+            step = -np.linalg.solve(jtj + lam * diag, g)
+        except np.linalg.LinAlgError:
+            break
+        p_new = p + step
+        r_new, _ = evaluate(p_new, False)
+        cost_new = float(r_new @ r_new)
+        if cost_new < cost:
+            # converged as MINPACK's defaults have it: the step or the cost's decrease
+            # relatively below 1e-8 (pose changes of micrometres)
+            done = float(np.abs(step).max()) <= 1e-8 * (1e-8 + float(np.abs(p).max()))
+            done = done or cost - cost_new <= 1e-8 * cost
+            p, cost = p_new, cost_new
+            r, jac = evaluate(p, True)
+            assert jac is not None
+            lam = max(lam / 10, 1e-12)
+            if done:
+                break
+        else:
+            lam *= 10
+            if lam > 1e12:
+                break
+    return p, r, jac
+
+
 def _fit_teammate(
     rid: int,
     tags: list[TagDetection],
@@ -321,11 +399,6 @@ def _fit_teammate(
     cam_from_tags = [_to_matrix(r, t) for r, t in zip(rvecs, tvecs, strict=True)]
     hyps = [anchor.tag_id % 4] if lay.ids_per_robot == 4 else [0, 1, 2, 3]
     img_all = np.vstack([d.corners_px for d in tags])
-
-    def residual(params: np.ndarray, obj: np.ndarray) -> np.ndarray:
-        pc = (cam_from_own @ _planar(params))[:3]
-        p = obj @ pc[:3, :3].T + pc[:3, 3]
-        return (_project(p, k_mat) - img_all).ravel()
 
     best: list[tuple[float, float, np.ndarray, np.ndarray, tuple[int, ...]]] = []
     for h in hyps:
@@ -356,21 +429,21 @@ def _fit_teammate(
                     for f in faces
                 ]
             )
-            sol = least_squares(residual, x0, args=(obj,), method="lm")
+            x, fun, jac = _fit_planar(x0, obj, cam_from_own, k_mat, img_all)
             fits.append(
-                (float(np.sqrt(np.mean(sol.fun.reshape(-1, 2) ** 2) * 2)), sol, obj, tuple(faces))
+                (float(np.sqrt(np.mean(fun.reshape(-1, 2) ** 2) * 2)), x, jac, obj, tuple(faces))
             )
         if not fits:
             continue
-        rms, sol, obj, faces_t = min(fits, key=lambda f: f[0])
-        own_from_team = _planar(sol.x)
+        rms, x, jac, obj, faces_t = min(fits, key=lambda f: f[0])
+        own_from_team = _planar(x)
         # the face cue: the black LIDAR housing ahead of the head; sampled on the housing
         # itself (its upper half: the chassis hides its foot), not around it (the chassis top
         # beside it is lighter: 44 measured against the housing's 16-19)
         pts = _housing_points(lay)
         pc = (cam_from_own @ own_from_team)[:3]
         score = _gray_at(gray, _project(pts @ pc[:3, :3].T + pc[:3, 3], k_mat))
-        best.append((score, rms, sol.x, sol.jac, faces_t))
+        best.append((score, rms, x, jac, faces_t))
     if not best:
         return None
     best.sort(key=lambda b: b[0])
