@@ -86,6 +86,7 @@ if TYPE_CHECKING:
 __all__ = [
     "JOURNAL_FORMAT",
     "GcsJournal",
+    "Heard",
     "JournalError",
     "JournalFollower",
     "JournaledStation",
@@ -93,6 +94,7 @@ __all__ = [
     "ReplaySummary",
     "ResumedControl",
     "edit_hazard",
+    "latest_heard",
     "load_station",
     "rebuild_station",
     "replay_journal",
@@ -1132,6 +1134,8 @@ class JournalFollower:
             self._decision(rec)
         self.assignments = self._reader.latest_record("assignments")
         self.operator = self._reader.latest_record("operator")
+        #: what each robot last told the GCS (:func:`latest_heard`), kept as records pass
+        self.heard = latest_heard(self._reader)
         #: the newest record applied or noted (every kind)
         self.seq = max(summary.last_seq, self._reader_last_seq())
         self.applied = dict(summary.records)  # records applied by kind, since the start
@@ -1179,7 +1183,12 @@ class JournalFollower:
             self.operator = rec
         elif rec.kind not in ("downlink", "link", "held"):
             try:
-                _apply(rec, self.station)
+                if rec.kind == "uplink":
+                    msg = decode_frame(rec.body, Direction.UP).msg
+                    self.station.handle(rec.robot_id, msg, now_s=rec.time_s)
+                    _note_heard(self.heard, rec, msg)
+                else:
+                    _apply(rec, self.station)
             except (ProtocolError, ValueError, KeyError, TypeError) as err:
                 raise JournalError(
                     f"{self.path}: record {rec.seq} ({rec.kind} at t={rec.time_s:.3f} s): {err}"
@@ -1228,3 +1237,63 @@ class JournalFollower:
             self._reader.close()
         except sqlite3.ProgrammingError:
             pass  # closed already (taken over)
+
+
+@dataclass
+class Heard:
+    """What one robot last told the GCS, from the journal's uplink: the mission time of its
+    newest message, its newest telemetry and task report (None: none seen)."""
+
+    time_s: float
+    telemetry: Any = None
+    status: Any = None
+
+
+def _note_heard(heard: dict[int, Heard], rec: Record, msg: Any) -> None:
+    from protocol.messages import TaskStatus, Telemetry
+
+    h = heard.get(rec.robot_id)
+    if h is None:
+        h = heard[rec.robot_id] = Heard(rec.time_s)
+    h.time_s = max(h.time_s, rec.time_s)
+    if isinstance(msg, Telemetry):
+        h.telemetry = msg
+    elif isinstance(msg, TaskStatus):
+        h.status = msg
+
+
+def latest_heard(journal: GcsJournal, *, max_records: int = 4000) -> dict[int, Heard]:
+    """What each robot last told the GCS (its newest uplink message's time, telemetry and
+    task report), walking back over at most the ``max_records`` newest ``uplink`` records: a
+    resumed GCS's operator station shows the robots as the killed one did (role, mode,
+    heard), not as never heard of, until each speaks again. A robot silent for longer is
+    left out (it shows as not heard since the restart)."""
+    from protocol.messages import TaskStatus, Telemetry
+
+    rows = journal._conn.execute(
+        "SELECT time_s, robot_id, body FROM records WHERE kind = 'uplink' "
+        "ORDER BY seq DESC LIMIT ?",
+        (int(max_records),),
+    ).fetchall()
+    heard: dict[int, Heard] = {}
+    done: dict[int, set[type]] = {}
+    for time_s, robot_id, body in rows:
+        rid = int(robot_id)
+        h = heard.get(rid)
+        if h is None:
+            h = heard[rid] = Heard(float(time_s))
+            done[rid] = set()
+        if len(done[rid]) == 2:
+            continue
+        try:
+            msg = decode_frame(bytes(body), Direction.UP).msg
+        except (ProtocolError, ValueError):
+            continue  # a damaged record: the replay names it; here it only is not shown
+        for cls in (Telemetry, TaskStatus):
+            if isinstance(msg, cls) and cls not in done[rid]:
+                done[rid].add(cls)
+                if cls is Telemetry:
+                    h.telemetry = msg
+                else:
+                    h.status = msg
+    return heard

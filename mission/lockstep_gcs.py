@@ -84,6 +84,12 @@ class OperatorSetup(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     key_file: str | None = None
     views: list[str] = msgspec.field(default_factory=list)
 
+    def __post_init__(self) -> None:
+        # magic run's --operator-key is a Path: written to the setup file as its text (a
+        # Path does not encode: `magic run --gcs-process --operator-key F` failed there)
+        if self.key_file is not None and not isinstance(self.key_file, str):
+            msgspec.structs.force_setattr(self, "key_file", os.fspath(self.key_file))
+
 
 class GcsSetup(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
     """What the GCS process is started with (written by the orchestrator, msgpack: configs
@@ -286,7 +292,9 @@ class _Server:
             if args.resume:
                 # the killed GCS's operator decisions (paused robots, operator tasks,
                 # approvals, interactions), before the planners' first plan
-                self.ground.operator.restore_operator(journal)
+                self.ground.operator.restore_operator(
+                    journal, heard=follower.heard if how.startswith("followed") else None
+                )
         if args.resume:
             t = phase("control and operator", t)
         self._next_t = 0.0

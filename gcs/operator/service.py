@@ -407,16 +407,33 @@ class OperatorService:
         except Exception:
             log.exception("journaling an operator command failed (the GCS goes on)")
 
-    def restore_operator(self, journal: Any = None, *, record: Any = None) -> bool:
+    def restore_operator(
+        self, journal: Any = None, *, record: Any = None, heard: Mapping[int, Any] | None = None
+    ) -> bool:
         """Take back what the operators had decided at the GCS that wrote ``journal`` (a
         :class:`gcs.journal.GcsJournal`; default this service's): the handler state of its
         newest ``operator`` record (or of ``record``, one such record), so a resumed GCS
         holds the same paused and operator-controlled robots, approvals, operator tasks and
         interactions as the killed one, and the planners plan with them at once. Returns
         whether there was a state to restore; a damaged one is logged and skipped (the
-        resumed GCS starts with no operator decisions, as before)."""
+        resumed GCS starts with no operator decisions, as before). What the robots last
+        reported comes back too (``heard``: robot id -> :class:`gcs.journal.Heard`, default
+        :func:`gcs.journal.latest_heard` of the journal), so status shows them as before."""
+        journal = journal if journal is not None else self.journal
+        if heard is None and journal is not None:
+            from gcs.journal import latest_heard
+
+            try:
+                heard = latest_heard(journal)
+            except Exception as err:  # noqa: BLE001 - only what status shows
+                log.error("robots' last reports not restored: %s", err)
+        for rid, h in (heard or {}).items():
+            rep = self.reports.setdefault(int(rid), RobotReport())
+            if h.time_s > rep.last_heard_s:
+                rep.last_heard_s = float(h.time_s)
+                rep.telemetry = h.telemetry if h.telemetry is not None else rep.telemetry
+                rep.status = h.status if h.status is not None else rep.status
         if record is None:
-            journal = journal if journal is not None else self.journal
             if journal is None:
                 return False
             record = journal.latest_record("operator")

@@ -468,6 +468,13 @@ def test_a_standby_that_followed_the_journal_takes_over_as_a_rebuild_would(
     assert took.control.tasks_sent == rebuilt.control.tasks_sent == first.control.tasks_sent
     assert took.control.allocator._next_id == rebuilt.control.allocator._next_id
     assert took.journal.assignments == rebuilt.journal.assignments
+    from gcs.journal import latest_heard
+
+    heard = latest_heard(rebuilt.journal)  # what the robots last said, as a rebuild reads it
+    assert heard and {r: h.time_s for r, h in follower.heard.items()} == {
+        r: h.time_s for r, h in heard.items()
+    }
+    assert all(follower.heard[r].telemetry == h.telemetry for r, h in heard.items())
     rebuilt.journal.close()
 
     ground = GcsGround(took.control, lockstep=True, step_period_s=1.0, journal=took.journal)

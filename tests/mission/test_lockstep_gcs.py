@@ -272,6 +272,9 @@ def test_an_operators_pause_holds_across_a_kill_of_the_gcs_process(tmp_path: Pat
             console_link.close()
     assert row0(after).control == "paused", row0(after)
     assert after.interactions == before.interactions == 1
+    # every robot as the killed GCS showed it (roles from their last reports), none unknown
+    roles = {r.robot_id: r.role for r in before.robots}
+    assert {r.robot_id: r.role for r in after.robots} == roles and "unknown" not in roles.values()
     reader = GcsJournal.open(journal)
     try:
         tasks_to_0 = [

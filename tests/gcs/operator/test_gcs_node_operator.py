@@ -188,6 +188,8 @@ def test_a_resumed_service_holds_the_journaled_operator_decisions(tmp_path: Path
         assert not fresh.restore_operator()  # nothing journaled yet
         fresh.close()
         service = OperatorService(gcs_link, key=KEY, journal=journal)
+        tele = Telemetry(2.0, (1.0, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), 0.5, AutonomyMode.PAUSED, 3)
+        journal.uplink(1, tele, 2.0)  # what robot 1 last said (the station's uplink)
         for seq, cmd in enumerate((op.Command("pause", "0"), op.Command("status"))):
             signed = op.sign(KEY, gcs_link.mission, "alice", 10**18 + seq, cmd)
             service._on_command("", op.encode(signed))
@@ -205,6 +207,10 @@ def test_a_resumed_service_holds_the_journaled_operator_decisions(tmp_path: Path
         assert resumed.handler.interactions == service.handler.interactions
         assert resumed.status(station).interactions == 1
         assert control.operator_controlled == {0}
+        # the robots' last reports: status shows robot 1 as the killed GCS last heard it
+        assert resumed.reports[1].telemetry == tele and resumed.reports[1].last_heard_s == 2.0
+        (row,) = [r for r in resumed.status(station).robots if r.robot_id == 1]
+        assert row.mode == "paused" and row.battery_frac == 0.5
         resumed.close()
     finally:
         journal.close()
