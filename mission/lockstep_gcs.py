@@ -591,7 +591,17 @@ def main(argv: list[str] | None = None) -> int:
                 follower.close()
             link.close()
             return 0  # the run ended: never needed
-        print(f"gcs standby: told at {time.strftime('%H:%M:%S')}", file=sys.stderr, flush=True)
+        followed = (
+            f"followed to record {follower.seq}, {follower.catch_up_s:.1f} s catching up, "
+            if follower is not None
+            else ""
+        )
+        print(
+            f"gcs standby: told at {time.strftime('%H:%M:%S')} ({followed}process CPU "
+            f"{time.process_time():.1f} s)",
+            file=sys.stderr,
+            flush=True,
+        )
         incarnation = int(line)
         args.resume = True
     else:
