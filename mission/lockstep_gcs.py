@@ -27,16 +27,19 @@ views (:class:`gcs.operator.service.OperatorService`) as the in-process GCS does
 The order of everything the station sees, the radio's exchange and every random draw are
 those of the in-process ground side: same seed, same run, bit for bit (``tests/mission``).
 
-If the GCS process dies (``kill -9``), :class:`RemoteGcs` notices it while it waits, promotes
-a *standby* process (started beside it, its libraries already loaded, waiting) or starts a
-new one, which rebuilds the station from the journal (``--resume``: the latest checkpoint and
-the records after it, :func:`gcs.journal.resume_control`) and the radio's sequence state
-(:func:`gcs.node.restore_link_state`), and the step goes on: its turn again, the robots'
-uplink of that step retransmitted by their links (what the dead process had acknowledged is
-in the journal). The planners' assignments come back from the journal too, so the robots keep
-their tasks; the rest of the planners' memory starts afresh, so from the restart on the run
-is not quite the one without it, and it goes on (repeatably: same seed, same kill step, same
-run).
+If the GCS process dies (``kill -9``), :class:`RemoteGcs` notices it while it waits, promotes a
+*standby* process (started beside it, its libraries loaded, its zenoh session open, and
+following the journal as it is committed: :class:`gcs.journal.JournalFollower`, so it takes
+over with only the last records to apply) or starts a new one, which rebuilds the station from
+the journal (``--resume``: the latest checkpoint and the records after it,
+:func:`gcs.journal.resume_control`); either restores the radio's sequence state
+(:func:`gcs.node.restore_link_state`) and the operators' decisions
+(:meth:`gcs.operator.service.OperatorService.restore_operator`), and the step goes on: its turn
+again, the robots' uplink of that step retransmitted by their links (what the dead process had
+acknowledged is in the journal). The planners' assignments come back from the journal too, so
+the robots keep their tasks; the rest of the planners' memory starts afresh, so from the
+restart on the run is not quite the one without it, and it goes on (repeatably: same seed, same
+kill step, same run).
 """
 
 from __future__ import annotations
