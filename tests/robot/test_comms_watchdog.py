@@ -148,3 +148,43 @@ def test_config_rejects_unknown_keys_and_bad_values(tmp_path) -> None:  # type: 
         msgspec.convert({"silence_s": 0}, CommsWatchdogConfig)
     with pytest.raises(msgspec.ValidationError, match="task_limit_s"):
         msgspec.convert({"task_grace_s": 30, "task_limit_s": 10}, CommsWatchdogConfig)
+
+
+def test_a_robot_whose_task_ended_in_a_silence_returns_at_once() -> None:
+    """Small world 300 s: sensor robots finished their goals in radio shadows and stood idle
+    28-76 s until ``return_after_s``; without a task there is nothing to wait for."""
+    cfg = CommsWatchdogConfig(
+        silence_s=5.0, task_grace_s=5.0, task_limit_s=60.0, return_after_s=60.0, policy="return"
+    )
+    tasks = LinkAwareTasks(config=cfg)
+    _beat(tasks, 0.0)
+    _beat(tasks, 2.0)
+    tasks.submit(GoToTask(3, 2.0, [(10.0, 0.0)]), 2.0, POSE)
+    goal = np.array([10.0, 0.0, 0.0])
+    tasks.update(8.0, np.array([6.0, 0.0, 0.0]))
+    assert tasks.state is LinkState.SILENT  # lost at 7 s, driving on
+    reports = tasks.update(9.0, goal)  # there: the task ends 2 s into the silence
+    assert [r.state for r in reports if r.task_id == 3][-1] is TaskState.SUCCEEDED
+    tasks.update(9.05, goal)
+    assert tasks.state is LinkState.RETURNING  # not 60 s later
+    intent = tasks.intent
+    assert intent.mode is AutonomyMode.AUTONOMOUS
+    assert np.allclose(intent.waypoints_in_odom, [[0.0, 0.0]])
+    # a robot idle before the silence goes back as soon as the link counts as lost
+    idle = LinkAwareTasks(config=cfg)
+    _beat(idle, 0.0)
+    _beat(idle, 2.0)
+    idle.update(6.9, goal)
+    assert idle.state is LinkState.CONNECTED
+    idle.update(7.0, goal)
+    assert idle.state is LinkState.RETURNING
+    # with a wait configured, it waits that long from the later of the two
+    slow = LinkAwareTasks(config=msgspec.structs.replace(cfg, idle_return_after_s=3.0))
+    _beat(slow, 0.0)
+    _beat(slow, 2.0)
+    slow.update(7.0, goal)
+    assert slow.state is LinkState.SILENT
+    slow.update(9.9, goal)
+    assert slow.state is LinkState.SILENT
+    slow.update(10.0, goal)
+    assert slow.state is LinkState.RETURNING
