@@ -8,6 +8,9 @@ sensor robots, disruptor robots *only* travel on the 'highway'."
 * :func:`neutralization_nodes`: highway waypoints from which the OOI can be lasered: farther
   than its trigger radius plus a margin (from it and from every other live static OOI), within
   ``laser_range_m``, with line of sight over the planning grid.
+* :func:`failed_view_mask`: waypoints on a side of the OOI where a disruptor already failed to
+  laser it (near the pose it failed from, or within ``failed_view_deg`` of its bearing).
+  :func:`dispatch_disruptor` takes them only when no other pose is reachable.
 * :func:`dispatch_disruptor`: the free disruptor with the shortest highway route to any such
   waypoint (one within ``preferred_range_m`` of the OOI when the highway reaches one), and
   the route (highway waypoints only, never the grid: a shorter path through unexplored
@@ -37,6 +40,7 @@ __all__ = [
     "DisruptorConfig",
     "Dispatch",
     "dispatch_disruptor",
+    "failed_view_mask",
     "neutralization_nodes",
     "spread_positions",
 ]
@@ -73,6 +77,16 @@ class DisruptorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     # it (small world seed 0: a sensor robot jammed 'deadlock' beside the spread disruptor
     # from 100 s to 240 s); none so clear: any waypoint
     park_clearance_m: float = 2.0
+    # a disruptor that failed to laser an OOI from a pose (its own map saw no line of sight,
+    # or no OOI from there) is next sent to another side: not within failed_view_m of that
+    # pose nor within failed_view_deg of its bearing from the OOI, for OOIs (sightings of the
+    # same object placed apart by the map) within failed_view_ooi_m of the failed one. Small
+    # world seed 0: an OOI beside a 10 cm curb; the disruptor, on the far side of the curb,
+    # saw the curb's edge as an obstacle across the beam and failed five times in a row from
+    # the same two poses (140 s); the grid here cannot tell, a curb is no wall in its map
+    failed_view_m: float = 2.0
+    failed_view_deg: float = 35.0
+    failed_view_ooi_m: float = 6.0
 
     def __post_init__(self) -> None:
         for name in ("trigger_radius_m", "laser_range_m", "hold_s", "path_tolerance_m"):
@@ -99,6 +113,10 @@ class DisruptorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
             raise ValueError(
                 f"disruptor park_clearance_m must be finite and >= 0, got {self.park_clearance_m}"
             )
+        for name in ("failed_view_m", "failed_view_deg", "failed_view_ooi_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"disruptor {name} must be finite and >= 0, got {v}")
         if not (math.isfinite(self.los_clear_m) and self.los_clear_m >= 0):
             raise ValueError(
                 f"disruptor los_clear_m must be finite and >= 0, got {self.los_clear_m}"
@@ -117,6 +135,35 @@ class Dispatch:
     pose_in_map: tuple[float, float]
     waypoints_in_map: NDArray[np.float64]
     distance_m: float
+
+
+def failed_view_mask(
+    nodes_in_map: ArrayLike,
+    ooi_in_map: ArrayLike,
+    failed_views_in_map: ArrayLike,
+    config: DisruptorConfig,
+) -> NDArray[np.bool_]:
+    """Which of ``nodes_in_map`` ``(N, 2)`` are on a side of the OOI at ``ooi_in_map`` a
+    disruptor already failed to laser it from: ``failed_views_in_map`` ``(F, 4)`` rows
+    ``(ooi_x, ooi_y, pose_x, pose_y)``; a row counts when its OOI lies within
+    ``failed_view_ooi_m``, and marks nodes within ``failed_view_m`` of its pose or within
+    ``failed_view_deg`` of its pose's bearing from this OOI."""
+    nodes = np.asarray(nodes_in_map, dtype=np.float64).reshape(-1, 2)
+    ooi = np.asarray(ooi_in_map, dtype=np.float64).reshape(2)
+    views = np.asarray(failed_views_in_map, dtype=np.float64).reshape(-1, 4)
+    out = np.zeros(len(nodes), dtype=bool)
+    views = views[np.hypot(*(views[:, :2] - ooi).T) <= config.failed_view_ooi_m]
+    if len(views) == 0 or len(nodes) == 0:
+        return out
+    bearing = np.arctan2(nodes[:, 1] - ooi[1], nodes[:, 0] - ooi[0])
+    half = math.radians(config.failed_view_deg)
+    for _, _, px, py in views:
+        out |= np.hypot(nodes[:, 0] - px, nodes[:, 1] - py) <= config.failed_view_m
+        if half > 0 and math.hypot(px - ooi[0], py - ooi[1]) > 1e-6:
+            b = math.atan2(py - ooi[1], px - ooi[0])
+            diff = np.abs(np.angle(np.exp(1j * (bearing - b))))
+            out |= diff <= half
+    return out
 
 
 def neutralization_nodes(
@@ -157,15 +204,24 @@ def dispatch_disruptor(
     free_disruptors: dict[int, tuple[float, float]],
     blocked: NDArray[np.bool_] | None,
     config: DisruptorConfig,
+    failed_views_in_map: ArrayLike | None = None,
 ) -> Dispatch | None:
     """The nearest (by highway) free disruptor and its route to a neutralization pose of the
-    OOI, or None (no disruptor on the highway, no pose with line of sight yet)."""
+    OOI, or None (no disruptor on the highway, no pose with line of sight yet); poses on a
+    side already tried (``failed_views_in_map``, :func:`failed_view_mask`) only when no
+    other is reachable."""
     if not free_disruptors or highway.size == 0:
         return None
     ooi_xy = np.asarray(ooi_in_map, dtype=np.float64).reshape(2)
     cand = neutralization_nodes(grid, highway, ooi_in_map, static_oois_in_map, config)
     if blocked is not None:
         cand = cand[~blocked[cand]]
+    if failed_views_in_map is not None and cand.size:
+        tried = failed_view_mask(highway.nodes_in_map[cand], ooi_xy, failed_views_in_map, config)
+        cand = np.concatenate([cand[~tried], cand[tried]])
+        n_fresh = int((~tried).sum())
+    else:
+        n_fresh = int(cand.size)
     if cand.size == 0:
         return None
     ids = sorted(free_disruptors)
@@ -179,7 +235,11 @@ def dispatch_disruptor(
     cost = entry[:, None] + d[:, cand]
     if not np.isfinite(cost).any():
         return None
-    # a reachable pose within preferred_range_m wins over a farther one (see DisruptorConfig)
+    # a reachable pose on a side not yet tried wins (see DisruptorConfig.failed_view_m), then
+    # one within preferred_range_m over a farther one (see DisruptorConfig)
+    fresh = np.arange(cand.size) < n_fresh
+    if np.isfinite(cost[:, fresh]).any():
+        cost[:, ~fresh] = np.inf
     far = np.hypot(*(highway.nodes_in_map[cand] - ooi_xy).T) > config.preferred_range_m
     if np.isfinite(cost[:, ~far]).any():
         cost[:, far] = np.inf

@@ -148,3 +148,42 @@ def test_a_pose_near_the_ooi_is_preferred_over_one_at_the_edge_of_laser_range() 
     assert d_short is not None and 8.0 < math.dist(d_short.pose_in_map, ooi) <= 10.0
     with pytest.raises(ValueError, match="preferred_range_m"):
         DisruptorConfig(preferred_range_m=12.0)
+
+
+def test_after_a_failed_view_the_disruptor_goes_to_another_side_of_the_ooi() -> None:
+    """An OOI beside a low curb (no obstacle in the GCS's map) and a road around it: from the
+    north the disruptor's own map saw the curb across the beam and it failed. The next
+    dispatch, to that OOI or another sighting of it 2 m off, takes a pose on another side
+    (not near the failed pose, not within failed_view_deg of its bearing), though the north
+    one is nearer; with every side tried, the nearest again rather than none."""
+    g = coarsen(occupancy(blank(30, 30, FREE)), resolution_m=RES, robot_radius_m=0.3)
+    ooi = (15.0, 15.0)
+    hw = _highway(_poly((5, 20), (25, 20), (25, 10), (5, 10)))
+    d = dispatch_disruptor(g, hw, 1, ooi, [ooi], {3: (5.0, 20.0)}, None, CFG)
+    assert d is not None and d.pose_in_map[1] > 19.0  # north: the nearest by highway
+    failed = np.asarray([[*ooi, *d.pose_in_map]])
+    for target in (ooi, (15.5, 13.1)):
+        again = dispatch_disruptor(
+            g, hw, 2, target, [target], {3: d.pose_in_map}, None, CFG, failed_views_in_map=failed
+        )
+        assert again is not None
+        p = again.pose_in_map
+        assert math.dist(p, d.pose_in_map) > CFG.failed_view_m
+        b_new = math.atan2(p[1] - target[1], p[0] - target[0])
+        b_old = math.atan2(d.pose_in_map[1] - target[1], d.pose_in_map[0] - target[0])
+        assert abs(math.remainder(b_new - b_old, math.tau)) > math.radians(CFG.failed_view_deg)
+    # an OOI far from the failed one is not affected
+    far = (15.0, 25.0)
+    hw2 = _highway(_poly((5, 20), (25, 20)))
+    plain = dispatch_disruptor(g, hw2, 3, far, [far], {3: (5.0, 20.0)}, None, CFG)
+    moved = dispatch_disruptor(
+        g, hw2, 3, far, [far], {3: (5.0, 20.0)}, None, CFG, failed_views_in_map=failed
+    )
+    assert plain is not None and moved is not None and plain.pose_in_map == moved.pose_in_map
+    # every side failed: it is sent again (a lone way to a lone OOI)
+    only = _highway(_poly((5, 20), (25, 20)))
+    everywhere = np.asarray([[*ooi, x, 20.0] for x in range(5, 26)])
+    last = dispatch_disruptor(
+        g, only, 1, ooi, [ooi], {3: (5.0, 20.0)}, None, CFG, failed_views_in_map=everywhere
+    )
+    assert last is not None
