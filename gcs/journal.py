@@ -1140,6 +1140,7 @@ class JournalFollower:
         self.seq = max(summary.last_seq, self._reader_last_seq())
         self.applied = dict(summary.records)  # records applied by kind, since the start
         self.catch_up_s = 0.0  # wall seconds catch_up took, summed
+        self.busy = 0  # reads deferred because the database was busy
 
     def _reader_last_seq(self) -> int:
         row = self._reader._conn.execute("SELECT MAX(seq) FROM records").fetchone()
@@ -1161,11 +1162,17 @@ class JournalFollower:
         t0 = time.perf_counter()
         n = 0
         while True:
-            rows = self._reader._conn.execute(
-                "SELECT seq, time_s, kind, robot_id, body FROM records WHERE seq > ? "
-                "ORDER BY seq LIMIT ?",
-                (self.seq, self.BATCH),
-            ).fetchall()
+            try:
+                rows = self._reader._conn.execute(
+                    "SELECT seq, time_s, kind, robot_id, body FROM records WHERE seq > ? "
+                    "ORDER BY seq LIMIT ?",
+                    (self.seq, self.BATCH),
+                ).fetchall()
+            except sqlite3.OperationalError as err:
+                # busy for a moment (the writer resetting its WAL): the next call reads on
+                self.busy += 1
+                log.info("%s: follower read deferred: %s", self.path, err)
+                break
             for seq, time_s, kind, robot_id, body in rows:
                 self._follow(Record(int(seq), float(time_s), str(kind), int(robot_id), body))
             n += len(rows)

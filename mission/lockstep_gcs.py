@@ -50,6 +50,7 @@ import math
 import os
 import queue
 import signal
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -244,7 +245,7 @@ class _Server:
                 try:
                     resumed = follower.take_over(mission_cfg)
                     how = "followed, last records"
-                except JournalError as err:
+                except (JournalError, sqlite3.Error) as err:
                     print(f"gcs process: {err}; rebuilding instead", file=sys.stderr, flush=True)
             if resumed is None:
                 resumed = resume_control(journal_path, mission_cfg)
@@ -505,7 +506,7 @@ def _follow_until_told(journal_path: Path) -> tuple[str, Any]:
             file=sys.stderr,
             flush=True,
         )
-    except JournalError as err:
+    except (JournalError, sqlite3.Error) as err:
         print(f"gcs standby: not following the journal: {err}", file=sys.stderr, flush=True)
     while True:
         try:
@@ -516,7 +517,7 @@ def _follow_until_told(journal_path: Path) -> tuple[str, Any]:
             continue
         try:
             follower.catch_up()
-        except JournalError as err:
+        except (JournalError, sqlite3.Error) as err:
             print(f"gcs standby: stopped following: {err}", file=sys.stderr, flush=True)
             follower.close()
             follower = None
