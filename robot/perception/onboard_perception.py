@@ -126,6 +126,20 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     # render's cost grows with its rows (640x240 ~60 % of 640x480). 0: the full height.
     fiducial_band_min_px: int = 192
     fiducial_band_margin_px: int = 16
+    # a colour test's image is asked as small as its candidates allow: the smallest of
+    # colour_widths_px (4:3, below the memory's size) in which every candidate, at its range
+    # from the frame's pose, covers colour_min_area_px (its diameter x height, pixels) and
+    # spans colour_min_width_px across; else the memory's size. 600 px: three times what a
+    # 0.25 x 0.8 m object at the memory's 12 m range covers at 320x240 (the classifier's
+    # working range). Such an object within ~5.5 m is asked at 240x180, within ~3.6 m at
+    # 160x120 (1/3.5 of the render's cost). 0: the memory's size. Issue 16: in a crowd
+    # nearly every colour test is of a teammate a metre or two away. Cylinders a sweep asks
+    # about also join a frame asked for another within colour_group_s of their own that
+    # shows them whole (one image, not two).
+    colour_min_area_px: float = 600.0
+    colour_min_width_px: float = 8.0
+    colour_widths_px: tuple[int, ...] = (160, 240)
+    colour_group_s: float = 2.0
     # the two images that settle the pan schedule's phase are asked this small (square, px):
     # only their pan angle is used, and a 64-robot team's first second was mostly their
     # renders (issue 16). 0 (default): at the memory's size, searched for tags like any other:
@@ -140,6 +154,11 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     teammate_memory_s: float = 1.5
     teammate_radius_m: float = 0.7
     teammate_speed_m_s: float = 1.0
+    # a person track an image shows as a teammate (a head whose tag this image shows within
+    # teammate_radius_m of where the track was placed) is not asked about again for this
+    # long (issue 16: every teammate that drives off is a person track; each was tested up
+    # to max_person_tests times, an image each, by every robot that saw it). 0: off.
+    teammate_track_hold_s: float = 10.0
     candidate_max_range_m: float = 10.0
     retest_after_s: float = 2.0
     wait_for_frame_s: float = 8.0  # a candidate no frame shows whole waits this long for one
@@ -194,7 +213,12 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             raise ValueError(
                 f"perception.fiducial_period_s must be >= 0, got {self.fiducial_period_s}"
             )
-        for name in ("teammate_memory_s", "teammate_radius_m", "teammate_speed_m_s"):
+        for name in (
+            "teammate_memory_s",
+            "teammate_radius_m",
+            "teammate_speed_m_s",
+            "teammate_track_hold_s",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"perception.{name} must be >= 0, got {v}")
@@ -212,6 +236,17 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
                 "perception.fiducial_band_margin_px must be >= 0, got "
                 f"{self.fiducial_band_margin_px}"
             )
+        for name in ("colour_min_area_px", "colour_min_width_px"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"perception.{name} must be >= 0, got {v}")
+        if not all(16 <= w <= 2048 and w % 4 == 0 for w in self.colour_widths_px):
+            raise ValueError(
+                "perception.colour_widths_px must be multiples of 4 in [16, 2048], got "
+                f"{self.colour_widths_px}"
+            )
+        if not (math.isfinite(self.colour_group_s) and self.colour_group_s >= 0):
+            raise ValueError(f"perception.colour_group_s must be >= 0, got {self.colour_group_s}")
         if not 1 <= self.max_requests_per_step <= 4:
             raise ValueError("perception.max_requests_per_step must be in [1, 4]")
 
@@ -263,6 +298,8 @@ class PerceptionStats:
     fiducial_fine_images: int = 0  # fine images asked for a teammate's tag seen coarse
     fiducial_fine_skipped: int = 0  # coarse tags of teammates asked about lately (no image)
     fiducial_fine_rows: int = 0  # rows of the fine images asked (their heights summed)
+    colour_jobs_grouped: int = 0  # cylinders asked in an image chosen for another
+    teammate_tracks: int = 0  # person tracks an image showed to be a teammate (held)
     teammate_candidates: int = 0  # LIDAR candidates at a teammate just seen (no image)
     thumbnails: int = 0
     thumbnail_unknown: int = 0
@@ -372,6 +409,7 @@ class OnboardPerception:
         self._waiting: list[tuple[_Job, float]] = []  # candidates waiting for a view, deadline
         self._negative: list[tuple[tuple[float, float], int, float]] = []
         self._person_tested: dict[int, tuple[int, float]] = {}
+        self._teammate_tracks: dict[int, float] = {}  # track id -> when an image showed a mate
         self._track_ids: dict[int, int] = {}  # person track -> detection id
         self._person_votes: dict[int, dict[int, int]] = {}  # track -> kind -> colour tests
         self._civilians_seen: list[tuple[NDArray[np.float64], float]] = []
@@ -523,7 +561,7 @@ class OnboardPerception:
                 keep.append((job, deadline))
         self._waiting = keep
         if ready:
-            self._ask(frame.time_s, ready)
+            self._ask(frame.time_s, ready, pose=frame.pose_in_odom)
 
     def _ask(
         self,
@@ -533,22 +571,29 @@ class OnboardPerception:
         fine: bool = False,
         probe: bool = False,
         fine_height_px: int | None = None,
+        pose: tuple[float, float, float] | None = None,
     ) -> None:
         """Ask for the image of ``frame_time_s``: fine (a teammate's pose; ``fine_height_px``
         rows, default ``fiducial_height_px``), a phase probe (its pan angle only:
-        ``phase_probe_px`` square) or coarse (the memory's size)."""
+        ``phase_probe_px`` square) or coarse (the memory's size; for colour tests of ``jobs``
+        seen from ``pose``, the frame's pose in ``odom``, as small as they allow:
+        :meth:`_colour_size`)."""
         cfg = self.config
         if fine:
             w = cfg.fiducial_width_px
             h = cfg.fiducial_height_px if fine_height_px is None else fine_height_px
         elif probe:
             w = h = cfg.phase_probe_px
+        elif jobs and pose is not None:
+            w, h = self._colour_size(jobs, pose)
         else:
             w, h = cfg.memory.width_px, cfg.memory.height_px
         rid = self._next_request_id
         self._next_request_id += 1
         self._queued.append(ImageRequest(rid, float(frame_time_s), w, h))
-        if not (fine or probe):
+        if not (fine or probe) and (w, h) == (cfg.memory.width_px, cfg.memory.height_px):
+            # (a smaller colour-test image decodes only near tags: it does not stand in for
+            # the periodic tag image)
             self._last_coarse_frame_s = max(self._last_coarse_frame_s, float(frame_time_s))
         self._pending[rid] = _Request(rid, frame_time_s, self._now, jobs, fine)
         self.stats.images_requested += 1
@@ -623,11 +668,42 @@ class OnboardPerception:
         if hostile_now or self._had_hostiles:
             self._hazards_changed = True  # hostiles move: their disks move with them
         self._had_hostiles = hostile_now
-        by_frame: dict[float, list[_Job]] = {}
+        for frame, fjobs in self._group_by_frame(jobs)[: cfg.max_requests_per_sweep]:
+            self._ask(frame.time_s, fjobs, pose=frame.pose_in_odom)
+
+    def _group_by_frame(
+        self, jobs: list[tuple[RememberedFrame, _Job]]
+    ) -> list[tuple[RememberedFrame, list[_Job]]]:
+        """The frames to ask for ``jobs`` (each with the newest frame showing it whole),
+        newest first, each with its jobs. People keep their frame (they are placed at it
+        along their walk); a cylinder joins a frame already chosen that shows it whole and
+        is at most ``colour_group_s`` older than its own, so that one image serves both
+        (cylinders oldest first: a frame older than a cylinder's newest may show it too, a
+        newer one does not)."""
+        cfg = self.config
+        by_frame: dict[float, tuple[RememberedFrame, list[_Job]]] = {}
+        cylinders: list[tuple[RememberedFrame, _Job]] = []
         for frame, job in jobs:
-            by_frame.setdefault(frame.time_s, []).append(job)
-        for frame_t in sorted(by_frame, reverse=True)[: cfg.max_requests_per_sweep]:
-            self._ask(frame_t, by_frame[frame_t])
+            if job.kind == "cylinder":
+                cylinders.append((frame, job))
+            else:
+                by_frame.setdefault(frame.time_s, (frame, []))[1].append(job)
+        for frame, job in sorted(cylinders, key=lambda fj: fj[0].time_s):
+            if frame.time_s not in by_frame and cfg.colour_group_s > 0:
+                whole = Candidate(job.xy_in_odom, job.radius_m, job.height_m)
+                for t in sorted(by_frame, reverse=True):
+                    f, fjobs = by_frame[t]
+                    if frame.time_s - cfg.colour_group_s <= t <= frame.time_s and (
+                        self.memory.projects_fully(f, whole)
+                    ):
+                        fjobs.append(job)
+                        self.stats.colour_jobs_grouped += 1
+                        break
+                else:
+                    by_frame[frame.time_s] = (frame, [job])
+                continue
+            by_frame.setdefault(frame.time_s, (frame, []))[1].append(job)
+        return [by_frame[t] for t in sorted(by_frame, reverse=True)]
 
     def _person_jobs(
         self, track: PersonTrack, time_s: float, jobs: list[tuple[RememberedFrame, _Job]]
@@ -635,6 +711,12 @@ class OnboardPerception:
         cfg = self.config
         if track.kind != 0 or self._at_known_object(track):
             return
+        held = self._teammate_tracks.get(track.track_id)
+        if held is not None:
+            if time_s - held < cfg.teammate_track_hold_s:
+                self.stats.teammate_candidates += 1
+                return
+            del self._teammate_tracks[track.track_id]
         n, last = self._person_tested.get(track.track_id, (0, -math.inf))
         if n >= cfg.max_person_tests or time_s - last < cfg.retest_after_s:
             return
@@ -679,15 +761,16 @@ class OnboardPerception:
         image: CameraImage,
         intr: Intrinsics,
         pose: tuple[float, float, float],
-    ) -> None:
+    ) -> list[tuple[float, float, float]]:
         """Place the heads of the teammates whose tags ``image`` shows (odom, at the image's
         time; ``pose``: the robot then): along the ray through the tag's centre, at the depth
         its height in pixels gives (a head face is vertical: its height does not shrink as
-        it turns away, its width does)."""
+        it turns away, its width does). Returns them ``(time_s, x, y)``."""
         cfg = self.config
         ipr = cfg.fiducial.layout.ids_per_robot
         size_m = cfg.fiducial.layout.tag_size_m
         m = None
+        placed: list[tuple[float, float, float]] = []
         for tag in tags:
             if tag.tag_id // ipr == self.robot_id:
                 continue
@@ -710,13 +793,15 @@ class OnboardPerception:
             )
             bx, by = (m[:3, :3] @ cam + m[:3, 3])[:2]
             cth, sth = math.cos(pose[2]), math.sin(pose[2])
-            self._teammates_seen.append(
+            placed.append(
                 (
                     float(image.time_s),
                     pose[0] + cth * float(bx) - sth * float(by),
                     pose[1] + sth * float(bx) + cth * float(by),
                 )
             )
+        self._teammates_seen.extend(placed)
+        return placed
 
     def _at_known_object(self, track: PersonTrack) -> bool:
         """A "person" standing where a static object is known is that object (a vat's
@@ -943,7 +1028,33 @@ class OnboardPerception:
         pose = np.asarray(pose_at(float(image.time_s)), dtype=np.float64)
         pose_t = (float(pose[0]), float(pose[1]), float(pose[2]))
         cam = cfg.memory.mount.camera_in_base_m
+        tags: list[TagDetection] = []
+        heads: list[tuple[float, float, float]] = []
+        if not req.fine:
+            # a coarse image's tags first: a person job at a teammate's head is that teammate
+            try:
+                tags = detect_tags(rgb)
+            except ValueError:
+                tags = []
+            heads = self._note_teammates(tags, image, intr, pose_t)
         for job in req.jobs + self._opportunistic_person_jobs(image, pose_t, req.jobs):
+            if (
+                job.kind == "person"
+                and cfg.teammate_track_hold_s > 0
+                and any(
+                    math.hypot(hx - job.xy_in_odom[0], hy - job.xy_in_odom[1])
+                    <= cfg.teammate_radius_m
+                    for _, hx, hy in heads
+                )
+            ):
+                if len(self._teammate_tracks) >= 256:  # tracks that ended are forgotten
+                    cut = float(image.time_s) - cfg.teammate_track_hold_s
+                    self._teammate_tracks = {
+                        k: v for k, v in self._teammate_tracks.items() if v >= cut
+                    }
+                self._teammate_tracks[job.track_id] = float(image.time_s)
+                self.stats.teammate_tracks += 1
+                continue
             rel = relative(pose, np.array([job.xy_in_odom[0], job.xy_in_odom[1], 0.0]))
             t0 = time.thread_time()
             # a person moves during the sweep that placed it: try it a little to either side
@@ -1035,11 +1146,6 @@ class OnboardPerception:
         if not req.fine:
             # a coarse image only says whether a teammate's tag is there; the pose comes from
             # a fine image of the same frame (the renderer's cost grows with the pixels)
-            try:
-                tags = detect_tags(rgb)
-            except ValueError:
-                tags = []
-            self._note_teammates(tags, image, intr, pose_t)
             ipr = cfg.fiducial.layout.ids_per_robot
             mates = {t.tag_id // ipr for t in tags} - {self.robot_id}
             due = [
@@ -1084,6 +1190,33 @@ class OnboardPerception:
                     pose_t[1] + sth * bx + cth * by,
                 )
             )
+
+    def _colour_size(self, jobs: list[_Job], pose: tuple[float, float, float]) -> tuple[int, int]:
+        """The image size for colour tests of ``jobs`` seen from ``pose`` (``odom``): the
+        smallest of ``colour_widths_px`` (4:3) in which each candidate covers
+        ``colour_min_area_px`` and spans ``colour_min_width_px`` at its distance from the
+        robot, else the memory's size."""
+        cfg = self.config
+        mem_w, mem_h = cfg.memory.width_px, cfg.memory.height_px
+        if cfg.colour_min_area_px <= 0:
+            return mem_w, mem_h
+        # at range d a cylinder (radius r, height h) spans at most fx 2 r / d by fx h / d
+        # pixels; fx = w x per_w
+        per_w = 1.0 / (2.0 * math.tan(math.radians(cfg.memory.hfov_deg) / 2))
+        need = 0.0
+        for job in jobs:
+            d = math.hypot(job.xy_in_odom[0] - pose[0], job.xy_in_odom[1] - pose[1])
+            across = 2.0 * max(job.radius_m, 1e-3)
+            tall = max(job.height_m, 1e-3)
+            fx = max(
+                d * math.sqrt(cfg.colour_min_area_px / (across * tall)),
+                d * cfg.colour_min_width_px / across,
+            )
+            need = max(need, fx / per_w)
+        for w in sorted(cfg.colour_widths_px):
+            if need <= w < mem_w:
+                return w, w * 3 // 4
+        return mem_w, mem_h
 
     def _fine_rows(self, tags: list[TagDetection], intr: Intrinsics) -> int:
         """The fine image's height for the teammates of a coarse image's ``tags`` (see

@@ -5,6 +5,7 @@ sweeps survived, own hazards for the keep-out."""
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -276,3 +277,118 @@ def test_a_lidar_candidate_at_a_teammate_just_seen_asks_for_no_image() -> None:
             assert not p._at_teammate((dist, 0.3), 12.0)  # 2 s later: asked again
     finally:
         scene.close()
+
+
+def test_a_colour_tests_image_is_as_small_as_its_candidates_allow() -> None:
+    """A candidate covers colour_min_area_px (600) in the smallest 4:3 image of
+    colour_widths_px: 0.25 m radius, 0.8 m tall at 3 m -> 160x120, at 4.5 m -> 240x180, at
+    6 m the memory's 320x240 (beyond 5.4 m); a 0.1 m pole at 2 m 160x120; the farthest job
+    of an image decides; 0: the memory's size. A small image does not stand for the
+    periodic tag image."""
+    from robot.perception.onboard_perception import _Job
+
+    def size(cfg: PerceptionConfig, *ranges: float, radius_m: float = 0.25) -> tuple[int, int]:
+        p = OnboardPerception(0, cfg)
+        jobs = [_Job("cylinder", (r, 1.0), radius_m, 0.8) for r in ranges]
+        p._ask(5.0, jobs, pose=(0.0, 1.0, 0.3))
+        (req,) = p.take_requests()
+        return req.width_px, req.height_px
+
+    cfg = PerceptionConfig()
+    assert size(cfg, 3.0) == (160, 120)
+    assert size(cfg, 4.5) == (240, 180)
+    assert size(cfg, 6.0) == (320, 240)
+    assert size(cfg, 1.5, 4.5) == (240, 180)
+    assert size(cfg, 2.0, radius_m=0.1) == (160, 120)
+    assert size(cfg, 3.0, radius_m=0.1) == (240, 180)
+    assert size(PerceptionConfig(colour_min_area_px=0.0), 1.5) == (320, 240)
+    p = OnboardPerception(0, PerceptionConfig(fiducial_period_s=1.0, image_timeout_s=60.0))
+    p.pan_phase_s = PHASE_S
+    p.on_control(10.0, np.zeros(3))
+    p.take_requests()
+    p._ask(10.4, [_Job("cylinder", (1.5, 0.0), 0.25, 0.8)], pose=(0.0, 0.0, 0.0))
+    assert [(r.width_px, r.time_s) for r in p.take_requests()] == [(160, 10.4)]
+    p.on_control(11.05, np.zeros(3))
+    assert [r.time_s for r in p.take_requests()] == [11.05]  # the periodic one, on time
+
+
+def test_cylinders_of_one_sweep_share_a_frame_that_shows_them_all() -> None:
+    """A cylinder whose newest frame is newer than one chosen for another (a person's here)
+    that shows it whole joins that one: one image; one that frame does not show keeps its
+    own; with colour_group_s 0 each its own."""
+    from robot.perception.image_memory import Candidate, RememberedFrame
+    from robot.perception.onboard_perception import _Job
+
+    def group(cfg: PerceptionConfig) -> tuple[list[tuple[float, list[str]]], int]:
+        p = OnboardPerception(0, cfg)
+        older = RememberedFrame(1.0, 0.0, MOUNT.tilt_rad, (0.0, 0.0, 0.0))
+        newer = RememberedFrame(1.5, 0.1, MOUNT.tilt_rad, (0.0, 0.0, 0.0))
+        behind = RememberedFrame(1.2, math.pi, MOUNT.tilt_rad, (0.0, 0.0, 0.0))
+        a = _Job("cylinder", (4.0, 0.0), 0.25, 0.8)  # ahead: in both frames
+        b = _Job("cylinder", (4.0, 0.3), 0.25, 0.8)
+        c = _Job("cylinder", (-4.0, 0.1), 0.25, 0.8)  # behind
+        person = _Job("person", (4.0, -0.2), 0.3, 1.6, 7)
+        for f, j in ((newer, a), (older, a), (older, b), (behind, c), (older, person)):
+            assert p.memory.projects_fully(f, Candidate(j.xy_in_odom, j.radius_m, j.height_m))
+        assert not p.memory.projects_fully(behind, Candidate(a.xy_in_odom, 0.25, 0.8))
+        grouped = p._group_by_frame([(newer, a), (older, b), (behind, c), (older, person)])
+        out = [(f.time_s, sorted(f"{j.kind}{j.xy_in_odom[1]}" for j in js)) for f, js in grouped]
+        return out, p.stats.colour_jobs_grouped
+
+    assert group(PerceptionConfig()) == (
+        [(1.2, ["cylinder0.1"]), (1.0, ["cylinder0.0", "cylinder0.3", "person-0.2"])],
+        1,
+    )
+    assert group(PerceptionConfig(colour_group_s=0.0)) == (
+        [(1.5, ["cylinder0.0"]), (1.2, ["cylinder0.1"]), (1.0, ["cylinder0.3", "person-0.2"])],
+        0,
+    )
+
+
+def test_a_person_track_an_image_shows_as_a_teammate_is_not_asked_about_again() -> None:
+    """A person job placed where the image (a real render, 320x240, teammate 1 at 1.9 m)
+    shows teammate 1's tags is that teammate: no colour test, and the track asks for no
+    image for teammate_track_hold_s; a person job 3 m aside of it is tested as before."""
+    from robot.perception.onboard_perception import _Job
+    from robot.perception.person_tracker import PersonTrack
+    from sim.camera import CameraConfig, camera_axes, intrinsics
+    from sim.scene import Scene
+    from tests.sim.simworlds import make_world
+
+    cam = CameraConfig()
+    scene = Scene(make_world(robots=((5.0, 10.0, 0.0, "sensor"), (6.8, 10.3, -2.0, "sensor"))))
+    try:
+        observer = np.eye(4)
+        observer[:3, 3] = (5.0, 10.0, 0.0)
+        mate = np.eye(4)
+        mate[:2, :2] = [[math.cos(-2.0), -math.sin(-2.0)], [math.sin(-2.0), math.cos(-2.0)]]
+        mate[:3, 3] = (6.8, 10.3, 0.0)
+        scene.set_robot_poses(np.stack([observer, mate]))
+        scene.sync()
+        eye, fwd, up = camera_axes(observer, np.array(scene.geometry.camera_m), 0.0, cam.tilt_rad)
+        fx, fy, cx, cy = intrinsics(320, 240, cam)
+        rgb = scene.render(eye_m=eye, forward=fwd, up=up, width_px=320, height_px=240, fy_px=fy)
+    finally:
+        scene.close()
+    cfg = PerceptionConfig(fiducial_period_s=0.0, teammate_track_hold_s=10.0)
+    p = OnboardPerception(0, cfg)
+    p._now = 10.0
+    # the robot's odom is its start: the teammate's head is near (1.85, 0.4) in odom
+    at_mate = _Job("person", (1.85, 0.4), 0.3, 1.6, 7)
+    aside = _Job("person", (1.85, -2.6), 0.3, 1.6, 8)
+    p._ask(10.0, [at_mate, aside])
+    (req,) = p.take_requests()
+    p.on_image(CameraImage(req.request_id, 10.0, 0.0, cam.tilt_rad, fx, fy, cx, cy, rgb), _pose_at)
+    assert p.stats.teammate_tracks == 1 and 7 in p._teammate_tracks and 8 not in p._teammate_tracks
+    assert p.stats.colour_tests == 1  # the one aside only
+
+    def track(track_id: int, x: float, y: float) -> PersonTrack:
+        state = np.array([x, y, 0.0, 0.0])
+        return PersonTrack(track_id, state, np.eye(4) * 0.01, 15.0, hits=8, confirmed=True)
+
+    jobs: list[Any] = []
+    before = p.stats.teammate_candidates
+    p._person_jobs(track(7, 1.85, 0.4), 15.0, jobs)
+    assert jobs == [] and p.stats.teammate_candidates == before + 1  # held: no image
+    p._person_jobs(track(7, 1.85, 0.4), 20.5, jobs)  # 10.5 s on: no longer held
+    assert 7 not in p._teammate_tracks and p.stats.teammate_candidates == before + 1
