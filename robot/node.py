@@ -11,6 +11,9 @@ Everything happens in the robot's private frame ``odom`` (paper 4.1). Per sensor
   beams' free-space evidence, and fused with the last 12 sweeps (marks that later beams pass
   under are dropped: moving teammates); matched against the previous sweep for the speed
   made good over ground, which AOJRF's traversability map turns into planning cost (sand);
+  its vertical-surface grid matched against the last few (laser-aided odometry, paper 4.1:
+  :class:`~robot.odometry.scan_odometry.ScanOdometry`) corrects the heading and estimates the
+  gyro's bias while driving (``scan_odometry``; None: off);
   a pose node when the robot moved enough (4.2), with its vertical-surface grid compressed by
   the codec registry (4.3.3, 4.3.4); a new plan to the current waypoint (5.4). No path: the
   robot stops, waits (the short memory forgets a bad map) and the task reports it after a
@@ -102,6 +105,7 @@ from robot.control.traversability import TraversabilityConfig, TraversabilityMap
 from robot.odometry.inertial_odometry import InertialOdometry, OdometryConfig
 from robot.odometry.pose_node_maker import PoseNodeConfig, PoseNodeMaker
 from robot.odometry.scan_displacement import match_translation
+from robot.odometry.scan_odometry import ScanOdometry, ScanOdometryConfig
 from robot.perception.fiducial_detector import fiducial_observation
 from robot.perception.onboard_perception import (
     OdomDetection,
@@ -113,7 +117,11 @@ from robot.tasks.task_executor import Intent, TaskExecutor, TaskExecutorConfig
 from robot.terrain.classifier import TerrainConfig, classify_sweep_layers, points_in_odom
 from robot.terrain.grid import OBSTACLE, UNKNOWN, GridGeometry
 from robot.terrain.map_fusion import TerrainMapFusion
-from robot.terrain.vertical_surface_grid import VerticalSurfaceConfig, vertical_surface_grid
+from robot.terrain.vertical_surface_grid import (
+    VerticalSurfaceConfig,
+    VerticalSurfaceGrid,
+    vertical_surface_grid,
+)
 
 __all__ = ["NodeStats", "RobotNode", "RobotNodeConfig"]
 
@@ -152,6 +160,20 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
         gyro_bias_walk_rad_s_sqrt_s=2e-4,
     )
     pose_nodes: PoseNodeConfig = PoseNodeConfig()
+    # laser-aided heading (module docstring): each sweep's vertical-surface grid (out to
+    # scan_odometry_grid_cells cells square) matched against the last few; None: the heading
+    # is the gyro's alone (bias learned only when still). The odometry's heading is trusted to
+    # 0.3 deg a sweep and 0.5 % of its turning (a gyro), the returns out to 20 m (walls far
+    # off fix the heading). Offline on the small world's recorded frames (150 s, seeds 0 and
+    # 7, 4 robots each), heading error RMS against the truth, mean over robots: 3.23 -> 0.87
+    # and 1.85 -> 0.43 deg (robot 2 of seed 0: 7.75 -> 2.10 deg)
+    scan_odometry: ScanOdometryConfig | None = ScanOdometryConfig(
+        max_range_m=20.0,
+        field_resolution_m=0.05,
+        odometry_sigma_rad=0.005,
+        odometry_turn_share_sigma=0.005,
+    )
+    scan_odometry_grid_cells: int = 400
     terrain: TerrainConfig = TerrainConfig()
     # paper 4.3.4: MAGIC's grids averaged about 150 x 150 cells at 10 cm (a 15 m square)
     vertical_surfaces: VerticalSurfaceConfig = VerticalSurfaceConfig(size_cells=150)
@@ -207,6 +229,11 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     laser_still_rad: float = 0.005
 
     def __post_init__(self) -> None:
+        if not 2 <= self.scan_odometry_grid_cells <= 10000:
+            raise ValueError(
+                "robot.scan_odometry_grid_cells must be in [2, 10000], got "
+                f"{self.scan_odometry_grid_cells}"
+            )
         if self.perception_cpu_sample_every < 1:
             raise ValueError(
                 "robot.perception_cpu_sample_every must be >= 1, got "
@@ -233,6 +260,7 @@ class NodeStats:
     yields: int = 0  # plans not taken: the path got blocked and the detour was long
     memory_refreshes: int = 0  # older sweeps forgotten: the newest saw the blocked way clear
     slip_measurements: int = 0  # sweep pairs whose match measured the speed over ground
+    heading_matches: int = 0  # sweeps whose grid corrected the heading (scan_odometry)
     nonfinite_points: int = 0  # LIDAR returns dropped (NaN/inf); the rest of the sweep is used
     perception_cpu_s: float = 0.0  # thread CPU time in perception (its share of the cycle)
     perception_errors: int = 0  # perception steps that failed (logged; the robot drives on)
@@ -261,6 +289,9 @@ class RobotNode:
         self.stats = NodeStats()
         self.odometry = InertialOdometry(cfg.odometry)
         self.nodes = PoseNodeMaker(cfg.pose_nodes)
+        self.scan_odometry = (
+            ScanOdometry(cfg.scan_odometry) if cfg.scan_odometry is not None else None
+        )
         self.fusion = TerrainMapFusion(
             memory_sweeps=cfg.terrain.memory_sweeps,
             clear_after_sweeps=cfg.terrain.clear_after_sweeps,
@@ -548,12 +579,21 @@ class RobotNode:
         self._last_map = None
         end_time = sweep.time_s + sweep.duration_s
         pose = self.odometry.pose_in_odom
+        grid_pose = pose
+        if self.scan_odometry is not None:
+            wide = self._surface_grid(
+                sweep, poses, pose, roll, pitch, size_cells=cfg.scan_odometry_grid_cells
+            )
+            self._aid_heading(wide, pose, end_time)
+            pose = self.odometry.pose_in_odom
         if self.nodes.due(pose, end_time):
             node = self.nodes.make(pose, end_time)
             self._send(node)
             self._nodes_sent.append((node.node_index, end_time, np.asarray(pose, dtype=float)))
             self.stats.pose_nodes += 1
-            self._send_grid(node, sweep, poses, pose, roll, pitch)
+            # the grid in the base of the pose before any heading correction: its points
+            # are relative to the body, which the correction does not move
+            self._send_grid(node, self._surface_grid(sweep, poses, grid_pose, roll, pitch))
         if self.perception is not None:
             self._perceive(lambda: self._perceive_sweep(sweep, poses, roll, pitch))
             self._perceive(self._flush_perception)
@@ -636,23 +676,55 @@ class RobotNode:
         )
         self.stats.slip_measurements += 1
 
-    def _send_grid(
+    def _surface_grid(
         self,
-        node: PoseNode,
         sweep: LidarSweep,
         poses: np.ndarray,
-        node_pose: np.ndarray,
+        pose: np.ndarray,
         roll: float,
         pitch: float,
-    ) -> None:
-        vs = vertical_surface_grid(
+        *,
+        size_cells: int | None = None,
+    ) -> VerticalSurfaceGrid:
+        """The sweep's vertical-surface grid in the ``base`` of ``pose`` (de-skewed by the
+        sweep's odometry ``poses``): what a pose node sends (``size_cells`` None: the
+        configured size), and what the heading is aided by."""
+        config = self.config.vertical_surfaces
+        if size_cells is not None:
+            config = msgspec.structs.replace(config, size_cells=size_cells)
+        return vertical_surface_grid(
             sweep.points_in_base,
-            config=self.config.vertical_surfaces,
+            config=config,
             roll_rad=roll,
             pitch_rad=pitch,
-            base_from_point_base=relative(node_pose, poses),
+            base_from_point_base=relative(pose, poses),
             point_time_s=sweep.point_time_s,
         )
+
+    def _aid_heading(self, grid: VerticalSurfaceGrid, pose: np.ndarray, time_s: float) -> None:
+        """Laser-aided heading (module docstring): the grid's occupied cells matched against
+        the last few sweeps' correct the odometry's heading and measure the gyro's bias."""
+        assert self.scan_odometry is not None
+        rows, cols = np.nonzero(grid.occupied)
+        res = grid.resolution_m
+        pts = np.column_stack(
+            [
+                grid.origin_in_base[0] + (cols + 0.5) * res,
+                grid.origin_in_base[1] + (rows + 0.5) * res,
+            ]
+        )
+        found = self.scan_odometry.observe(pose, pts, time_s)
+        if found is None:
+            return
+        self.odometry.correct_heading(
+            found.correction[2],
+            innovation_rad=found.innovation_yaw_rad,
+            innovation_var_rad2=found.innovation_var_rad2,
+            since_s=found.since_s,
+        )
+        self.stats.heading_matches += 1
+
+    def _send_grid(self, node: PoseNode, vs: VerticalSurfaceGrid) -> None:
         occ = vs.occupied
         rows = np.flatnonzero(occ.any(axis=1))
         cols = np.flatnonzero(occ.any(axis=0))

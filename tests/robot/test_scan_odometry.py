@@ -8,7 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from protocol.se2 import compose
 from robot.odometry.scan_odometry import (
+    ScanOdometry,
     ScanOdometryConfig,
     ScanOdometryStats,
     match_step,
@@ -136,3 +138,48 @@ def _rel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _wrap(a: float) -> float:
     return math.atan2(math.sin(a), math.cos(a))
+
+
+def test_one_scan_at_a_time_holds_a_drifting_heading() -> None:
+    """ScanOdometry, as the robot runs it: each sweep's correction composed onto the odometry
+    pose it was taken at; a gyro drifting 0.3 deg a sweep (18 deg over the drive) is held
+    to the scans' accuracy, and a scan of nothing is no correction."""
+    truth = _truth()
+    segs = _segments()
+    aid = ScanOdometry(ScanOdometryConfig())
+    pose = truth[0].copy()
+    drift = math.radians(0.3)
+    errors, innovations = [], []
+    for k, true_pose in enumerate(truth):
+        if k:
+            step = _rel(truth[k - 1], true_pose)
+            pose = compose(pose, step + np.array([0.0, 0.0, drift]))
+        found = aid.observe(pose, _scan(true_pose, segs), 1.25 * k)
+        if found is not None:
+            pose = compose(pose, np.asarray(found.correction))
+            assert found.since_s == pytest.approx(1.25)
+            innovations.append(found.innovation_yaw_rad)
+        errors.append(abs(_wrap(pose[2] - true_pose[2])))
+    assert aid.stats.matched >= len(truth) - 3 and aid.stats.rejected == 0
+    assert drift * len(truth) > math.radians(18.0)
+    assert max(errors) < math.radians(1.0)
+    # the raw innovation is the drift since the last sweep, seen by the scan
+    assert abs(np.median(innovations) + drift) < math.radians(0.1)
+    assert aid.observe(pose, np.zeros((0, 2)), 1.25 * len(truth)) is None
+    with pytest.raises(ValueError, match="scan must be"):
+        aid.observe(pose, np.zeros((3, 3)), 1e3)
+
+
+def test_one_scan_at_a_time_refuses_an_implausible_heading() -> None:
+    """A match whose heading the odometry cannot have drifted to (the room seen turned by
+    1.5 deg in one sweep of a good gyro) is refused and counted, not applied."""
+    truth = _truth()[:12]
+    segs = _segments()
+    tight = ScanOdometryConfig(odometry_sigma_rad=math.radians(0.05), odometry_turn_share_sigma=0.0)
+    aid = ScanOdometry(tight)
+    for k, true_pose in enumerate(truth[:-1]):
+        aid.observe(true_pose, _scan(true_pose, segs), float(k))
+    assert aid.stats.matched == len(truth) - 2
+    wrong = truth[-1] + np.array([0.0, 0.0, math.radians(1.5)])
+    assert aid.observe(wrong, _scan(truth[-1], segs), 20.0) is None
+    assert aid.stats.rejected == 1
