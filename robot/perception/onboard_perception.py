@@ -140,12 +140,14 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     colour_min_width_px: float = 8.0
     colour_widths_px: tuple[int, ...] = (160, 240)
     colour_group_s: float = 2.0
-    # the two images that settle the pan schedule's phase are asked this small (square, px):
-    # only their pan angle is used, and a 64-robot team's first second was mostly their
-    # renders (issue 16). 0 (default): at the memory's size, searched for tags like any other:
-    # in the staging area they show teammates, and those first sightings place the robots in
-    # the map (16 px probes moved the team-mapping trial's ATE 0.21 -> 0.25 m)
-    phase_probe_px: int = 0
+    # of the two images that settle the pan schedule's phase, the first phase_full_images
+    # are asked at the memory's size (searched for tags like any other: in the staging area
+    # they show teammates, and those first sightings place the robots in the map; two 16 px
+    # probes moved the team-mapping trial's ATE 0.21 -> 0.25 m), the others as probes of
+    # phase_probe_px square: only their pan angle is used (issue 16: a 64-robot team's first
+    # second was mostly these renders and the fine images their tags asked for). 0: full.
+    phase_probe_px: int = 16
+    phase_full_images: int = 1
     # a LIDAR candidate (cylinder or person) where a teammate's tag was seen lately is that
     # teammate, not asked about (issue 16: in a crowd most candidates were teammates, each an
     # image): within teammate_radius_m + teammate_speed_m_s x the time between the sighting
@@ -247,6 +249,10 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             )
         if not (math.isfinite(self.colour_group_s) and self.colour_group_s >= 0):
             raise ValueError(f"perception.colour_group_s must be >= 0, got {self.colour_group_s}")
+        if not 0 <= self.phase_full_images <= 2:
+            raise ValueError(
+                f"perception.phase_full_images must be 0, 1 or 2, got {self.phase_full_images}"
+            )
         if not 1 <= self.max_requests_per_step <= 4:
             raise ValueError("perception.max_requests_per_step must be in [1, 4]")
 
@@ -514,7 +520,8 @@ class OnboardPerception:
         if self.pan_phase_s is None:
             # two images a few tenths of a second apart settle the schedule's phase
             if self._bootstrap_asks < 2 and now_s - self._last_fiducial_ask_s >= 0.4:
-                self._ask(now_s, [], probe=cfg.phase_probe_px > 0)
+                probe = cfg.phase_probe_px > 0 and self._bootstrap_asks >= cfg.phase_full_images
+                self._ask(now_s, [], probe=probe)
                 self._last_fiducial_ask_s = now_s
                 self._bootstrap_asks += 1
             elif self._bootstrap_asks >= 2 and not self._pending and not self._queued:

@@ -44,15 +44,22 @@ def test_the_pan_phase_is_learnt_from_two_images_then_frames_are_remembered() ->
     p.on_control(0.5, np.zeros(3))
     (r2,) = p.take_requests()
     assert (r1.time_s, r2.time_s) == (0.05, 0.5) and r1.request_id != r2.request_id
-    # full size by default: searched for teammates' tags like any other coarse image
+    # the first at full size by default: searched for teammates' tags like any other coarse
+    # image; the second a probe: only its pan is used
     assert (r1.width_px, r1.height_px) == (p.config.memory.width_px, p.config.memory.height_px)
-    probe = OnboardPerception(0, PerceptionConfig(phase_probe_px=16))
-    probe.on_control(0.05, np.zeros(3))
-    (small,) = probe.take_requests()
-    assert (small.width_px, small.height_px) == (16, 16)  # only its pan is used: a small probe
+    assert (r2.width_px, r2.height_px) == (16, 16)
+    for cfg, sizes in (
+        (PerceptionConfig(phase_full_images=0), [16, 16]),
+        (PerceptionConfig(phase_full_images=2), [320, 320]),
+        (PerceptionConfig(phase_probe_px=0), [320, 320]),
+    ):
+        q = OnboardPerception(0, cfg)
+        q.on_control(0.05, np.zeros(3))
+        q.on_control(0.5, np.zeros(3))
+        assert [r.width_px for r in q.take_requests()] == sizes
     assert len(p.memory) == 0  # no pan known: nothing to remember yet
     p.on_image(_image(r1.request_id, r1.time_s), _pose_at)
-    p.on_image(_image(r2.request_id, r2.time_s), _pose_at)
+    p.on_image(_image(r2.request_id, r2.time_s, 16, 16), _pose_at)
     assert p.pan_phase_s is not None
     # the frames of before the phase was known are remembered now, with their pans
     assert [f.time_s for f in p.memory.frames] == [0.05, 0.5]
