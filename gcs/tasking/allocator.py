@@ -362,6 +362,9 @@ class TaskAllocator:
         self._goal_failures: list[tuple[tuple[float, float], int]] = []
         # hazard -> robot -> when it failed that hazard's neutralization
         self._dispatch_excluded: dict[int, dict[int, float]] = {}
+        # (ooi_x, ooi_y, pose_x, pose_y) in map: where disruptors failed to laser an OOI from
+        # (disruptor_planner.failed_view_mask: the next dispatch goes to another side)
+        self._failed_views: list[tuple[float, float, float, float]] = []
         self._silent: set[int] = set()
         # hostile -> robot -> when it fell silent on its way to watch that hostile
         self._view_shadowed: dict[int, dict[int, float]] = {}
@@ -726,6 +729,7 @@ class TaskAllocator:
                 self._avoid_route(ctx, r, a)
             if purpose in ("neutralize_go", "neutralize") and a.hazard_id is not None:
                 self._dispatch_excluded.setdefault(a.hazard_id, {})[r.robot_id] = ctx.now_s
+                self._failed_view(ctx, r, a)
         if purpose == "hostile_view" and ok:
             a.timeout_s = math.inf  # at its view position: it holds there
             return
@@ -737,6 +741,18 @@ class TaskAllocator:
                 self._hold_as_relay(ctx, r, a)
             return
         self.assignments.pop(r.robot_id, None)
+
+    def _failed_view(self, ctx: _Ctx, r: RobotInfo, a: Assignment) -> None:
+        """``r`` failed ``a``, a neutralization of an OOI (lasering it from where it is) or
+        the way to its pose (that pose): remembered, so the next dispatch to that OOI goes to
+        another side (:func:`~gcs.tasking.disruptor_planner.failed_view_mask`)."""
+        h = next((h for h in ctx.state.hazards if h.hazard_id == a.hazard_id), None)
+        if h is None or a.goal_in_map is None:
+            return
+        at_pose = a.purpose.split(":")[0] == "neutralize"
+        pose = self._position(r) if at_pose else a.goal_in_map
+        ox, oy = h.position_in_map
+        self._failed_views.append((float(ox), float(oy), float(pose[0]), float(pose[1])))
 
     def _purpose(self, rid: int) -> str | None:
         a = self.assignments.get(rid)
@@ -1003,6 +1019,7 @@ class TaskAllocator:
                 free,
                 ctx.blocked,
                 cfg,
+                failed_views_in_map=np.asarray(self._failed_views, dtype=np.float64).reshape(-1, 4),
             )
             if d is None:
                 continue
@@ -1133,6 +1150,20 @@ class TaskAllocator:
         self.frontiers = frontiers
         waiting: list[Explorer] = []
         claimed: list[tuple[float, float]] = []
+        # a robot silent on its way to an exploration goal drives on to it (a radio shadow:
+        # robot/comms_watchdog.py) and brings back what it saw: its goal stays claimed while
+        # it may still be at it (its timeout). Released, it went to the next robot planned,
+        # into the same shadow (small world seed 7: two robots took turns at goals 1 m apart
+        # in the south-east shadow from 140 s to the end, while the middle stayed unseen)
+        for rid, held in self.assignments.items():
+            if (
+                held.purpose == "explore:released"
+                and rid in self._silent
+                and rid not in self._lost
+                and held.goal_in_map is not None
+                and ctx.now_s - held.issued_s <= held.timeout_s
+            ):
+                claimed.append(held.goal_in_map)
         global_bad = self._globally_failed()
         for rid, r in sensors.items():
             a = self.assignments.get(rid)

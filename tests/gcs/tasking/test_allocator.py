@@ -123,7 +123,10 @@ def test_a_goal_that_keeps_failing_is_not_given_again() -> None:
     assert kinds == ["task_failed"] * len(failed)
 
 
-def test_a_silent_robots_goal_goes_to_another() -> None:
+def test_a_silent_robots_goal_goes_to_another_once_it_is_lost() -> None:
+    """A robot silent on its way (a radio shadow) drives on to its goal: the goal is not
+    given to another meanwhile (small world seed 7: two robots took turns at goals 1 m apart
+    in one shadow), but once the robot counts as lost it is."""
     occ = occupancy(corridor(open_west=False))  # one frontier, east
     r1, r2 = robot(1, (20.0, 3.0)), robot(2, (30.0, 3.0))
     alloc = TaskAllocator()
@@ -134,11 +137,17 @@ def test_a_silent_robots_goal_goes_to_another() -> None:
     # robot 2 goes quiet; robot 1 is still heard
     r1.last_heard_s = 20.0
     out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=20.0)
-    assert [rid for rid, _ in out] == [1]  # nothing is sent to the silent robot
-    g1 = alloc.assignments[1].goal_in_map
-    assert g1 is not None and east is not None and math.dist(g1, east) < 3.0
+    assert not [m for _, m in out if isinstance(m, GoToTask)]  # its goal is still its own
+    assert 2 not in [rid for rid, _ in out]  # nothing is sent to the silent robot
     assert any(e.kind == "robot_silent" and e.robot_id == 2 for e in alloc.events)
     assert alloc.assignments[2].purpose.endswith(":released")  # it keeps its last task
+    assert not alloc.stats.explored
+    r1.last_heard_s = 61.0
+    out = alloc.plan(TaskingState(occ, [r1, r2]), now_s=61.0)
+    assert any(e.kind == "robot_lost" and e.robot_id == 2 for e in alloc.events)
+    assert [rid for rid, _ in out] == [1]
+    g1 = alloc.assignments[1].goal_in_map
+    assert g1 is not None and east is not None and math.dist(g1, east) < 3.0
 
 
 def test_a_robot_that_fell_silent_watching_a_hostile_is_not_sent_to_watch_it_again_soon() -> None:
@@ -807,3 +816,33 @@ def test_an_idle_disruptor_holds_as_a_relay_at_the_edge_of_contact_towards_a_sil
     # relays off: no relay spot, no relay hold
     off = TaskAllocator(TaskingConfig(relays=False))
     assert off.config.relays is False
+
+
+def test_a_disruptor_that_failed_to_laser_an_ooi_tries_another_side() -> None:
+    """A lone disruptor fails to laser an OOI from its pose (its map sees no line of sight:
+    a curb the GCS's map does not have). Sent again after neutralize_retry_s, it goes to a
+    pose on another side of the OOI, not the same one (small world seed 0: five failures from
+    two poses on one side)."""
+    state, d1, _ = _dispatch_world()
+    state.robots = [d1]
+    alloc = TaskAllocator(TaskingConfig(neutralize_retry_s=30.0))
+    sent = dict(alloc.plan(state, now_s=0.0))
+    first = alloc.assignments[11].goal_in_map
+    assert first is not None
+    report(d1, sent[11], TaskState.SUCCEEDED, 5.0)
+    d1.pose_in_map = (*first, 0.0)
+    d1.last_heard_s = 5.0
+    (neut,) = [m for i, m in alloc.plan(state, now_s=5.0) if isinstance(m, NeutralizeTask)]
+    report(d1, neut, TaskState.FAILED, 50.0, "laser not on the target: no line of sight")
+    d1.last_heard_s = 50.0
+    alloc.plan(state, now_s=50.0)
+    d1.last_heard_s = 81.0
+    alloc.plan(state, now_s=81.0)
+    a = alloc.assignments[11]
+    assert a.purpose == "neutralize_go" and a.goal_in_map is not None
+    ooi = (14.0, 10.0)
+    assert math.dist(a.goal_in_map, first) > 2.0
+    turn = math.atan2(a.goal_in_map[1] - ooi[1], a.goal_in_map[0] - ooi[0]) - math.atan2(
+        first[1] - ooi[1], first[0] - ooi[0]
+    )
+    assert abs(math.remainder(turn, math.tau)) > math.radians(35.0)
