@@ -26,7 +26,9 @@ States (:class:`LinkState`), with ``quiet = now - last heard``:
   planner, to where it last heard the GCS (the last point of contact, in its private frame
   ``odom``). Radio coverage has sharp edges (a wall's shadow) and odometry drifts, so if that
   point is silent too it goes on back along its earlier points of contact (a trail of up to
-  ``return_trail_points``, ``return_spacing_m`` apart), and holds (``HOLDING``) at the oldest.
+  ``return_trail_points``, ``return_spacing_m`` apart), and holds (``HOLDING``) at the oldest;
+  a point not reached within ``return_point_s`` (drift put it in a wall, no way there) is
+  passed over for the next one back too.
   Why not hold for good: in a 200 s small-world mission with the real GCS a robot that held
   in a radio shadow stayed there, unheard, to the end; returning along the trail brought two
   robots out of shadows (41 s and 34 s long) into contact again. Why wait first: a silence
@@ -93,11 +95,15 @@ class CommsWatchdogConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     return_tolerance_m: float = 0.75
     return_spacing_m: float = 2.0
     return_trail_points: int = 16
+    # a point of contact not reached in this long is given up for the next one back: odometry
+    # drift can put it in a wall or a room (small world seed 7: a robot drove to and fro
+    # between a building and a tree for 175 s, 2 m short of a point it never reached)
+    return_point_s: float = 40.0
 
     def __post_init__(self) -> None:
         if self.return_trail_points < 1:
             raise ValueError(f"return_trail_points must be >= 1, got {self.return_trail_points}")
-        for name in ("silence_s", "return_tolerance_m", "return_spacing_m"):
+        for name in ("silence_s", "return_tolerance_m", "return_spacing_m", "return_point_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
@@ -141,6 +147,7 @@ class CommsWatchdog:
         self.armed = False
         self._returned = False  # this silence's return was made (then it holds for good)
         self._idle_since_s: float | None = None  # without a task since (update's task_idle)
+        self._target_since_s = -math.inf  # returning: driving to the current point since
 
     def heard(self, now_s: float, pose_in_odom: np.ndarray, *, periodic: bool = False) -> LinkState:
         """The GCS was heard at ``now_s`` with the robot at ``pose_in_odom`` (``periodic``:
@@ -208,12 +215,17 @@ class CommsWatchdog:
         ):
             self.state = LinkState.RETURNING
             self._returned = True
-            self._route = [*self._trail, self.contact_in_odom]
-        while self.state is LinkState.RETURNING and self._at(
-            self.return_target_in_odom, pose_in_odom
+            self._route = list(self._trail)
+            if not self._route or not np.array_equal(self._route[-1], self.contact_in_odom):
+                self._route.append(self.contact_in_odom)
+            self._target_since_s = now_s
+        while self.state is LinkState.RETURNING and (
+            self._at(self.return_target_in_odom, pose_in_odom)
+            or now_s - self._target_since_s >= cfg.return_point_s
         ):
+            self._target_since_s = now_s
             if len(self._route) > 1:
-                self._route.pop()  # silent here too: further back
+                self._route.pop()  # silent here too, or no way there: further back
             else:
                 self.state = LinkState.HOLDING
         return self.state

@@ -188,3 +188,29 @@ def test_a_robot_whose_task_ended_in_a_silence_returns_at_once() -> None:
     assert slow.state is LinkState.SILENT
     slow.update(10.0, goal)
     assert slow.state is LinkState.RETURNING
+
+
+def test_a_point_of_contact_not_reached_in_time_is_passed_over_for_the_next() -> None:
+    """Odometry drift can put a point of contact in a wall: a robot returning to it drove to
+    and fro 175 s, 2 m short (small world seed 7). After ``return_point_s`` it tries the next
+    point back, and holds at the end of the trail."""
+    cfg = CommsWatchdogConfig(
+        silence_s=5.0,
+        task_grace_s=0.0,
+        task_limit_s=0.0,
+        return_after_s=0.0,
+        return_point_s=10.0,
+        policy="return",
+    )
+    wd = CommsWatchdog(cfg)
+    wd.heard(0.0, np.array([0.0, 0.0, 0.0]), periodic=True)
+    wd.heard(2.0, np.array([3.0, 0.0, 0.0]), periodic=True)
+    stuck = np.array([8.0, 2.0, 0.0])
+    assert wd.update(7.0, stuck) is LinkState.RETURNING
+    assert np.allclose(np.asarray(wd.return_target_in_odom), [3.0, 0.0])
+    assert wd.update(16.9, stuck) is LinkState.RETURNING
+    assert np.allclose(np.asarray(wd.return_target_in_odom), [3.0, 0.0])
+    assert wd.update(17.0, stuck) is LinkState.RETURNING
+    assert np.allclose(np.asarray(wd.return_target_in_odom), [0.0, 0.0])  # the next back
+    assert wd.update(26.9, stuck) is LinkState.RETURNING
+    assert wd.update(27.0, stuck) is LinkState.HOLDING  # the trail is used up
