@@ -373,6 +373,9 @@ class TeamOverProcesses:
             self.server.end_of_step_ticks = True
             for rid in sim.robot_ids:
                 self.ground_link.subscribe(step_done_key(mission, rid), self._on_done(rid))
+            # each step publishes a go per robot: the keys once (building and checking one
+            # cost more than publishing it: ~0.13 ms, at 100 robots 0.25 CPU-s per mission-s)
+            self._go_keys = {rid: step_go_key(mission, rid) for rid in sim.robot_ids}
             argv = ["--mission", mission, *worker_link_args, "--radio", radio_path]
             argv += ["--lockstep", "--seed", str(seeds.seed), "--progress-s", "1e9"]
             if robot_config is not None and robot_config != RobotNodeConfig():
@@ -497,7 +500,7 @@ class TeamOverProcesses:
         sim = self.sim
         for rid in sim.robot_ids:
             go = StepGo(sim.time_s, self._downlink_packets(rid), grants[rid], self.report_link)
-            self.ground_link.publish(step_go_key(self.mission, rid), self._encode.encode(go))
+            self.ground_link.publish(self._go_keys[rid], self._encode.encode(go))
 
     def step(self, on_step: Callable[[], None] | None = None) -> None:
         """One step (class docstring); with the GCS in its own process
