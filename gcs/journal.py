@@ -453,8 +453,17 @@ class GcsJournal:
         row = self._conn.execute(
             "SELECT seq, time_s, sha256, state FROM checkpoints ORDER BY seq DESC LIMIT 1"
         ).fetchone()
-        if row is None:
-            return None
+        return None if row is None else self._load_checkpoint(row)
+
+    def checkpoint_at(self, seq: int) -> tuple[int, float, GroundStation] | None:
+        """As :meth:`latest_checkpoint`, the checkpoint of the ``checkpoint`` record ``seq``
+        (None: not kept, a later one replaced it)."""
+        row = self._conn.execute(
+            "SELECT seq, time_s, sha256, state FROM checkpoints WHERE seq = ?", (int(seq),)
+        ).fetchone()
+        return None if row is None else self._load_checkpoint(row)
+
+    def _load_checkpoint(self, row: Any) -> tuple[int, float, GroundStation]:
         seq, time_s, digest, state = int(row[0]), float(row[1]), bytes(row[2]), bytes(row[3])
         where = f"{self.path}: checkpoint at record {seq} (t={time_s:.3f} s)"
         rec = self.record(seq)
@@ -1141,6 +1150,8 @@ class JournalFollower:
         self.applied = dict(summary.records)  # records applied by kind, since the start
         self.catch_up_s = 0.0  # wall seconds catch_up took, summed
         self.busy = 0  # reads deferred because the database was busy
+        self.checkpoints_loaded = 0  # checkpoints taken over as they passed (:meth:`_load`)
+        self.checkpoints_not_loaded = 0  # replaced by a later one before read, or damaged
 
     def _reader_last_seq(self) -> int:
         row = self._reader._conn.execute("SELECT MAX(seq) FROM records").fetchone()
@@ -1194,8 +1205,8 @@ class JournalFollower:
                     msg = decode_frame(rec.body, Direction.UP).msg
                     self.station.handle(rec.robot_id, msg, now_s=rec.time_s)
                     _note_heard(self.heard, rec, msg)
-                else:
-                    _apply(rec, self.station)
+                elif rec.kind != "checkpoint" or not self._load(rec):
+                    _apply(rec, self.station)  # (a checkpoint not loaded: its barrier)
             except (ProtocolError, ValueError, KeyError, TypeError) as err:
                 raise JournalError(
                     f"{self.path}: record {rec.seq} ({rec.kind} at t={rec.time_s:.3f} s): {err}"
@@ -1206,6 +1217,30 @@ class JournalFollower:
                     self._bookkeeping(f)
         self.applied[rec.kind] = self.applied.get(rec.kind, 0) + 1
         self.seq = rec.seq
+
+    def _load(self, rec: Record) -> bool:
+        """At a ``checkpoint`` record, the station saved there in place of the one followed
+        so far (after the barrier both hold the same graph and estimate): what a resume
+        starts from, caches included. The rasterizer reuses submaps drawn within a pose
+        tolerance, so its map depends on when it last drew; a followed station's would
+        differ from a resumed one's (and with where the follower started, i.e. with the
+        machine's load), and the planners with it. Taking over then gives exactly the
+        mission control :func:`resume_control` gives. A checkpoint a later one replaced
+        already is not there: that one's record follows. One that does not load is one a
+        resume would not load either (it replays the whole journal): logged, the barrier
+        stands. Returns whether it loaded."""
+        try:
+            saved = self._reader.checkpoint_at(rec.seq)
+        except JournalError as err:
+            log.warning("%s; the standby follows on from the barrier", err)
+            self.checkpoints_not_loaded += 1
+            return False
+        if saved is None:
+            self.checkpoints_not_loaded += 1
+            return False
+        self.station = saved[2]
+        self.checkpoints_loaded += 1
+        return True
 
     def take_over(self, mission: Any = None) -> ResumedControl:
         """The writer died: the records it committed last applied, the journal opened for
