@@ -455,14 +455,6 @@ class GcsJournal:
         ).fetchone()
         return None if row is None else self._load_checkpoint(row)
 
-    def checkpoint_at(self, seq: int) -> tuple[int, float, GroundStation] | None:
-        """As :meth:`latest_checkpoint`, the checkpoint of the ``checkpoint`` record ``seq``
-        (None: not kept, a later one replaced it)."""
-        row = self._conn.execute(
-            "SELECT seq, time_s, sha256, state FROM checkpoints WHERE seq = ?", (int(seq),)
-        ).fetchone()
-        return None if row is None else self._load_checkpoint(row)
-
     def _load_checkpoint(self, row: Any) -> tuple[int, float, GroundStation]:
         seq, time_s, digest, state = int(row[0]), float(row[1]), bytes(row[2]), bytes(row[3])
         where = f"{self.path}: checkpoint at record {seq} (t={time_s:.3f} s)"
@@ -1104,17 +1096,29 @@ def _resumed_control(
 class JournalFollower:
     """A station kept as the journal another process writes leaves it: a warm standby's.
 
-    Made on a journal being written (the latest checkpoint loaded and the records after it
-    replayed, as :func:`rebuild_station`), then :meth:`catch_up` applies whatever the writer
+    Made on a journal being written, it applies every record from the first (the station
+    config from the journal's meta) and then, at each :meth:`catch_up`, whatever the writer
     has committed since, as often as the standby likes (SQLite in WAL mode: a reader sees
     committed transactions only and never blocks the writer). The planners' bookkeeping a
     resume needs is followed too (tasks sent per robot and the last task id, as
-    :func:`resume_control` reads them; the newest ``assignments`` and ``operator`` records).
-    When the writer dies, :meth:`take_over` applies the last records it committed and returns
-    the mission control :func:`resume_control` would have rebuilt, with the same station
-    (same records applied in the same order, the checkpoints' barriers included: module
-    docstring), but the replay of everything since the latest checkpoint already done while
-    the writer ran (issue 17: 7.8-12.2 s of a restart under load went there).
+    :func:`resume_control` reads them; the newest ``assignments`` and ``operator`` records;
+    what each robot last reported). When the writer dies, :meth:`take_over` applies the last
+    records it committed and returns the mission control :func:`resume_control` would have
+    rebuilt, the replay already done while the writer ran (issue 17: 7.8-12.2 s of a
+    restart under load went to loading the checkpoint and replaying what followed it).
+
+    Same graph, estimate and bookkeeping as :func:`resume_control` (every record applied in
+    order, the checkpoints' barriers included: module docstring). It never loads a
+    checkpoint, so its caches are those of a replay from the first record whenever it
+    started, which is what makes the run after a take-over repeatable: the rasterizer
+    reuses submaps drawn within a pose tolerance, so a station loaded from a checkpoint
+    (drawn up to then) and one never drawn give maps differing in a few cells, and the
+    planners' first plans with them; a follower that started from the latest checkpoint
+    would have taken over with a state depending on when it started (its warm-up: the
+    machine's load). A checkpoint loaded at each checkpoint record instead would match
+    :func:`resume_control` to the cache, at a load of the whole station every 30 mission-s
+    (2.5 s of CPU at 573 s of the full chaos mission, 84 MB), which a kill right after a
+    checkpoint would wait for.
 
     Reads only; the journal it takes over is opened for appending at :meth:`take_over`."""
 
@@ -1125,37 +1129,27 @@ class JournalFollower:
         self.path = Path(path)
         self._reader = GcsJournal.open(self.path)
         try:
-            self.station, summary = rebuild_station(self._reader)
+            from gcs.ground_station import GroundStation
+
+            self.station = GroundStation(self._reader.station_config())
         except BaseException:
             self._reader.close()
             raise
         self.sent: dict[int, int] = {}
         self.last_task_id = 0
-        after = summary.checkpoint_seq
-        if after:
-            saved = self._reader.record(after)
-            f = saved.json() if saved is not None else {}
-            if "tasks_sent" in f:
-                self._bookkeeping(f)
-            else:  # format 2 before the bookkeeping: every decision record
-                after = 0
-        for rec in self._reader.records(after_seq=after, kind="decision"):
-            self._decision(rec)
-        self.assignments = self._reader.latest_record("assignments")
-        self.operator = self._reader.latest_record("operator")
-        #: what each robot last told the GCS (:func:`latest_heard`), kept as records pass
-        self.heard = latest_heard(self._reader)
-        #: the newest record applied or noted (every kind)
-        self.seq = max(summary.last_seq, self._reader_last_seq())
-        self.applied = dict(summary.records)  # records applied by kind, since the start
+        self.assignments: Record | None = None
+        self.operator: Record | None = None
+        #: what each robot last told the GCS, kept as records pass
+        self.heard: dict[int, Heard] = {}
+        self.seq = 0  # the newest record applied or noted (every kind)
+        self.applied: dict[str, int] = {}  # records applied by kind, since the start
         self.catch_up_s = 0.0  # wall seconds catch_up took, summed
         self.busy = 0  # reads deferred because the database was busy
-        self.checkpoints_loaded = 0  # checkpoints taken over as they passed (:meth:`_load`)
-        self.checkpoints_not_loaded = 0  # replaced by a later one before read, or damaged
-
-    def _reader_last_seq(self) -> int:
-        row = self._reader._conn.execute("SELECT MAX(seq) FROM records").fetchone()
-        return int(row[0] or 0)
+        try:
+            self.catch_up()
+        except BaseException:
+            self._reader.close()
+            raise
 
     def _bookkeeping(self, f: dict[str, Any]) -> None:
         self.sent = {int(r): int(n) for r, n in f["tasks_sent"].items()}
@@ -1205,8 +1199,8 @@ class JournalFollower:
                     msg = decode_frame(rec.body, Direction.UP).msg
                     self.station.handle(rec.robot_id, msg, now_s=rec.time_s)
                     _note_heard(self.heard, rec, msg)
-                elif rec.kind != "checkpoint" or not self._load(rec):
-                    _apply(rec, self.station)  # (a checkpoint not loaded: its barrier)
+                else:
+                    _apply(rec, self.station)
             except (ProtocolError, ValueError, KeyError, TypeError) as err:
                 raise JournalError(
                     f"{self.path}: record {rec.seq} ({rec.kind} at t={rec.time_s:.3f} s): {err}"
@@ -1217,30 +1211,6 @@ class JournalFollower:
                     self._bookkeeping(f)
         self.applied[rec.kind] = self.applied.get(rec.kind, 0) + 1
         self.seq = rec.seq
-
-    def _load(self, rec: Record) -> bool:
-        """At a ``checkpoint`` record, the station saved there in place of the one followed
-        so far (after the barrier both hold the same graph and estimate): what a resume
-        starts from, caches included. The rasterizer reuses submaps drawn within a pose
-        tolerance, so its map depends on when it last drew; a followed station's would
-        differ from a resumed one's (and with where the follower started, i.e. with the
-        machine's load), and the planners with it. Taking over then gives exactly the
-        mission control :func:`resume_control` gives. A checkpoint a later one replaced
-        already is not there: that one's record follows. One that does not load is one a
-        resume would not load either (it replays the whole journal): logged, the barrier
-        stands. Returns whether it loaded."""
-        try:
-            saved = self._reader.checkpoint_at(rec.seq)
-        except JournalError as err:
-            log.warning("%s; the standby follows on from the barrier", err)
-            self.checkpoints_not_loaded += 1
-            return False
-        if saved is None:
-            self.checkpoints_not_loaded += 1
-            return False
-        self.station = saved[2]
-        self.checkpoints_loaded += 1
-        return True
 
     def take_over(self, mission: Any = None) -> ResumedControl:
         """The writer died: the records it committed last applied, the journal opened for
