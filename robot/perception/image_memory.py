@@ -103,6 +103,11 @@ def cylinder_outline(
     return np.vstack([bot, top])
 
 
+_ASIDE_MIN_RANGE_M = 1.0
+_ASIDE_MARGIN_RAD = math.radians(15.0)
+_ASIDE_MAX_TILT_RAD = 0.3
+
+
 class ImageMemory:
     """Recent frames of the panning camera, oldest first (see the module docstring)."""
 
@@ -139,6 +144,8 @@ class ImageMemory:
     def projects_fully(self, frame: RememberedFrame, candidate: Candidate) -> bool:
         """Whether every rim point of ``candidate`` lands inside the image of ``frame``."""
         cfg = self.config
+        if self._clearly_aside(frame, candidate):
+            return False
         pts = cylinder_outline(candidate, frame.pose_in_odom)
         rng = float(np.hypot(pts[:, 0].mean(), pts[:, 1].mean()))
         if rng > cfg.max_range_m:
@@ -156,6 +163,28 @@ class ImageMemory:
             and np.all(uv[:, 1] >= m)
             and np.all(uv[:, 1] <= intr.height_px - m)
         )
+
+    def _clearly_aside(self, frame: RememberedFrame, candidate: Candidate) -> bool:
+        """A necessary-condition test before the projection (issue 16: a sweep's candidates
+        were projected into every remembered frame, newest first, most pointing elsewhere):
+        True when the candidate's centre, at least ``_ASIDE_MIN_RANGE_M`` from the camera,
+        lies beyond half the field of view plus its angular radius plus ``_ASIDE_MARGIN_RAD``
+        from the camera's pan (the tilt bends the image's horizontal angle by less than
+        that margin there, for tilts within ``_ASIDE_MAX_TILT_RAD``): then not every rim
+        point lands in the image."""
+        if abs(frame.tilt_rad) > _ASIDE_MAX_TILT_RAD:
+            return False
+        x, y, yaw = frame.pose_in_odom
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        dx, dy = candidate.xy_in_odom[0] - x, candidate.xy_in_odom[1] - y
+        cam = self.config.mount.camera_in_base_m
+        bx, by = c * dx + s_ * dy - cam[0], -s_ * dx + c * dy - cam[1]
+        h = math.hypot(bx, by)
+        if h - candidate.radius_m < _ASIDE_MIN_RANGE_M:
+            return False
+        off = abs((math.atan2(by, bx) - frame.pan_rad + math.pi) % (2 * math.pi) - math.pi)
+        half = math.radians(self.config.hfov_deg) / 2
+        return off > half + math.asin(min(1.0, candidate.radius_m / h)) + _ASIDE_MARGIN_RAD
 
     def choose(
         self, candidate: Candidate, *, not_after_s: float = math.inf
