@@ -9,7 +9,12 @@ candidate when the graph already relates the two (same connected component) and:
 * the uncertainty of that relative pose (the projection's covariance, an upper bound) still
   leaves something to correct: its translation standard deviation is at least
   ``min_sigma_xy_m`` (nodes already tightly related, e.g. consecutive nodes of one robot,
-  are skipped; so are the same robot's nodes fewer than ``min_index_gap`` apart);
+  are skipped; so are the same robot's nodes fewer than ``min_index_gap`` apart, unless
+  the odometry between them is uncertain by ``gap_sigma_xy_m`` or more: lost scans widened
+  the step across a gap, and the nodes either side of it are the only pairs that can tie
+  the nodes after it to the map before it while they see the same place (such a pair is
+  kept up to the coarse gate, ``max_distance_m + wide_xy_m`` apart, not ``max_distance_m``:
+  Intel with 12 scans dropped, the nodes either side of the gap lay 8.1 m apart);
 * the ``k_sigma`` region of the uncertainty fits a search window: the standard matcher's
   window (``window_xy_m``, ``window_yaw_rad``) or, for poorly related nodes (a robot linked
   only by a loose operator hint, a long loop), a bounded *wide* window: ``wide_xy_m`` in
@@ -60,6 +65,7 @@ class CandidateSearchConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     max_distance_m: float = 5.0
     min_sigma_xy_m: float = 0.05
     min_index_gap: int = 5
+    gap_sigma_xy_m: float = 0.25
     k_sigma: float = 3.0
     window_xy_m: float = 3.0
     window_yaw_rad: float = math.radians(30.0)
@@ -80,6 +86,8 @@ class CandidateSearchConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v}")
+        if not self.gap_sigma_xy_m > 0:  # inf: never
+            raise ValueError(f"gap_sigma_xy_m: expected > 0, got {self.gap_sigma_xy_m}")
         if not (math.isfinite(self.min_sigma_xy_m) and self.min_sigma_xy_m >= 0):
             raise ValueError(f"min_sigma_xy_m: expected >= 0, got {self.min_sigma_xy_m}")
         if not 0 < self.wide_yaw_rad <= math.pi:
@@ -162,7 +170,7 @@ def search_candidates(
     ok = reached & np.asarray(has_scan, dtype=bool)
     ok[r] = False
     same_robot = robot_ids == robot_ids[r]
-    ok &= ~(same_robot & (np.abs(indices - indices[r]) < cfg.min_index_gap))
+    near = same_robot & (np.abs(indices - indices[r]) < cfg.min_index_gap)
     dist = np.hypot(poses[:, 0], poses[:, 1])
     ok &= dist <= cfg.max_distance_m + cfg.wide_xy_m  # a coarse gate before the exact one
     idx = np.nonzero(ok)[0]
@@ -175,8 +183,10 @@ def search_candidates(
     need_yaw = cfg.k_sigma * sigma_yaw
     d = dist[idx]
     keep = (sigma_xy >= cfg.min_sigma_xy_m) & (need_xy <= cfg.wide_xy_m)
+    keep &= ~near[idx] | (sigma_xy >= cfg.gap_sigma_xy_m)  # near: only across a gap
     keep &= need_yaw <= cfg.wide_yaw_rad
-    keep &= d - need_xy <= cfg.max_distance_m  # the uncertainty region comes close enough
+    # the uncertainty region comes close enough (across a gap: the coarse gate, above)
+    keep &= (d - need_xy <= cfg.max_distance_m) | (near[idx] & (sigma_xy >= cfg.gap_sigma_xy_m))
     # expected correction, discounted by the chance that the grids overlap at all
     priority = sigma_xy * np.exp(
         -0.5 * (np.maximum(d - cfg.max_distance_m, 0.0) / np.maximum(sigma_xy, 1e-9)) ** 2

@@ -48,6 +48,21 @@ outlier removal: promoting less (a group with one failing cycle waits whole) hel
 closures the turn-scale fit needed, and look-alikes that agree with the biased odometry came
 in instead. On the quick bench's replays it changed nothing (seed 1).
 
+Shared data. A cycle is evidence only when its hypotheses' errors are independent. Two matches
+against the same node's grid carry that grid's error twice: a grid turned by a few degrees
+(built across wheel slip, or a place whose overlap fixes its heading loosely) turns every
+match against it alike, and their cycle closes however wrong they all are (the quick mission
+bench, seed 7: three closures 5-6 deg off, all against robot 2's node 61; Freiburg 079 whole:
+nodes 91 and 92 each matched to node 292, 5.3-5.6 deg off). With ``independent_cycles`` a
+cycle promotes only when no two of its hypotheses share a node (a cycle that shares one and
+fails still blocks). Off by default: measured, it made things worse. Most cycles are one new
+node's matches against several old ones, so closures came later and fewer: Freiburg 079's
+quick prefix with turns scaled by 0.92 ended at ATE 0.239 m against 0.117 m, with the gap
+0.362 against 0.146; the whole log still took 14 false closures, now from neighbouring nodes
+(grids sharing scans without sharing a node: 325-327 against 252-254, 1.3-1.5 m off), and
+counting those as dependent too (windows overlapping) halved the closures on the ACES quick
+prefix (ATE 0.143 -> 0.215 m).
+
 Hypotheses older than ``expiry_s`` (on the caller's clock: the loop closer's progress clock, not
 message time) without a confirming cycle are dropped (they cost search time and, the older, the
 likelier an erroneous cycle, paper 4.5), as are the oldest beyond ``max_hypotheses``.
@@ -106,6 +121,9 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     "Groups") at the ``group_quantile`` of chi-square, fitting it in at most
     ``group_max_iterations`` Gauss-Newton steps; at most ``group_max_outliers`` are removed
     from a group, and only while ``group_min_support`` members remain.
+
+    ``independent_cycles``: a cycle promotes only when no two of its hypotheses share a node
+    (module docstring, "Shared data"; off by default: measured worse).
     """
 
     chi2_threshold: float = 11.34
@@ -122,6 +140,7 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     group_max_iterations: int = 10
     group_max_outliers: int = 1
     group_min_support: int = 3
+    independent_cycles: bool = False
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.chi2_threshold) and self.chi2_threshold > 0):
@@ -286,7 +305,12 @@ class CycleValidator:
         return _inverse(link), h.key_a
 
     def validate(
-        self, *, now_s: float, links: LinksFn, path: PathFn, revision: int = 0
+        self,
+        *,
+        now_s: float,
+        links: LinksFn,
+        path: PathFn,
+        revision: int = 0,
     ) -> ValidationResult:
         """Expire, check hypotheses against the graph, search cycles, promote.
 
@@ -349,6 +373,8 @@ class CycleValidator:
                     continue
                 if blocked.intersection(c.hyp_ids):
                     continue
+                if cfg.independent_cycles and self._share_a_node(c.hyp_ids):
+                    continue
                 promoted.update(c.hyp_ids)
         if cfg.min_cycle_hypotheses <= 1:
             promoted.update(
@@ -359,6 +385,12 @@ class CycleValidator:
         for i in sorted(promoted, key=lambda i: (self._pending[i].time_s, i)):
             out.accepted.append(self._pop(i))
         return out
+
+    def _share_a_node(self, hyp_ids: tuple[int, ...]) -> bool:
+        """Whether two hypotheses of a cycle share a node (module docstring, "Shared
+        data")."""
+        ends = [k for i in hyp_ids for k in (self._pending[i].key_a, self._pending[i].key_b)]
+        return len(set(ends)) < len(ends)
 
     def _pop(self, hyp_id: int) -> Hypothesis:
         self._checked.pop(hyp_id, None)

@@ -126,8 +126,10 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     own path between a hypothesis's nodes. ``edge_floor_sigma_*`` are added to a promoted
     edge's covariance (a response surface can be overconfident). A match whose translation
     standard deviation exceeds ``max_match_sigma_xy_m`` (an ambiguous, corridor-like view;
-    the matcher's outer response surface measures it) constrains too little to be a closure
-    and is dropped.
+    the matcher's outer response surface measures it), or whose heading standard deviation
+    exceeds ``max_match_sigma_yaw_rad`` (2.5 deg: a view whose overlap fixes its heading
+    loosely; Freiburg 079's matches between nodes 241 and 247 came out 5.1 deg off at a
+    sigma of 3 deg), constrains too little to be a closure and is dropped.
 
     ``odometry_bias`` configures the odometry self-calibration (module docstring): after a
     correction, automatic closures whose heading contradicts the corrected odometry
@@ -162,6 +164,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     max_deferred_kept: int = 400
     min_score: float = 0.5
     max_match_sigma_xy_m: float = 0.25
+    max_match_sigma_yaw_rad: float = math.radians(2.5)
     wide_min_score: float = 0.6
     matches_per_s: float = 500.0
     max_burst_matches: int = 200
@@ -211,6 +214,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             "link_sigma_yaw_rad",
             "path_sigma_xy_m",
             "max_match_sigma_xy_m",
+            "max_match_sigma_yaw_rad",
             "prune_chi2",
             "prune_heading_chi2",
         ):
@@ -758,7 +762,7 @@ class LoopCloser:
         )
         for m in found:
             cov = self._edge_covariance(m.result)
-            if np.linalg.eigvalsh(cov[:2, :2])[-1] > self.config.max_match_sigma_xy_m**2:
+            if self._ambiguous(cov):
                 self.stats.ambiguous += 1
                 continue
             self._next_hyp += 1
@@ -828,6 +832,17 @@ class LoopCloser:
         )
         return cov + floor  # type: ignore[no-any-return]
 
+    def _ambiguous(self, cov: FloatArray) -> bool:
+        """Whether a match (its edge covariance ``cov``, body frame) constrains too little to
+        be a closure: a translation standard deviation beyond ``max_match_sigma_xy_m`` or a
+        heading one beyond ``max_match_sigma_yaw_rad`` (each half of what makes a closure
+        false, 0.5 m and 5 deg: a match twice its sigma off is still a true closure)."""
+        cfg = self.config
+        return bool(
+            np.linalg.eigvalsh(cov[:2, :2])[-1] > cfg.max_match_sigma_xy_m**2
+            or cov[2, 2] > cfg.max_match_sigma_yaw_rad**2
+        )
+
     def _match(self, cand: Candidate, progress_s: float) -> Hypothesis | None:
         cfg = self.config
         a, b = cand.reference_key, cand.query_key
@@ -845,7 +860,7 @@ class LoopCloser:
             self.stats.below_min_score += 1
             return None
         cov = self._edge_covariance(result)
-        if np.linalg.eigvalsh(cov[:2, :2])[-1] > cfg.max_match_sigma_xy_m**2:
+        if self._ambiguous(cov):
             self.stats.ambiguous += 1
             return None
         # a sample of the turn scale whatever its grids' bend: the bend bound comes from the

@@ -69,6 +69,22 @@ clean; ``perturbed_ate_ratio_max`` 1.41 (the Freiburg 079 gap run), 1.05 over th
 scales. Before the laser-aided odometry (4035a0d): two false closures (ACES x0.92 5.2 deg,
 grids bent within the closer's 5 deg gate; Freiburg 079 x1.08 a look-alike 0.93 m off) and a
 ratio of 1.99.
+
+Quick at 88b61c9 plus the heading-sigma cap and the gap candidates (gcs.loops: loop_closer
+``max_match_sigma_yaw_rad``, candidate_search ``gap_sigma_xy_m``), 80 CPU-s at load 10-18:
+Intel unchanged (its gap 1.33 x clean: the 13 nodes after the gap see nothing the nodes before
+it saw within the prefix, so the gap step's own error, 0.19 m and 1.8 deg, cannot be
+recovered; the nodes either side, 8.1 m apart, are matched now and score below 0.5), ACES
+0.131 / 0.115 / 0.127 / 0.123 m (clean / x0.92 / x1.08 / gap; 0.143 / 0.153 / 0.138 / 0.099
+before), Freiburg 079 0.110 / 0.117 / 0.109 / 0.146; 0 false. Whole Freiburg 079 (the full
+run's replays, one run each, /tmp/team/robust19/s2): false closures clean 7 -> 4, gap 13 -> 5,
+ATE 0.165 -> 0.160 and 0.331 -> 0.330 m. Of what remains, the reference is no judge at
+5 deg: near scans 457-520 and 1311-1419 the corrected log's relative poses disagree with the
+hand-verified ``fr079.relations`` by up to 4.4 deg (and relations a few metres apart
+disagree with each other through those poses by 5 deg); closures 475-1365 and 467-1365, 5.3
+and 5.7 deg off the reference, lie 0.8 and 1.2 deg off the relation 469-1402. Grids built
+from the reference poses themselves and matched from the reference's own guess land 3.7-8.7 deg
+off it there too (so neither the odometry's bend nor the search put the error in).
 """
 
 from __future__ import annotations

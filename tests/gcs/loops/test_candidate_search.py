@@ -165,3 +165,36 @@ def test_bad_arrays_are_refused() -> None:
         search_candidates(9, **good)
     with pytest.raises(ValueError, match="wide window"):
         CandidateSearchConfig(wide_xy_m=2.0)
+
+
+def test_the_nodes_either_side_of_a_gap_are_candidates_however_close_in_index() -> None:
+    """Lost scans: one odometry step spans 8 m with a widened covariance (the replay's
+    odometry_gaps). The nodes just before and after it are fewer than min_index_gap apart and
+    farther than max_distance_m, yet they are the only pairs that can tie the nodes after the
+    gap to the map before it; nodes as close in index with tight odometry stay skipped."""
+    graph = PoseGraph()
+    keys = []
+    pose = np.zeros(3)
+    for k in range(12):
+        gap = k == 6
+        keys.append(
+            graph.add_pose(
+                0,
+                odom_from_base=pose,
+                time_s=float(k),
+                odometry_covariance=None
+                if k == 0
+                else (np.diag([0.4**2, 0.4**2, 0.05**2]) if gap else STEP_COV),
+            )
+        )
+        pose = se2.compose(pose, np.array([8.0 if k == 5 else 1.0, 0.0, 0.0]))
+    cfg = CandidateSearchConfig(max_per_node=50)
+    after = {c.query_key for c in candidates_of(graph, keys[6], cfg)}
+    assert {keys[5], keys[4]} <= after  # 8 and 9 m back across the gap
+    assert not {keys[7], keys[8]} & after  # tight odometry, fewer than min_index_gap
+    tight = {c.query_key for c in candidates_of(graph, keys[4], cfg)}
+    assert not {keys[2], keys[3], keys[5]} & tight
+    never = CandidateSearchConfig(max_per_node=50, gap_sigma_xy_m=math.inf)
+    assert not {keys[5], keys[4]} & {c.query_key for c in candidates_of(graph, keys[6], never)}
+    with pytest.raises(ValueError, match="gap_sigma_xy_m"):
+        CandidateSearchConfig(gap_sigma_xy_m=0.0)
