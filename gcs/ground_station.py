@@ -95,6 +95,8 @@ from compression import CodecError, GridReference, decode_grid, read_header
 from gcs.graph.keys import pose_key, robot_of, split_key
 from gcs.graph.pose_graph import (
     MAX_COVARIANCE_CONDITION,
+    AutoSimplifyConfig,
+    EdgeRecord,
     PoseGraph,
     PoseGraphConfig,
     PoseGraphError,
@@ -260,7 +262,11 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     """
 
     robots: tuple[int, ...] = ()
-    graph: PoseGraphConfig = msgspec.field(default_factory=PoseGraphConfig)
+    # Algorithm 1 by itself once the graph is large (10,000 poses: a big team's mission; a
+    # small one never gets there), after a successful solve with no closure awaiting validation
+    graph: PoseGraphConfig = msgspec.field(
+        default_factory=lambda: PoseGraphConfig(auto_simplify=AutoSimplifyConfig())
+    )
     loops: LoopCloserConfig = msgspec.field(default_factory=LoopCloserConfig)
     # iSAM2 nudges every pose a little on each update: a small tolerance lets the rasterizer
     # reuse submaps (the map is then exact to within it)
@@ -353,6 +359,8 @@ class GroundStationStats:
     ``sightings_held``: detections and fiducials that arrived before their pose node and
     waited for it. ``odometry_checks`` / ``odometry_replaced``: odometry edges matched against
     their two grids / replaced by the match (module docstring, "Scan-checked odometry").
+    ``simplifications`` / ``edges_simplified_away``: Algorithm 1 runs (automatic or the
+    operator's) and the edges they merged away.
     """
 
     pose_nodes: int = 0
@@ -371,6 +379,8 @@ class GroundStationStats:
     internal_errors: int = 0
     odometry_checks: int = 0
     odometry_replaced: int = 0
+    simplifications: int = 0
+    edges_simplified_away: int = 0
     clock_anomalies: collections.Counter[str] = field(default_factory=collections.Counter)
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     errors: collections.deque[str] = field(default_factory=lambda: collections.deque(maxlen=100))
@@ -1263,6 +1273,8 @@ class GroundStation:
             self._keep_odometry_replacements()
             if self._dirty:
                 self._optimize()
+            if not self._dirty and not self.loop_closer.pending_hypotheses:
+                self._simplified(self.graph.simplify_if_due(now))
             return self._downlink(now)
         except Exception:
             self.stats.internal_errors += 1
@@ -1440,6 +1452,27 @@ class GroundStation:
         removed = self.loop_closer.rewind(since_s)
         self._dirty = True
         return removed
+
+    def simplify_graph(self, *, alpha: float = 5.0) -> list[EdgeRecord]:
+        """Algorithm 1 (paper 4.7) now, on the graph at its current estimate (the operator's
+        ``simplify``; the station runs it by itself through ``graph.auto_simplify``); returns
+        the edges merged away. Solve first: the kept edges are re-expressed at the estimate."""
+        removed = self.graph.simplify(alpha=alpha)
+        self._simplified(removed)
+        return removed
+
+    def _simplified(self, removed: list[EdgeRecord]) -> None:
+        """After a simplification: count it and forget what named the edges merged away (the
+        odometry edges' ids into nodes, scan-checked replacements, the closer's bookkeeping)."""
+        if not removed:
+            return
+        self.stats.simplifications += 1
+        self.stats.edges_simplified_away += len(removed)
+        gone = {e.edge_id for e in removed}
+        self._odometry_edge = {k: e for k, e in self._odometry_edge.items() if e not in gone}
+        for eid in gone & self._odometry_replaced.keys():
+            del self._odometry_replaced[eid]
+        self.loop_closer.graph_simplified()
 
     def restart_loop_closer(self) -> None:
         """Forget hypotheses and tried pairs so every pair may be matched again (after the

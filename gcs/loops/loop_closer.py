@@ -581,6 +581,16 @@ class LoopCloser:
         self._links.clear()
         return len(removed)
 
+    def graph_simplified(self) -> None:
+        """The graph was simplified (Algorithm 1, paper 4.7): its kept closures were
+        re-expressed at the estimate and parallel ones merged, so the per-closure grid-bend
+        variances no longer describe them (a later turn-scale fit leaves them as they are:
+        re-bending a merged closure could drive its heading variance below zero) and cached
+        graph paths may run over edges merged away."""
+        self._closure_bend_var.clear()
+        self._stale = True
+        self._links.clear()
+
     def restart(self) -> None:
         """Forget hypotheses, queued candidates and the pairs already tried (so every pair may
         be matched again, against the new prior); accepted edges stay."""

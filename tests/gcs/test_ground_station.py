@@ -256,6 +256,41 @@ def test_loops_close_and_the_operator_can_suggest_accept_and_rewind() -> None:
     gs.step(now_s=200.0, budget_s=1.0)  # optimizes without the rewound edges
 
 
+def test_a_large_graph_simplifies_itself_after_a_solve_and_the_station_goes_on() -> None:
+    """Algorithm 1 by itself (issue 16 item 3; paper 4.7) once the graph passes its size, at a
+    known-good state: the estimate is unchanged by it, edges are merged away, and the station
+    keeps closing loops, solving and serving frames afterwards."""
+    from gcs.graph.pose_graph import AutoSimplifyConfig, PoseGraphConfig
+
+    rng = np.random.default_rng(11)
+    truth, odom, grids = _out_and_back(rng)
+    auto = AutoSimplifyConfig(min_poses=len(truth), max_edges_per_pose=1.0, min_interval_s=0.0)
+    gs = GroundStation(GroundStationConfig(graph=PoseGraphConfig(auto_simplify=auto)))
+    nodes = nodes_along(odom, cov_upper=covariance_to_upper(DRIFT))
+    for t in range(len(truth) + 20):
+        if t < len(truth):
+            assert gs.handle(0, nodes[t], now_s=float(t)) and gs.handle(0, grids[t], now_s=float(t))
+        gs.step(now_s=float(t), budget_s=1.0)
+        if gs.stats.simplifications:
+            break
+    assert gs.stats.simplifications == 1 and gs.stats.edges_simplified_away > 0
+    relative_edges = [e for e in gs.graph.edges() if e.key_b is not None]
+    assert len(relative_edges) <= len(truth)  # was above one edge a pose
+    # the kept edges are re-expressed at the estimate: it is still the optimum
+    after = gs.graph.poses(0)[1].copy()
+    gs.graph.optimize()
+    np.testing.assert_allclose(gs.graph.poses(0)[1], after, atol=1e-6)
+    out = gs.step(now_s=1000.0, budget_s=1.0)
+    assert any(isinstance(m, HazardUpdate) for _, m in out)
+    assert gs.stats.internal_errors == 0 and gs.stats.loop_closer_faults == 0
+    _, poses = gs.graph.poses(0)
+    drift = np.hypot(*(odom[-1, :2] - truth[-1, :2]))
+    assert np.hypot(*(poses[-1, :2] - truth[-1, :2])) < 0.3 * drift
+    # the operator's simplify goes through the station too, and is counted there
+    removed = gs.simplify_graph()
+    assert gs.stats.simplifications == 1 + bool(removed)
+
+
 def test_inter_frame_grids_are_decoded_against_the_previous_nodes_grid() -> None:
     from compression import DEFAULT_CODEC, GridReference, is_inter, origin_cells_of
     from gcs.loops.synthetic_scenes import random_world, scan_grid, scan_points
