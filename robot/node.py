@@ -15,10 +15,12 @@ Everything happens in the robot's private frame ``odom`` (paper 4.1). Per sensor
   :class:`~robot.odometry.scan_odometry.ScanOdometry`) corrects the heading and estimates the
   gyro's bias while driving (``scan_odometry``; None: off);
   a pose node when the robot moved enough (4.2), with its vertical-surface grid compressed by
-  the codec registry (4.3.3, 4.3.4); a new plan to the current waypoint (5.4). No path: the
-  robot stops, waits (the short memory forgets a bad map) and the task reports it after a
-  timeout; a path newly blocked with only a long detour left: it waits for the way to clear
-  rather than set off on the detour, within a budget. Non-finite returns are dropped and
+  the codec registry (4.3.3, 4.3.4; the first node's, from the staging area, reaches further:
+  ``first_grid_cells``, so that the GCS can place the team by its first grids); a new plan
+  to the current waypoint (5.4). No path: the robot stops, waits (the short memory forgets a
+  bad map) and the task reports it after a timeout; a path newly blocked with only a long
+  detour left: it waits for the way to clear rather than set off on the detour, within a
+  budget. Non-finite returns are dropped and
   counted (``nonfinite_points``), the rest of the sweep is used.
 * **Perception** (:mod:`robot.perception.onboard_perception`, paper 5.2, 4.3.2): the sweep's
   cylinder candidates and people tracks; each control period remembers the panning camera's
@@ -153,6 +155,10 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     # the simulated MAGIC robot's wheel slip on hard ground, calibrated on straight and curved
     # runs (mission.evaluation.odometry_drive): 2% straight, 6.7% more per rad/s of turning;
     # its gyro's datasheet: 0.003 rad/s noise per 20 Hz sample, bias walk 2e-4 rad/s/sqrt(s)
+    # Slip the wheels cannot see (sand): the LIDAR's displacement between sweeps
+    # (_learn_traversability) grows the pose node's covariance by the shortfall; correcting
+    # the distance too (effective_track_m 0.6, slip_per_skid 1.5, displacement_gain 0.3)
+    # measured worse: team-mapping trial (100 s, seed 0) ATE 0.079 -> 0.257 m
     odometry: OdometryConfig = OdometryConfig(
         wheel_slip_frac=0.02,
         wheel_slip_per_rad_s=0.067,
@@ -174,6 +180,13 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
         odometry_turn_share_sigma=0.005,
     )
     scan_odometry_grid_cells: int = 400
+    # the first pose node's grid (sent once, from the staging area, where the team starts
+    # close together in open ground) out to this many cells square, as the heading aid's: the
+    # GCS can place each robot against its teammates by their first grids. Small world,
+    # seed 7, the robots' second sweeps matched pairwise from guesses off by the start hints'
+    # sigmas (0.3 m, 2.9 deg): 40 m grids 0.03 m / 0.1 deg from the truth, the nodes' 15 m
+    # grids no match at all
+    first_grid_cells: int = 400
     terrain: TerrainConfig = TerrainConfig()
     # paper 4.3.4: MAGIC's grids averaged about 150 x 150 cells at 10 cm (a 15 m square)
     vertical_surfaces: VerticalSurfaceConfig = VerticalSurfaceConfig(size_cells=150)
@@ -229,11 +242,9 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     laser_still_rad: float = 0.005
 
     def __post_init__(self) -> None:
-        if not 2 <= self.scan_odometry_grid_cells <= 10000:
-            raise ValueError(
-                "robot.scan_odometry_grid_cells must be in [2, 10000], got "
-                f"{self.scan_odometry_grid_cells}"
-            )
+        for name in ("scan_odometry_grid_cells", "first_grid_cells"):
+            if not 2 <= getattr(self, name) <= 10000:
+                raise ValueError(f"robot.{name} must be in [2, 10000], got {getattr(self, name)}")
         if self.perception_cpu_sample_every < 1:
             raise ValueError(
                 "robot.perception_cpu_sample_every must be >= 1, got "
@@ -592,8 +603,11 @@ class RobotNode:
             self._nodes_sent.append((node.node_index, end_time, np.asarray(pose, dtype=float)))
             self.stats.pose_nodes += 1
             # the grid in the base of the pose before any heading correction: its points
-            # are relative to the body, which the correction does not move
-            self._send_grid(node, self._surface_grid(sweep, poses, grid_pose, roll, pitch))
+            # are relative to the body, which the correction does not move; the first node's
+            # (the staging area) out to first_grid_cells
+            size = cfg.first_grid_cells if node.node_index == 0 else None
+            grid = self._surface_grid(sweep, poses, grid_pose, roll, pitch, size_cells=size)
+            self._send_grid(node, grid)
         if self.perception is not None:
             self._perceive(lambda: self._perceive_sweep(sweep, poses, roll, pitch))
             self._perceive(self._flush_perception)
@@ -674,6 +688,13 @@ class RobotNode:
         self.traversability.observe(
             float(mid[0]), float(mid[1]), measured_m_s=made_good / dt, requested_m_s=travel / dt
         )
+        # the same evidence for the odometry: the shortfall is already in the pose node being
+        # made (its variance; with odometry.displacement_gain, a traction factor corrects the
+        # distances to come)
+        shortfall_m = self.odometry.observe_displacement(
+            odometry_m=travel, measured_m=made_good, sigma_m=2 * geometry.resolution_m
+        )
+        self.nodes.add_distance_variance(shortfall_m**2)
         self.stats.slip_measurements += 1
 
     def _surface_grid(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -29,7 +30,7 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def sim() -> Simulator:
+def sim() -> Iterator[Simulator]:
     with Simulator(load_world_config("configs/world/small.yaml")) as s:
         yield s
 
@@ -62,13 +63,20 @@ def test_goto_reaches_goal_and_reports_nodes_grids_and_telemetry(sim: Simulator)
     # odometry agrees with truth within 2% of the distance
     est = node.odometry.pose_in_odom
     assert np.hypot(*(est[:2] - moved[:2])) <= 0.02 * np.hypot(*moved[:2]) + 0.02
+    # the sweeps aided the heading (laser-aided odometry) and it agrees with the truth
+    assert node.stats.heading_matches >= 2
+    assert abs(math.degrees(math.remainder(est[2] - moved[2], 2 * math.pi))) < 1.0
     nodes = [m for m in sent if isinstance(m, PoseNode)]
     grids = [m for m in sent if isinstance(m, TerrainGrid)]
     assert len(nodes) >= 2 and [n.node_index for n in nodes] == list(range(len(nodes)))
     assert [g.node_index for g in grids] == [n.node_index for n in nodes]
+    spans = []
     for g in grids:
         occ, header = decode_grid_with_header(g.data)  # key frames: send() returned None
         assert occ.shape == (header.height, header.width) and occ.any()
+        spans.append(max(header.height, header.width) * g.resolution_m)
+    # the first node's grid (the staging area) reaches beyond the others' 15 m square
+    assert spans[0] > 20.0 and max(spans[1:]) <= 15.0 + 1e-6
     pose = np.array(nodes[0].pose_in_odom)
     for n in nodes[1:]:  # the constraints chain to the reported poses
         pose = compose(pose, np.array(n.odom_delta))
@@ -169,6 +177,8 @@ def test_cheap_perception_steps_are_timed_every_nth_call_and_counted_n_times(
 
     with pytest.raises(ValueError, match="perception_cpu_sample_every"):
         RobotNodeConfig(perception_cpu_sample_every=0)
+    with pytest.raises(ValueError, match="scan_odometry_grid_cells"):
+        RobotNodeConfig(scan_odometry_grid_cells=1)
     node = RobotNode(0, send=[].append, config=RobotNodeConfig(perception_cpu_sample_every=4))
     reads: list[float] = []
     real = time.thread_time
