@@ -510,13 +510,12 @@ class CommandHandler:
         return Outcome("ok", "loop closer restarted: every pair may be matched again")
 
     def _simplify(self, c: Command, ctx: OperatorContext) -> Outcome:
-        graph = ctx.station.graph
-        before = len(graph.edges())
-        removed = graph.simplify()
+        before = len(ctx.station.graph.edges())
+        removed = ctx.station.simplify_graph()
         return Outcome(
             "ok",
             f"graph simplified: {len(removed)} of {before} edge(s) merged away, "
-            f"{len(graph.edges())} left",
+            f"{len(ctx.station.graph.edges())} left",
         )
 
     def _set(self, c: Command, ctx: OperatorContext) -> Outcome:
