@@ -729,7 +729,11 @@ class TaskAllocator:
                 self._avoid_route(ctx, r, a)
             if purpose in ("neutralize_go", "neutralize") and a.hazard_id is not None:
                 self._dispatch_excluded.setdefault(a.hazard_id, {})[r.robot_id] = ctx.now_s
-                self._failed_view(ctx, r, a)
+                if purpose == "neutralize" and "line of sight" in why:
+                    # geometry, not a perception miss (the OOI not seen from there, no own
+                    # sighting near the target: those came right on retries, small world
+                    # seed 11): another side next time
+                    self._failed_view(ctx, r, a)
         if purpose == "hostile_view" and ok:
             a.timeout_s = math.inf  # at its view position: it holds there
             return
@@ -743,14 +747,13 @@ class TaskAllocator:
         self.assignments.pop(r.robot_id, None)
 
     def _failed_view(self, ctx: _Ctx, r: RobotInfo, a: Assignment) -> None:
-        """``r`` failed ``a``, a neutralization of an OOI (lasering it from where it is) or
-        the way to its pose (that pose): remembered, so the next dispatch to that OOI goes to
-        another side (:func:`~gcs.tasking.disruptor_planner.failed_view_mask`)."""
+        """``r`` failed ``a``, a neutralization of an OOI, for want of line of sight from
+        where it is: remembered, so the next dispatch to that OOI goes to another side
+        (:func:`~gcs.tasking.disruptor_planner.failed_view_mask`)."""
         h = next((h for h in ctx.state.hazards if h.hazard_id == a.hazard_id), None)
-        if h is None or a.goal_in_map is None:
+        if h is None:
             return
-        at_pose = a.purpose.split(":")[0] == "neutralize"
-        pose = self._position(r) if at_pose else a.goal_in_map
+        pose = self._position(r)
         ox, oy = h.position_in_map
         self._failed_views.append((float(ox), float(oy), float(pose[0]), float(pose[1])))
 

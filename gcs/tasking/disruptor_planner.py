@@ -9,8 +9,9 @@ sensor robots, disruptor robots *only* travel on the 'highway'."
   than its trigger radius plus a margin (from it and from every other live static OOI), within
   ``laser_range_m``, with line of sight over the planning grid.
 * :func:`failed_view_mask`: waypoints on a side of the OOI where a disruptor already failed to
-  laser it (near the pose it failed from, or within ``failed_view_deg`` of its bearing).
-  :func:`dispatch_disruptor` takes them only when no other pose is reachable.
+  laser it for want of line of sight (near the pose it failed from, or within
+  ``failed_view_deg`` of its bearing). :func:`dispatch_disruptor` takes them only when no
+  other pose as near (within ``preferred_range_m``, or not) is reachable.
 * :func:`dispatch_disruptor`: the free disruptor with the shortest highway route to any such
   waypoint (one within ``preferred_range_m`` of the OOI when the highway reaches one), and
   the route (highway waypoints only, never the grid: a shorter path through unexplored
@@ -235,14 +236,16 @@ def dispatch_disruptor(
     cost = entry[:, None] + d[:, cand]
     if not np.isfinite(cost).any():
         return None
-    # a reachable pose on a side not yet tried wins (see DisruptorConfig.failed_view_m), then
-    # one within preferred_range_m over a farther one (see DisruptorConfig)
-    fresh = np.arange(cand.size) < n_fresh
-    if np.isfinite(cost[:, fresh]).any():
-        cost[:, ~fresh] = np.inf
+    # a reachable pose within preferred_range_m wins over a farther one (see DisruptorConfig),
+    # then one on a side not yet tried (DisruptorConfig.failed_view_m): a far pose on a fresh
+    # side is no better than a near one tried (small world seed 11: sent 65 m round to a pose
+    # 9.5 m off, from which it did not see the OOI, where the near side had worked on retry)
     far = np.hypot(*(highway.nodes_in_map[cand] - ooi_xy).T) > config.preferred_range_m
     if np.isfinite(cost[:, ~far]).any():
         cost[:, far] = np.inf
+    fresh = np.arange(cand.size) < n_fresh
+    if np.isfinite(cost[:, fresh]).any():
+        cost[:, ~fresh] = np.inf
     i, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
     robot = [r for r, h in zip(ids, have, strict=True) if h][i]
     target = int(cand[j])

@@ -846,3 +846,27 @@ def test_a_disruptor_that_failed_to_laser_an_ooi_tries_another_side() -> None:
         first[1] - ooi[1], first[0] - ooi[0]
     )
     assert abs(math.remainder(turn, math.tau)) > math.radians(35.0)
+
+
+def test_a_neutralization_that_missed_the_ooi_is_retried_from_the_same_side() -> None:
+    """A perception miss (the OOI not seen from the stand-off) came right on retries from
+    the same pose; only a want of line of sight sends the disruptor to another side (small
+    world seed 11: sent 65 m round to a pose 9.5 m off, from which it never saw the OOI)."""
+    state, d1, _ = _dispatch_world()
+    state.robots = [d1]
+    alloc = TaskAllocator(TaskingConfig(neutralize_retry_s=30.0))
+    sent = dict(alloc.plan(state, now_s=0.0))
+    first = alloc.assignments[11].goal_in_map
+    assert first is not None
+    report(d1, sent[11], TaskState.SUCCEEDED, 5.0)
+    d1.pose_in_map = (*first, 0.0)
+    d1.last_heard_s = 5.0
+    (neut,) = [m for i, m in alloc.plan(state, now_s=5.0) if isinstance(m, NeutralizeTask)]
+    report(d1, neut, TaskState.FAILED, 50.0, "laser not on the target: the OOI not seen")
+    d1.last_heard_s = 50.0
+    alloc.plan(state, now_s=50.0)
+    d1.last_heard_s = 81.0
+    alloc.plan(state, now_s=81.0)
+    again = alloc.assignments[11]
+    assert again.purpose == "neutralize_go" and again.goal_in_map is not None
+    assert math.dist(again.goal_in_map, first) < 1e-6
