@@ -155,15 +155,20 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     # the simulated MAGIC robot's wheel slip on hard ground, calibrated on straight and curved
     # runs (mission.evaluation.odometry_drive): 2% straight, 6.7% more per rad/s of turning;
     # its gyro's datasheet: 0.003 rad/s noise per 20 Hz sample, bias walk 2e-4 rad/s/sqrt(s)
-    # Slip the wheels cannot see (sand): the LIDAR's displacement between sweeps
-    # (_learn_traversability) grows the pose node's covariance by the shortfall; correcting
-    # the distance too (effective_track_m 0.6, slip_per_skid 1.5, displacement_gain 0.3)
-    # measured worse: team-mapping trial (100 s, seed 0) ATE 0.079 -> 0.257 m
+    # Slip the wheels cannot see (sand): the turn traction over an effective track and the
+    # LIDAR's displacement between sweeps (_learn_traversability) correct the distance and
+    # grow the pose node's covariance (robot.odometry.inertial_odometry). Team-mapping trial
+    # (100 s, seed 0, firm ground): ATE 0.079 m without, 0.099 m with (0.257 m while the
+    # LIDAR's traction moved on shortfalls within the measurement's sigma)
     odometry: OdometryConfig = OdometryConfig(
         wheel_slip_frac=0.02,
         wheel_slip_per_rad_s=0.067,
         gyro_noise_density_rad_s_sqrt_hz=6.7e-4,
         gyro_bias_walk_rad_s_sqrt_s=2e-4,
+        effective_track_m=0.6,
+        slip_per_skid=1.5,
+        slip_std_per_skid=1.0,
+        displacement_gain=0.3,
     )
     pose_nodes: PoseNodeConfig = PoseNodeConfig()
     # laser-aided heading (module docstring): each sweep's vertical-surface grid (out to
@@ -689,8 +694,7 @@ class RobotNode:
             float(mid[0]), float(mid[1]), measured_m_s=made_good / dt, requested_m_s=travel / dt
         )
         # the same evidence for the odometry: the shortfall is already in the pose node being
-        # made (its variance; with odometry.displacement_gain, a traction factor corrects the
-        # distances to come)
+        # made (its variance), and a traction factor corrects the distances to come
         shortfall_m = self.odometry.observe_displacement(
             odometry_m=travel, measured_m=made_good, sigma_m=2 * geometry.resolution_m
         )
