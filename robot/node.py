@@ -1381,7 +1381,10 @@ class RobotNode:
             & (rc[:, 1] < geometry.cols)
         )
         rc = rc[inside]
-        return not bool(np.any(classes[rc[:, 0], rc[:, 1]] == OBSTACLE))
+        # the beam runs from the head down to the OOI's middle: a curb does not cut it
+        tall = self.fusion.tall(geometry, self.config.laser_aim_height_m - 0.1)
+        blocking = (classes == OBSTACLE) & tall
+        return not bool(np.any(blocking[rc[:, 0], rc[:, 1]]))
 
     def _obstacle_ahead(self, pose: np.ndarray, distance_m: float) -> bool:
         classes, geometry = self._current_map()

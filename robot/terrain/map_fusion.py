@@ -142,6 +142,23 @@ class TerrainMapFusion:
                     "(use GridGeometry.centered)"
                 )
 
+    def tall(self, geometry: GridGeometry, min_height_m: float) -> NDArray[np.bool_]:
+        """Cells some remembered map marked an obstacle rising at least ``min_height_m``
+        above the ground (an obstacle of unknown height counts)."""
+        self._check_lattice(geometry)
+        r0, c0 = geometry.lattice_index()
+        cm = int(math.ceil(min_height_m * 100.0))
+        out = np.zeros(geometry.shape, dtype=bool)
+        for (mr, mc), height, _, _ in self._maps:
+            dr, dc = mr - r0, mc - c0
+            out_r = slice(max(0, dr), min(geometry.rows, dr + height.shape[0]))
+            out_c = slice(max(0, dc), min(geometry.cols, dc + height.shape[1]))
+            if out_r.start >= out_r.stop or out_c.start >= out_c.stop:
+                continue
+            h = height[out_r.start - dr : out_r.stop - dr, out_c.start - dc : out_c.stop - dc]
+            out[out_r, out_c] |= h >= max(cm, 1)
+        return out
+
     def fused(self, geometry: GridGeometry) -> NDArray[np.uint8]:
         """The pessimistic union of the remembered maps over ``geometry`` (same lattice),
         less obstacle marks that ``clear_after_sweeps`` later sweeps saw gone."""

@@ -61,6 +61,25 @@ def test_one_obstacle_anywhere_wins() -> None:
     assert (fusion.fused(geo) == DRIVABLE).all()
 
 
+def test_tall_marks_obstacles_at_least_that_high_and_those_of_unknown_height() -> None:
+    """A 10 cm curb does not cut the neutralization laser's beam; a 0.5 m box and an
+    obstacle whose height no sweep measured do (robot/node.py's line of sight)."""
+    geo = _geo(0.0, 0.0)
+    shifted = _geo(0.3, 0.0)  # a second sweep on the same lattice, 3 cells east
+    fusion = TerrainMapFusion()
+    classes = np.full(geo.shape, DRIVABLE, dtype=np.uint8)
+    classes[5, 5] = classes[5, 6] = OBSTACLE
+    heights = np.zeros(geo.shape)
+    heights[5, 5], heights[5, 6] = 0.10, 0.50
+    fusion.add(classes, geo, obstacle_height_m=heights)
+    unknown_height = np.full(shifted.shape, DRIVABLE, dtype=np.uint8)
+    unknown_height[8, 2] = OBSTACLE  # cell (8, 5) of geo
+    fusion.add(unknown_height, shifted)
+    tall = fusion.tall(geo, 0.25)
+    assert tall.sum() == 2 and tall[5, 6] and tall[8, 5] and not tall[5, 5]
+    assert fusion.tall(geo, 0.05)[5, 5]
+
+
 def test_later_drivable_sweeps_clear_a_moving_obstacles_trail() -> None:
     geo = _geo(0.0, 0.0)
     drivable = np.full(geo.shape, DRIVABLE, dtype=np.uint8)
