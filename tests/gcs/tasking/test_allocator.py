@@ -818,11 +818,9 @@ def test_an_idle_disruptor_holds_as_a_relay_at_the_edge_of_contact_towards_a_sil
     assert off.config.relays is False
 
 
-def test_a_disruptor_that_failed_to_laser_an_ooi_tries_another_side() -> None:
-    """A lone disruptor fails to laser an OOI from its pose (its map sees no line of sight:
-    a curb the GCS's map does not have). Sent again after neutralize_retry_s, it goes to a
-    pose on another side of the OOI, not the same one (small world seed 0: five failures from
-    two poses on one side)."""
+def _redispatch_after_failing(reason: str) -> tuple[tuple[float, float], tuple[float, float]]:
+    """A lone disruptor sent to laser an OOI reaches its pose and fails for ``reason``; it is
+    sent again after neutralize_retry_s: ``(first pose, the pose it is sent to again)``."""
     state, d1, _ = _dispatch_world()
     state.robots = [d1]
     alloc = TaskAllocator(TaskingConfig(neutralize_retry_s=30.0))
@@ -833,16 +831,25 @@ def test_a_disruptor_that_failed_to_laser_an_ooi_tries_another_side() -> None:
     d1.pose_in_map = (*first, 0.0)
     d1.last_heard_s = 5.0
     (neut,) = [m for i, m in alloc.plan(state, now_s=5.0) if isinstance(m, NeutralizeTask)]
-    report(d1, neut, TaskState.FAILED, 50.0, "laser not on the target: no line of sight")
+    report(d1, neut, TaskState.FAILED, 50.0, reason)
     d1.last_heard_s = 50.0
     alloc.plan(state, now_s=50.0)
     d1.last_heard_s = 81.0
     alloc.plan(state, now_s=81.0)
-    a = alloc.assignments[11]
-    assert a.purpose == "neutralize_go" and a.goal_in_map is not None
+    again = alloc.assignments[11]
+    assert again.purpose == "neutralize_go" and again.goal_in_map is not None
+    return first, again.goal_in_map
+
+
+def test_a_disruptor_that_failed_to_laser_an_ooi_tries_another_side() -> None:
+    """A lone disruptor fails to laser an OOI from its pose (its map sees no line of sight:
+    a curb the GCS's map does not have). Sent again after neutralize_retry_s, it goes to a
+    pose on another side of the OOI, not the same one (small world seed 0: five failures from
+    two poses on one side)."""
+    first, again = _redispatch_after_failing("laser not on the target: no line of sight")
     ooi = (14.0, 10.0)
-    assert math.dist(a.goal_in_map, first) > 2.0
-    turn = math.atan2(a.goal_in_map[1] - ooi[1], a.goal_in_map[0] - ooi[0]) - math.atan2(
+    assert math.dist(again, first) > 2.0
+    turn = math.atan2(again[1] - ooi[1], again[0] - ooi[0]) - math.atan2(
         first[1] - ooi[1], first[0] - ooi[0]
     )
     assert abs(math.remainder(turn, math.tau)) > math.radians(35.0)
@@ -852,21 +859,5 @@ def test_a_neutralization_that_missed_the_ooi_is_retried_from_the_same_side() ->
     """A perception miss (the OOI not seen from the stand-off) came right on retries from
     the same pose; only a want of line of sight sends the disruptor to another side (small
     world seed 11: sent 65 m round to a pose 9.5 m off, from which it never saw the OOI)."""
-    state, d1, _ = _dispatch_world()
-    state.robots = [d1]
-    alloc = TaskAllocator(TaskingConfig(neutralize_retry_s=30.0))
-    sent = dict(alloc.plan(state, now_s=0.0))
-    first = alloc.assignments[11].goal_in_map
-    assert first is not None
-    report(d1, sent[11], TaskState.SUCCEEDED, 5.0)
-    d1.pose_in_map = (*first, 0.0)
-    d1.last_heard_s = 5.0
-    (neut,) = [m for i, m in alloc.plan(state, now_s=5.0) if isinstance(m, NeutralizeTask)]
-    report(d1, neut, TaskState.FAILED, 50.0, "laser not on the target: the OOI not seen")
-    d1.last_heard_s = 50.0
-    alloc.plan(state, now_s=50.0)
-    d1.last_heard_s = 81.0
-    alloc.plan(state, now_s=81.0)
-    again = alloc.assignments[11]
-    assert again.purpose == "neutralize_go" and again.goal_in_map is not None
-    assert math.dist(again.goal_in_map, first) < 1e-6
+    first, again = _redispatch_after_failing("laser not on the target: the OOI not seen")
+    assert math.dist(again, first) < 1e-6
