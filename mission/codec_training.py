@@ -124,9 +124,11 @@ def record_corpus(
     from robot.node import RobotNode, RobotNodeConfig
     from sim.simulator import Simulator, load_world_config
 
-    node_cfg = RobotNodeConfig(codec="zlib")  # any lossless codec: the grids are decoded here
-    vs = node_cfg.vertical_surfaces
+    # any lossless codec: the grids are decoded here; the first node's grid as large as the
+    # others (the corpus is of one window size, the one the codecs code in a mission)
+    vs = RobotNodeConfig().vertical_surfaces
     size = vs.size_cells
+    node_cfg = RobotNodeConfig(codec="zlib", first_grid_cells=size)
     half = size * vs.resolution_m / 2
     base = origin_cells_of((-half, -half), vs.resolution_m)
     seq_rows: list[int] = []
