@@ -171,6 +171,16 @@ def _relative(a: FloatArray, b: FloatArray) -> FloatArray:
     return np.array([c * dx + s * dy, -s * dx + c * dy, yaw])
 
 
+def _in_frame_of(
+    predicted: FloatArray, matched: FloatArray, cov_world: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """A match ``matched`` (covariance ``cov_world``) as a correction in the predicted pose's
+    frame, where the odometry's covariance lives: ``(delta, covariance)``."""
+    c, s = math.cos(predicted[2]), math.sin(predicted[2])
+    rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return _relative(predicted, matched), np.asarray(rot @ cov_world @ rot.T, dtype=np.float64)
+
+
 def _transform(pose: FloatArray, pts: FloatArray) -> FloatArray:
     c, s = math.cos(pose[2]), math.sin(pose[2])
     out = np.empty_like(pts)
@@ -351,13 +361,10 @@ def refine_odometry(
         else:
             pose, cov_world = found
             # Fuse in the predicted pose's frame (the odometry's covariance lives there).
-            c, s = math.cos(predicted[2]), math.sin(predicted[2])
-            rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-            delta = _relative(predicted, pose)
-            cov_m = rot @ cov_world @ rot.T
+            delta, cov_m = _in_frame_of(predicted, pose, cov_world)
             info_m = np.linalg.inv(cov_m)
             info_o = np.linalg.inv(_odometry_cov(step, cfg))
-            fused = np.linalg.solve(info_m + info_o, info_m @ delta)
+            fused = np.asarray(np.linalg.solve(info_m + info_o, info_m @ delta), dtype=np.float64)
             out[k] = _compose(predicted, fused)
             st.matched += 1
             yaw_change += abs(fused[2])
@@ -444,10 +451,7 @@ class ScanOdometry:
             self._odo_cov += _odometry_cov(step, cfg)
         else:
             matched, cov_world = found
-            c, s = math.cos(pose[2]), math.sin(pose[2])
-            rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-            delta = _relative(pose, matched)
-            cov_m = rot @ cov_world @ rot.T
+            delta, cov_m = _in_frame_of(pose, matched, cov_world)
             cov_o = self._odo_cov + _odometry_cov(step, cfg)
             innovation_var = float(cov_m[2, 2] + cov_o[2, 2])
             if delta[2] ** 2 > cfg.gate_chi2 * innovation_var:
