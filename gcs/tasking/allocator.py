@@ -8,7 +8,9 @@ goals, lock bookkeeping); it does no IO. Each call, in order of urgency:
 
 1. bookkeeping: robots silent longer than ``silent_after_s`` or lost (``lost_after_s``, or
    flagged) are not counted on: nothing is sent to them (a robot out of radio contact keeps
-   its last task) and their goals, OOIs and hostile views go to others; task reports close
+   its last task) and their OOIs and hostile views go to others; a silent robot's exploration
+   goal stays claimed while within its timeout (it drives on in the shadow; handed over, the
+   next robot went into the same shadow) and goes to others once it is lost; task reports close
    tasks (succeeded, failed, rejected, canceled; a goal not reached within its timeout fails);
 2. safety: a robot inside a keep-out disc (a static OOI's trigger radius, a hostile's blast
    radius, plus margins) drives to the nearest safe cell;
