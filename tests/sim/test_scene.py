@@ -130,6 +130,38 @@ def test_the_analytic_ground_gives_the_pixels_tinyrenderer_draws() -> None:
         drawn.close()
 
 
+def test_the_compiled_ground_fill_gives_the_ground_pixels_exactly() -> None:
+    """The one-pass compiled fill (``Scene._fill_ground``) colours exactly the pixels the
+    reference mask (``Scene._ground_pixels``) selects, in views along the ground, down at it,
+    over the world's edge and from below the ground plane's far end."""
+    world = _world()
+    scene = Scene(world, analytic_ground=True)
+    try:
+        assert scene.ground_rgb is not None
+        scene.set_robot_poses(np.concatenate([_robot_at(4.0, 10.0), _robot_at(8.0, 12.0)]))
+        rng = np.random.default_rng(5)
+        filled = 0
+        for k in range(24):
+            eye = np.array([rng.uniform(-5, 25), rng.uniform(-5, 25), rng.uniform(0.3, 6.0)])
+            f = np.array([rng.normal(), rng.normal(), rng.uniform(-1.0, 0.2)])
+            f /= np.linalg.norm(f)
+            side = np.cross(f, [0.0, 0.0, 1.0])
+            up = np.cross(side / np.linalg.norm(side), f)
+            w, h = ((320, 240), (160, 120), (640, 192), (48, 48))[k % 4]
+            fy = w / 2 / np.tan(np.radians(30.0))
+            rgb, depth = scene._render_raw(eye, f, up, w, h, fy, 0.05, 80.0)
+            want = rgb.copy()
+            mask = scene._ground_pixels(depth, eye, f, up, fy, 0.05, 80.0)
+            want[mask] = scene.ground_rgb
+            got = rgb.copy()
+            scene._fill_ground(got, depth, eye, f, up, fy, 0.05, 80.0)
+            assert np.array_equal(got, want), f"view {k} from {eye.round(2)}"
+            filled += int(mask.sum())
+        assert filled > 50_000  # the views do show ground
+    finally:
+        scene.close()
+
+
 def test_culled_bodies_leave_the_image_unchanged() -> None:
     """Bodies outside the camera's frustum are made transparent for the render
     (TinyRenderer skips them) and the image is the one with every body drawn: posts all
