@@ -64,13 +64,21 @@ def test_hold_suspends_the_task_reports_it_and_resumes_it() -> None:
     assert intent.mode is AutonomyMode.PAUSED and len(intent.waypoints_in_odom) == 0
     assert intent.task_id == 7
     _beat(tasks, 22.0)
+    # back after 20 s silent: it first stands 0.2 * 20 = 4 s for the uplink backlog
     reports += tasks.update(22.0, POSE)
+    assert tasks.state is LinkState.CONNECTED and tasks.watchdog.draining
+    assert tasks.intent.mode is AutonomyMode.PAUSED and tasks.intent.task_id == 7
+    reports += tasks.update(25.95, POSE)
+    assert tasks.intent.mode is AutonomyMode.PAUSED
+    reports += tasks.update(26.0, POSE)
+    assert not tasks.watchdog.draining
     assert np.array_equal(tasks.intent.waypoints_in_odom, goal)  # resumed, not failed
     details = [r.detail for r in reports if r.task_id == 7]
     assert [d.split(":")[0] for d in details] == [
         "link silent for 5.0 s",
         "link silent for 10.0 s",
-        "link back after 20.0 s silent (resuming the task)",
+        "link back after 20.0 s silent (resuming the task after at most 4.0 s holding for "
+        "the uplink backlog)",
     ], details
     # suspended time did not count as a missing path: the 30 s no-path timeout never ran
     assert all(r.state is TaskState.ACTIVE for r in reports)
@@ -214,3 +222,63 @@ def test_a_point_of_contact_not_reached_in_time_is_passed_over_for_the_next() ->
     assert np.allclose(np.asarray(wd.return_target_in_odom), [0.0, 0.0])  # the next back
     assert wd.update(26.9, stuck) is LinkState.RETURNING
     assert wd.update(27.0, stuck) is LinkState.HOLDING  # the trail is used up
+
+
+def test_drain_hold_ends_with_the_backlog_or_a_new_silence_and_is_capped() -> None:
+    """Back in contact after a silence, the robot stands where it heard the GCS while what it
+    produced meanwhile goes up: ``drain_hold_frac`` of the silence, at most
+    ``drain_hold_max_s``; a reported empty backlog ends it at once, a new silence too."""
+    cfg = CommsWatchdogConfig(
+        silence_s=5.0, task_grace_s=5.0, task_limit_s=5.0, policy="hold", drain_hold_max_s=12.0
+    )
+
+    def silent_then_back(back_s: float) -> LinkAwareTasks:
+        tasks = LinkAwareTasks(config=cfg)
+        _beat(tasks, 0.0)
+        _beat(tasks, 2.0)
+        tasks.submit(GoToTask(7, 2.0, [(20.0, 0.0)]), 2.0, POSE)
+        for k in range(int((back_s - 2.0) / 0.5)):
+            tasks.update(2.0 + 0.5 * k, POSE)
+        assert tasks.state is LinkState.HOLDING
+        _beat(tasks, back_s)
+        return tasks
+
+    # 100 s silent: 0.2 * 100 = 20 s, capped at 12 s
+    tasks = silent_then_back(102.0)
+    for t in (104.0, 106.0, 108.0, 110.0, 112.0):  # the GCS heard on: the hold is not restarted
+        _beat(tasks, t)
+        tasks.update(t, POSE, uplink_backlog_bytes=4000)
+    tasks.update(113.9, POSE, uplink_backlog_bytes=4000)
+    assert tasks.watchdog.draining and tasks.intent.mode is AutonomyMode.PAUSED
+    assert tasks.watchdog.suspended  # no task failure or no-path timeout while it stands
+    tasks.update(114.0, POSE, uplink_backlog_bytes=4000)
+    assert not tasks.watchdog.draining
+    assert tasks.intent.mode is not AutonomyMode.PAUSED and len(tasks.intent.waypoints_in_odom)
+    # the node reports its backlog: empty ends the hold at once
+    tasks = silent_then_back(102.0)
+    tasks.update(103.0, POSE, uplink_backlog_bytes=1500)
+    assert tasks.watchdog.draining
+    tasks.update(104.0, POSE, uplink_backlog_bytes=0)
+    assert not tasks.watchdog.draining and len(tasks.intent.waypoints_in_odom)
+    tasks.update(105.0, POSE, uplink_backlog_bytes=900)  # new data: not a new hold
+    assert not tasks.watchdog.draining
+    # silent again while it stands: the hold ends, the silence rules take over
+    tasks = silent_then_back(32.0)  # 30 s silent: 6 s hold, then nothing heard for 5 s
+    tasks.update(36.9, POSE)
+    assert tasks.watchdog.draining
+    tasks.update(37.0, POSE)
+    assert tasks.state is LinkState.SILENT and not tasks.watchdog.draining
+    # off: resumes at once
+    off = LinkAwareTasks(config=msgspec.structs.replace(cfg, drain_hold_frac=0.0))
+    _beat(off, 0.0)
+    _beat(off, 2.0)
+    off.submit(GoToTask(7, 2.0, [(20.0, 0.0)]), 2.0, POSE)
+    for k in range(60):
+        off.update(2.0 + 0.5 * k, POSE)
+    _beat(off, 40.0)
+    off.update(40.0, POSE)
+    assert not off.watchdog.draining and len(off.intent.waypoints_in_odom)
+    with pytest.raises(ValueError, match="drain_hold_frac"):
+        CommsWatchdogConfig(drain_hold_frac=1.5)
+    with pytest.raises(ValueError, match="drain_hold_max_s"):
+        CommsWatchdogConfig(drain_hold_max_s=-1.0)
