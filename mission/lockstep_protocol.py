@@ -4,15 +4,23 @@ and the run's seed streams (``mission.lockstep``; ``magic robot --lockstep``).
 Imports neither the simulator nor the robot node, so that a robot host loads only this.
 
 Across processes zenoh keeps the order of one key's publications, not the order across keys:
-each step therefore says how much of the other traffic is due. The ground side tells each
-robot, with :class:`StepGo`, the step's mission time, how many downlink radio packets it has
-put on the air to it so far and the radio grant; the simulator ends each robot's frames of
-the step with a ``ClockTick`` on the robot's sensor key; the robot answers with
-:class:`StepDone`: how many uplink packets and simulator commands it has sent so far. Each
-side waits until that much has arrived before it goes on.
+each step therefore says how much of the radio's traffic is due. A process hosting robot nodes
+(a *group*: ``magic robot --lockstep --id 0-7``, one robot or several) gets one
+:class:`GroupGo` a step: the step's mission time and, for each of its robots
+(:class:`RobotGo`), how many downlink radio packets the ground side has put on the air to it so
+far, the radio grant and the robot's sensor frames of the step (encoded, in order). It answers
+with one :class:`GroupDone`: each robot's :class:`StepDone` (how many uplink packets it has put
+on the air so far, its counters) and the simulator commands it sent this step (encoded, in
+order), which the ground side applies before it steps the simulator again. Each side waits
+until the radio packets counted have arrived before it goes on. One message each way per
+group and step, not several per robot (issue 16: at 100 robots the per-robot messages, a go,
+the frames, an end-of-step tick, the commands and a done, cost the simulator's process about
+0.45 CPU-s a mission-second in zenoh's threads).
 
-The keys are ``magic/<mission>/gcs/lockstep/{go,done}/<robot id>`` (``keys.gcs``); a process
-hosting robot nodes declares ``.../lockstep/host/<robot id>`` for each (:func:`robot_host_key`).
+The keys are ``magic/<mission>/gcs/lockstep/group/go/<group's first robot id>`` and
+``.../lockstep/group/done`` (every group's answers, hellos included: the ground side learns the
+groups from them; ``keys.gcs``); a process hosting robot nodes declares
+``.../lockstep/host/<robot id>`` for each (:func:`robot_host_key`).
 """
 
 from __future__ import annotations
@@ -29,36 +37,49 @@ __all__ = [
     "GcsDone",
     "GcsEnd",
     "GcsGo",
+    "GroupDone",
+    "GroupGo",
+    "RobotGo",
     "RunSeeds",
     "StepDone",
-    "StepGo",
-    "parse_robot_ids",
-    "robot_host_key",
     "gcs_done_key",
     "gcs_end_key",
     "gcs_go_key",
+    "group_done_key",
+    "group_go_key",
+    "parse_robot_ids",
+    "robot_host_key",
     "seed_streams",
-    "step_done_key",
-    "step_go_key",
 ]
 
 
-class StepGo(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
-    """Ground side -> robot ``robot_id``: step to ``time_s``; ``downlink_packets``: radio
-    packets put on the air to this robot since the start (wait for them); ``grant``: the
-    radio's grant now."""
+class RobotGo(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
+    """One robot's part of a :class:`GroupGo`: ``downlink_packets``: radio packets put on the
+    air to it since the start (wait for them); ``grant``: the radio's grant now; ``frames``:
+    its sensor frames of the step, in order (``protocol.sensors.encode_sensor_frame``)."""
 
-    time_s: float
+    robot_id: int
     downlink_packets: int
     grant: RadioGrant
-    report_link: bool = False  # answer with the radio's reliable uplink state (StepDone)
+    frames: list[bytes]
+
+
+class GroupGo(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
+    """Ground side -> a group of robot nodes: step to ``time_s``, each of ``robots`` (the
+    group's, in id order) with its :class:`RobotGo`; ``report_link``: answer with the radio's
+    reliable uplink state (:attr:`StepDone.link_state`)."""
+
+    time_s: float
+    robots: list[RobotGo]
+    report_link: bool = False
 
 
 class StepDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
-    """Robot -> ground side: step ``time_s`` answered; totals since the start of the uplink
-    radio packets it put on the air and of the commands it sent the simulator; for the run's
-    report, the radio bytes it sent (metered) and its node's counters; ``worker``: which
-    process hosts it (two processes answering for one robot is an error the ground names)."""
+    """One robot's part of a :class:`GroupDone`: step ``time_s`` answered; totals since the
+    start of the uplink radio packets it put on the air and of the commands it sent the
+    simulator; for the run's report, the radio bytes it sent (metered) and its node's
+    counters; ``worker``: which process hosts it (two processes answering for one robot is an
+    error the ground names)."""
 
     time_s: float
     uplink_packets: int
@@ -77,6 +98,20 @@ class StepDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fiel
     #: the robot's radio in relay mode (:attr:`~robot.node.RobotNode.radio_relay`: a relay
     #: task holds it); the ground side applies it to the simulator as in one process
     relay: bool = False
+
+
+class GroupDone(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
+    """A group of robot nodes -> the ground side: step ``time_s`` answered (0 with no step
+    yet: the group's hello, repeated until its first step). ``group``: its first robot id
+    (the key of its :class:`GroupGo`); ``robot_ids``, ``done`` and ``commands`` in the same
+    order: each robot's :class:`StepDone` and the simulator commands it sent this step
+    (``protocol.sensors.encode_command``, in order)."""
+
+    time_s: float
+    group: int
+    robot_ids: list[int]
+    done: list[StepDone]
+    commands: list[list[bytes]]
 
 
 class GcsGo(msgspec.Struct, array_like=True, frozen=True, forbid_unknown_fields=True):
@@ -128,12 +163,14 @@ def gcs_done_key(mission: str) -> str:
     return keys.gcs(mission, "lockstep/gcs/done")
 
 
-def step_go_key(mission: str, robot_id: int) -> str:
-    return keys.gcs(mission, f"lockstep/go/{robot_id}")
+def group_go_key(mission: str, group: int) -> str:
+    """The key of the :class:`GroupGo` of the group whose first robot id is ``group``."""
+    return keys.gcs(mission, f"lockstep/group/go/{group}")
 
 
-def step_done_key(mission: str, robot_id: int) -> str:
-    return keys.gcs(mission, f"lockstep/done/{robot_id}")
+def group_done_key(mission: str) -> str:
+    """The key every group's :class:`GroupDone` goes on."""
+    return keys.gcs(mission, "lockstep/group/done")
 
 
 def robot_host_key(mission: str, robot_id: int) -> str:

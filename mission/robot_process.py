@@ -33,13 +33,15 @@ import msgspec
 
 from mission.config import ConfigError, load_config
 from mission.lockstep_protocol import (
+    GroupDone,
+    GroupGo,
+    RobotGo,
     StepDone,
-    StepGo,
+    group_done_key,
+    group_go_key,
     parse_robot_ids,
     robot_host_key,
     seed_streams,
-    step_done_key,
-    step_go_key,
 )
 from mission.robot_args import robot_parser
 from protocol import keys
@@ -54,7 +56,8 @@ from protocol.process_cli import (
 )
 from protocol.radio import RadioConfig
 from protocol.radio_channel import LinkBackpressure
-from protocol.sensors import ClockTick
+from protocol.sensors import decode_sensor_frame, encode_command
+from protocol.wire import ProtocolError
 from robot.node import RobotNode, RobotNodeConfig
 
 __all__ = [
@@ -170,16 +173,16 @@ class RobotProcess:
 
 
 class LockstepRobot:
-    """A robot node in its own process, stepped by the ground side's :class:`StepGo` so that
-    the mission is the one the same team gives in one process (:mod:`mission.lockstep`,
-    :mod:`mission.lockstep_protocol`).
+    """A robot node of a lockstep team in a process of its own or with others
+    (:class:`LockstepGroup` carries its steps), stepped so that the mission is the one the
+    same team gives in one process (:mod:`mission.lockstep`, :mod:`mission.lockstep_protocol`).
 
-    At each step (mission time ``t``): wait for the step's frames (up to the simulator's
-    end-of-step ``ClockTick`` on this robot's sensor key) and for the downlink packets the
+    At each step (mission time ``t``, its :class:`RobotGo`): wait for the downlink packets the
     ground side counted; process that downlink at the previous step's time (as the in-process
-    exchange does); apply the grant; move the clock to ``t``; hand the frames to the node;
-    send its commands; pump the radio by hand; answer with :class:`StepDone` (totals of
-    uplink packets and commands). ``link`` must have no pump thread and a ManualClock.
+    exchange does); apply the grant; (the clock moves to ``t``) hand the step's frames to the
+    node and keep its commands for the group's answer; (the radio is pumped) answer with its
+    :class:`StepDone` (totals of uplink packets and commands). ``link`` must have no pump
+    thread and a ManualClock.
     """
 
     def __init__(
@@ -199,22 +202,15 @@ class LockstepRobot:
         self.clock = clock
         self.timeout_s = timeout_s
         self.refused = 0
+        self.rejected_frames = 0
         self.node = RobotNode(robot_id, send=self._send, config=config, seed=seed)
         self.radio = link.robot_endpoint(robot_id, on_message=self.node.handle_downlink)
         self.radio.hold_arrivals()
-        self.driver = link.remote_driver(robot_id)
-        self._go: queue.SimpleQueue[StepGo] = queue.SimpleQueue()
-        self._go_decoder = msgspec.msgpack.Decoder(StepGo)
-        self._encoder = msgspec.msgpack.Encoder()
-        self._sub = link.subscribe(step_go_key(link.mission, robot_id), self._on_go)
-        self._done_key = step_done_key(link.mission, robot_id)
-        self._frames: list[Any] = []
-        self._last_t = 0.0
         self.commands_sent = 0
         self.steps = 0
         self.frames_seen = 0
-        self._next_hello = 0.0
         self._report_link = False
+        self._encoder = msgspec.msgpack.Encoder()
 
     def _link_state(self) -> bytes:
         """The reliable uplink streams' state (:class:`StepDone`): what the link accepted and
@@ -235,15 +231,10 @@ class LockstepRobot:
             self.refused += 1
             return None
 
-    def _on_go(self, _key: str, payload: bytes) -> None:
-        try:
-            self._go.put(self._go_decoder.decode(payload))
-        except (msgspec.DecodeError, msgspec.ValidationError) as err:
-            log.warning("robot %d: bad lockstep message: %s", self.robot_id, err)
-
-    def _done(self, time_s: float) -> None:
+    def done(self, time_s: float) -> StepDone:
+        """This robot's :class:`StepDone` of step ``time_s`` (0: its hello)."""
         stats = self.node.stats
-        done = StepDone(
+        return StepDone(
             time_s,
             self.radio.packets_out,
             self.commands_sent,
@@ -256,77 +247,38 @@ class LockstepRobot:
             self._link_state() if self._report_link else b"",
             self.node.radio_relay,
         )
-        self.link.publish(self._done_key, self._encoder.encode(done))
 
-    def hello(self) -> None:
-        """Tell the ground side this robot is up (repeated until the first step comes)."""
-        self._done(0.0)
-        self._next_hello = time.monotonic() + 0.5
-
-    def _frames_until(self, t: float) -> list[Any]:
-        deadline = time.monotonic() + self.timeout_s
-        while True:
-            for i, f in enumerate(self._frames):
-                if isinstance(f, ClockTick) and f.time_s >= t:
-                    out, self._frames = self._frames[:i], self._frames[i + 1 :]
-                    return [f for f in out if not isinstance(f, ClockTick)]
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"robot {self.robot_id}: frames of {t:.2f} s never ended")
-            self._frames += self.driver.poll(0.5)
-
-    def take_go(self, timeout_s: float) -> StepGo | None:
-        """The next step's :class:`StepGo`, None if none came within ``timeout_s`` (before
-        the first step, the hello is repeated meanwhile) or it repeats a step answered."""
-        try:
-            go = self._go.get(timeout=timeout_s)
-        except queue.Empty:
-            if self.steps == 0 and time.monotonic() >= self._next_hello:
-                self.hello()
-            return None
-        if go.time_s <= self._last_t and self.steps > 0:
-            return None  # a repeated step: answered already
-        return go
-
-    def receive(self, go: StepGo) -> list[Any]:
-        """The step's first half, before the clock moves to ``go.time_s``: wait for its frames
-        and the downlink counted, process that downlink (at the previous step's time) and
-        apply the grant; returns the frames."""
-        frames = self._frames_until(go.time_s)
+    def receive(self, go: RobotGo, report_link: bool = False) -> list[Any]:
+        """The step's first half, before the clock moves to its time: wait for the downlink
+        counted, process that downlink (at the previous step's time) and apply the grant;
+        returns the step's frames (one that does not decode is counted and skipped)."""
         if not self.radio.wait_packets_in(go.downlink_packets, self.timeout_s):
-            raise TimeoutError(
-                f"robot {self.robot_id}: downlink of {go.time_s:.2f} s not delivered"
-            )
+            raise TimeoutError(f"robot {self.robot_id}: downlink not delivered")
         self.radio.deliver_held()  # at the previous step's time
         self.radio.set_grant(go.grant)
-        self._report_link = go.report_link
+        self._report_link = report_link
+        frames = []
+        for data in go.frames:
+            try:
+                frames.append(decode_sensor_frame(data))
+            except ProtocolError as err:
+                self.rejected_frames += 1
+                log.warning("robot %d: bad sensor frame: %s", self.robot_id, err)
         return frames
 
-    def act(self, frames: list[Any]) -> None:
-        """The step's second half, at its time: the node processes the frames and its
-        commands go to the simulator (the radio is pumped by the caller, then :meth:`answer`)."""
+    def act(self, frames: list[Any]) -> list[bytes]:
+        """The step's second half, at its time: the node processes the frames; returns its
+        commands for the simulator, encoded (the radio is pumped by the caller, then
+        :meth:`answer`)."""
         self.frames_seen += len(frames)
-        for command in self.node.process(frames):
-            self.driver.send(command)
-            self.commands_sent += 1
+        commands = [encode_command(c) for c in self.node.process(frames)]
+        self.commands_sent += len(commands)
+        return commands
 
-    def answer(self, t: float) -> None:
-        """Say step ``t`` is done (after the link was pumped)."""
-        self._done(t)
-        self._last_t = t
+    def answer(self, t: float) -> StepDone:
+        """Step ``t`` is done (after the link was pumped): its :class:`StepDone`."""
         self.steps += 1
-
-    def step_once(self, timeout_s: float = 0.1) -> bool:
-        """Answer the next step (False if none came within ``timeout_s``)."""
-        go = self.take_go(timeout_s)
-        if go is None:
-            return False
-        frames = self.receive(go)
-        if go.time_s > self.clock.now():
-            self.clock.set(go.time_s)
-        self.act(frames)
-        self.link.pump()
-        self.answer(go.time_s)
-        return True
+        return self.done(t)
 
     def status_line(self) -> str:
         s = self.node.stats
@@ -338,18 +290,20 @@ class LockstepRobot:
         )
 
     def close(self) -> None:
-        self._sub.close()
-        self.driver.close()
+        pass
 
 
 class LockstepGroup:
-    """Several robot nodes of a lockstep team in one process (a worker of ``magic run``; the
-    robot ids of ``magic robot --lockstep --id 0-7``), on one link and one clock: each step
-    is what their own processes would do, in three phases so that the shared clock holds the
-    previous step's time while every robot's downlink is processed: every robot receives
-    (frames, downlink, grant), the clock moves, every robot acts in id order, the link is
-    pumped once, every robot answers. Each robot's channels, draws and messages are its own,
-    so the run is the one in one process, bit for bit."""
+    """The robot nodes of a lockstep team one process hosts (a worker of ``magic run``; the
+    robot ids of ``magic robot --lockstep --id 0-7``, one or several), on one link and one
+    clock, stepped by one :class:`GroupGo` a step and answering with one :class:`GroupDone`
+    (:mod:`mission.lockstep_protocol`). Each step is what the robots' own processes would do,
+    in three phases so that the shared clock holds the previous step's time while every
+    robot's downlink is processed: every robot receives (downlink, grant, frames), the clock
+    moves, every robot acts in id order, the link is pumped once, the group answers. Each
+    robot's channels, draws and messages are its own, so the run is the one in one process,
+    bit for bit. Until its first step it says hello (a :class:`GroupDone` of time 0) every
+    ``hello_period_s`` wall seconds."""
 
     def __init__(
         self,
@@ -360,58 +314,89 @@ class LockstepGroup:
         seeds: Callable[[int], int],
         *,
         timeout_s: float = 30.0,
+        hello_period_s: float = 0.5,
     ) -> None:
         if not robot_ids:
             raise ValueError("a lockstep group needs at least one robot id")
         self.link = link
         self.clock = clock
         self.timeout_s = timeout_s
+        self.hello_period_s = hello_period_s
         self.robots = [
             LockstepRobot(link, rid, clock, config, seeds(rid), timeout_s=timeout_s)
             for rid in sorted(robot_ids)
         ]
+        self.group = self.robots[0].robot_id
         self.steps = 0
+        self._last_t = 0.0
+        self._next_hello = 0.0
+        self._go: queue.SimpleQueue[GroupGo] = queue.SimpleQueue()
+        self._decoder = msgspec.msgpack.Decoder(GroupGo)
+        self._encoder = msgspec.msgpack.Encoder()
+        self._done_key = group_done_key(link.mission)
+        self._sub = link.subscribe(group_go_key(link.mission, self.group), self._on_go)
 
     @property
     def frames_seen(self) -> int:
         return sum(r.frames_seen for r in self.robots)
 
+    def _on_go(self, _key: str, payload: bytes) -> None:
+        try:
+            self._go.put(self._decoder.decode(payload))
+        except (msgspec.DecodeError, msgspec.ValidationError) as err:
+            log.warning("robots %s: bad lockstep message: %s", self.group, err)
+
+    def _publish(self, time_s: float, done: list[StepDone], commands: list[list[bytes]]) -> None:
+        msg = GroupDone(time_s, self.group, [r.robot_id for r in self.robots], done, commands)
+        self.link.publish(self._done_key, self._encoder.encode(msg))
+
     def hello(self) -> None:
-        for r in self.robots:
-            r.hello()
+        """Tell the ground side these robots are up (repeated until the first step comes)."""
+        self._publish(0.0, [r.done(0.0) for r in self.robots], [[] for _ in self.robots])
+        self._next_hello = time.monotonic() + self.hello_period_s
+
+    def take_go(self, timeout_s: float) -> GroupGo | None:
+        """The next step's :class:`GroupGo`, None if none came within ``timeout_s`` (before
+        the first step, the hello is repeated meanwhile) or it repeats a step answered."""
+        try:
+            go = self._go.get(timeout=timeout_s)
+        except queue.Empty:
+            if self.steps == 0 and time.monotonic() >= self._next_hello:
+                self.hello()
+            return None
+        if go.time_s <= self._last_t and self.steps > 0:
+            return None  # a repeated step: answered already
+        ids = [g.robot_id for g in go.robots]
+        if ids != [r.robot_id for r in self.robots]:  # not this group's: the ground names it
+            log.warning(
+                "robots %s: a step %.2f s for robots %s, not answered",
+                _ids_text([r.robot_id for r in self.robots]),
+                go.time_s,
+                _ids_text(ids),
+            )
+            return None
+        return go
 
     def step_once(self, timeout_s: float = 0.1) -> bool:
         """Answer the next step for every robot of the group (False if none came within
-        ``timeout_s``). The ground side sends every robot's go at once: after the first,
-        the others are waited for up to the group's timeout."""
-        first = self.robots[0].take_go(timeout_s)
-        if first is None:
-            for r in self.robots[1:]:
-                if r.steps == 0:
-                    r.take_go(0.0)  # keeps the hellos going
+        ``timeout_s``)."""
+        go = self.take_go(timeout_s)
+        if go is None:
             return False
-        gos = [first]
-        for r in self.robots[1:]:
-            go = r.take_go(self.timeout_s)
-            if go is None or go.time_s != first.time_s:
-                got = "none" if go is None else f"{go.time_s:.2f} s"
-                raise TimeoutError(
-                    f"robot {r.robot_id}: no step {first.time_s:.2f} s with its group ({got})"
-                )
-            gos.append(go)
-        frames = [r.receive(go) for r, go in zip(self.robots, gos, strict=True)]
-        t = first.time_s
+        frames = [r.receive(g, go.report_link) for r, g in zip(self.robots, go.robots, strict=True)]
+        t = go.time_s
         if t > self.clock.now():
             self.clock.set(t)
-        for r, f in zip(self.robots, frames, strict=True):
-            r.act(f)
+        commands = [r.act(f) for r, f in zip(self.robots, frames, strict=True)]
         self.link.pump()
-        for r in self.robots:
-            r.answer(t)
+        self._publish(t, [r.answer(t) for r in self.robots], commands)
+        self._last_t = t
         self.steps += 1
         return True
 
     def status_line(self) -> str:
+        if len(self.robots) == 1:
+            return self.robots[0].status_line()
         nodes = sum(r.node.stats.pose_nodes for r in self.robots)
         up = sum(
             self.link.meter.total_bytes(robot_id=r.robot_id, direction=Direction.UP)
@@ -424,8 +409,13 @@ class LockstepGroup:
         )
 
     def close(self) -> None:
+        self._sub.close()
         for r in self.robots:
             r.close()
+
+
+def _ids_text(ids: list[int]) -> str:
+    return ",".join(map(str, ids))
 
 
 @contextlib.contextmanager
@@ -557,10 +547,8 @@ def _main(argv: list[str]) -> int:
         return 2
     for rid in robot_ids:
         link.declare_presence(robot_host_key(link.mission, rid))
-    proc: RobotProcess | LockstepRobot | LockstepGroup | _FreeGroup
-    if args.lockstep and len(robot_ids) == 1:
-        proc = LockstepRobot(link, robot_ids[0], clock, config, seeds.robot(robot_ids[0]))
-    elif args.lockstep:
+    proc: RobotProcess | LockstepGroup | _FreeGroup
+    if args.lockstep:  # one robot or several: a group (one message each way a step)
         proc = LockstepGroup(link, robot_ids, clock, config, seeds.robot)
     elif len(robot_ids) == 1:
         proc = RobotProcess(link, robot_ids[0], clock, config)
@@ -586,7 +574,7 @@ def _main(argv: list[str]) -> int:
         if proc.frames_seen == 0 and time.monotonic() >= next_check[0]:
             check_served()
             next_check[0] = time.monotonic() + 1.0
-        if isinstance(proc, LockstepRobot | LockstepGroup):
+        if isinstance(proc, LockstepGroup):
             now = time.monotonic()
             if proc.step_once():
                 last_step[0] = now
@@ -603,7 +591,7 @@ def _main(argv: list[str]) -> int:
     try:
         with _stop_on_signals(stop.set) as stopped_by:
             check_served()
-            if isinstance(proc, LockstepRobot | LockstepGroup):
+            if isinstance(proc, LockstepGroup):
                 proc.hello()
             print(
                 f"magic robot: {who} of mission {args.mission!r} waiting for sensor "

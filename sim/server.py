@@ -58,7 +58,10 @@ log = logging.getLogger(__name__)
 
 class SimServer:
     """Runs ``sim``; with ``link`` (a ``protocol.link.Link``) it serves the robots over zenoh,
-    without it the simulator is only stepped (in-process drivers still work)."""
+    without it the simulator is only stepped (in-process drivers still work).
+    ``serve_drivers=False``: the robots' frames and commands go another way (a lockstep team's
+    :class:`~mission.lockstep.TeamOverProcesses` carries them in its step messages); the
+    server publishes the clock, the radio grants and the truth, and declares the team."""
 
     def __init__(
         self,
@@ -70,6 +73,7 @@ class SimServer:
         lockstep: bool = False,
         progress: Callable[[str], None] | None = None,
         progress_period_s: float = 2.0,
+        serve_drivers: bool = True,
     ) -> None:
         if not rtf >= 0:
             raise ValueError(f"rtf must be >= 0, got {rtf}")
@@ -85,10 +89,6 @@ class SimServer:
         self._ports: dict[int, Any] = {}
         self.commands_received: dict[int, int] = {}
         self._commands = threading.Condition()
-        # lockstep composition: a ClockTick after each robot's frames of a step, on the same
-        # key, tells its node that the step's frames are all there (zenoh keeps one key's
-        # order, not the order across keys)
-        self.end_of_step_ticks = False
         self._radio_seen = -1
         self._events_sent = 0
         if link is not None:
@@ -96,7 +96,8 @@ class SimServer:
             self._events_key = keys.sim_truth(mission, "events")
             self._poses_key = keys.sim_truth(mission, "poses")
             for rid in sim.robot_ids:
-                self._ports[rid] = link.driver_port(rid, self._on_command(rid))
+                if serve_drivers:
+                    self._ports[rid] = link.driver_port(rid, self._on_command(rid))
                 # the team this simulator serves, for robot processes to check their --id
                 link.declare_presence(keys.sim_radio(mission, rid))
 
@@ -130,8 +131,6 @@ class SimServer:
         for rid, port in self._ports.items():
             for frame in sim.driver(rid).take_frames():
                 port.publish(frame)
-            if self.end_of_step_ticks:
-                port.publish(ClockTick(time_s=sim.time_s))
         link.publish(self._clock_key, encode_sensor_frame(ClockTick(time_s=sim.time_s)))
         if sim.radio_updates != self._radio_seen:
             self._radio_seen = sim.radio_updates

@@ -177,3 +177,74 @@ def test_robots_started_on_another_host_join_a_run_and_leave_when_it_ends() -> N
     assert report.processes == "robot nodes in 1 worker process (0,1), robots 2,3 on other hosts"
     assert worker.returncode == 0, err
     assert f"the simulator of mission {mission!r} is gone: done" in out
+
+
+def test_a_lockstep_group_answers_each_step_in_one_message_and_skips_a_bad_frame() -> None:
+    """``magic robot --lockstep --id 3,4``'s group: hellos (a GroupDone of time 0 naming its
+    robots) until the first step, then one GroupDone per GroupGo carrying both robots' dones
+    and commands; a frame that does not decode is counted and skipped, the step answered."""
+    import msgspec
+
+    from mission.lockstep_protocol import (
+        GroupDone,
+        GroupGo,
+        RobotGo,
+        group_done_key,
+        group_go_key,
+        seed_streams,
+    )
+    from mission.robot_process import LockstepGroup
+    from protocol.radio import RadioGrant
+    from protocol.sensors import ImuSample, WheelTicks, encode_sensor_frame
+
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    mission = unique_mission("group")
+    ground = Link(LinkConfig(listen=(endpoint,)), mission=mission)
+    clock = ManualClock()
+    robots = Link(LinkConfig(connect=(endpoint,), pump_period_s=0.0), mission=mission, clock=clock)
+    answers: list[GroupDone] = []
+    got = threading.Condition()
+    decoder = msgspec.msgpack.Decoder(GroupDone)
+
+    def on_done(_key: str, payload: bytes) -> None:
+        with got:
+            answers.append(decoder.decode(payload))
+            got.notify_all()
+
+    ground.subscribe(group_done_key(mission), on_done)
+    group = LockstepGroup(robots, [4, 3], clock, RobotNodeConfig(), seed_streams(1).robot)
+    try:
+        for _ in range(50):  # no step yet: the group says hello meanwhile
+            assert not group.step_once(0.2)
+            with got:
+                if answers:
+                    break
+        hello = answers[0]
+        assert (hello.time_s, hello.group, hello.robot_ids) == (0.0, 3, [3, 4])
+        grant = RadioGrant(uplink_bps=1000.0, downlink_bps=1000.0)
+        frames = [
+            encode_sensor_frame(ImuSample(0.1, (0.0, 0.0, 0.0), (0.0, 0.0, 9.81))),
+            encode_sensor_frame(WheelTicks(0.1, 0, 0)),
+        ]
+        go = GroupGo(
+            0.1,
+            [RobotGo(3, 0, grant, frames), RobotGo(4, 0, grant, [b"not a frame", *frames])],
+        )
+        ground.publish(group_go_key(mission, 3), msgspec.msgpack.encode(go))
+        for _ in range(100):
+            if group.step_once(0.1):
+                break
+        else:
+            raise AssertionError("the group never answered its step")
+        with got:
+            assert got.wait_for(lambda: answers[-1].time_s == 0.1, 10.0)
+        done = answers[-1]
+        assert done.robot_ids == [3, 4] and [d.time_s for d in done.done] == [0.1, 0.1]
+        assert len(done.commands) == 2
+        assert [d.commands for d in done.done] == [len(c) for c in done.commands]
+        assert [r.rejected_frames for r in group.robots] == [0, 1]
+        assert [r.frames_seen for r in group.robots] == [2, 2]
+    finally:
+        group.close()
+        robots.close()
+        ground.close()
