@@ -19,10 +19,15 @@ What it implements (DESIGN section 4, paper 4.1):
   cumulative sequence number plus a selective bitmap of what arrived beyond the first gap.
   Acks are delayed so that their bytes stay a bounded fraction of the traffic they acknowledge
   (``ack_budget_frac``), and sent sooner after a duplicate (the sender missed an ack) or a
-  gap. The sender resends a message at once when ``FAST_RETRANSMIT_AFTER`` later ones were
-  acknowledged, otherwise after a timeout estimated from measured round trips (RFC 6298,
-  Karn's rule), doubling per attempt up to ``rto_max_s``; the backoff restarts when the link
-  comes back up.
+  gap, or when an arrival fills a gap (the sender is recovering: RFC 5681 4.2). The sender
+  resends a message at once when ``FAST_RETRANSMIT_AFTER`` later ones were acknowledged,
+  otherwise after a timeout estimated from measured round trips (RFC 6298, Karn's rule),
+  doubling per attempt up to ``rto_max_s``; the backoff restarts when the link comes back up.
+  A message known to be a hole (fast-retransmitted: the receiver holds later ones, so it acks
+  the resend at once) is resent again after ``prompt_rto_s``, doubling, not after the delayed
+  acks' timeout: at 30 % loss a lost resend (9 % of messages) held every later message of its
+  stream at the GCS for the 9-12 s timeout; after a 60 s blackout the queue was empty in 1-4 s
+  and the last grids arrived 10-25 s later (``magic bench chaos``, seed 7, per-second probe).
 * **Latest-only streams** (telemetry): a newer message replaces a queued older one; never
   retransmitted; the receiver drops anything older than what it delivered.
 * **Latest-reliable streams** (hazard updates): only the newest matters, but it is
@@ -204,6 +209,9 @@ class _Outgoing:
     last_sent_s: float = -math.inf
     deadline_s: float = math.inf  # retransmission deadline of the latest transmission
     fast_retx_of: int = 0  # the transmission (tx_count) already fast-retransmitted
+    # a hole: the receiver acknowledged later messages (so it acks this one promptly); from
+    # which transmission on (0: not known to be one)
+    hole_from_tx: int = 0
 
 
 @dataclass
@@ -536,8 +544,14 @@ class RadioChannel:
         item.tx_count += 1
         item.last_sent_s = now
         if spec.reliability is not Reliability.LATEST:
-            backoff = 2.0 ** (item.tx_count - 1)
-            rto = self.config.prompt_rto_s if spec.name in PROMPT_STREAMS else self.rto_s
+            if item.hole_from_tx:
+                # the receiver holds later messages: it acks this one at once (a gap filled),
+                # so a lost resend shows after a round trip, not after a delayed ack's hold
+                backoff = 2.0 ** max(0, item.tx_count - item.hole_from_tx)
+                rto = self.config.prompt_rto_s
+            else:
+                backoff = 2.0 ** (item.tx_count - 1)
+                rto = self.config.prompt_rto_s if spec.name in PROMPT_STREAMS else self.rto_s
             item.deadline_s = now + min(rto * backoff, self.config.rto_max_s)
             heapq.heappush(self._timers, (item.deadline_s, next(self._order), item))
         else:
@@ -563,6 +577,8 @@ class RadioChannel:
             for item in st.unacked.values():
                 if item.alive and not item.queued and item.tx_count > 0:
                     item.tx_count = 1
+                    item.fast_retx_of = 0
+                    item.hole_from_tx = 2 if item.hole_from_tx else 0
                     self._enqueue(item)
 
     # ------------------------------------------------------------------ receiving
@@ -673,12 +689,13 @@ class RadioChannel:
         delivered = [msg]
         nxt = seq + 1
         buf = rs.buffer
+        filled = bool(buf)  # a gap filled: the sender is recovering, tell it at once
         while nxt in buf:
             delivered.append(buf.pop(nxt))
             nxt += 1
         rs.delivered_through = nxt - 1
         self.stats.delivered += len(delivered)
-        self._note_ack(sid, nbytes, now, prompt=rs.spec.name in PROMPT_STREAMS)
+        self._note_ack(sid, nbytes, now, prompt=filled or rs.spec.name in PROMPT_STREAMS)
         return delivered
 
     def _note_ack(self, stream_id: int, nbytes: int, now: float, *, prompt: bool) -> None:
@@ -782,6 +799,8 @@ class RadioChannel:
                 and item.last_sent_s <= newest_sent_s
             ):
                 item.fast_retx_of = item.tx_count
+                if not item.hole_from_tx:
+                    item.hole_from_tx = item.tx_count + 1
                 self._enqueue(item)
 
     def _rtt_sample(self, rtt_s: float) -> None:
