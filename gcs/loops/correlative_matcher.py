@@ -50,6 +50,7 @@ every match against it.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -78,6 +79,13 @@ class MatcherConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     translations every ``response_outer_stride`` cells that far at the best rotation, and
     when their spread is the larger it becomes the translation covariance (an ambiguous,
     corridor-like match then says so instead of reporting the inner neighbourhood's size).
+
+    ``runner_up_radius_m`` > 0: after the best transform, the search runs again over the same
+    window leaving out every translation within that distance of the best one (any rotation),
+    pruned at ``runner_up_ratio`` times the best score: the best *other* explanation of the
+    query, a look-alike place (:attr:`MatchResult.runner_up_score`). A view that fits two
+    places nearly as well says nothing about which one it saw (Olson 2009 rejects matches
+    whose best and second-best peaks are too close).
     """
 
     search_xy_m: float = 3.0
@@ -92,6 +100,8 @@ class MatcherConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     response_radius: int = 2
     response_outer_radius: int = 0
     response_outer_stride: int = 2
+    runner_up_radius_m: float = 0.0
+    runner_up_ratio: float = 0.9
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.search_xy_m) and 0 <= self.search_xy_m <= 100):
@@ -110,6 +120,10 @@ class MatcherConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError(f"point_correlation must be > 0, got {self.point_correlation}")
         if not 1 <= self.response_radius <= 5:
             raise ValueError(f"response_radius must be in [1, 5], got {self.response_radius}")
+        if not (math.isfinite(self.runner_up_radius_m) and self.runner_up_radius_m >= 0):
+            raise ValueError(f"runner_up_radius_m must be >= 0, got {self.runner_up_radius_m}")
+        if not 0 < self.runner_up_ratio <= 1:
+            raise ValueError(f"runner_up_ratio must be in (0, 1], got {self.runner_up_ratio}")
         if not (0 <= self.response_outer_radius <= 50 and 1 <= self.response_outer_stride <= 10):
             raise ValueError(
                 "need 0 <= response_outer_radius <= 50 and 1 <= response_outer_stride <= 10, "
@@ -121,7 +135,9 @@ class MatcherConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
 class MatchResult:
     """``a_from_b`` ``(x_m, y_m, yaw_rad)`` refined from the response surface, the discrete
     optimum of the search, the 3x3 covariance, the raw and normalized score (in [0, 1]), and
-    how many branch-and-bound nodes were scored."""
+    how many branch-and-bound nodes were scored. ``runner_up_score``: with
+    ``MatcherConfig.runner_up_radius_m``, the normalized score of the best transform at least
+    that far from the best one when it reaches ``runner_up_ratio`` of the best, else 0."""
 
     a_from_b: np.ndarray
     a_from_b_discrete: np.ndarray
@@ -129,6 +145,7 @@ class MatchResult:
     score: int
     normalized_score: float
     nodes_evaluated: int
+    runner_up_score: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -302,6 +319,18 @@ def _before(j, ty, tx, bj, bty, btx):  # type: ignore[no-untyped-def]
     return tx < btx
 
 
+@numba.njit(cache=True, inline="always")
+def _excluded(ty, tx, size, ex_ty, ex_tx, ex_r2):  # type: ignore[no-untyped-def]
+    """Whether every translation of the block ``[ty, ty + size) x [tx, tx + size)`` lies
+    within ``sqrt(ex_r2)`` cells of ``(ex_ty, ex_tx)`` (never, for ``ex_r2 < 0``): its
+    farthest corner does."""
+    if ex_r2 < 0:
+        return False
+    dy = max(abs(ty - ex_ty), abs(ty + size - 1 - ex_ty))
+    dx = max(abs(tx - ex_tx), abs(tx + size - 1 - ex_tx))
+    return dy * dy + dx * dx <= ex_r2
+
+
 #: Points per chunk of the early stop: bounds are checked, and prefix sums kept, per chunk.
 CHUNK = 32
 
@@ -392,9 +421,13 @@ def _quad(level, idx, j, n, off, d_col, d_row, parent, parent_total, best, out, 
 
 
 @numba.njit(cache=True, boundscheck=False)
-def _branch_and_bound(pyramid, width, idx, count, n_xy, min_score, j_guess):  # type: ignore[no-untyped-def]
+def _branch_and_bound(pyramid, width, idx, count, n_xy, min_score, j_guess, ex_ty, ex_tx, ex_r2):  # type: ignore[no-untyped-def]
     """Exact best ``(score, j, ty, tx)`` over rotations ``j`` and translations ``|t| <= n_xy``
-    (ties: lowest index), or ``score < min_score`` when nothing reaches ``min_score``."""
+    (ties: lowest index), or ``score < min_score`` when nothing reaches ``min_score``.
+
+    ``ex_r2 >= 0`` leaves out every translation within ``sqrt(ex_r2)`` cells of ``(ex_ty,
+    ex_tx)``, at every rotation (the runner-up search, :meth:`CorrelativeMatcher.match`): a
+    block lying wholly inside that disk is never bounded, a cell inside it never scored."""
     levels = pyramid.shape[0]
     n_yaw = idx.shape[0]
     n_chunks = (idx.shape[1] + CHUNK - 1) // CHUNK
@@ -405,10 +438,12 @@ def _branch_and_bound(pyramid, width, idx, count, n_xy, min_score, j_guess):  # 
     # start from the guess itself: an exact score, a valid candidate
     best = min_score - 1  # anything below the acceptance threshold is pruned
     bj = bty = btx = 1 << 30
-    g = _score(pyramid[0], idx, j_guess, count[j_guess], 0)
-    evaluated = 1
-    if g > best:
-        best, bj, bty, btx = g, j_guess, 0, 0
+    evaluated = 0
+    if not _excluded(0, 0, 1, ex_ty, ex_tx, ex_r2):
+        g = _score(pyramid[0], idx, j_guess, count[j_guess], 0)
+        evaluated = 1
+        if g > best:
+            best, bj, bty, btx = g, j_guess, 0, 0
     # bound every top-level block of every rotation (four at a time), keeping the prefix
     # sums for the children's early stop
     cap = n_yaw * (nb + 1) * (nb + 1)
@@ -431,7 +466,7 @@ def _branch_and_bound(pyramid, width, idx, count, n_xy, min_score, j_guess):  # 
                 for c in range(4):
                     cty = ty + (c >> 1) * block
                     ctx = tx + (c & 1) * block
-                    if cty > n_xy or ctx > n_xy:
+                    if cty > n_xy or ctx > n_xy or _excluded(cty, ctx, block, ex_ty, ex_tx, ex_r2):
                         continue
                     bounds[total] = q[c]
                     keys[total, 0] = j
@@ -476,7 +511,7 @@ def _branch_and_bound(pyramid, width, idx, count, n_xy, min_score, j_guess):  # 
             for c in range(4):
                 cty = ty + (c >> 1) * half
                 ctx = tx + (c & 1) * half
-                if cty > n_xy or ctx > n_xy:
+                if cty > n_xy or ctx > n_xy or _excluded(cty, ctx, half, ex_ty, ex_tx, ex_r2):
                     continue
                 evaluated += 1
                 cb = q[c]
@@ -759,11 +794,25 @@ class CorrelativeMatcher:
         p = self._prepare(ref, query_points_m, guess_a_from_b)
         threshold = _threshold(min_score, len(p.points))
         best, j, ty, tx, evaluated = _branch_and_bound(
-            ref.pyramid, ref.shape[1], p.idx, p.count, p.n_xy, threshold, p.j_guess
+            ref.pyramid, ref.shape[1], p.idx, p.count, p.n_xy, threshold, p.j_guess, 0, 0, -1
         )
         if best < threshold:
             return None
-        return self._result(ref, p, guess_a_from_b, best, j, ty, tx, evaluated)
+        result = self._result(ref, p, guess_a_from_b, best, j, ty, tx, evaluated)
+        radius = self.config.runner_up_radius_m / ref.resolution_m
+        if radius <= 0:
+            return result
+        # the best other place (MatcherConfig.runner_up_radius_m), pruned at the ratio
+        floor = max(threshold, int(math.ceil(self.config.runner_up_ratio * best - 1e-9)))
+        second, _j, _ty, _tx, more = _branch_and_bound(
+            ref.pyramid, ref.shape[1], p.idx, p.count, p.n_xy, floor, p.j_guess, ty, tx,
+            radius * radius,
+        )  # fmt: skip
+        return dataclasses.replace(
+            result,
+            nodes_evaluated=result.nodes_evaluated + int(more),
+            runner_up_score=float(second / (255.0 * len(p.points))) if second >= floor else 0.0,
+        )
 
     def _result(
         self,

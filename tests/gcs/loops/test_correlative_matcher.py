@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -264,3 +265,88 @@ def test_a_table_from_another_window_is_refused() -> None:
     ref = small.reference_table(np.eye(20, dtype=bool), origin_m=(0.0, 0.0), resolution_m=RES)
     with pytest.raises(ValueError, match="same matcher"):
         CorrelativeMatcher().match(ref, np.ones((3, 2)), np.zeros(3))
+
+
+def _brute_runner_up(
+    matcher: CorrelativeMatcher, ref, pts: np.ndarray, guess: np.ndarray, ty0: int, tx0: int
+) -> int:  # type: ignore[no-untyped-def]
+    """The best score over every transform whose translation lies more than
+    ``runner_up_radius_m`` from ``(ty0, tx0)`` (cells from the guess), by exhaustive search."""
+    from gcs.loops.correlative_matcher import _rotated_cells
+
+    p = matcher._prepare(ref, pts, guess)
+    rows = np.empty((len(p.yaws), len(p.points)), dtype=np.int64)
+    cols = np.empty_like(rows)
+    ox, oy = ref.origin_m
+    _rotated_cells(p.points, p.yaws, guess[0], guess[1], ox, oy, ref.resolution_m, rows, cols)
+    h, w = ref.grid_shape
+    table = ref.level(0)[ref.pad : ref.pad + h, ref.pad : ref.pad + w].astype(np.int64)
+    r2 = (matcher.config.runner_up_radius_m / ref.resolution_m) ** 2
+    best = -1
+    for ty in range(-p.n_xy, p.n_xy + 1):
+        for tx in range(-p.n_xy, p.n_xy + 1):
+            if (ty - ty0) ** 2 + (tx - tx0) ** 2 <= r2:
+                continue
+            r, c = rows + ty, cols + tx
+            inside = (r >= 0) & (r < h) & (c >= 0) & (c < w)
+            scores = np.where(inside, table[np.clip(r, 0, h - 1), np.clip(c, 0, w - 1)], 0)
+            best = max(best, int(scores.sum(axis=1).max()))
+    return best
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_runner_up_is_the_best_transform_outside_the_radius(seed: int) -> None:
+    """The runner-up search (a second branch and bound with a disk left out around the best
+    translation) finds exactly what exhaustive search finds outside that disk, when it reaches
+    the ratio; and reports 0 when nothing does."""
+    rng = np.random.default_rng(300 + seed)
+    ref_grid = rng.random((40, 40)) < 0.08
+    query_grid = rng.random((40, 40)) < 0.05
+    cfg = MatcherConfig(
+        search_xy_m=0.8,
+        search_yaw_rad=math.radians(10),
+        runner_up_radius_m=0.1 * (2 + seed),
+        runner_up_ratio=0.5 if seed % 2 else 0.99,
+    )
+    matcher = CorrelativeMatcher(cfg)
+    ref = matcher.reference_table(ref_grid, origin_m=(-2.0, -2.0), resolution_m=RES)
+    pts = grid_points(query_grid, origin_m=(-2.0, -2.0), resolution_m=RES)
+    guess = np.array([0.1, 0.0, 0.05])
+    bnb = matcher.match(ref, pts, guess)
+    assert bnb is not None
+    plain = CorrelativeMatcher(msgspec.structs.replace(cfg, runner_up_radius_m=0.0))
+    alone = plain.match(ref, pts, guess)
+    assert alone is not None and alone.runner_up_score == 0.0
+    assert (bnb.score, *bnb.a_from_b_discrete) == (alone.score, *alone.a_from_b_discrete)
+    ty0 = round((bnb.a_from_b_discrete[1] - guess[1]) / RES)
+    tx0 = round((bnb.a_from_b_discrete[0] - guess[0]) / RES)
+    second = _brute_runner_up(matcher, ref, pts, guess, ty0, tx0)
+    norm = second / (255.0 * len(matcher._prepare(ref, pts, guess).points))
+    if second >= math.ceil(cfg.runner_up_ratio * bnb.score - 1e-9):
+        assert bnb.runner_up_score == pytest.approx(norm)
+    else:
+        assert bnb.runner_up_score == 0.0
+
+
+def test_a_place_repeated_along_a_corridor_has_a_runner_up_a_unique_one_none() -> None:
+    """Two identical rooms 2 m apart: a view of one fits the other as well (a look-alike the
+    window holds); a view of irregular walls has no second place near its best."""
+    rng = np.random.default_rng(11)
+    room = walls(rng, n=4, extent=1.5)
+    world = np.concatenate([room, room + [2.0, 0.0]])
+    matcher = CorrelativeMatcher(
+        MatcherConfig(search_xy_m=3.0, search_yaw_rad=math.radians(10), runner_up_radius_m=1.0)
+    )
+    grid, origin = points_grid(world, resolution_m=RES)
+    ref = matcher.reference_table(grid, origin_m=origin, resolution_m=RES)
+    repeated = matcher.match(ref, room, np.zeros(3))
+    assert repeated is not None and repeated.normalized_score > 0.9
+    assert repeated.runner_up_score > 0.9 * repeated.normalized_score
+    truth = np.array([0.4, -0.3, math.radians(5.0)])
+    ref_grid, query_grid, origin = scene_pair(3, truth)
+    ref = matcher.reference_table(ref_grid, origin_m=origin, resolution_m=RES)
+    unique = matcher.match(ref, grid_points(query_grid, origin_m=origin, resolution_m=RES), truth)
+    assert unique is not None and unique.normalized_score > 0.5
+    assert unique.runner_up_score == 0.0
+    with pytest.raises(ValueError, match="runner_up_ratio"):
+        MatcherConfig(runner_up_ratio=0.0)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -27,3 +28,62 @@ def test_a_loose_heading_or_translation_is_ambiguous() -> None:
     assert not loose._ambiguous(cov(0.1, 3.0))
     with pytest.raises(ValueError, match="max_match_sigma_yaw_rad"):
         LoopCloserConfig(max_match_sigma_yaw_rad=0.0)
+
+
+@pytest.mark.parametrize(
+    ("radius_m", "wide", "closure"),
+    [
+        (1.0, False, False),
+        (1.0, True, False),
+        (0.0, False, True),  # the default: no runner-up search
+        (0.0, True, True),
+    ],
+)
+def test_a_view_that_fits_two_places_is_no_closure(
+    radius_m: float, wide: bool, closure: bool
+) -> None:
+    """Two identical rooms 4 m apart along a corridor: node 0 saw both, node 1 (odometry: 2 m
+    on, between them) saw one. The match fits either room equally: with the runner-up search
+    (MatcherConfig.runner_up_radius_m), in the standard or the wide window, no hypothesis,
+    counted as a look-alike; without it the same match becomes a hypothesis."""
+    from gcs.loops.candidate_search import Candidate
+
+    rng = np.random.default_rng(4)
+    room = np.concatenate(
+        [
+            np.column_stack([np.full(60, x), np.linspace(-1.5, 1.5, 60)])
+            for x in (-1.5, *rng.uniform(-1.2, 1.2, 2), 1.5)
+        ]
+        + [np.column_stack([np.linspace(-1.5, 1.5, 60), np.full(60, y)]) for y in (-1.5, 1.5)]
+        + [rng.uniform(-1.2, 1.2, (3, 2)).repeat(10, axis=0)]
+    )
+    both = np.concatenate([room, room + [4.0, 0.0]])
+    cfg = LoopCloserConfig()
+    cfg = msgspec.structs.replace(
+        cfg, matcher=msgspec.structs.replace(cfg.matcher, runner_up_radius_m=radius_m)
+    )
+    graph = PoseGraph()
+    k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
+    k1 = graph.add_pose(
+        0,
+        odom_from_base=(2.0, 0.0, 0.0),
+        time_s=1.0,
+        odometry_covariance=np.diag([0.5**2, 0.5**2, 0.01]),
+    )
+    closer = LoopCloser(graph, cfg)
+    closer.add_scan(k0, both)
+    closer.add_scan(k1, room)
+    c = cfg.candidates
+    cand = Candidate(
+        reference_key=k0,
+        query_key=k1,
+        reference_from_query=np.array([2.0, 0.0, 0.0]),
+        covariance_xyt=np.diag([0.5**2, 0.5**2, 0.01]),
+        window_xy_m=c.wide_xy_m if wide else c.window_xy_m,
+        window_yaw_rad=c.window_yaw_rad,
+        wide=wide,
+        priority=0.5,
+    )
+    hyp = closer._match(cand, 0.0)
+    assert (hyp is not None) == closure
+    assert closer.stats.look_alikes == (0 if closure else 1)
