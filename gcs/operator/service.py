@@ -86,6 +86,30 @@ class ModeLedger:
         if math.isfinite(t):
             self._last[robot_id] = (t, x, y, mode)
 
+    def state(self) -> dict[str, Any]:
+        """The ledger as JSON fields (what :meth:`restore` takes back): the totals so far and
+        each robot's last telemetry point, so the interval after a restart is charged too."""
+        return {
+            "time_s": {m: float(v) for m, v in sorted(self.time_s.items())},
+            "distance_m": {m: float(v) for m, v in sorted(self.distance_m.items())},
+            "last": {str(r): [t, x, y, m] for r, (t, x, y, m) in sorted(self._last.items())},
+        }
+
+    def restore(self, state: Mapping[str, Any]) -> None:
+        """Take back a :meth:`state` (raises ``KeyError``/``TypeError``/``ValueError`` on a
+        damaged one, leaving this ledger unchanged)."""
+        time_s = {str(m): float(v) for m, v in state["time_s"].items()}
+        distance_m = {str(m): float(v) for m, v in state["distance_m"].items()}
+        last = {
+            int(r): (float(v[0]), float(v[1]), float(v[2]), str(v[3]))
+            for r, v in state["last"].items()
+        }
+        self.time_s.clear()
+        self.time_s.update(time_s)
+        self.distance_m.clear()
+        self.distance_m.update(distance_m)
+        self._last = last
+
 
 class OperatorService:
     """Commands, status, metrics and views of the GCS (module docstring).
@@ -99,7 +123,9 @@ class OperatorService:
     ``operator_controlled`` and ``approved`` it plans with, which this service keeps equal to
     the operators' decisions), or None (estimation only: commands still reach the robots).
     ``journal``: the GCS journal (:class:`gcs.journal.GcsJournal`): every command, carried out
-    or refused, becomes an ``operator`` record.
+    or refused, becomes an ``operator`` record, and every ``ledger_period_s`` mission seconds
+    one more carries the autonomy-mode ledger, so a resumed GCS's report counts the whole
+    mission (:meth:`restore_operator`).
     """
 
     def __init__(
@@ -116,6 +142,7 @@ class OperatorService:
         handler: CommandHandler | None = None,
         meter_views_bytes: bool = True,
         journal: Any = None,
+        ledger_period_s: float = 10.0,
     ) -> None:
         self.link = link
         self.mission = link.mission
@@ -137,6 +164,8 @@ class OperatorService:
         self.control = control
         self.status_period_s = status_period_s
         self.journal = journal  # a gcs.journal.GcsJournal: every command, kept or refused
+        self.ledger_period_s = float(ledger_period_s)
+        self._ledger_journaled_s = -math.inf
         self.reports: dict[int, RobotReport] = {}
         self.ledger = ModeLedger()
         self.refused_log: collections.deque[str] = collections.deque(maxlen=200)
@@ -284,7 +313,22 @@ class OperatorService:
                 self.link.publish(op.status_key(self.mission), op.encode(self.status(station)))
         except Exception:
             log.exception("operator status failed (the GCS goes on)")
+        self._journal_ledger(now_s)
         self._views(now_s, station, occupancy)
+
+    def _journal_ledger(self, now_s: float) -> None:
+        """An ``operator`` record with the mode ledger (and the handler state, so the newest
+        such record is still what :meth:`restore_operator` starts from), when one is due."""
+        if self.journal is None or not self.ledger._last:
+            return  # nothing heard yet: nothing to keep
+        if not now_s - self._ledger_journaled_s >= self.ledger_period_s:
+            return
+        self._ledger_journaled_s = now_s
+        try:
+            fields = {"ledger": self.ledger.state(), "handler": self.handler.state()}
+            self.journal.event("operator", now_s, fields)
+        except Exception:
+            log.exception("journaling the mode ledger failed (the GCS goes on)")
 
     def _context(self, station: GroundStation, now_s: float) -> OperatorContext:
         return OperatorContext(
@@ -433,6 +477,8 @@ class OperatorService:
                 rep.last_heard_s = float(h.time_s)
                 rep.telemetry = h.telemetry if h.telemetry is not None else rep.telemetry
                 rep.status = h.status if h.status is not None else rep.status
+        if journal is not None:
+            self._restore_ledger(journal)
         if record is None:
             if journal is None:
                 return False
@@ -457,6 +503,40 @@ class OperatorService:
             len(self.handler.interactions),
         )
         return True
+
+    def _restore_ledger(self, journal: Any) -> None:
+        """The autonomy-mode ledger of the newest ``operator`` record that carries one, and
+        the telemetry journaled after it (at most ``ledger_period_s`` of it). A damaged
+        record is logged and the ledger starts afresh, as before ledgers were journaled."""
+        from gcs.journal import JournalError
+        from protocol.messages import Direction, decode_frame
+
+        try:
+            newest = None
+            for rec in journal.records(kind="operator"):
+                if b'"ledger"' in rec.body:
+                    newest = rec
+            if newest is None:
+                return
+            self.ledger.restore(newest.json()["ledger"])
+            n = 0
+            for rec in journal.records(after_seq=newest.seq, kind="uplink"):
+                try:
+                    msg = decode_frame(rec.body, Direction.UP).msg
+                except ValueError:
+                    continue  # a damaged record: the replay names it
+                if isinstance(msg, Telemetry):
+                    self.ledger.add(rec.robot_id, msg, self._mode_name(rec.robot_id, msg))
+                    n += 1
+        except (JournalError, KeyError, TypeError, ValueError, AttributeError) as err:
+            log.error("autonomy-mode ledger not restored (it starts afresh): %s", err)
+            self.ledger = ModeLedger()
+            return
+        log.info(
+            "autonomy-mode ledger restored from record %d and %d telemetry message(s) after it",
+            newest.seq,
+            n,
+        )
 
     def _set_gcs_parameter(self, name: str, value: float) -> str:
         if name == "status_period_s":

@@ -15,7 +15,7 @@ from gcs.console.client import ConsoleClient
 from gcs.ground_station import GroundStationConfig
 from gcs.node import GcsProcess
 from gcs.operator.node_hooks import add_operator_arguments, check_operator_arguments
-from gcs.operator.service import OperatorService
+from gcs.operator.service import ModeLedger, OperatorService
 from protocol import operator as op
 from protocol.clock import ManualClock
 from protocol.link import Link, LinkConfig
@@ -212,6 +212,64 @@ def test_a_resumed_service_holds_the_journaled_operator_decisions(tmp_path: Path
         (row,) = [r for r in resumed.status(station).robots if r.robot_id == 1]
         assert row.mode == "paused" and row.battery_frac == 0.5
         resumed.close()
+    finally:
+        journal.close()
+        other.close()
+        gcs_link.close()
+
+
+def test_a_resumed_service_keeps_the_autonomy_mode_ledger(tmp_path: Path) -> None:
+    """The time and distance per autonomy mode survive a GCS kill: the ledger journaled with
+    the operator records every ``ledger_period_s`` and the telemetry journaled after it give
+    a resumed service the killed one's ledger exactly; a damaged ledger record starts afresh."""
+    from gcs.ground_station import GroundStation
+    from gcs.journal import GcsJournal
+
+    def tele(t: float, x: float, mode: AutonomyMode) -> Telemetry:
+        return Telemetry(t, (x, 0.0, 0.0), (0.0, 0.0), (0.0, 0.0), 0.9, mode, 3)
+
+    path = tmp_path / "j.sqlite"
+    journal = GcsJournal.create(path, GroundStationConfig())
+    gcs_link, other = open_pair()
+    station = GroundStation()
+    try:
+        service = OperatorService(gcs_link, key=KEY, journal=journal, ledger_period_s=10.0)
+        service.after_step(now_s=0.5, station=station, send=lambda r, m: None)
+        assert not [r for r in journal.records() if r.kind == "operator"]  # nothing heard
+        heard = [
+            (1, tele(1.0, 0.0, AutonomyMode.AUTONOMOUS)),
+            (1, tele(3.0, 2.0, AutonomyMode.AUTONOMOUS)),
+            (2, tele(3.0, 5.0, AutonomyMode.PAUSED)),
+            (2, tele(4.0, 5.0, AutonomyMode.PAUSED)),
+        ]
+        for rid, msg in heard:
+            journal.uplink(rid, msg, msg.time_s)
+            service.observe(rid, msg, now_s=msg.time_s, station=station)
+        service.after_step(now_s=4.0, station=station, send=lambda r, m: None)
+        service.after_step(now_s=5.0, station=station, send=lambda r, m: None)  # not yet due
+        later = [
+            (1, tele(6.0, 3.0, AutonomyMode.TELEOPERATED)),
+            (1, tele(7.0, 3.5, AutonomyMode.AUTONOMOUS)),
+        ]
+        for rid, msg in later:  # after the ledger record: from the journaled telemetry
+            journal.uplink(rid, msg, msg.time_s)
+            service.observe(rid, msg, now_s=msg.time_s, station=station)
+        journal.commit()
+        assert len([r for r in journal.records() if r.kind == "operator"]) == 1
+        assert service.ledger.time_s == {"autonomous": 5.0, "paused": 1.0, "teleoperated": 1.0}
+        service.close()
+        journal.abandon()
+        journal = GcsJournal.open(path)
+        resumed = OperatorService(gcs_link, key=KEY, journal=journal)
+        resumed.restore_operator()
+        assert resumed.ledger.state() == service.ledger.state()
+        assert resumed.metrics()["distance_m_autonomous"] == pytest.approx(3.0)
+        resumed.close()
+        journal.event("operator", 8.0, {"ledger": {"time_s": 3}, "handler": None})
+        damaged = OperatorService(gcs_link, key=KEY, journal=journal)
+        damaged.restore_operator()  # logged, not raised: the ledger starts afresh
+        assert damaged.ledger.state() == ModeLedger().state()
+        damaged.close()
     finally:
         journal.close()
         other.close()
