@@ -46,10 +46,11 @@ States (:class:`LinkState`), with ``quiet = now - last heard``:
   900 the three sensor robots have.
 
 The first message heard again returns it to ``CONNECTED`` and the suspended task resumes (or
-the GCS's next task replaces it), after a *drain hold*: a robot back from a silence first
-stands where it heard the GCS (``PAUSED``, :attr:`CommsWatchdog.draining`) while what it
-produced in the silence goes up, ``drain_hold_frac`` of the silence's length and at most
-``drain_hold_max_s`` (sooner when the node reports its uplink backlog and that is empty).
+the GCS's next task replaces it), after a *drain hold* when the node reports its uplink
+backlog: a robot back from a silence first stands where it heard the GCS (``PAUSED``,
+:attr:`CommsWatchdog.draining`) while what it produced in the silence goes up, until its
+radio's queue is empty, at most ``drain_hold_frac`` of the silence's length and
+``drain_hold_max_s``.
 Measured why (``magic bench chaos`` full, seed 7, 30 % loss, 60 s blackouts): the link drains a
 60 s backlog (4-12 kB) 1-25 s after its grant returns, but a robot at a radio shadow's edge
 heard the GCS for 1-2 s at a time and drove straight back in (a resumed task, or the GCS's
@@ -111,10 +112,11 @@ class CommsWatchdogConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     # drift can put it in a wall or a room (small world seed 7: a robot drove to and fro
     # between a building and a tree for 175 s, 2 m short of a point it never reached)
     return_point_s: float = 40.0
-    # back in contact after a silence of ``q`` seconds: stand still min(frac * q, max_s) while
-    # the uplink backlog of the silence goes up (0: resume at once); a node that reports its
-    # backlog (LinkAwareTasks.update's uplink_backlog_bytes) ends the hold once it is empty.
-    # 0.2 / 12 s: a 60 s blackout's backlog took 1-25 s to go up at 0.5-86 kbps and 30 % loss
+    # back in contact after a silence of ``q`` seconds: stand still while the node reports an
+    # uplink backlog (LinkAwareTasks.update's uplink_backlog_bytes > 0), at most
+    # min(frac * q, max_s) (0: resume at once). A node that does not report its backlog never
+    # holds: a hold by time alone would stand idle when the backlog is long gone (a 60 s
+    # blackout's 4-12 kB left the robot's queue 1-4 s after the grant returned at 11-86 kbps)
     drain_hold_frac: float = 0.2
     drain_hold_max_s: float = 12.0
 
@@ -181,8 +183,7 @@ class CommsWatchdog:
             cfg = self.config
             hold_s = min(cfg.drain_hold_frac * self.quiet_s(now_s), cfg.drain_hold_max_s)
             if hold_s > 0:
-                self.drain_until_s = now_s + hold_s
-                self.draining = True
+                self.drain_until_s = now_s + hold_s  # update() holds while a backlog is reported
         if periodic and not self.armed:
             self._broadcast_times.add(now_s)
             self.armed = len(self._broadcast_times) >= self.config.arm_after_broadcasts
@@ -215,12 +216,17 @@ class CommsWatchdog:
         still has waypoints to drive (it then goes on up to ``task_limit_s``); ``task_idle``:
         the robot has no task (it returns ``idle_return_after_s`` after the link was lost or
         the task ended, whichever came later); ``uplink_backlog_bytes``: what the robot's
-        radio still has queued, if the node knows (0 ends a drain hold; None: the hold runs
-        its time, :attr:`draining`)."""
+        radio still has queued, if the node knows: a robot back in contact stands while it
+        is > 0, for at most the drain hold's time (:attr:`draining`; 0 ends the hold, None:
+        no hold)."""
         cfg = self.config
         if uplink_backlog_bytes is not None and uplink_backlog_bytes <= 0:
             self.drain_until_s = -math.inf
-        self.draining = self.state is LinkState.CONNECTED and now_s < self.drain_until_s
+        self.draining = (
+            self.state is LinkState.CONNECTED
+            and now_s < self.drain_until_s
+            and uplink_backlog_bytes is not None
+        )
         if not cfg.enabled or not self.armed or self.last_heard_s is None:
             return self.state
         quiet = self.quiet_s(now_s)
@@ -323,9 +329,9 @@ class LinkAwareTasks:
         before = wd.heard(now_s, pose_in_odom, periodic=isinstance(message, HazardUpdate))
         if before is not LinkState.CONNECTED:
             what = "resuming the task" if before is not LinkState.SILENT else "task went on"
-            if wd.draining:
+            if wd.drain_until_s > now_s:
                 hold_s = wd.drain_until_s - now_s
-                what += f" after at most {hold_s:.1f} s holding for the uplink backlog"
+                what += f" once the uplink backlog is through (at most {hold_s:.1f} s)"
             self._note(now_s, f"link back after {quiet:.1f} s silent ({what})")
 
     def submit(self, task: Any, now_s: float, pose_in_odom: np.ndarray) -> list[TaskStatus]:

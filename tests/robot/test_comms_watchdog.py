@@ -64,21 +64,21 @@ def test_hold_suspends_the_task_reports_it_and_resumes_it() -> None:
     assert intent.mode is AutonomyMode.PAUSED and len(intent.waypoints_in_odom) == 0
     assert intent.task_id == 7
     _beat(tasks, 22.0)
-    # back after 20 s silent: it first stands 0.2 * 20 = 4 s for the uplink backlog
-    reports += tasks.update(22.0, POSE)
+    # back after 20 s silent, with an uplink backlog: it first stands at most 0.2 * 20 = 4 s
+    reports += tasks.update(22.0, POSE, uplink_backlog_bytes=3000)
     assert tasks.state is LinkState.CONNECTED and tasks.watchdog.draining
     assert tasks.intent.mode is AutonomyMode.PAUSED and tasks.intent.task_id == 7
-    reports += tasks.update(25.95, POSE)
+    reports += tasks.update(25.95, POSE, uplink_backlog_bytes=3000)
     assert tasks.intent.mode is AutonomyMode.PAUSED
-    reports += tasks.update(26.0, POSE)
+    reports += tasks.update(26.0, POSE, uplink_backlog_bytes=3000)
     assert not tasks.watchdog.draining
     assert np.array_equal(tasks.intent.waypoints_in_odom, goal)  # resumed, not failed
     details = [r.detail for r in reports if r.task_id == 7]
     assert [d.split(":")[0] for d in details] == [
         "link silent for 5.0 s",
         "link silent for 10.0 s",
-        "link back after 20.0 s silent (resuming the task after at most 4.0 s holding for "
-        "the uplink backlog)",
+        "link back after 20.0 s silent (resuming the task once the uplink backlog is through "
+        "(at most 4.0 s))",
     ], details
     # suspended time did not count as a missing path: the 30 s no-path timeout never ran
     assert all(r.state is TaskState.ACTIVE for r in reports)
@@ -229,7 +229,12 @@ def test_drain_hold_ends_with_the_backlog_or_a_new_silence_and_is_capped() -> No
     produced meanwhile goes up: ``drain_hold_frac`` of the silence, at most
     ``drain_hold_max_s``; a reported empty backlog ends it at once, a new silence too."""
     cfg = CommsWatchdogConfig(
-        silence_s=5.0, task_grace_s=5.0, task_limit_s=5.0, policy="hold", drain_hold_max_s=12.0
+        silence_s=5.0,
+        task_grace_s=5.0,
+        task_limit_s=5.0,
+        policy="hold",
+        drain_hold_frac=0.2,
+        drain_hold_max_s=12.0,
     )
 
     def silent_then_back(back_s: float) -> LinkAwareTasks:
@@ -264,10 +269,14 @@ def test_drain_hold_ends_with_the_backlog_or_a_new_silence_and_is_capped() -> No
     assert not tasks.watchdog.draining
     # silent again while it stands: the hold ends, the silence rules take over
     tasks = silent_then_back(32.0)  # 30 s silent: 6 s hold, then nothing heard for 5 s
-    tasks.update(36.9, POSE)
+    tasks.update(36.9, POSE, uplink_backlog_bytes=800)
     assert tasks.watchdog.draining
-    tasks.update(37.0, POSE)
+    tasks.update(37.0, POSE, uplink_backlog_bytes=800)
     assert tasks.state is LinkState.SILENT and not tasks.watchdog.draining
+    # a node that does not report its backlog: no hold
+    tasks = silent_then_back(102.0)
+    tasks.update(102.5, POSE)
+    assert not tasks.watchdog.draining and len(tasks.intent.waypoints_in_odom)
     # off: resumes at once
     off = LinkAwareTasks(config=msgspec.structs.replace(cfg, drain_hold_frac=0.0))
     _beat(off, 0.0)
@@ -276,7 +285,7 @@ def test_drain_hold_ends_with_the_backlog_or_a_new_silence_and_is_capped() -> No
     for k in range(60):
         off.update(2.0 + 0.5 * k, POSE)
     _beat(off, 40.0)
-    off.update(40.0, POSE)
+    off.update(40.0, POSE, uplink_backlog_bytes=5000)
     assert not off.watchdog.draining and len(off.intent.waypoints_in_odom)
     with pytest.raises(ValueError, match="drain_hold_frac"):
         CommsWatchdogConfig(drain_hold_frac=1.5)
