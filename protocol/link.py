@@ -434,6 +434,12 @@ class RobotEndpoint(_Endpoint):
         with self._lock:
             self.channel.apply_grant(grant)
 
+    def backlog_bytes(self) -> int:
+        """Uplink bytes queued for the air now (:meth:`RadioChannel.backlog_bytes`): what a
+        robot back in contact waits for before it drives on (:mod:`robot.comms_watchdog`)."""
+        with self._lock:
+            return self.channel.backlog_bytes()
+
     def recv(self, timeout_s: float | None = None) -> Any | None:
         """Next downlink message, or None after ``timeout_s`` (only without ``on_message``)."""
         try:
