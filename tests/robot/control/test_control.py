@@ -16,14 +16,14 @@ from robot.control.path_follower import (
     PathFollower,
     motion_enters_keepout,
 )
-from robot.control.stuck_detector import StuckDetector
+from robot.control.stuck_detector import StuckConfig, StuckDetector
 from robot.control.traversability import (
     TraversabilityConfig,
     TraversabilityMap,
     traversability,
 )
 from robot.planning.planner import PathPlanner
-from robot.terrain.grid import DRIVABLE, GridGeometry
+from robot.terrain.grid import DRIVABLE, OBSTACLE, GridGeometry
 
 
 def simulate(follower: PathFollower, pose: np.ndarray, *, steps: int, dt: float = 0.05, disks=None):
@@ -132,6 +132,76 @@ def test_stuck_when_commanded_but_not_moving() -> None:
     moving = [det.update(0.1 * k, np.array([0.05 * k, 0.0, 0.0]), 0.5, 0.0) for k in range(100)]
     assert not any(moving)
     assert not det.update(20.0, pose, 0.0, 0.0)
+
+
+def _stall(det: StuckDetector, t0: float, pose: np.ndarray, v: float, w: float) -> bool:
+    """Command ``(v, w)`` for a detection window at ``pose`` without moving; the detection."""
+    hit = any(det.update(t0 + 0.1 * k, pose, v, w) for k in range(41))
+    det.reset()
+    return hit
+
+
+def test_stuck_escape_turns_against_the_refused_turn_then_starts_over_elsewhere() -> None:
+    # a robot wedged diagonally in a doorway (small world seed 7): every clockwise turn and
+    # straight move refused; backing up straight (the old recovery) forever kept it there
+    det = StuckDetector(StuckConfig(escape_speed_m_s=0.3, escape_turn_rad_s=0.6))
+    pose = np.array([3.0, 1.0, -2.17])
+    assert _stall(det, 0.0, pose, 0.0, -1.2)
+    assert det.escape_command == (-0.3, 0.0)  # first: straight back
+    assert _stall(det, 10.0, pose, 0.0, -1.2)
+    assert det.escape_command == (-0.3, 0.6)  # then back, turning counter-clockwise
+    assert _stall(det, 20.0, pose, 0.0, -1.2)
+    assert det.escape_command == (0.3, 0.6)  # then forward, counter-clockwise
+    assert _stall(det, 30.0, pose, 0.0, -1.2)
+    assert det.escape_command == (-0.3, -0.6)
+    # stuck again 5 m away: another obstacle, the sequence starts over
+    assert _stall(det, 40.0, pose + np.array([5.0, 0.0, 0.0]), 0.8, 0.0)
+    assert det.escape_command == (-0.3, 0.0)
+    assert _stall(det, 50.0, pose + np.array([5.0, 0.0, 0.0]), 0.8, 0.0)
+    assert det.escape_command == (-0.3, 0.6)  # no turn was refused: counter-clockwise first
+
+
+def test_stuck_marks_the_refused_ground_ahead_for_a_while() -> None:
+    cfg = StuckConfig(mark_ahead_m=0.45, mark_half_width_m=0.3, remember_s=90.0)
+    det = StuckDetector(cfg)
+    geometry = GridGeometry((0.0, 0.0), 0.05, 80, 80)
+    # a turn in place that is refused says nothing about the ground ahead
+    assert _stall(det, 0.0, np.array([2.0, 2.0, 0.0]), 0.0, 1.0)
+    assert not det.blocked_mask(geometry, 5.0).any()
+    # pushing north (yaw pi/2) at an edge the map does not show
+    assert _stall(det, 10.0, np.array([2.0, 2.0, math.pi / 2]), 0.8, 0.0)
+    mask = det.blocked_mask(geometry, 15.0)
+    centres = geometry.center_of(np.argwhere(mask))
+    assert len(centres) > 0
+    assert np.all(centres[:, 1] >= 2.0 + 0.45 - 0.05)  # ahead of the body's front
+    assert np.all(centres[:, 1] <= 2.0 + 0.45 + 0.15)
+    assert np.all(np.abs(centres[:, 0] - 2.0) <= 0.3 + 0.05)  # about the footprint's width
+    assert centres[:, 0].max() - centres[:, 0].min() >= 0.5
+    assert not det.blocked_mask(geometry, 10.0 + 4.0 + 91.0).any()  # forgotten after remember_s
+    # reversing into something marks behind
+    det2 = StuckDetector(cfg)
+    assert _stall(det2, 0.0, np.array([2.0, 2.0, 0.0]), -0.3, 0.0)
+    centres = geometry.center_of(np.argwhere(det2.blocked_mask(geometry, 5.0)))
+    assert np.all(centres[:, 0] < 2.0 - 0.4)
+
+
+def test_a_refused_edge_makes_the_planner_go_round() -> None:
+    # a dock top the LIDAR sees as flat drivable ground to its edge: the goal straight ahead,
+    # off the edge; the body refuses to go. With the edge marked, the plan goes another way
+    geometry = GridGeometry((0.0, 0.0), 0.05, 120, 120)
+    classes = np.full(geometry.shape, DRIVABLE, dtype=np.uint8)
+    start, goal = np.array([3.0, 2.0]), np.array([3.0, 5.0])
+    planner = PathPlanner()
+    straight = planner.plan(classes, geometry, start, goal)
+    assert straight.ok and straight.length_m < 3.1
+    det = StuckDetector()
+    assert _stall(det, 0.0, np.array([3.0, 2.0, math.pi / 2]), 0.9, 0.0)
+    marked = classes.copy()
+    marked[det.blocked_mask(geometry, 5.0)] = OBSTACLE
+    around = planner.plan(marked, geometry, start + np.array([0.0, -0.45]), goal)
+    assert around.ok
+    near_edge = np.abs(around.path_in_odom[:, 1] - 2.5) < 0.1
+    assert np.all(np.abs(around.path_in_odom[near_edge, 0] - 3.0) > 0.6)  # not through it
 
 
 def test_traversability_eq1_and_learning() -> None:
