@@ -36,7 +36,18 @@ so:
   whole node, not noise that averages out), so the pose node's covariance grows where the
   wheels slip and the GCS trusts scan matches and loop closures over them (paper 4.1, 4.3.1).
   :meth:`InertialOdometry.observe_displacement` takes the same evidence from the LIDAR (the
-  displacement the sweeps agree on against the wheels'): any slip, turning or not;
+  displacement the sweeps agree on against the wheels'): any slip, turning or not. The LIDAR
+  measures the distance itself, so while its measurements keep coming (within
+  ``traction_hold_m`` driven of the last) its *traction factor* is the distance scale and the
+  turn traction's is not used (both at once counted the sand twice, and the turn traction,
+  a ratio of sums forgotten alike, kept the sand's value over straight firm ground after it:
+  small world seed 7, robot 0 under-counted 0.3-0.4 m a node for 3 m after a sand pit). A
+  measurement within ``displacement_gate_sigma`` of the odometry takes over the scale in use;
+  one beyond it sets the scale to what it measured (``displacement_gain``) and reports the
+  error, which the caller takes out of the position (:meth:`InertialOdometry.shift_position`):
+  the slip is in the pose already, not only in the distances to come (seed 7: a 25 % slip over
+  8 s of sand, corrected only from the next sweep on at a gain of 0.3, left 1.5 m in the
+  odometry);
 * **heading aided by the LIDAR** (:meth:`InertialOdometry.correct_heading`, paper 4.1's
   laser-aided odometry): a sweep matched against the last few
   (:class:`robot.odometry.scan_odometry.ScanOdometry`) says how far the heading drifted since
@@ -104,6 +115,12 @@ class OdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
     displacement_gain: float = 0.0  # 0: measurements only grow the variance
     traction_memory_m: float = 3.0
     min_traction: float = 0.5
+    # a LIDAR measurement moves the traction only beyond this many of its sigmas; within
+    # traction_hold_m driven of the last measurement the traction alone scales the distance
+    # (0: the turn traction's scale and the traction's multiply, the traction relaxing over
+    # traction_memory_m, as before)
+    displacement_gate_sigma: float = 1.0
+    traction_hold_m: float = 0.0
     # heading aided by the LIDAR (correct_heading): a bias measurement needs an interval in
     # this range (shorter: the match noise dominates; longer: a gap, what drifted is unknown)
     scan_bias_min_interval_s: float = 0.5
@@ -136,7 +153,13 @@ class OdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be finite and > 0, got {v}")
-        for name in ("skid_deadband", "slip_per_skid", "slip_std_per_skid"):
+        for name in (
+            "skid_deadband",
+            "slip_per_skid",
+            "slip_std_per_skid",
+            "displacement_gate_sigma",
+            "traction_hold_m",
+        ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v}")
@@ -178,6 +201,9 @@ class InertialOdometry:
         self._window: deque[tuple[float, np.ndarray]] = deque()
         self._yaw_hist: deque[tuple[float, float]] = deque()
         self._pose_hist: deque[tuple[float, float, float]] = deque()  # t, x, y
+        # t, distance the wheels (calibrated) and the odometry (slip scaled) counted so far
+        self._scale_hist: deque[tuple[float, float, float]] = deque()
+        self._wheel_distance_m = 0.0
         self.distance_m = 0.0
         self.is_still = False
         self.still_time_s = 0.0
@@ -186,6 +212,7 @@ class InertialOdometry:
         self._skid_gw = 0.0
         self._skid_turn = 0.0
         self._traction = 1.0  # LIDAR-measured factor on the distance
+        self._hold_left_m = 0.0  # distance the LIDAR's traction still governs (traction_hold_m)
         self.heading_corrections = 0  # correct_heading calls that turned the heading
         self.scan_bias_updates = 0  # of them, those that measured the bias
 
@@ -221,19 +248,30 @@ class InertialOdometry:
         return self._traction
 
     def observe_displacement(
-        self, *, odometry_m: float, measured_m: float, sigma_m: float = 0.05
+        self,
+        *,
+        odometry_m: float,
+        measured_m: float,
+        sigma_m: float = 0.05,
+        scale_used: float | None = None,
     ) -> float:
         """The LIDAR measured the body moving ``measured_m`` along its path where this
         odometry claimed ``odometry_m`` over the same interval (e.g. two sweeps matched,
         :mod:`robot.odometry.scan_displacement`; ``sigma_m`` the measurement's standard
-        deviation). Returns the shortfall beyond ``sigma_m`` (m, >= 0): the error already in
-        the odometry over that interval, for the pose node that holds it
-        (:meth:`robot.odometry.pose_node_maker.PoseNodeMaker.add_distance_variance`); with
-        ``displacement_gain`` > 0 and a shortfall beyond ``sigma_m`` the traction factor on
-        later distances moves towards ``measured / odometry`` (within the sigma it stays: on
-        firm ground, matching noise moved it and the team-mapping trial's ATE went 0.10 ->
-        0.26 m). Non-finite or non-positive ``odometry_m`` is refused
-        (ValueError)."""
+        deviation). Returns the odometry's error over that interval beyond the gate
+        (``displacement_gate_sigma * sigma_m``), signed ``measured_m - odometry_m`` (0 within
+        the gate): the caller may take it out of the position (:meth:`shift_position`) or
+        tell the pose node that holds it
+        (:meth:`robot.odometry.pose_node_maker.PoseNodeMaker.add_distance_variance`). With
+        ``displacement_gain`` > 0 and an error beyond the gate the traction factor on later
+        distances moves towards ``scale * measured / odometry`` (``scale`` the one in use,
+        clamped to ``[min_traction, 1 + (1 - min_traction) / 4]``); within the gate it stays
+        (on firm ground, matching noise moved it and the team-mapping trial's ATE went 0.10
+        -> 0.26 m), but with ``traction_hold_m`` it takes over the scale in use, the turn
+        traction's included, and governs for ``traction_hold_m`` driven (module docstring).
+        ``scale_used``: the scale the odometry used over the interval
+        (:meth:`distance_scale_between`; None: the one in use now). Non-finite or
+        non-positive ``odometry_m`` is refused (ValueError)."""
         cfg = self.config
         if not (math.isfinite(odometry_m) and odometry_m > 0):
             raise ValueError(f"observe_displacement: odometry_m must be > 0, got {odometry_m}")
@@ -241,12 +279,71 @@ class InertialOdometry:
             raise ValueError(
                 f"observe_displacement: measured_m {measured_m}, sigma_m {sigma_m} not usable"
             )
-        shortfall = max(0.0, abs(odometry_m - measured_m) - sigma_m)
-        if cfg.displacement_gain > 0 and shortfall > 0:
-            hi = 1.0 + 0.25 * (1.0 - cfg.min_traction)
-            target = min(max(self._traction * measured_m / odometry_m, cfg.min_traction), hi)
-            self._traction += cfg.displacement_gain * (target - self._traction)
-        return shortfall
+        error = measured_m - odometry_m
+        beyond = abs(error) > cfg.displacement_gate_sigma * sigma_m
+        if cfg.displacement_gain <= 0:
+            return error if beyond else 0.0
+        lo, hi = cfg.min_traction, 1.0 + 0.25 * (1.0 - cfg.min_traction)
+        # without a hold the turn traction's scale multiplies the traction: not its base
+        if cfg.traction_hold_m > 0:
+            if scale_used is not None and math.isfinite(scale_used) and scale_used > 0:
+                scale = scale_used
+            else:
+                scale = self._distance_scale()
+            self._hold_left_m = cfg.traction_hold_m
+            self._traction = min(max(scale, lo), hi)
+        else:
+            scale = self._traction
+        if not beyond:
+            return 0.0
+        target = min(max(scale * measured_m / odometry_m, lo), hi)
+        self._traction += cfg.displacement_gain * (target - self._traction)
+        # what the clamped ratio allows, no more: a match claiming more is partly wrong
+        return min(max(error, (lo / scale - 1.0) * odometry_m), (hi / scale - 1.0) * odometry_m)
+
+    def _distance_scale(self) -> float:
+        """The slip scale on the distance in use now (traction and turn traction, beyond the
+        calibrated hard-ground slip)."""
+        if self._hold_left_m > 0:
+            return self._traction
+        cfg = self.config
+        skid = 1.0 - min(cfg.slip_per_skid * self.skid_loss, 0.5)
+        return skid * self._traction
+
+    def distance_scale_between(self, t0_s: float, t1_s: float) -> float:
+        """The slip scale the odometry used on average between ``t0_s`` and ``t1_s`` (its
+        distance over the calibrated wheels', within the kept history; the scale in use now
+        when the wheels did not move): what :meth:`observe_displacement` scales by
+        (``scale_used``), as the scale may have changed within the interval."""
+
+        def at(t: float) -> tuple[float, float]:
+            hist = self._scale_hist
+            if not hist:
+                return self._wheel_distance_m, self.distance_m
+            if t >= hist[-1][0]:
+                return hist[-1][1], hist[-1][2]
+            if t <= hist[0][0]:
+                return hist[0][1], hist[0][2]
+            i = bisect_left(hist, t, key=lambda h: h[0])
+            (ta, wa, da), (tb, wb, db) = hist[i - 1], hist[i]
+            a = (t - ta) / (tb - ta)
+            return wa + a * (wb - wa), da + a * (db - da)
+
+        (w0, d0), (w1, d1) = at(t0_s), at(t1_s)
+        if w1 - w0 <= 1e-9:
+            return self._distance_scale()
+        return (d1 - d0) / (w1 - w0)
+
+    def shift_position(self, dx_m: float, dy_m: float) -> None:
+        """Move the position by ``(dx_m, dy_m)`` in ``odom`` (e.g. the slip
+        :meth:`observe_displacement` reported, along the motion), the kept history with it:
+        relative poses, and so de-skewing and the next displacement measured from
+        :meth:`pose_at`, are unchanged. ValueError on non-finite input."""
+        if not (math.isfinite(dx_m) and math.isfinite(dy_m)):
+            raise ValueError(f"shift_position: ({dx_m}, {dy_m}) not finite")
+        self._x += dx_m
+        self._y += dy_m
+        self._pose_hist = deque((t, x + dx_m, y + dy_m) for t, x, y in self._pose_hist)
 
     def correct_heading(
         self,
@@ -384,6 +481,7 @@ class InertialOdometry:
         self._last_ticks = ticks
         if prev is None:
             self._pose_hist.append((t, self._x, self._y))
+            self._scale_hist.append((t, self._wheel_distance_m, self.distance_m))
             return None
         if t <= prev.time_s:
             raise ValueError(
@@ -398,6 +496,7 @@ class InertialOdometry:
         yaw1 = self._yaw_at(t)
         rate = abs(yaw1 - yaw0) / (t - prev.time_s)
         scale = max(0.5, 1.0 - cfg.wheel_slip_frac - cfg.wheel_slip_per_rad_s * rate)
+        calibrated_scale = scale
         wheel_m = 0.5 * (dl + dr) * cfg.m_per_tick
         var_m2 = 0.0
         if cfg.effective_track_m is not None:
@@ -407,20 +506,34 @@ class InertialOdometry:
             self._skid_gw = forget * self._skid_gw + (yaw1 - yaw0) * wheel_yaw
             self._skid_turn = forget * self._skid_turn + abs(wheel_yaw)
             loss = self.skid_loss
-            scale *= 1.0 - min(cfg.slip_per_skid * loss, 0.5)
             var_m2 += (cfg.slip_std_per_skid * loss) ** 2 * abs(wheel_m)
-        if self._traction != 1.0:
+        if self._hold_left_m > 0:
             scale *= self._traction
+        else:  # (the factors in this order: the same arithmetic as without a hold)
+            if cfg.effective_track_m is not None:
+                scale *= 1.0 - min(cfg.slip_per_skid * self.skid_loss, 0.5)
+            if self._traction != 1.0:
+                scale *= self._traction
+        if self._hold_left_m > 0:
+            # the LIDAR's traction governs; beyond the hold the turn traction takes over
+            self._hold_left_m -= abs(wheel_m)
+            if self._hold_left_m <= 0:
+                self._hold_left_m = 0.0
+                self._traction = 1.0
+        elif self._traction != 1.0:
             # the factor relaxes towards 1 as the robot leaves the measured ground
             self._traction = 1.0 + (self._traction - 1.0) * math.exp(
                 -abs(wheel_m) / cfg.traction_memory_m
             )
+        calibrated = wheel_m * math.cos(self._pitch) * calibrated_scale
         ds = wheel_m * math.cos(self._pitch) * scale
         mid = 0.5 * (yaw0 + yaw1)
         self._x += ds * math.cos(mid)
         self._y += ds * math.sin(mid)
         self.distance_m += abs(ds)
+        self._wheel_distance_m += abs(calibrated)
         self._pose_hist.append((t, self._x, self._y))
+        self._scale_hist.append((t, self._wheel_distance_m, self.distance_m))
         return OdometryIncrement(ds, yaw1 - yaw0, t - prev.time_s, var_m2)
 
     def _yaw_at(self, t: float) -> float:
@@ -457,3 +570,5 @@ class InertialOdometry:
             self._yaw_hist.popleft()
         while len(self._pose_hist) > 2 and self._pose_hist[1][0] < horizon:
             self._pose_hist.popleft()
+        while len(self._scale_hist) > 2 and self._scale_hist[1][0] < horizon:
+            self._scale_hist.popleft()

@@ -104,6 +104,11 @@ class ScanOdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
     max_step_m: float = 3.0
     max_step_rad: float = math.radians(120.0)
     gate_chi2: float = 10.83  # ScanOdometry: heading innovation, 1 dof, 0.999
+    # ScanOdometry: the match's position along the heading (where wheel slip shows) corrects
+    # the odometry when it differs by more than along_gate_sigma of its standard deviation
+    # (at least along_sigma_floor_m); 0: the translation is not corrected (heading only)
+    along_gate_sigma: float = 0.0
+    along_sigma_floor_m: float = 0.04
 
     def __post_init__(self) -> None:
         positive = {
@@ -133,6 +138,8 @@ class ScanOdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True
             "keyframe_rad": self.keyframe_rad,
             "odometry_sigma_m_per_m": self.odometry_sigma_m_per_m,
             "odometry_turn_share_sigma": self.odometry_turn_share_sigma,
+            "along_gate_sigma": self.along_gate_sigma,
+            "along_sigma_floor_m": self.along_sigma_floor_m,
         }
         for name, value in nonneg.items():
             if not (math.isfinite(value) and value >= 0):
@@ -389,6 +396,10 @@ class ScanCorrection(msgspec.Struct, frozen=True, kw_only=True):
     innovation_yaw_rad: float
     innovation_var_rad2: float
     since_s: float
+    # with along_gate_sigma: the odometry's step since the previous sweep (m), and the
+    # variance of the along-heading correction (correction[0], 0 within the gate)
+    step_m: float = 0.0
+    along_var_m2: float = 0.0
 
 
 class ScanOdometry:
@@ -464,7 +475,16 @@ class ScanOdometry:
                 # 1.1 deg innovation became a 2.7 deg correction); the robot's wheels and the
                 # GCS's matches take care of the translation
                 gain = cov_o[2, 2] / (cov_o[2, 2] + cov_m[2, 2])
-                fused = np.array([0.0, 0.0, gain * float(delta[2])])
+                # along the heading: wheel slip the odometry cannot see (sand), taken whole
+                # when beyond the match's noise (the match measures it; the odometry's own
+                # error there is no noise to average but a bias)
+                along_var = float(cov_m[0, 0]) + cfg.along_sigma_floor_m**2
+                along = float(delta[0])
+                if not (
+                    cfg.along_gate_sigma > 0 and along**2 > cfg.along_gate_sigma**2 * along_var
+                ):
+                    along = 0.0
+                fused = np.array([along, 0.0, gain * float(delta[2])])
                 corrected = _compose(pose, fused)
                 since = time_s - self._last_match_s if self._last_match_s is not None else math.nan
                 result = ScanCorrection(
@@ -472,6 +492,8 @@ class ScanOdometry:
                     innovation_yaw_rad=float(delta[2]),
                     innovation_var_rad2=float(cov_m[2, 2]),
                     since_s=float(since),
+                    step_m=float(math.hypot(step[0], step[1])),
+                    along_var_m2=along_var,
                 )
                 self._last_match_s = time_s
                 self.stats.matched += 1
@@ -484,6 +506,21 @@ class ScanOdometry:
             self._keyframes.append(_transform(corrected, pts))
             self._last_key = corrected.copy()
         return result
+
+    def shift(self, dx_m: float, dy_m: float) -> None:
+        """The odometry's position was moved by ``(dx_m, dy_m)`` in ``odom`` (a slip taken
+        out, :meth:`robot.odometry.inertial_odometry.InertialOdometry.shift_position`): the
+        local map and the last poses move with it, so the next match sees no jump."""
+        if not (math.isfinite(dx_m) and math.isfinite(dy_m)):
+            raise ValueError(f"ScanOdometry.shift: ({dx_m}, {dy_m}) not finite")
+        d = np.array([dx_m, dy_m])
+        self._keyframes = deque((k + d for k in self._keyframes), maxlen=self._keyframes.maxlen)
+        for name in ("_last", "_last_key"):
+            pose = getattr(self, name)
+            if pose is not None:
+                moved = np.array(pose, dtype=np.float64, copy=True)
+                moved[:2] += d
+                setattr(self, name, moved)
 
     def _start(self, pose: FloatArray, pts: FloatArray, time_s: float) -> None:
         self._keyframes.clear()

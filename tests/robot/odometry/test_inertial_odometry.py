@@ -270,13 +270,13 @@ def test_slip_seen_as_skid_grows_the_node_covariance_and_corrects_the_distance()
     assert on_error < 0.3 * off_error
 
 
-def test_lidar_measured_displacement_moves_the_traction_and_reports_the_shortfall() -> None:
+def test_lidar_measured_displacement_moves_the_traction_and_reports_the_error() -> None:
     cfg = OdometryConfig(m_per_tick=M_PER_TICK, displacement_gain=0.5, traction_memory_m=3.0)
     odo = InertialOdometry(cfg)
     assert odo.observe_displacement(odometry_m=1.0, measured_m=0.98, sigma_m=0.05) == 0.0
     assert odo.traction == 1.0  # within the measurement's sigma: noise, not slip
-    shortfall = odo.observe_displacement(odometry_m=1.2, measured_m=0.9, sigma_m=0.1)
-    assert shortfall == pytest.approx(0.2)
+    error = odo.observe_displacement(odometry_m=1.2, measured_m=0.9, sigma_m=0.1)
+    assert error == pytest.approx(-0.3)  # signed: measured - odometry
     assert odo.traction < 0.9  # half way from 1 towards 0.75
     # later distances are scaled by it, and it relaxes as the robot drives on
     odo.add_imu(ImuSample(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY_M_S2)))
@@ -358,3 +358,66 @@ def test_lidar_aided_heading_learns_the_gyro_bias_while_driving() -> None:
     assert aided.scan_bias_updates == len(errors)
     with pytest.raises(ValueError, match="dyaw_rad"):
         aided.correct_heading(math.nan)
+
+
+def test_lidar_traction_governs_while_measured_and_its_error_comes_out_of_the_position() -> None:
+    """Sand (the body turns 83 % and moves 75 % of what the wheels ask) measured by the LIDAR
+    every 1.25 s (the true displacement, 3 cm off): the first measurement sets the distance
+    scale and its error is taken out of the position; firm ground after it is not under-counted
+    by the turn traction the sand left (the hold), and the measurements there change nothing."""
+    cfg = OdometryConfig(
+        m_per_tick=M_PER_TICK, effective_track_m=0.6, slip_per_skid=1.5, slip_std_per_skid=1.0,
+        displacement_gain=1.0, displacement_gate_sigma=3.0, traction_hold_m=3.0,
+    )  # fmt: skip
+    results: dict[str, list[float]] = {}
+    for name, use_lidar in (("wheels", False), ("lidar", True)):
+        odo, maker = InertialOdometry(cfg), PoseNodeMaker()
+        odo.add_imu(ImuSample(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY_M_S2)))
+        odo.add_ticks(WheelTicks(0.0, 0, 0))
+        t, pose, ticks = 0.0, (0.0, 0.0, 0.0), (0.0, 0.0)
+        errors = []
+        for k, (turn, dist) in enumerate([(0.83, 0.75)] * 8 + [(1.0, 1.0)] * 4):
+            a_odo, a_true = odo.pose_in_odom, pose
+            t, pose, ticks, _ = _skid_drive(
+                odo, maker, seconds=1.25, turn_traction=turn, distance_traction=dist,
+                t0=t, pose=pose, ticks=ticks,
+            )  # fmt: skip
+            b_odo = odo.pose_in_odom
+            travel = math.hypot(b_odo[0] - a_odo[0], b_odo[1] - a_odo[1])
+            made_good = math.hypot(pose[0] - a_true[0], pose[1] - a_true[1])
+            made_good += 0.03 * (-1) ** k  # the match's noise
+            if use_lidar:
+                error = odo.observe_displacement(
+                    odometry_m=travel,
+                    measured_m=made_good,
+                    sigma_m=0.04,
+                    scale_used=odo.distance_scale_between(t - 1.25, t),
+                )
+                u = (b_odo[:2] - a_odo[:2]) / travel
+                odo.shift_position(*(error * u))
+                if k >= 9:  # firm ground measured: within the noise, nothing moves
+                    assert error == 0.0
+            errors.append(math.hypot(odo.pose_in_odom[0] - pose[0], odo.pose_in_odom[1] - pose[1]))
+        results[name] = errors
+    # the wheels alone: the turn traction the sand left under-counts the firm ground after it
+    wheels, lidar = results["wheels"], results["lidar"]
+    assert wheels[-1] > 0.25 and wheels[-1] > 2 * wheels[7]
+    # with the LIDAR: the first sweep's slip (within the gate with its noise) stays, the
+    # sand's scale is taken from the second, firm ground after it is measured as such
+    assert max(lidar) < lidar[0] + 0.04
+    assert lidar[-1] < 0.5 * wheels[-1]
+
+
+def test_shift_position_moves_the_history_with_the_pose() -> None:
+    odo = InertialOdometry(OdometryConfig(m_per_tick=M_PER_TICK))
+    odo.add_imu(ImuSample(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY_M_S2)))
+    odo.add_ticks(WheelTicks(0.0, 0, 0))
+    for k in range(1, 11):
+        odo.add_imu(ImuSample(0.1 * k, (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY_M_S2)))
+        odo.add_ticks(WheelTicks(0.1 * k, 100 * k, 100 * k))
+    before = odo.pose_at(0.5)
+    odo.shift_position(-0.2, 0.1)
+    assert odo.pose_in_odom[:2] == pytest.approx([10 * 100 * M_PER_TICK - 0.2, 0.1])
+    assert odo.pose_at(0.5)[:2] == pytest.approx(before[:2] + np.array([-0.2, 0.1]))
+    with pytest.raises(ValueError, match="shift_position"):
+        odo.shift_position(math.nan, 0.0)
