@@ -298,7 +298,10 @@ class InertialOdometry:
             return 0.0
         target = min(max(scale * measured_m / odometry_m, lo), hi)
         self._traction += cfg.displacement_gain * (target - self._traction)
-        # what the clamped ratio allows, no more: a match claiming more is partly wrong
+        if cfg.traction_hold_m <= 0:
+            return error
+        # for the position: what the clamped ratio allows, no more (a match claiming more is
+        # partly wrong)
         return min(max(error, (lo / scale - 1.0) * odometry_m), (hi / scale - 1.0) * odometry_m)
 
     def _distance_scale(self) -> float:
