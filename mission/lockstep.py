@@ -40,6 +40,7 @@ repeatability.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time as _time
 from collections.abc import Callable
@@ -135,7 +136,11 @@ class TeamInLockstep:
             self.drivers: dict[int, SimDriver] = {}
             for rid in sim.robot_ids:
                 node = RobotNode(
-                    rid, send=self._uplink(rid), config=robot_config, seed=seeds.robot(rid)
+                    rid,
+                    send=self._uplink(rid),
+                    config=robot_config,
+                    seed=seeds.robot(rid),
+                    uplink_backlog=functools.partial(self._radio_backlog, rid),
                 )
                 self.nodes[rid] = node
                 self.radios[rid] = self.robot_link.robot_endpoint(
@@ -155,6 +160,10 @@ class TeamInLockstep:
         except BaseException:
             self.close()
             raise
+
+    def _radio_backlog(self, robot_id: int) -> int:
+        """Robot ``robot_id``'s queued uplink bytes (its node's drain hold asks)."""
+        return self.radios[robot_id].backlog_bytes()
 
     def _uplink(self, robot_id: int) -> Callable[[Any], object]:
         """The node's ``send``: its radio endpoint's, tolerating a full queue (the message was

@@ -112,7 +112,9 @@ class RobotProcess:
         self.robot_id = robot_id
         self.clock = clock
         self.refused = 0
-        self.node = RobotNode(robot_id, send=self._send, config=config)
+        self.node = RobotNode(
+            robot_id, send=self._send, config=config, uplink_backlog=self._backlog
+        )
         self.radio = link.robot_endpoint(
             robot_id, on_message=self.node.handle_downlink, follow_radio=True
         )
@@ -120,6 +122,10 @@ class RobotProcess:
         self._clock_sub = follow_sim_clock(link, clock)
         self._stop = threading.Event()
         self.frames_seen = 0
+
+    def _backlog(self) -> int:
+        # the radio is made after the node (it delivers to the node): asked only once running
+        return self.radio.backlog_bytes()
 
     def _send(self, msg: Any) -> object:
         try:
@@ -203,7 +209,9 @@ class LockstepRobot:
         self.timeout_s = timeout_s
         self.refused = 0
         self.rejected_frames = 0
-        self.node = RobotNode(robot_id, send=self._send, config=config, seed=seed)
+        self.node = RobotNode(
+            robot_id, send=self._send, config=config, seed=seed, uplink_backlog=self._backlog
+        )
         self.radio = link.robot_endpoint(robot_id, on_message=self.node.handle_downlink)
         self.radio.hold_arrivals()
         self.commands_sent = 0
@@ -223,6 +231,10 @@ class LockstepRobot:
             if spec is not None and spec.reliability is Reliability.RELIABLE:
                 out[name] = [st.next_seq - 1, sorted(st.unacked)]
         return self._encoder.encode(out)
+
+    def _backlog(self) -> int:
+        # the radio is made after the node (it delivers to the node): asked only once running
+        return self.radio.backlog_bytes()
 
     def _send(self, msg: Any) -> object:
         try:

@@ -314,10 +314,16 @@ class RobotNode:
         send: Callable[[Any], object],
         config: RobotNodeConfig | None = None,
         seed: int | None = None,
+        uplink_backlog: Callable[[], int] | None = None,
     ) -> None:
         """``seed``: the node's random draws (deadlock back-off); a run derives it from its
-        own seed (``mission.lockstep.seed_streams``); default: the robot id."""
+        own seed (``mission.lockstep.seed_streams``); default: the robot id.
+        ``uplink_backlog``: the robot radio's queued uplink bytes
+        (:meth:`protocol.link.RobotEndpoint.backlog_bytes`), if the node can ask: a robot back
+        in contact after a silence stands until it is empty (:mod:`robot.comms_watchdog`'s
+        drain hold); without it the robot drives on at once."""
         self.robot_id = robot_id
+        self._uplink_backlog = uplink_backlog
         self.config = config or RobotNodeConfig()
         cfg = self.config
         self._send = send
@@ -365,6 +371,7 @@ class RobotNode:
         self._latest: tuple[np.ndarray, GridGeometry] | None = None  # newest sweep's obstacles
         self._path_found = True
         self._backup_until_s = -math.inf
+        self._backup_cmd = (-self.config.backup_speed_m_s, 0.0)  # the motion while backing up
         # the fused terrain map of the newest sweep (None: not made since), without the
         # keep-out disks: line of sight for the laser (a static OOI's own keep-out would
         # block every view of it from outside)
@@ -872,6 +879,11 @@ class RobotNode:
         just within the robot's distance from its centre: the robot may drive out, never
         deeper (as the path follower allows), where the whole disk would leave it no start
         cell and no path (small world seed 0: a robot sat 100 s inside a disk 1.6 m away)."""
+        refused = self.stuck.blocked_mask(geometry, self._now)
+        if refused.any():
+            # ground the body refused to cross (stuck_detector): the map cannot see it
+            classes = classes.copy()
+            classes[refused] = OBSTACLE
         if not len(self._keepout):
             return classes
         disks = self._keepout
@@ -1087,6 +1099,7 @@ class RobotNode:
             path_found=self._path_found or breaking or self._evading,
             laser_on_target=laser_ok,
             laser_detail=self._laser_detail,
+            uplink_backlog_bytes=self._uplink_backlog() if self._uplink_backlog else None,
         ):
             self._report(status)
         intent = self._intent()
@@ -1102,7 +1115,7 @@ class RobotNode:
         if now - self._start_s < cfg.calibrate_still_s:
             v, w = 0.0, 0.0
         elif now < self._backup_until_s:
-            v, w = -cfg.backup_speed_m_s, 0.0
+            v, w = self._backup_cmd
         elif intent.teleop is not None:
             v, w = intent.teleop
             if (
@@ -1131,6 +1144,7 @@ class RobotNode:
             if self.stuck.update(now, pose, v, w):
                 self.stats.stuck_recoveries += 1
                 self._backup_until_s = now + cfg.backup_s
+                self._backup_cmd = self.stuck.escape_command
                 self.stuck.reset()
                 self.fusion.clear()  # the map that trapped us may be an artifact
                 self._planned_goal = None
@@ -1329,6 +1343,7 @@ class RobotNode:
                 # first reverse a little, straight back the way we came: face to face with
                 # a teammate there is no room to turn around
                 self._backup_until_s = now + self.config.backup_s
+                self._backup_cmd = (-self.config.backup_speed_m_s, 0.0)
             log.info(
                 "robot %d: deadlock on the way to %s; backing off to %s",
                 self.robot_id,
