@@ -45,7 +45,9 @@ def test_unarmed_watchdog_never_declares_silence() -> None:
 
 def test_hold_suspends_the_task_reports_it_and_resumes_it() -> None:
     # a robot stuck without a path is still given waypoints: hold at the grace, not the limit
-    cfg = CommsWatchdogConfig(silence_s=5.0, task_grace_s=5.0, task_limit_s=5.0, policy="hold")
+    cfg = CommsWatchdogConfig(
+        silence_s=5.0, task_grace_s=5.0, task_limit_s=5.0, policy="hold", drain_hold_frac=0.2
+    )
     tasks = LinkAwareTasks(config=cfg)
     _beat(tasks, 0.0)
     _beat(tasks, 2.0)
