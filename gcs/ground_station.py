@@ -300,10 +300,6 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     gap_covariance_scale: float = 4.0
     hazard_merge_m: float = 1.5
     hostile_merge_m: float = 4.0
-    # a walker seen again dt after its latest sighting may be up to hostile_speed_m_s * dt
-    # farther (at most hostile_reach_max_m in all): the same walker, its hazard moves there
-    hostile_speed_m_s: float = 1.0
-    hostile_reach_max_m: float = 15.0
     error_log_size: int = 100
     max_sigma_xy_m: float = 1000.0
     max_sigma_yaw_rad: float = 2.0 * math.pi
@@ -1160,26 +1156,14 @@ class GroundStation:
     def _on_moving_sighting(
         self, robot_id: int, msg: Detection, xy: np.ndarray, radius: float
     ) -> None:
-        """A hostile or mobile OOI seen: the known one of that kind nearest to ``xy`` moves
-        there, else a new hazard. Within reach means ``hostile_merge_m`` plus how far a walker
-        goes (``hostile_speed_m_s``) since that one was last seen, at most
-        ``hostile_reach_max_m``: one walker patrolling out of sight stays one hazard (with a
-        fixed 4 m, every return made another, and their keep-outs closed off the area it
-        patrols). The robot's sighting time is kept (the allocator's 30 s lock needs who saw
-        what when)."""
+        """A hostile or mobile OOI seen: the known one of that kind nearest to ``xy`` (within
+        ``hostile_merge_m``) moves there, else a new hazard; the robot's sighting time is kept
+        (the allocator's 30 s lock needs who saw what when)."""
         seen_s = float(msg.time_s) if math.isfinite(msg.time_s) else self._handle_now_s
-        cfg = self.config
-        best, best_d = None, math.inf
+        best, best_d = None, self.config.hostile_merge_m
         for i, h in enumerate(self.hazards):
-            if h.kind != msg.kind:
-                continue
             d = math.dist(h.position_in_map, xy)
-            last_s = max(self._hostile_seen.get(h.hazard_id, {}).values(), default=seen_s)
-            reach = min(
-                cfg.hostile_merge_m + cfg.hostile_speed_m_s * max(0.0, seen_s - last_s),
-                max(cfg.hostile_merge_m, cfg.hostile_reach_max_m),
-            )
-            if d < reach and d < best_d:
+            if h.kind == msg.kind and d < best_d:
                 best, best_d = i, d
         if best is None:
             hazard = Hazard(len(self.hazards) + 1, msg.kind, (float(xy[0]), float(xy[1])), radius)

@@ -519,17 +519,6 @@ def test_what_the_allocator_reads_status_heard_time_poses_trajectories_hostiles(
     far = Detection(9, 4, 4.5, ObjectKind.HOSTILE, (15.0, 0.0), cov, 0.3, 1.7, 0.9)
     gs.handle(0, far, now_s=4.5)
     assert len(gs.hostile_sightings()) == 2
-    # out of sight for 10 s, a walker may be 4 + 10 m on: seen 9 m from where it was last
-    # seen (and 17 m from the other), it is the same one, and its hazard moves there
-    back = Detection(10, 4, 14.5, ObjectKind.HOSTILE, (15.0, 9.0), cov, 0.3, 1.7, 0.9)
-    gs.handle(0, back, now_s=14.5)
-    assert len(gs.hostile_sightings()) == 2
-    far_hazard = [h for h in gs.hazards if h.hazard_id == max(gs.hostile_sightings())][0]
-    np.testing.assert_allclose(far_hazard.position_in_map, (straight(5)[4, 0] + 15.0, 9.0))
-    # beyond hostile_reach_max_m (15 m) however long unseen: another hostile
-    gone = Detection(11, 4, 100.0, ObjectKind.HOSTILE, (15.0, 29.0), cov, 0.3, 1.7, 0.9)
-    gs.handle(0, gone, now_s=100.0)
-    assert len(gs.hostile_sightings()) == 3
 
 
 def test_sightings_before_their_pose_node_wait_for_it() -> None:
