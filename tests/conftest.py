@@ -46,3 +46,33 @@ def hypothesis_dir(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
         yield path
     finally:
         set_hypothesis_home_dir(None)
+
+
+@pytest.fixture(autouse=True)
+def _clean_stop_signals(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Every test starts with SIGINT and SIGTERM deliverable and not ignored in the worker, as
+    a process started from a shell has them: a child process inherits an ignored or blocked
+    signal (the signal tests' ``magic run`` and CLI children then never stop). A test that
+    leaves them so is named in a warning and the worker is put right."""
+    import signal
+    import threading
+    import warnings
+
+    stops = {signal.SIGINT, signal.SIGTERM}
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    yield
+    blocked = stops & signal.pthread_sigmask(signal.SIG_BLOCK, [])
+    ignored = {s for s in stops if signal.getsignal(s) is signal.SIG_IGN}
+    if blocked or ignored:
+        warnings.warn(
+            f"{request.node.nodeid} left signals blocked {sorted(map(int, blocked))} / "
+            f"ignored {sorted(map(int, ignored))} in the test worker",
+            stacklevel=1,
+        )
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, stops)
+        if signal.SIGINT in ignored:
+            signal.signal(signal.SIGINT, signal.default_int_handler)
+        if signal.SIGTERM in ignored:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
