@@ -16,6 +16,7 @@ from robot.odometry.scan_odometry import (
     match_step,
     refine_odometry,
 )
+from tests.robot.laser_room import box_segments, scan_in_base
 
 #: A 12 x 8 m room with three boxes (x0, y0, x1, y1): asymmetric, so every pose looks different.
 _BOXES = [
@@ -27,27 +28,13 @@ _BOXES = [
 
 
 def _segments() -> np.ndarray:
-    segs = []
-    for x0, y0, x1, y1 in _BOXES:
-        segs += [(x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)]
-    return np.array(segs)
+    return box_segments(_BOXES)
 
 
 def _scan(pose: np.ndarray, segs: np.ndarray, beams: int = 181) -> np.ndarray:
     """Endpoints in base of a 180-degree laser at ``pose`` (nearest wall per beam)."""
     ang = np.linspace(-math.pi / 2, math.pi / 2, beams)
-    d = np.stack([np.cos(ang + pose[2]), np.sin(ang + pose[2])], axis=1)  # (B, 2)
-    p = segs[:, :2]
-    e = segs[:, 2:] - p  # (S, 2)
-    w = p[None, :, :] - pose[None, None, :2]  # (1, S, 2)
-    den = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) / den
-        u = (w[..., 0] * d[:, None, 1] - w[..., 1] * d[:, None, 0]) / den
-    ok = (np.abs(den) > 1e-12) & (t > 0.05) & (u >= 0) & (u <= 1)
-    r = np.where(ok, t, np.inf).min(axis=1)
-    keep = np.isfinite(r) & (r < 10.0)
-    return np.stack([r[keep] * np.cos(ang[keep]), r[keep] * np.sin(ang[keep])], axis=1)
+    return scan_in_base(pose, segs, ang, max_range_m=10.0)
 
 
 def _chain(steps: np.ndarray, start: np.ndarray) -> np.ndarray:

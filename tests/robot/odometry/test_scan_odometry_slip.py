@@ -10,6 +10,7 @@ import numpy as np
 
 from protocol.se2 import compose
 from robot.odometry.scan_odometry import ScanOdometry, ScanOdometryConfig
+from tests.robot.laser_room import box_segments, scan_in_base
 
 #: A 14 x 8 m room with three boxes (x0, y0, x1, y1): every pose looks different.
 _BOXES = [
@@ -21,27 +22,13 @@ _BOXES = [
 
 
 def _segments() -> np.ndarray:
-    segs = []
-    for x0, y0, x1, y1 in _BOXES:
-        segs += [(x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)]
-    return np.array(segs)
+    return box_segments(_BOXES)
 
 
 def _scan(pose: np.ndarray, segs: np.ndarray, beams: int = 361) -> np.ndarray:
     """Endpoints in base of a 360-degree laser at ``pose`` (nearest wall per beam)."""
     ang = np.linspace(-math.pi, math.pi, beams, endpoint=False)
-    d = np.stack([np.cos(ang + pose[2]), np.sin(ang + pose[2])], axis=1)
-    p = segs[:, :2]
-    e = segs[:, 2:] - p
-    w = p[None, :, :] - pose[None, None, :2]
-    den = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (w[..., 0] * e[None, :, 1] - w[..., 1] * e[None, :, 0]) / den
-        u = (w[..., 0] * d[:, None, 1] - w[..., 1] * d[:, None, 0]) / den
-    ok = (np.abs(den) > 1e-12) & (t > 0.05) & (u >= 0) & (u <= 1)
-    r = np.where(ok, t, np.inf).min(axis=1)
-    keep = np.isfinite(r) & (r < 20.0)
-    return np.stack([r[keep] * np.cos(ang[keep]), r[keep] * np.sin(ang[keep])], axis=1)
+    return scan_in_base(pose, segs, ang, max_range_m=20.0)
 
 
 def _drive(over_count: float, config: ScanOdometryConfig) -> tuple[float, int]:
