@@ -22,6 +22,10 @@ same state (same nodes, edges and poses, given a deterministic run: see below). 
 - ``held``: an uplink message the GCS's link holds behind a gap in its stream (frame bytes
   with its sequence number): selectively acknowledged, so its robot will not send it again,
   and not yet the station's; a resumed GCS puts it back (:mod:`gcs.node`'s ``LinkLedger``);
+- ``view``: the operators' views failed (:meth:`gcs.views.rerun_views.RerunViews.take_failures`:
+  a sink that would not open, a viewer unreachable, a picture not drawn or not built), by kind
+  with the first failure's text and the count since the last such record: when the operators
+  could not see what the GCS knew (the station ignores them);
 - ``checkpoint``: the station's whole state was saved here (table ``checkpoints``, below),
   with the planners' task bookkeeping at that point (tasks sent per robot, the last task id),
   so a resume reads only the ``decision`` records after it.
@@ -165,6 +169,7 @@ _KINDS = frozenset(
         "hazard_edit",
         "held",
         "assignments",
+        "view",
     }
 )
 

@@ -20,7 +20,10 @@ node calls (paper 6; DESIGN section 8: operators are clients of a running GCS).
 * views (optional): a :class:`~gcs.views.operator_picture.PictureBuilder` fed by
   :meth:`observe` and drawn by :class:`~gcs.views.rerun_views.RerunViews` (its own thread,
   never blocking the GCS) when a picture is due. ``cpu_s`` counts the views' CPU on the node
-  thread; ``views.stats.draw_cpu_s`` the drawing thread's.
+  thread; ``views.stats.draw_cpu_s`` the drawing thread's. A failure of the views (a picture
+  not built, a sink or a drawing that failed in the views' thread) goes into the GCS journal
+  as a ``view`` record at the next step, one per kind of failure with its count: when the
+  operators did not see what the GCS knew (paper 7).
 
 The node calls :meth:`observe` after each ``station.handle``, :meth:`after_step` once per
 loop (after ``station.step``) and :meth:`close` on exit. Nothing here raises into the node.
@@ -179,6 +182,7 @@ class OperatorService:
         self._last_status_wall = -math.inf
         self._now_s = 0.0
         self.cpu_s = 0.0  # views' CPU on the node thread (building pictures)
+        self.view_failures = 0  # failures of the views taken from them (and journaled)
         self._key_problem = ""
         self.builder: PictureBuilder | None = None
         self.views: RerunViews | None = None
@@ -675,10 +679,28 @@ class OperatorService:
                     station, now_s, occupancy=occupancy, planner=self.planner_view()
                 )
                 self.views.publish(pic, now_s)
-        except Exception:
+        except Exception as err:
             log.exception("operator views failed (the GCS goes on)")
+            self._journal_view("build", f"building the picture failed: {_what(err)}", 1, now_s)
         finally:
+            self._journal_view_failures(now_s)
             self.cpu_s += time.thread_time() - c0
+
+    def _journal_view_failures(self, now_s: float) -> None:
+        """The views' failures since the last step, into the journal (module docstring)."""
+        if self.views is None:
+            return
+        for f in self.views.take_failures():
+            self._journal_view(f.kind, f.text, f.count, now_s)
+
+    def _journal_view(self, kind: str, text: str, count: int, now_s: float) -> None:
+        self.view_failures += count
+        if self.journal is None:
+            return
+        try:
+            self.journal.event("view", now_s, {"kind": kind, "text": text, "count": count})
+        except Exception:
+            log.exception("journaling a view failure failed (the GCS goes on)")
 
     def close(self, station: GroundStation | None = None, timeout_s: float = 5.0) -> None:
         """A last full picture (map and graph), flush the views, stop listening."""
@@ -698,7 +720,13 @@ class OperatorService:
                     self.views.publish(pic, self._now_s)
             except Exception:
                 log.exception("final operator picture failed")
+                self._journal_view("build", "the last picture failed", 1, self._now_s)
             self.views.close(timeout_s)
+            self._journal_view_failures(self._now_s)  # the last flush's too
+
+
+def _what(err: BaseException) -> str:
+    return f"{type(err).__name__}: {err}"
 
 
 def views_thread_cpu_s(service: OperatorService) -> float:

@@ -612,6 +612,10 @@ class PictureBuilder:
             t0 = time.thread_time()
             occupancy = station.rasterize()
             self.rasterize_cpu_s += time.thread_time() - t0
+        if not isinstance(occupancy, OccupancyMap):
+            # refused before it is kept: a bad map kept as the last one failed every later map
+            raise TypeError(f"operator picture: occupancy is {type(occupancy).__name__}, "
+                            "expected an OccupancyMap")  # fmt: skip
         last = self._last_map
         if (
             not force

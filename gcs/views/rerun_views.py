@@ -22,7 +22,9 @@ Never in the GCS's way: :meth:`RerunViews.publish` only hands the picture to a w
 lags), so it costs microseconds and never blocks. The worker opens the sinks (a ``connect``
 target is probed first with a short TCP connect: rerun's own gRPC connect waits 5 s), draws,
 and catches everything: a failure is logged once per kind and counted in :attr:`stats`; an
-unreachable viewer is retried every ``retry_s`` (wall) while no file sink is attached.
+unreachable viewer is retried every ``retry_s`` (wall) while no file sink is attached. Every
+failure is also kept, by kind, for the GCS to take (:meth:`RerunViews.take_failures`) and put
+in its journal (paper 7: the logs say when the operators could not see what the GCS knew).
 """
 
 from __future__ import annotations
@@ -48,7 +50,15 @@ from gcs.views.narration import TRIGGER_M, Event, blast_radius_m
 from gcs.views.operator_picture import OperatorPicture, RobotStatus
 from gcs.views.render import FOG, FREE, KIND_RGB, WALL, render_region, thumbnail_mosaic
 
-__all__ = ["EDGE_RGB", "RerunViews", "SinkSpec", "ViewsStats", "operator_blueprint", "parse_sink"]
+__all__ = [
+    "EDGE_RGB",
+    "RerunViews",
+    "SinkSpec",
+    "ViewFailure",
+    "ViewsStats",
+    "operator_blueprint",
+    "parse_sink",
+]
 
 log = logging.getLogger("magic.gcs.views")
 
@@ -101,6 +111,18 @@ def parse_sink(spec: str) -> SinkSpec:
     raise ValueError(
         f"rerun sink {spec!r}: expected spawn, connect [ADDR], save FILE.rrd, web or memory"
     )
+
+
+@dataclass(frozen=True)
+class ViewFailure:
+    """Failures of one kind since the GCS last took them: ``kind`` (a sink's kind, ``open``,
+    ``draw``, ``retry``, ``flush``), the first one's ``text``, how many (``count``) and the
+    wall seconds (``time.time``) of the first."""
+
+    kind: str
+    text: str
+    count: int
+    first_wall_s: float
 
 
 @dataclass
@@ -241,6 +263,9 @@ class RerunViews:
         self._live_ok = False
         self._next_retry = 0.0
         self._reported: set[str] = set()
+        # failures not yet taken by the GCS (take_failures): kind -> (first text, count, wall)
+        self._failures: dict[str, tuple[str, int, float]] = {}
+        self._failures_lock = threading.Lock()
         self._last_map: OccupancyMap | None = None
         self._slots: list[int | None] = [None] * _TOP_SLOTS
         self._slot_drawn_s = [-math.inf] * _TOP_SLOTS
@@ -321,8 +346,20 @@ class RerunViews:
                 break
         self._flush(2.0)
 
+    def take_failures(self) -> list[ViewFailure]:
+        """The failures since the last call, one per kind (oldest kind first), and forget them.
+        Thread-safe: the drawing thread reports, the GCS's thread takes."""
+        with self._failures_lock:
+            pending, self._failures = self._failures, {}
+        return [ViewFailure(k, text, n, wall) for k, (text, n, wall) in pending.items()]
+
     def _report(self, kind: str, text: str) -> None:
         self.stats.sink_failures[kind] += 1
+        with self._failures_lock:
+            first = self._failures.get(kind)
+            self._failures[kind] = (
+                (text, 1, time.time()) if first is None else (first[0], first[1] + 1, first[2])
+            )
         if kind not in self._reported:
             self._reported.add(kind)
             log.warning("rerun views: %s (the GCS goes on; reported once)", text)

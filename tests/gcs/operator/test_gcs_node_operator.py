@@ -274,3 +274,63 @@ def test_a_resumed_service_keeps_the_autonomy_mode_ledger(tmp_path: Path) -> Non
         journal.close()
         other.close()
         gcs_link.close()
+
+
+def test_failed_views_are_journaled(tmp_path: Path) -> None:
+    """Issue 17 (paper 7): what the operators could not see is in the journal. A picture that
+    cannot be built (its map is no occupancy map) and a viewer that is not there (nothing
+    listens on the port; found by the views' own thread) each become a ``view`` record with
+    its kind, text and count at a following step; the GCS goes on, the next picture is built,
+    and a journal with view records still rebuilds its station."""
+    import socket
+
+    from gcs.ground_station import GroundStation
+    from gcs.journal import GcsJournal, rebuild_station
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])  # closed again: nothing listens there
+    journal = GcsJournal.create(tmp_path / "j.sqlite", GroundStationConfig())
+    gcs_link, other = open_pair()
+    service = OperatorService(
+        gcs_link, key=KEY, journal=journal, views=[f"connect 127.0.0.1:{port}"]
+    )
+    assert service.views is not None and service.builder is not None
+
+    def views() -> list[dict[str, object]]:
+        return [r.json() for r in journal.records() if r.kind == "view"]
+
+    try:
+        station = GroundStation()
+        for node in nodes_along(straight(4)):
+            station.handle(0, node, now_s=node.time_s)
+        station.step(now_s=2.0)
+        # the map layer is due in the first picture: a bad map fails the picture, not the GCS
+        service.after_step(now_s=2.0, station=station, send=lambda r, m: None, occupancy="map")
+        build = [v for v in views() if v["kind"] == "build"]
+        assert len(build) == 1 and "expected an OccupancyMap" in str(build[0]["text"]), views()
+        wait = threading.Event()
+        for k in range(200):  # the unreachable viewer is found by the views' own thread
+            if (
+                any(v["kind"] == "connect" for v in views())
+                and service.views.stats.published
+                and service.builder.map_version
+            ):
+                break
+            service.after_step(now_s=3.0 + k, station=station, send=lambda r, m: None)
+            wait.wait(0.05)
+        connect = [v for v in views() if v["kind"] == "connect"]
+        assert len(connect) == 1 and "unreachable" in str(connect[0]["text"]), views()
+        assert service.views.stats.published >= 1  # the pictures after the bad one were built
+        assert service.builder.map_version >= 1  # with their map
+        assert service.view_failures == sum(int(str(v["count"])) for v in views())
+    finally:
+        service.close()
+        other.close()
+        gcs_link.close()
+    journal.commit()
+    kinds = [v["kind"] for v in views()]
+    assert kinds.count("build") == 1 and kinds.count("connect") >= 1, kinds
+    _, summary = rebuild_station(journal)
+    assert summary.records.get("view") == len(kinds)
+    journal.close()

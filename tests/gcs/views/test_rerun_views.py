@@ -203,6 +203,12 @@ def test_unreachable_viewer_inline_is_bounded() -> None:
     views.close(timeout_s=1.0)
     assert time.perf_counter() - t0 < 3.0
     assert views.stats.sink_failures["connect"] >= 1
+    # kept for the GCS's journal: one per kind with its count, then taken
+    failures = views.take_failures()
+    assert [f.kind for f in failures] == ["connect"]
+    assert failures[0].count == views.stats.sink_failures["connect"]
+    assert "unreachable" in failures[0].text
+    assert views.take_failures() == []
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason=f"dataset absent: {INTEL}")
