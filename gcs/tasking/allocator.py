@@ -54,7 +54,13 @@ from gcs.tasking.exploration_planner import (
     return_leg,
 )
 from gcs.tasking.frontiers import Frontiers, find_frontiers
-from gcs.tasking.hostile_planner import HostileConfig, HostileLock, evasion_goal, view_positions
+from gcs.tasking.hostile_planner import (
+    HostileConfig,
+    HostileLock,
+    evasion_goal,
+    view_positions,
+    watch_slots,
+)
 from gcs.tasking.information_gain import information_gain
 from gcs.tasking.planning_grid import PlanningGrid, coarsen
 from gcs.tasking.relay_planner import relay_spots
@@ -150,6 +156,10 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # contact it was re-sent into the same shadow, over and over (small world seed 0: robots
     # 0 and 1 took turns, robot_back -> hostile_view -> robot_silent, from 95 s to the end)
     shadow_retry_s: float = 90.0
+    # a robot whose evasion of a hazard failed this often (it could not get out: jammed
+    # with others in a corridor, the way out behind a wall) is not sent to evade it again;
+    # the full mission re-sent three robots out of one keep-out every 37 s for 600 s
+    evade_attempts: int = 2
     # static hazards of one kind closer than this are one object seen from robots whose map
     # positions disagree (small world seed 0: one OOI as hazards 0.9, 1.1 and 3.3 m from it,
     # the station merges at 1.5 m): once one is neutralized the others are too, and only one
@@ -228,6 +238,8 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
                 f"tasking needs 0 <= avoid_from_m <= avoid_to_m (finite), got "
                 f"{self.avoid_from_m}, {self.avoid_to_m}"
             )
+        if self.evade_attempts < 1:
+            raise ValueError(f"tasking evade_attempts must be >= 1, got {self.evade_attempts}")
         if self.goal_failures_global < 1:
             raise ValueError("tasking goal_failures_global must be >= 1")
         # the robots tell the planners' tasks from the operators' by id (an operator's task is
@@ -326,6 +338,17 @@ class TaskingStats:
 
 
 @dataclass
+class _WatchArea:
+    """A hostile being watched or paused, by where its latest sighting watched is (sightings
+    of a walker get new hazard ids as it walks: the record follows them)."""
+
+    xy: tuple[float, float]
+    began_s: float | None = None
+    paused_until_s: float = -math.inf
+    pauses: int = 0
+
+
+@dataclass
 class _Ctx:
     now_s: float
     state: TaskingState
@@ -372,10 +395,15 @@ class TaskAllocator:
         self._view_shadowed: dict[int, dict[int, float]] = {}
         self._no_start: set[int] = set()
         self._lost: set[int] = set()
+        # robot -> (exploration goal, when) it fell silent on its way to
+        self._explore_shadowed: dict[int, list[tuple[tuple[float, float], float]]] = {}
+        # (robot, hazard) -> how often the robot's evasion of the hazard failed
+        self._evade_failures: dict[tuple[int, int], int] = {}
         self._lock = HostileLock(self.config.hostile)
         self._hostile_at: dict[int, tuple[float, float]] = {}
-        self._watch_since: dict[int, float] = {}  # hostile -> its current watch began
-        self._watch_paused: dict[int, float] = {}  # hostile -> not watched before
+        # one record a hostile watched (by where its latest sighting is): when its watch
+        # began, how often and until when it is paused
+        self._watch_areas: list[_WatchArea] = []
         self._spread_at_s = -math.inf
         self._spread_key: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())
         # points of radio contact (lattice cells of contact_bin_m) and their centres
@@ -620,9 +648,12 @@ class TaskAllocator:
             if silent and rid not in self._silent and not r.lost:
                 self._shadowed(ctx, rid)  # it fell silent just now (not disabled)
             if (silent or lost) and rid in self.assignments:
-                self.assignments[rid].purpose += (
-                    ":released" if ":released" not in self.assignments[rid].purpose else ""
-                )
+                # once: a disruptor's OOI handed over turns ":released" into ":dropped"
+                # (appending again re-announced the hand-over every plan, 2 s, for the
+                # rest of the full mission: 336 'reassigned' events for two OOIs)
+                p = self.assignments[rid].purpose
+                if ":released" not in p and ":dropped" not in p:
+                    self.assignments[rid].purpose = p + ":released"
             if not silent and not lost and (rid in self._silent or rid in self._lost):
                 self._event(ctx, "robot_back", rid, f"robot {rid} heard again: re-planned")
                 self.assignments.pop(rid, None)
@@ -646,6 +677,14 @@ class TaskAllocator:
             if ctx.now_s - self._heard_since.get(rid, math.inf) >= cfg.contact_steady_s:
                 self._contact(pos[0], pos[1])
             cell = ctx.grid.snap(pos[:2], cfg.snap_m)
+            if cell is None and any(
+                math.dist(pos[:2], h.position_in_map) < cfg.hostile.blast_radius_m + 2
+                for h in ctx.hostiles_live
+            ):
+                # inside a hostile's keep-out it is not evading (a stale sighting, or one it
+                # could not get out of): planned from the nearest cell outside (its own
+                # planner finds the way; standing there it helps no one)
+                cell = ctx.grid.snap(pos[:2], cfg.hostile.blast_radius_m + 2 * cfg.snap_m)
             if cell is not None:
                 ctx.cells[rid] = cell
             self._close_task(ctx, r)
@@ -666,13 +705,28 @@ class TaskAllocator:
     def _shadowed(self, ctx: _Ctx, rid: int) -> None:
         """Robot ``rid`` just fell silent: the hostile it was on its way to watch is not given
         it for ``shadow_retry_s`` (the lock needs the watchers heard, paper 2: a watcher in a
-        radio shadow cannot hold it). An exploration goal is given again: what the robot saw
-        in the shadow arrives when it is back in contact (store and forward), so the shadow
-        gets explored; a goal whose frontier that closed is replaced anyway."""
+        radio shadow cannot hold it), nor is the exploration goal it was on its way to (nor
+        one within ``exploration.blacklist_radius_m`` of it): back in contact at the shadow's
+        edge for a second or two, its backlog not through yet, it was re-sent into the same
+        shadow on a map that lacked what it had seen there (issue 17; chaos bench seed 9:
+        robots 1 and 2 never heard again). Another robot may take that goal, and what the
+        robot saw in the shadow arrives when its backlog is through (store and forward),
+        closing the frontier if it was explored."""
         a = self.assignments.get(rid)
-        if a is None or a.goal_in_map is None or a.hazard_id is None:
+        if a is None or a.goal_in_map is None:
             return
-        if a.purpose.split(":")[0] != "hostile_view":
+        if a.purpose.split(":")[0] == "explore":
+            self._explore_shadowed.setdefault(rid, []).append((a.goal_in_map, ctx.now_s))
+            x, y = a.goal_in_map
+            self._event(
+                ctx,
+                "goal_in_shadow",
+                rid,
+                f"robot {rid} fell silent on its way to explore ({x:.1f}, {y:.1f}): not sent "
+                f"there for {self.config.shadow_retry_s:g} s",
+            )
+            return
+        if a.hazard_id is None or a.purpose.split(":")[0] != "hostile_view":
             return
         self._view_shadowed.setdefault(a.hazard_id, {})[rid] = ctx.now_s
         x, y = a.goal_in_map
@@ -729,6 +783,18 @@ class TaskAllocator:
                 self._failed_goals.setdefault(r.robot_id, []).append(a.goal_in_map)
                 self._goal_failures.append((a.goal_in_map, r.robot_id))
                 self._avoid_route(ctx, r, a)
+            if purpose == "evade" and a.hazard_id is not None:
+                k = (r.robot_id, a.hazard_id)
+                self._evade_failures[k] = self._evade_failures.get(k, 0) + 1
+                if self._evade_failures[k] == self.config.evade_attempts:
+                    self._event(
+                        ctx,
+                        "evade_given_up",
+                        r.robot_id,
+                        f"robot {r.robot_id} failed {self.config.evade_attempts} times to leave "
+                        f"hazard {a.hazard_id}'s keep-out: not sent out of it again",
+                        a.hazard_id,
+                    )
             if purpose in ("neutralize_go", "neutralize") and a.hazard_id is not None:
                 self._dispatch_excluded.setdefault(a.hazard_id, {})[r.robot_id] = ctx.now_s
                 if purpose == "neutralize" and "line of sight" in why:
@@ -766,9 +832,22 @@ class TaskAllocator:
     # ---- 2: safety ----------------------------------------------------------------------------
 
     def _evade(self, ctx: _Ctx) -> None:
+        """Robots out of keep-outs; goals in keep-outs dropped. A robot is sent out of a
+        hostile's blast radius only while that sighting is fresh (seen within
+        ``hostile.evade_fresh_s``): a walker's old sighting marks where it was (the robot
+        keeps out of the disc on its own, and backs away from a hostile it sees coming);
+        three robots inside a sighting 100 s old, the walker long gone, were sent out of it
+        for the last 600 s of the full mission."""
         cfg = self.config
+        seen = ctx.state.hostile_seen_s
         discs = [(h, max(h.radius_m, cfg.disruptor.trigger_radius_m)) for h in ctx.static_live]
         discs += [(h, max(h.radius_m, cfg.hostile.blast_radius_m)) for h in ctx.hostiles_live]
+        stale = {
+            h.hazard_id
+            for h in ctx.hostiles_live
+            if ctx.now_s - max(seen.get(h.hazard_id, {}).values(), default=ctx.now_s)
+            > cfg.hostile.evade_fresh_s
+        }
         for rid, r in ctx.available.items():
             pos = self._position(r)
             a = self.assignments.get(rid)
@@ -794,8 +873,20 @@ class TaskAllocator:
                 if math.dist(pos, h.position_in_map) < radius:
                     if self._purpose(rid) == "evade":
                         break
+                    failed = self._evade_failures.get((rid, h.hazard_id), 0)
+                    if failed >= cfg.evade_attempts or h.hazard_id in stale:
+                        continue
+                    taken = [
+                        a.goal_in_map
+                        for o, a in self.assignments.items()
+                        if o != rid and a.purpose == "evade" and a.goal_in_map is not None
+                    ]
                     goal = evasion_goal(
-                        ctx.grid, pos, radius + 2 * cfg.keepout_margin_m + cfg.snap_m
+                        ctx.grid,
+                        pos,
+                        radius + 2 * cfg.keepout_margin_m + cfg.snap_m,
+                        taken_in_map=np.asarray(taken, dtype=np.float64).reshape(-1, 2),
+                        separation_m=2 * cfg.robot_radius_m + 0.5,
                     )
                     if goal is None:
                         self._event(
@@ -824,13 +915,33 @@ class TaskAllocator:
                 del self.assignments[rid]
 
     def _hostiles(self, ctx: _Ctx) -> None:
+        """Hostile watch (see the module docstring): sightings clustered into hostiles (the
+        freshest of sightings within ``same_hostile_m`` of each other stands for them), stale
+        ones not watched, at most :func:`~gcs.tasking.hostile_planner.watch_slots` hostiles
+        watched at once (those already watched first, then the freshest), each by robots
+        within ``watch_reach_m`` only, and a hostile whose watch never starts the lock paused
+        for longer each time."""
         cfg = self.config.hostile
         seen = ctx.state.hostile_seen_s
 
         def last_seen(h: Hazard) -> float:
-            return max(seen.get(h.hazard_id, {}).values(), default=-math.inf)
+            # a hostile the GCS has no sighting time for counts as seen now
+            return max(seen.get(h.hazard_id, {}).values(), default=ctx.now_s)
 
+        def viewers_of(hid: int) -> list[int]:
+            return [
+                rid
+                for rid, a in self.assignments.items()
+                if a.purpose == "hostile_view" and a.hazard_id == hid and rid in ctx.available
+            ]
+
+        # watchers of a sighting no longer among the hazards (merged away) are free
+        current = {h.hazard_id for h in ctx.state.hazards}
+        for rid, a in list(self.assignments.items()):
+            if a.purpose == "hostile_view" and a.hazard_id not in current:
+                del self.assignments[rid]
         watched: list[tuple[float, float]] = []
+        candidates: list[Hazard] = []
         # the latest seen first: of sightings of one walking hostile, the freshest is watched
         for h in sorted(
             (h for h in ctx.state.hazards if h.kind in (ObjectKind.HOSTILE, ObjectKind.MOBILE_OOI)),
@@ -841,79 +952,139 @@ class TaskAllocator:
                 watched.append(h.position_in_map)  # its other sightings are done with it
                 continue
             st = self._lock.update(hid, seen.get(hid, {}), ctx.now_s)
-            if not st.locked and any(
-                math.dist(h.position_in_map, w) < cfg.same_hostile_m for w in watched
-            ):
+            if st.locked:
+                self.neutralized.add(hid)
+                self.stats.hostiles_locked += 1
+                text = f"hostile {hid} held in view {cfg.lock_s:.0f} s"
+                self._event(ctx, "hostile_locked", None, text, hid)
+                self._release_viewers(hid)
+                self._watch_done(h.position_in_map)
+                watched.append(h.position_in_map)
+                continue
+            if any(math.dist(h.position_in_map, w) < cfg.same_hostile_m for w in watched):
                 self._release_viewers(hid)  # another sighting of one handled (or paused)
                 continue
             watched.append(h.position_in_map)
-            if not st.locked and ctx.now_s < self._watch_paused.get(hid, -math.inf):
+            if ctx.now_s - last_seen(h) > cfg.watch_fresh_s and st.since_s is None:
+                self._unwatch(h)  # stale: the walker is elsewhere
+                continue
+            area = self._watch_area(h.position_in_map)
+            if area is not None and ctx.now_s < area.paused_until_s:
                 self._release_viewers(hid)
                 continue
-            if not st.locked and st.since_s is None:
-                began = self._watch_since.setdefault(hid, ctx.now_s)
-                if ctx.now_s - began > cfg.watch_budget_s:
-                    del self._watch_since[hid]
-                    self._watch_paused[hid] = ctx.now_s + cfg.watch_pause_s
+            candidates.append(h)
+        sensors = sum(1 for r in ctx.available.values() if r.role == Role.SENSOR)
+        slots = watch_slots(sensors, cfg)
+        # hostiles already watched keep their watchers (no churn), then the freshest
+        candidates.sort(key=lambda h: (not viewers_of(h.hazard_id), -last_seen(h), h.hazard_id))
+        for h in candidates:
+            hid = h.hazard_id
+            st = self._lock.states[hid]
+            if slots <= 0:
+                self._unwatch(h)
+                continue
+            area = self._watch_area(h.position_in_map, create=True)
+            assert area is not None
+            area.xy = h.position_in_map  # it follows the walker
+            if st.since_s is None and area.began_s is not None:
+                if ctx.now_s - area.began_s > cfg.watch_budget_s:
+                    pause_s = cfg.watch_pause_s * cfg.pause_growth**area.pauses
+                    area.pauses += 1
+                    area.began_s = None
+                    area.paused_until_s = ctx.now_s + pause_s
                     self._release_viewers(hid)
                     self._event(
                         ctx,
                         "hostile_paused",
                         None,
                         f"hostile {hid}: no lock begun in {cfg.watch_budget_s:g} s, not "
-                        f"watched for {cfg.watch_pause_s:g} s",
+                        f"watched for {pause_s:g} s",
                         hid,
                     )
                     continue
-            if st.locked:
-                if hid not in self.neutralized:
-                    self.neutralized.add(hid)
-                    self.stats.hostiles_locked += 1
-                    self._event(
-                        ctx,
-                        "hostile_locked",
-                        None,
-                        f"hostile {hid} held in view {cfg.lock_s:.0f} s",
-                        hid,
-                    )
-                self._release_viewers(hid)
-                continue
-            viewers = [
-                rid
-                for rid, a in self.assignments.items()
-                if a.purpose == "hostile_view" and a.hazard_id == hid and rid in ctx.available
-            ]
-            moved = math.dist(self._hostile_at.get(hid, h.position_in_map), h.position_in_map)
-            if len(viewers) >= cfg.viewers and moved < cfg.replan_move_m:
-                continue
-            shadowed = self._view_shadowed.get(hid, {})
-            pool = {
-                rid: self._position(r)
-                for rid, r in ctx.available.items()
-                if r.role == Role.SENSOR
-                and (rid in viewers or self._purpose(rid) not in ("hostile_view", "evade"))
-                and ctx.now_s - shadowed.get(rid, -math.inf) >= self.config.shadow_retry_s
-            }
-            views = view_positions(
-                ctx.grid,
-                h.position_in_map,
-                pool,
-                cfg,
-                contact_in_map=self.contact_in_map,
-                contact_radius_m=self.config.exploration.contact_radius_m,
+            if self._staff_watch(ctx, h):
+                slots -= 1
+                if area.began_s is None:
+                    area.began_s = ctx.now_s
+            else:
+                self._unwatch(h)
+
+    def _unwatch(self, h: Hazard) -> None:
+        """``h`` is not watched now: its watchers are free, its watch budget starts afresh
+        when it is watched again."""
+        self._release_viewers(h.hazard_id)
+        area = self._watch_area(h.position_in_map)
+        if area is not None:
+            area.began_s = None
+
+    def _watch_area(self, xy: tuple[float, float], create: bool = False) -> _WatchArea | None:
+        """The watch record of the hostile whose sightings are near ``xy``."""
+        reach = self.config.hostile.same_hostile_m
+        near = [a for a in self._watch_areas if math.dist(a.xy, xy) < reach]
+        if near:
+            return min(near, key=lambda a: math.dist(a.xy, xy))
+        if not create:
+            return None
+        area = _WatchArea(xy)
+        self._watch_areas.append(area)
+        return area
+
+    def _watch_done(self, xy: tuple[float, float]) -> None:
+        reach = self.config.hostile.same_hostile_m
+        self._watch_areas = [a for a in self._watch_areas if math.dist(a.xy, xy) >= reach]
+
+    def _staff_watch(self, ctx: _Ctx, h: Hazard) -> bool:
+        """Send robots to watch ``h`` (or keep those on it); False: it cannot be staffed now
+        (fewer than ``viewers`` robots within reach, or no views)."""
+        cfg = self.config.hostile
+        hid = h.hazard_id
+        viewers = [
+            rid
+            for rid, a in self.assignments.items()
+            if a.purpose == "hostile_view" and a.hazard_id == hid and rid in ctx.available
+        ]
+        moved = math.dist(self._hostile_at.get(hid, h.position_in_map), h.position_in_map)
+        if len(viewers) >= cfg.viewers and moved < cfg.replan_move_m:
+            return True
+        shadowed = self._view_shadowed.get(hid, {})
+        pool = {
+            rid: self._position(r)
+            for rid, r in ctx.available.items()
+            if r.role == Role.SENSOR
+            and (
+                rid in viewers
+                or (
+                    self._purpose(rid) not in ("hostile_view", "evade")
+                    and math.dist(self._position(r), h.position_in_map) <= cfg.watch_reach_m
+                )
             )
-            self._hostile_at[hid] = h.position_in_map
-            for rid, p in views.items():
-                cur = self.assignments.get(rid)
-                if (
-                    cur is not None
-                    and cur.purpose == "hostile_view"
-                    and cur.goal_in_map is not None
-                    and math.dist(cur.goal_in_map, p) < 0.5
-                ):
-                    continue
-                self._event(ctx, "hostile_view", rid, f"robot {rid} to watch hostile {hid}", hid)
-                self._goto(ctx, ctx.available[rid], np.asarray([p]), "hostile_view", hid)
+            and ctx.now_s - shadowed.get(rid, -math.inf) >= self.config.shadow_retry_s
+        }
+        if len(pool) < cfg.viewers:
+            return False
+        views = view_positions(
+            ctx.grid,
+            h.position_in_map,
+            pool,
+            cfg,
+            contact_in_map=self.contact_in_map,
+            contact_radius_m=self.config.exploration.contact_radius_m,
+        )
+        if len(views) < min(cfg.viewers, 2):
+            return False
+        self._hostile_at[hid] = h.position_in_map
+        for rid, p in views.items():
+            cur = self.assignments.get(rid)
+            if (
+                cur is not None
+                and cur.purpose == "hostile_view"
+                and cur.goal_in_map is not None
+                and math.dist(cur.goal_in_map, p) < 0.5
+            ):
+                continue
+            self._event(ctx, "hostile_view", rid, f"robot {rid} to watch hostile {hid}", hid)
+            self._goto(ctx, ctx.available[rid], np.asarray([p]), "hostile_view", hid)
+        return True
 
     # ---- 4: disruptors -------------------------------------------------------------------------
 
@@ -1223,7 +1394,13 @@ class TaskAllocator:
                     )
                 continue
             self._no_start.discard(rid)
-            bl = self._failed_goals.get(rid, []) + global_bad
+            shadow = [
+                (g, t)
+                for g, t in self._explore_shadowed.get(rid, [])
+                if ctx.now_s - t < cfg.shadow_retry_s
+            ]
+            self._explore_shadowed[rid] = shadow
+            bl = self._failed_goals.get(rid, []) + global_bad + [g for g, _ in shadow]
             avoid = [d for d in self._avoid.get(rid, []) if d[3] > ctx.now_s]
             self._avoid[rid] = avoid
             waiting.append(

@@ -12,7 +12,13 @@ coordinated this by hand (5.1.3); here it is a planner:
   since when two robots have kept it in view with no gap above ``view_gap_s``, and whether the
   lock has held ``lock_s``.
 * :func:`evasion_goal`: a robot inside a keep-out disc drives to the nearest traversable cell
-  (the planning grid already excludes the discs).
+  it can see (the planning grid already excludes the discs), apart from the cells other
+  robots are evading to.
+* :func:`watch_slots`: how many hostiles are watched at once. The paper is silent on hostiles
+  (its operators handled them, 5.1.3); a commander keeps exploration the standing task and
+  puts at most ``max_watch_frac`` of the sensor robots on watch (full mission at 66b4360:
+  9 of 10 sensor robots on watch duty at 600 s, for 14 sightings of 2 walkers, and the
+  explored area flat from 900 s).
 """
 
 from __future__ import annotations
@@ -26,7 +32,14 @@ from numpy.typing import ArrayLike
 
 from gcs.tasking.planning_grid import PlanningGrid, line_of_sight
 
-__all__ = ["HostileConfig", "HostileLock", "LockState", "evasion_goal", "view_positions"]
+__all__ = [
+    "HostileConfig",
+    "HostileLock",
+    "LockState",
+    "evasion_goal",
+    "view_positions",
+    "watch_slots",
+]
 
 
 class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -48,6 +61,24 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     watch_pause_s: float = 120.0
     # hostile sightings this close are one hostile (it walks: its hazards spread), watched once
     same_hostile_m: float = 8.0
+    # at most this share of the sensor robots heard is on watch duty (at least ``viewers``):
+    # exploration stays the standing task (see the module docstring)
+    max_watch_frac: float = 0.4
+    # only robots this close (straight line) to a hostile are sent to watch it: a watcher
+    # 100 m off arrives minutes later, through radio shadows, to where the walker was (full
+    # mission: robots sent 110 m across the site to a hostile, silent on the way for good)
+    watch_reach_m: float = 40.0
+    # a sighting no robot has seen for this long is not watched: the walker is elsewhere,
+    # and a lock needs it in view now (full mission: 14 sightings of 2 walkers, each asking
+    # for two viewers)
+    watch_fresh_s: float = 60.0
+    # a robot inside a hostile's blast radius is sent out of it only while the sighting is
+    # this fresh (allocator._evade)
+    evade_fresh_s: float = 30.0
+    # each further pause of the same hostile (sightings within same_hostile_m of a paused
+    # one) lasts this many times longer: a hostile that never lets itself be locked stops
+    # costing the team its explorers
+    pause_growth: float = 2.0
 
     def __post_init__(self) -> None:
         for name in (
@@ -58,6 +89,9 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "watch_budget_s",
             "watch_pause_s",
             "same_hostile_m",
+            "watch_reach_m",
+            "watch_fresh_s",
+            "evade_fresh_s",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -68,6 +102,21 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             )
         if self.viewers < 1:
             raise ValueError(f"hostile viewers must be >= 1, got {self.viewers}")
+        if not (math.isfinite(self.max_watch_frac) and 0 <= self.max_watch_frac <= 1):
+            raise ValueError(f"hostile max_watch_frac must be in [0, 1], got {self.max_watch_frac}")
+        if not (math.isfinite(self.pause_growth) and self.pause_growth >= 1):
+            raise ValueError(f"hostile pause_growth must be >= 1, got {self.pause_growth}")
+
+
+def watch_slots(sensor_robots: int, config: HostileConfig) -> int:
+    """How many hostiles may be watched at once by ``sensor_robots`` robots in contact: the
+    watchers allowed, ``max(viewers, floor(max_watch_frac * sensor_robots))`` (0 with fewer
+    robots than ``viewers``), over ``viewers`` a hostile. 10 sensor robots: 2 hostiles (4
+    robots), 6 others explore; 3 (the small world's): 1 hostile, as before the cap."""
+    if sensor_robots < config.viewers:
+        return 0
+    allowed = max(config.viewers, int(math.floor(config.max_watch_frac * sensor_robots + 1e-9)))
+    return allowed // config.viewers
 
 
 def view_positions(
@@ -133,14 +182,52 @@ def view_positions(
 
 
 def evasion_goal(
-    grid: PlanningGrid, position_in_map: ArrayLike, search_m: float
+    grid: PlanningGrid,
+    position_in_map: ArrayLike,
+    search_m: float,
+    *,
+    taken_in_map: ArrayLike | None = None,
+    separation_m: float = 1.0,
 ) -> tuple[float, float] | None:
-    """The nearest traversable cell centre within ``search_m`` (None if none)."""
-    cell = grid.snap(position_in_map, search_m)
-    if cell is None:
+    """A traversable cell centre within ``search_m`` to leave a keep-out by (None if none):
+    the nearest in line of sight of the robot (no wall between: the nearest cell may be in
+    the room behind a wall) at least ``separation_m`` from every point of ``taken_in_map``
+    ``(K, 2)`` (where other robots are evading to: three robots sent to one cell in a 1 m
+    corridor jammed there, each evasion timing out, for 600 s of the full mission); else the
+    nearest in line of sight; else the nearest."""
+    p = np.asarray(position_in_map, dtype=np.float64).reshape(2)
+    (r, c) = grid.cells_of(p)[0]
+    k = max(0, int(math.ceil(search_m / grid.resolution_m)))
+    rows, cols = grid.shape
+    r0, r1 = max(0, r - k), min(rows, r + k + 1)
+    c0, c1 = max(0, c - k), min(cols, c + k + 1)
+    if r0 >= r1 or c0 >= c1:
         return None
-    p = grid.centers_of([cell])[0]
-    return (float(p[0]), float(p[1]))
+    rr, cc = np.nonzero(grid.traversable[r0:r1, c0:c1])
+    if rr.size == 0:
+        return None
+    pts = grid.centers_of(np.stack([rr + r0, cc + c0], axis=1))
+    d = np.hypot(*(pts - p).T)
+    keep = d <= search_m + 1e-9
+    pts, d = pts[keep], d[keep]
+    if len(pts) == 0:
+        return None
+    taken = np.zeros((0, 2)) if taken_in_map is None else np.asarray(taken_in_map)
+    taken = taken.astype(np.float64).reshape(-1, 2)
+    apart = np.ones(len(pts), dtype=bool)
+    for t in taken:
+        apart &= np.hypot(*(pts - t).T) >= separation_m
+    order = np.argsort(d, kind="stable")
+    fallback: int | None = None
+    for j in order[:2000]:  # the nearest cells first: a visible one is near
+        if not line_of_sight(grid, p, pts[j]):
+            continue
+        if apart[j]:
+            return (float(pts[j, 0]), float(pts[j, 1]))
+        if fallback is None:
+            fallback = int(j)
+    j = fallback if fallback is not None else int(order[0])
+    return (float(pts[j, 0]), float(pts[j, 1]))
 
 
 @dataclass

@@ -1,0 +1,228 @@
+"""Hostile duty at scale and the loops the full mission (magic_phase, 14 robots) fell into:
+a cap on robots on watch, watch reach, stale sightings, pauses that grow, evasion that gives
+up and does not jam, the out-of-contact disruptor's hand-over announced once, and a robot not
+re-sent to the exploration goal it fell silent on (issue 17). Real planners on constructed
+states."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from gcs.tasking.allocator import RobotInfo, Role, TaskAllocator, TaskingConfig, TaskingState
+from gcs.tasking.hostile_planner import HostileConfig, evasion_goal, watch_slots
+from gcs.tasking.planning_grid import coarsen
+from protocol.messages import GoToTask, Hazard, ObjectKind, TaskState, TaskStatus
+from tests.gcs.tasking.maps import FREE, OCCUPIED, UNKNOWN, blank, box, occupancy
+
+
+def robot(rid: int, xy: tuple[float, float], role: Role = Role.SENSOR) -> RobotInfo:
+    return RobotInfo(rid, role, (xy[0], xy[1], 0.0), (0.0, 0.0, 0.0), 0.0)
+
+
+def heard(rs: list[RobotInfo], t: float) -> None:
+    for r in rs:
+        r.last_heard_s = t
+
+
+def on_watch(alloc: TaskAllocator) -> dict[int, int]:
+    """robot -> hostile it watches"""
+    return {
+        rid: a.hazard_id
+        for rid, a in alloc.assignments.items()
+        if a.purpose == "hostile_view" and a.hazard_id is not None
+    }
+
+
+def test_watch_slots_keep_most_sensor_robots_exploring() -> None:
+    cfg = HostileConfig()
+    assert [watch_slots(n, cfg) for n in (0, 1, 2, 3, 4, 5, 9, 10, 20)] == [
+        0,
+        0,
+        1,
+        1,
+        1,
+        1,
+        1,
+        2,
+        4,
+    ]
+    assert watch_slots(10, HostileConfig(max_watch_frac=1.0)) == 5
+
+
+def test_ten_sensor_robots_and_three_hostiles_put_four_on_watch_and_the_rest_explore() -> None:
+    v = blank(80, 40, FREE)
+    box(v, 0.0, 0.0, 80.0, 3.0, UNKNOWN)  # a frontier along the south edge
+    rs = [robot(i, (5.0 + 7.0 * i, 20.0)) for i in range(10)]
+    hostiles = [Hazard(100 + k, ObjectKind.HOSTILE, (15.0 + 25.0 * k, 33.0), 5.0) for k in range(3)]
+    seen = {h.hazard_id: {0: 0.0} for h in hostiles}
+    alloc = TaskAllocator()
+    alloc.plan(TaskingState(occupancy(v), rs, hazards=hostiles, hostile_seen_s=seen), now_s=0.0)
+    watch = on_watch(alloc)
+    assert len(watch) == 4 and len(set(watch.values())) == 2
+    assert sum(a.purpose == "explore" for a in alloc.assignments.values()) == 6
+    # the watches stay with their hostiles (no churn) while a fresher sighting elsewhere waits
+    seen[102] = {5: 2.0}
+    heard(rs, 2.0)
+    alloc.plan(TaskingState(occupancy(v), rs, hazards=hostiles, hostile_seen_s=seen), now_s=2.0)
+    assert on_watch(alloc) == watch
+
+
+def test_robots_beyond_reach_are_not_pulled_to_a_hostile() -> None:
+    v = blank(120, 20, FREE)
+    rs = [robot(1, (5.0, 10.0)), robot(2, (8.0, 10.0)), robot(3, (100.0, 10.0))]
+    far = Hazard(7, ObjectKind.HOSTILE, (60.0, 10.0), 5.0)  # 52+ m from robots 1 and 2
+    alloc = TaskAllocator(TaskingConfig(hostile=HostileConfig(max_watch_frac=1.0)))
+    alloc.plan(TaskingState(occupancy(v), rs, hazards=[far], hostile_seen_s={7: {3: 0.0}}), 0.0)
+    assert on_watch(alloc) == {}  # only robot 3 within 40 m: one robot cannot lock it
+    # robot 2 comes within reach: two robots watch
+    rs[1].pose_in_map = (30.0, 10.0, 0.0)
+    heard(rs, 2.0)
+    alloc.plan(TaskingState(occupancy(v), rs, hazards=[far], hostile_seen_s={7: {3: 2.0}}), 2.0)
+    assert sorted(on_watch(alloc)) == [2, 3]
+
+
+def test_a_stale_sighting_is_not_watched_and_a_fresh_one_is() -> None:
+    v = blank(40, 40, FREE)
+    rs = [robot(1, (5.0, 5.0)), robot(2, (35.0, 5.0)), robot(3, (20.0, 35.0))]
+    h = Hazard(9, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    cfg = TaskingConfig()
+    alloc = TaskAllocator(cfg)
+    t = cfg.hostile.watch_fresh_s + 5.0
+    heard(rs, t)
+    alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {1: 0.0}}), t)
+    assert on_watch(alloc) == {}
+    alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {1: t}}), t)
+    assert len(on_watch(alloc)) == 2
+
+
+def test_a_walker_that_never_lets_itself_be_locked_is_paused_longer_each_time() -> None:
+    """Its sightings get new hazard ids as it walks; the pause follows the walker."""
+    v = blank(40, 40, FREE)
+    rs = [robot(1, (5.0, 5.0)), robot(2, (35.0, 5.0)), robot(3, (20.0, 35.0))]
+    cfg = TaskingConfig()
+    hc = cfg.hostile
+    alloc = TaskAllocator(cfg)
+    pauses: list[float] = []
+    t, hid = 0.0, 20
+    h = Hazard(hid, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    while len(pauses) < 2 and t < 2000.0:
+        heard(rs, t)
+        if t > 200.0 and h.hazard_id == 20:  # the walker seen again 3 m on: a new hazard
+            h = Hazard(21, ObjectKind.HOSTILE, (23.0, 20.0), 5.0)
+        state = TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={h.hazard_id: {1: t}})
+        alloc.plan(state, now_s=t)
+        pauses += [t for e in alloc.events if e.kind == "hostile_paused"]
+        t += 2.0
+    assert len(pauses) == 2
+    first_watch_after_pause = pauses[0] + hc.watch_pause_s
+    # the second watch began when the first pause ended, and the second pause is twice as long
+    assert abs(pauses[1] - (first_watch_after_pause + hc.watch_budget_s)) <= 6.0
+    text = [e.text for e in alloc.events if e.kind == "hostile_paused"]
+    assert f"{hc.watch_pause_s * hc.pause_growth:g} s" in text[0]
+
+
+def test_robots_in_one_keep_out_evade_to_cells_apart_and_not_behind_a_wall() -> None:
+    v = blank(30, 30, FREE)
+    box(v, 0.0, 17.0, 30.0, 17.5, OCCUPIED)  # a wall north of the robots
+    grid = coarsen(
+        occupancy(v),
+        resolution_m=0.3,
+        robot_radius_m=0.35,
+        keepout_in_map=np.asarray([[15.0, 11.0, 6.0]]),
+    )
+    pos = (15.0, 16.0)  # the nearest free cells are behind the wall, 2 m north
+    g1 = evasion_goal(grid, pos, 9.0)
+    assert g1 is not None and g1[1] < 17.0 and math.dist(g1, (15.0, 11.0)) >= 6.0
+    g2 = evasion_goal(grid, pos, 9.0, taken_in_map=np.asarray([g1]), separation_m=1.2)
+    assert g2 is not None and g2[1] < 17.0 and math.dist(g1, g2) >= 1.2
+
+
+def test_an_evasion_that_keeps_failing_is_given_up_and_a_stale_sighting_is_not_evaded() -> None:
+    v = blank(40, 40, FREE)
+    box(v, 0.0, 0.0, 40.0, 2.0, UNKNOWN)
+    r = robot(1, (20.0, 23.0))
+    h = Hazard(8, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    cfg = TaskingConfig()
+    alloc = TaskAllocator(cfg)
+    t = 0.0
+    for attempt in range(cfg.evade_attempts):
+        heard([r], t)
+        out = alloc.plan(
+            TaskingState(occupancy(v), [r], hazards=[h], hostile_seen_s={8: {1: t}}), t
+        )
+        a = alloc.assignments[1]
+        assert a.purpose == "evade", attempt
+        msg = next(m for _, m in out if isinstance(m, GoToTask))
+        t += 5.0
+        r.status = TaskStatus(msg.task_id, TaskState.FAILED, t, "blocked")
+    heard([r], t)
+    alloc.plan(TaskingState(occupancy(v), [r], hazards=[h], hostile_seen_s={8: {1: t}}), t)
+    assert any(e.kind == "evade_given_up" for e in alloc.events)
+    # not sent out again; planned from outside the disc instead (exploring)
+    assert alloc.assignments[1].purpose == "explore"
+    # another robot inside a sighting not seen for evade_fresh_s: not sent out of it
+    r2 = robot(2, (20.0, 17.0))
+    alloc2 = TaskAllocator(cfg)
+    t = cfg.hostile.evade_fresh_s + 1.0
+    heard([r2], t)
+    alloc2.plan(TaskingState(occupancy(v), [r2], hazards=[h], hostile_seen_s={8: {2: 0.0}}), t)
+    assert alloc2.assignments[2].purpose != "evade"
+    alloc2.plan(TaskingState(occupancy(v), [r2], hazards=[h], hostile_seen_s={8: {2: t}}), t)
+    assert alloc2.assignments[2].purpose == "evade"
+
+
+def test_an_out_of_contact_disruptors_ooi_is_handed_over_once() -> None:
+    v = blank(30, 30, FREE)
+    xs = np.arange(1.0, 21.0, 0.5)
+    road = np.stack([xs, np.ones_like(xs)], 1)
+    d1 = robot(11, (1.0, 1.0), Role.DISRUPTOR)
+    d2 = robot(12, (2.0, 1.0), Role.DISRUPTOR)
+    state = TaskingState(
+        occupancy(v),
+        [d1, d2],
+        hazards=[Hazard(3, ObjectKind.STATIC_OOI, (14.0, 6.0), 2.5)],
+        trajectory_robot_ids=np.ones(len(road), dtype=np.int64),
+        trajectory_keys=np.arange(len(road)),
+        trajectory_xy_in_map=road,
+    )
+    alloc = TaskAllocator()
+    alloc.plan(state, now_s=0.0)
+    first = next(r for r, a in alloc.assignments.items() if a.purpose == "neutralize_go")
+    other = d2 if first == 11 else d1
+    kinds: list[str] = []
+    for t in np.arange(12.0, 40.0, 2.0):  # the first silent from 10 s on, the other heard
+        other.last_heard_s = float(t)
+        alloc.plan(state, now_s=float(t))
+        kinds += [e.kind for e in alloc.events]
+    assert kinds.count("reassigned") == 1
+    assert alloc.assignments[other.robot_id].purpose == "neutralize_go"
+
+
+def test_a_robot_is_not_re_sent_to_the_exploration_goal_it_fell_silent_on() -> None:
+    """Issue 17: back in contact at a shadow's edge, its backlog not through, it was sent back
+    into the shadow; another goal for shadow_retry_s, then that one may be given again."""
+    v = blank(40, 6, FREE)
+    box(v, 0.0, 0.0, 40.0, 0.5, OCCUPIED)
+    box(v, 0.0, 5.5, 40.0, 6.0, OCCUPIED)
+    box(v, 36.0, 0.5, 40.0, 5.5, UNKNOWN)  # east frontier (the shadow)
+    box(v, 0.0, 0.5, 2.0, 5.5, UNKNOWN)  # west frontier, farther
+    r = robot(1, (25.0, 3.0))
+    cfg = TaskingConfig(shadow_retry_s=60.0)
+    alloc = TaskAllocator(cfg)
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)
+    east = alloc.assignments[1].goal_in_map
+    assert east is not None and east[0] > 30.0
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=12.0)  # silent
+    assert any(e.kind == "goal_in_shadow" and e.robot_id == 1 for e in alloc.events)
+    r.pose_in_map = (33.0, 3.0, 0.0)
+    heard([r], 30.0)
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=30.0)  # back, heard briefly
+    g = alloc.assignments[1].goal_in_map
+    assert g is not None and g[0] < 10.0  # west, not the shadow again
+    heard([r], 75.0)
+    alloc.assignments.clear()
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=75.0)  # the shadow is 63 s old
+    g = alloc.assignments[1].goal_in_map
+    assert g is not None and g[0] > 30.0
