@@ -1038,6 +1038,23 @@ class TaskAllocator:
         (fewer than ``viewers`` robots within reach, or no views)."""
         cfg = self.config.hostile
         hid = h.hazard_id
+        for rid, a in list(self.assignments.items()):
+            if a.purpose != "hostile_view" or a.hazard_id != hid or rid not in ctx.available:
+                continue
+            r = ctx.available[rid]
+            on_way = a.goal_in_map is not None and (
+                math.dist(self._position(r), a.goal_in_map) > self.config.goal_reached_m
+            )
+            if on_way and self._stalled(ctx, r, a):
+                # stuck on its way (a doorway's jamb: full mission, a robot 1300 s in one
+                # doorway was sent to watch from there): another watches, it is not sent to
+                # this hostile for shadow_retry_s
+                self._avoid_route(ctx, r, a)
+                self._view_shadowed.setdefault(hid, {})[rid] = ctx.now_s
+                del self.assignments[rid]
+                self._event(
+                    ctx, "stalled", rid, f"robot {rid} stuck on its way to watch hostile {hid}", hid
+                )
         viewers = [
             rid
             for rid, a in self.assignments.items()

@@ -58,6 +58,14 @@ def goals_in_map(out: list, robots: dict[int, RobotInfo]) -> dict[int, np.ndarra
     return res
 
 
+def at_views(alloc: TaskAllocator, rs: list[RobotInfo]) -> None:
+    """The watchers drive to their views (a watcher that does not move is stuck)."""
+    for r in rs:
+        a = alloc.assignments.get(r.robot_id)
+        if a is not None and a.purpose == "hostile_view" and a.goal_in_map is not None:
+            r.pose_in_map = (a.goal_in_map[0], a.goal_in_map[1], 0.0)
+
+
 def report(r: RobotInfo, msg: object, state: TaskState, t: float, detail: str = "") -> None:
     r.status = TaskStatus(msg.task_id, state, t, detail)  # type: ignore[attr-defined]
 
@@ -392,6 +400,7 @@ def test_a_watch_that_never_starts_the_lock_is_paused_and_sightings_of_one_are_o
         seen = {8: {1: -1.0}, 9: {1: t}}  # seen by one robot, never by two at a time
         state = TaskingState(occupancy(v), rs, hazards=[older, newer], hostile_seen_s=seen)
         alloc.plan(state, now_s=t)
+        at_views(alloc, rs)
         kinds += [e.kind for e in alloc.events]
         watching = {a.hazard_id for a in alloc.assignments.values() if a.purpose == "hostile_view"}
         if "hostile_paused" not in kinds:

@@ -15,6 +15,7 @@ from gcs.tasking.hostile_planner import HostileConfig, evasion_goal, watch_slots
 from gcs.tasking.planning_grid import coarsen
 from protocol.messages import GoToTask, Hazard, ObjectKind, TaskState, TaskStatus
 from tests.gcs.tasking.maps import FREE, OCCUPIED, UNKNOWN, blank, box, occupancy
+from tests.gcs.tasking.test_allocator import at_views
 
 
 def robot(rid: int, xy: tuple[float, float], role: Role = Role.SENSOR) -> RobotInfo:
@@ -113,6 +114,7 @@ def test_a_walker_that_never_lets_itself_be_locked_is_paused_longer_each_time() 
             h = Hazard(21, ObjectKind.HOSTILE, (23.0, 20.0), 5.0)
         state = TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={h.hazard_id: {1: t}})
         alloc.plan(state, now_s=t)
+        at_views(alloc, rs)
         pauses += [t for e in alloc.events if e.kind == "hostile_paused"]
         t += 2.0
     assert len(pauses) == 2
@@ -226,3 +228,28 @@ def test_a_robot_is_not_re_sent_to_the_exploration_goal_it_fell_silent_on() -> N
     alloc.plan(TaskingState(occupancy(v), [r]), now_s=75.0)  # the shadow is 63 s old
     g = alloc.assignments[1].goal_in_map
     assert g is not None and g[0] > 30.0
+
+
+def test_a_watcher_stuck_on_its_way_is_replaced() -> None:
+    v = blank(40, 40, FREE)
+    rs = [robot(1, (5.0, 5.0)), robot(2, (35.0, 5.0)), robot(3, (20.0, 38.0))]
+    h = Hazard(9, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    cfg = TaskingConfig()
+    alloc = TaskAllocator(cfg)
+    t = 0.0
+    alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {3: t}}), t)
+    first = sorted(on_watch(alloc))
+    assert len(first) == 2
+    stuck = first[0]
+    moving = [r for r in rs if r.robot_id != stuck]
+    kinds: list[str] = []
+    while t < cfg.stall_s + 6.0:  # the others move a little each step, the stuck one not
+        t += 2.0
+        heard(rs, t)
+        for r in moving:
+            assert r.pose_in_map is not None
+            r.pose_in_map = (r.pose_in_map[0], r.pose_in_map[1] + 0.2, 0.0)
+        alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {3: t}}), t)
+        kinds += [e.kind for e in alloc.events if e.robot_id == stuck]
+    assert "stalled" in kinds
+    assert stuck not in on_watch(alloc) and len(on_watch(alloc)) == 2
