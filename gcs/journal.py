@@ -14,8 +14,11 @@ same state (same nodes, edges and poses, given a deterministic run: see below). 
 - ``operator`` and ``decision``: operator commands and planner decisions as JSON objects, for
   their owners to rebuild from (the station ignores them);
 - ``assignments``: the planners' task assignments (robot -> task id, purpose, goal, issue
-  time, timeout, route) whenever a step changed them; a resumed GCS gives its allocator the
-  newest (:func:`resume_control`), so the robots keep the tasks they are carrying out;
+  time, timeout, route) and their failed views (``failed_views``: each neutralization that
+  failed for want of line of sight, the OOI and where the disruptor stood, in ``map``)
+  whenever a step changed them; a resumed GCS gives its allocator the newest
+  (:func:`resume_control`), so the robots keep the tasks they are carrying out and the next
+  dispatch to an OOI still goes to another side than the ones that failed;
 - ``downlink`` and ``link``: the GCS process's reliable downlink messages (frame bytes with
   their sequence numbers) and snapshots of its latest-only streams' sequence numbers, from
   which a resumed ``magic gcs`` continues every robot's streams (the station ignores them);
@@ -234,6 +237,7 @@ class GcsJournal:
         #: the allocator's assignments as last journaled (an ``assignments`` record is
         #: written when they change: :func:`step_control`)
         self.assignments: dict[str, Any] = {}
+        self.failed_views: list[list[float]] = []  # as the newest assignments record has them
         self.unencodable = 0  # messages that are no protocol message (refused by the station)
 
     # ---- opening ----------------------------------------------------------------------------
@@ -961,9 +965,14 @@ def step_control(
             )
             journal.note_task(int(rid), task_id)
     assignments = _assignments_json(control.allocator)
-    if assignments != journal.assignments:
-        journal.event("assignments", now_s, {"robots": assignments})
+    failed_views = _failed_views_json(control.allocator)
+    if assignments != journal.assignments or failed_views != journal.failed_views:
+        fields: dict[str, Any] = {"robots": assignments}
+        if failed_views:
+            fields["failed_views"] = failed_views
+        journal.event("assignments", now_s, fields)
         journal.assignments = assignments
+        journal.failed_views = failed_views
     if journal.checkpoint_due(now_s):
         journal.checkpoint(control.station, now_s)
     return out
@@ -987,9 +996,36 @@ def _assignments_json(allocator: Any) -> dict[str, Any]:
     return out
 
 
+def _failed_views_json(allocator: Any) -> list[list[float]]:
+    """The allocator's failed views (neutralizations that failed for want of line of sight:
+    ``(ooi x, ooi y, disruptor x, disruptor y)`` in ``map``) as JSON rows."""
+    return [[float(v) for v in row] for row in getattr(allocator, "_failed_views", ())]
+
+
+def _restore_failed_views(allocator: Any, rows: Any) -> int:
+    """Give ``allocator`` the failed views of an ``assignments`` record; returns how many. A
+    row that is not four finite numbers (a damaged record) is logged, naming it, and left
+    out: the resume goes on without it (at worst a disruptor tries that side again)."""
+    views = []
+    for i, row in enumerate(rows):
+        try:
+            view = tuple(float(v) for v in row)
+        except (TypeError, ValueError):
+            view = ()
+        if len(view) != 4 or not all(math.isfinite(v) for v in view):
+            log.error("assignments record: failed_views[%d] is %r, not 4 numbers: left out", i, row)
+            continue
+        views.append(view)
+    allocator._failed_views = views
+    return len(views)
+
+
 def _restore_assignments(allocator: Any, fields: dict[str, Any]) -> int:
-    """Give ``allocator`` the assignments of an ``assignments`` record; returns how many."""
+    """Give ``allocator`` the assignments of an ``assignments`` record (and its failed
+    views); returns how many assignments."""
     from gcs.tasking.allocator import Assignment
+
+    _restore_failed_views(allocator, fields.get("failed_views", ()))
 
     restored = {}
     for rid, f in fields.get("robots", {}).items():
@@ -1095,6 +1131,7 @@ def _resumed_control(
     if assignments:
         _restore_assignments(control.allocator, assignments)
         journal.assignments = _assignments_json(control.allocator)
+        journal.failed_views = _failed_views_json(control.allocator)
     return control
 
 
