@@ -350,6 +350,8 @@ class RobotNode:
         self._position_shift = np.zeros(2)  # slip taken out of the odometry so far (odom)
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._hazards: HazardUpdate | None = None
+        # the GCS's hostile hazards as (x, y, 0, 0) rows in odom, and the update they are of
+        self._hazard_hostiles: tuple[HazardUpdate, np.ndarray] | None = None
         self._keepout = np.zeros((0, 3))
         # a bad threshold file is an error here, at start-up, naming the file
         self.perception = (
@@ -879,11 +881,12 @@ class RobotNode:
         just within the robot's distance from its centre: the robot may drive out, never
         deeper (as the path follower allows), where the whole disk would leave it no start
         cell and no path (small world seed 0: a robot sat 100 s inside a disk 1.6 m away)."""
-        refused = self.stuck.blocked_mask(geometry, self._now)
-        if refused.any():
-            # ground the body refused to cross (stuck_detector): the map cannot see it
-            classes = classes.copy()
-            classes[refused] = OBSTACLE
+        if self.stuck.has_live_marks(self._now):  # most replans: none, no mask to build
+            refused = self.stuck.blocked_mask(geometry, self._now)
+            if refused.any():
+                # ground the body refused to cross (stuck_detector): the map cannot see it
+                classes = classes.copy()
+                classes[refused] = OBSTACLE
         if not len(self._keepout):
             return classes
         disks = self._keepout
@@ -1185,11 +1188,15 @@ class RobotNode:
         rows = [self._hostile_ghosts()]
         hz = self._hazards
         if hz is not None and any(h.kind is ObjectKind.HOSTILE for h in hz.hazards):
-            only = msgspec.structs.replace(
-                hz, hazards=[h for h in hz.hazards if h.kind is ObjectKind.HOSTILE]
-            )
-            disks = keepout_disks_in_odom(self.robot_id, only, config=self.config.keepout)
-            rows.append(np.column_stack([disks[:, :2], np.zeros((len(disks), 2))]))
+            cached = self._hazard_hostiles
+            if cached is None or cached[0] is not hz:  # made once per hazard update
+                only = msgspec.structs.replace(
+                    hz, hazards=[h for h in hz.hazards if h.kind is ObjectKind.HOSTILE]
+                )
+                disks = keepout_disks_in_odom(self.robot_id, only, config=self.config.keepout)
+                cached = (hz, np.column_stack([disks[:, :2], np.zeros((len(disks), 2))]))
+                self._hazard_hostiles = cached
+            rows.append(cached[1])
         return np.vstack(rows) if rows else np.zeros((0, 4))
 
     def _face_hostile(self, pose: np.ndarray, intent: Any) -> float | None:

@@ -311,9 +311,7 @@ class DeadlockBreaker:
         while self._motion and self._motion[0][0] < now_s - self._stall_s:
             self._motion.popleft()
         waited = now_s - self._best_t
-        pts = np.array([p for _, p in self._motion])
-        spread = float(np.max(np.hypot(*(pts - pts[0]).T))) if len(pts) else 0.0
-        stalled = waited >= self._stall_s and spread < cfg.stall_motion_m
+        stalled = waited >= self._stall_s and self._spread() < cfg.stall_motion_m
         if self.gave_up:
             if stalled or waited >= cfg.livelock_s:
                 self._stalled_after_giving_up = True
@@ -325,6 +323,13 @@ class DeadlockBreaker:
             self.attempts += 1
             self._phase_since_s = now_s
         return self.phase
+
+    def _spread(self) -> float:
+        """How far the robot got from the oldest position of the stall window (only asked
+        once the progress has stalled that long: every control period it cost an array of
+        the window's positions)."""
+        pts = np.array([p for _, p in self._motion])
+        return float(np.max(np.hypot(*(pts - pts[0]).T))) if len(pts) else 0.0
 
     def note_block_distance(self, now_s: float, distance_m: float) -> None:
         """While waiting: the path being followed is blocked ``distance_m`` ahead. Something

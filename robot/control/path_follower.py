@@ -66,16 +66,20 @@ def motion_enters_keepout(
     d_now = np.hypot(disks[:, 0] - x, disks[:, 1] - y)
     inside_now = d_now < disks[:, 2]
     dt = horizon_s / steps
-    for _ in range(steps):
+    # the predicted positions in scalar arithmetic (cheap), then every step against every
+    # disk in one array expression: called every control period, the per-step array calls
+    # cost more than the test
+    xs = np.empty(steps)
+    ys = np.empty(steps)
+    for k in range(steps):
         x += linear_m_s * dt * math.cos(th + 0.5 * angular_rad_s * dt)
         y += linear_m_s * dt * math.sin(th + 0.5 * angular_rad_s * dt)
         th += angular_rad_s * dt
-        d = np.hypot(disks[:, 0] - x, disks[:, 1] - y)
-        entering = (d < disks[:, 2]) & ~inside_now
-        deeper = inside_now & (d < d_now - 1e-9)
-        if np.any(entering | deeper):
-            return True
-    return False
+        xs[k], ys[k] = x, y
+    d = np.hypot(disks[None, :, 0] - xs[:, None], disks[None, :, 1] - ys[:, None])
+    entering = (d < disks[None, :, 2]) & ~inside_now
+    deeper = inside_now & (d < d_now - 1e-9)
+    return bool(np.any(entering | deeper))
 
 
 class PathFollower:
@@ -84,16 +88,25 @@ class PathFollower:
     def __init__(self, config: FollowerConfig | None = None) -> None:
         self.config = config or FollowerConfig()
         self._path = np.zeros((0, 2))
+        # the path's segments, their lengths and the arc length at each vertex: fixed while
+        # the path is, asked for at every control period (_lookahead_point)
+        self._seg = np.zeros((0, 2))
+        self._seg_len = np.zeros(0)
+        self._arc = np.zeros(1)
         self._v = 0.0
         self._w = 0.0
         self._progress = 0  # index of the path segment we are on
 
     def set_path(self, path_in_odom: np.ndarray) -> None:
         """Follow ``path_in_odom`` ``(N, 2)`` (N >= 1) from now on; empty path: stop."""
-        path = np.asarray(path_in_odom, dtype=np.float64).reshape(-1, 2)
+        # a copy: the segments below are kept, the caller's array may change
+        path = np.array(path_in_odom, dtype=np.float64).reshape(-1, 2)
         if not np.all(np.isfinite(path)):
             raise ValueError("path_in_odom contains non-finite points")
         self._path = path
+        self._seg = path[1:] - path[:-1]
+        self._seg_len = np.hypot(self._seg[:, 0], self._seg[:, 1])
+        self._arc = np.concatenate([[0.0], np.cumsum(self._seg_len)])
         self._progress = 0
 
     @property
@@ -113,9 +126,7 @@ class PathFollower:
         if len(path) == 1:
             return path[0], float(np.linalg.norm(path[0] - pos))
         cfg = self.config
-        seg = path[1:] - path[:-1]
-        seg_len = np.hypot(seg[:, 0], seg[:, 1])
-        arc = np.concatenate([[0.0], np.cumsum(seg_len)])
+        seg, seg_len, arc = self._seg, self._seg_len, self._arc
         lo = self._progress
         # segments starting within the window, plus the one the window ends in
         hi = int(np.searchsorted(arc, arc[lo] + 4.0 * cfg.lookahead_m + 1.0, side="right")) + 1

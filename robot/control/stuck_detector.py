@@ -146,6 +146,12 @@ class StuckDetector:
             push = yaw_rad if v_mean > 0 else yaw_rad + math.pi
             self._marks.append((float(xy[0]), float(xy[1]), push, t_s))
 
+    def has_live_marks(self, now_s: float) -> bool:
+        """Whether any refusal is remembered at ``now_s`` (within ``remember_s`` before it):
+        without one :meth:`blocked_mask` is all False, and a caller can skip building it."""
+        remember_s = self.config.remember_s
+        return any(0.0 <= now_s - t <= remember_s for _, _, _, t in self._marks)
+
     def blocked_mask(self, geometry: GridGeometry, now_s: float) -> NDArray[np.bool_]:
         """Cells of the grid laid out by ``geometry`` (in ``odom``) that refused translations
         within ``remember_s`` before ``now_s`` mark: a strip ``2 * mark_half_width_m`` wide

@@ -453,7 +453,14 @@ class InertialOdometry:
         self._bias_var += cfg.gyro_bias_walk_rad_s_sqrt_s**2 * dt
         w = self._window
         span = w[-1][0] - w[0][0] if w else 0.0
-        if len(w) < 5 or span < 0.8 * cfg.still_window_s or dt <= 0:
+        if (
+            len(w) < 5
+            or span < 0.8 * cfg.still_window_s
+            or dt <= 0
+            or not self._last_tick_motion_t < w[0][0]
+        ):
+            # (the wheels turned within the window: not still, whatever the samples say;
+            # tested first, it spares the window's statistics at every sample while driving)
             self.is_still = False
             return
         data = np.stack([v for _, v in w])
@@ -463,7 +470,6 @@ class InertialOdometry:
             bool(np.all(std[:3] < cfg.still_gyro_std_rad_s))
             and bool(np.all(std[3:] < cfg.still_accel_std_m_s2))
             and float(np.max(np.abs(mean_gyro - self._bias))) < cfg.still_max_rate_rad_s
-            and self._last_tick_motion_t < w[0][0]
         )
         if still:  # this sample measures the bias: Kalman update per axis
             meas_var = cfg.gyro_noise_density_rad_s_sqrt_hz**2 / dt

@@ -202,11 +202,19 @@ def _thin(pts: FloatArray, max_points: int, cell_m: float) -> FloatArray:
     if len(pts) == 0:
         return pts
     cells = np.floor(pts / cell_m).astype(np.int64)
-    _, first = np.unique(cells, axis=0, return_index=True)
+    # each cell as one integer (row-major over the cells' bounding box): the first point of
+    # each cell, as np.unique(cells, axis=0) finds it, at a fraction of its cost
+    lo = cells.min(axis=0)
+    span = cells[:, 1].max() - lo[1] + 1
+    keys = (cells[:, 0] - lo[0]) * span + (cells[:, 1] - lo[1])
+    _, first = np.unique(keys, return_index=True)
     pts = pts[np.sort(first)]
     if len(pts) > max_points:
         pts = pts[np.linspace(0, len(pts) - 1, max_points).astype(np.int64)]
     return pts
+
+
+_FIELD_REACH_SIGMAS = 15.0  # exp(-0.5 * 15**2) = 1e-49: 0 in float32
 
 
 @nb.njit(cache=True, nogil=True)
@@ -255,7 +263,12 @@ def _field(
     rows = ((map_pts[:, 1] - y0) / res).astype(np.int64)
     occupied[rows, cols] = 0
     dist = cv2.distanceTransform(occupied, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res
-    field = np.exp(-0.5 * (dist / cfg.sigma_m) ** 2).astype(np.float32)
+    # float32 exp(-0.5 x^2) is exactly 0 beyond x = 14.4 (below the smallest subnormal):
+    # only cells nearer than _FIELD_REACH_SIGMAS sigmas are worth an exp, the same values
+    # (most of a 40 m field lies far from every return)
+    field = np.zeros(dist.shape, dtype=np.float32)
+    near = dist < _FIELD_REACH_SIGMAS * cfg.sigma_m
+    field[near] = np.exp(-0.5 * (dist[near] / cfg.sigma_m) ** 2)
     return field, x0, y0
 
 

@@ -72,12 +72,19 @@ class TerrainMapFusion:
             tuple[tuple[int, int], NDArray[np.uint8], NDArray[np.bool_], NDArray[np.uint8]]
         ] = deque(maxlen=memory_sweeps)
         self._resolution_m: float | None = None
+        # the last fused() / tall() answers and the memory they were made from: a robot
+        # standing still asks again for the same cells (replans, line of sight at the
+        # control rate) before the next sweep changes anything
+        self._version = 0
+        self._fused_cache: tuple[int, GridGeometry, NDArray[np.uint8]] | None = None
+        self._tall_cache: tuple[int, GridGeometry, int, NDArray[np.bool_]] | None = None
 
     def __len__(self) -> int:
         return len(self._maps)
 
     def clear(self) -> None:
         self._maps.clear()
+        self._version += 1
 
     def forget_older(self, *, keep: int) -> None:
         """Forget all but the newest ``keep`` maps (the memory is known to be stale)."""
@@ -85,6 +92,7 @@ class TerrainMapFusion:
             raise ValueError(f"keep must be >= 0, got {keep}")
         while len(self._maps) > keep:
             self._maps.popleft()
+            self._version += 1
 
     def add(
         self,
@@ -125,6 +133,7 @@ class TerrainMapFusion:
             free = _to_cm(np.asarray(free_height_m, dtype=np.float64), fill=_NONE)
         free[drivable] = 0
         self._maps.append((geometry.lattice_index(), height, drivable, free))
+        self._version += 1
 
     def _check_lattice(self, geometry: GridGeometry) -> None:
         if self._resolution_m is None:
@@ -148,6 +157,9 @@ class TerrainMapFusion:
         self._check_lattice(geometry)
         r0, c0 = geometry.lattice_index()
         cm = int(math.ceil(min_height_m * 100.0))
+        hit = self._tall_cache
+        if hit is not None and hit[0] == self._version and hit[1] == geometry and hit[2] == cm:
+            return hit[3].copy()
         out = np.zeros(geometry.shape, dtype=bool)
         for (mr, mc), height, _, _ in self._maps:
             dr, dc = mr - r0, mc - c0
@@ -157,12 +169,16 @@ class TerrainMapFusion:
                 continue
             h = height[out_r.start - dr : out_r.stop - dr, out_c.start - dc : out_c.stop - dc]
             out[out_r, out_c] |= h >= max(cm, 1)
+        self._tall_cache = (self._version, geometry, cm, out.copy())
         return out
 
     def fused(self, geometry: GridGeometry) -> NDArray[np.uint8]:
         """The pessimistic union of the remembered maps over ``geometry`` (same lattice),
         less obstacle marks that ``clear_after_sweeps`` later sweeps saw gone."""
         self._check_lattice(geometry)
+        hit = self._fused_cache
+        if hit is not None and hit[0] == self._version and hit[1] == geometry:
+            return hit[2].copy()
         r0, c0 = geometry.lattice_index()
         obstacle = np.zeros(geometry.shape, dtype=bool)
         drivable = np.zeros(geometry.shape, dtype=bool)
@@ -195,4 +211,5 @@ class TerrainMapFusion:
         out = np.full(geometry.shape, UNKNOWN, dtype=np.uint8)
         out[drivable] = DRIVABLE
         out[obstacle] = OBSTACLE
+        self._fused_cache = (self._version, geometry, out.copy())
         return out

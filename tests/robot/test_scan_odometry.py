@@ -170,3 +170,39 @@ def test_one_scan_at_a_time_refuses_an_implausible_heading() -> None:
     wrong = truth[-1] + np.array([0.0, 0.0, math.radians(1.5)])
     assert aid.observe(wrong, _scan(truth[-1], segs), 20.0) is None
     assert aid.stats.rejected == 1
+
+
+def test_the_likelihood_field_equals_the_gaussian_of_the_distance_everywhere() -> None:
+    # the field takes an exp only near the returns (beyond, float32 holds exactly 0): it
+    # must equal the Gaussian of the whole distance transform, cell for cell
+    import cv2
+
+    from robot.odometry.scan_odometry import _field
+
+    cfg = ScanOdometryConfig()
+    pts = np.vstack([_scan(p, _segments()) for p in _truth()[::15]])
+    field, x0, y0 = _field(pts, cfg)
+    res = cfg.field_resolution_m
+    occupied = np.full(field.shape, 255, dtype=np.uint8)
+    rows = ((pts[:, 1] - y0) / res).astype(np.int64)
+    occupied[rows, ((pts[:, 0] - x0) / res).astype(np.int64)] = 0
+    dist = cv2.distanceTransform(occupied, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * res
+    want = np.exp(-0.5 * (dist / cfg.sigma_m) ** 2).astype(np.float32)
+    assert field.dtype == np.float32
+    np.testing.assert_array_equal(field, want)
+    assert 0.05 < float(np.mean(field > 0)) < 0.95  # both kinds of cell were there
+
+
+def test_thinning_keeps_the_first_point_of_each_cell_as_unique_rows_do() -> None:
+    from robot.odometry.scan_odometry import _thin
+
+    rng = np.random.default_rng(1)
+    for n in (1, 2, 7, 300, 5000):
+        pts = rng.normal(0.0, 6.0, (n, 2))
+        pts[n // 2 :] = pts[: n - n // 2] + rng.normal(0.0, 0.03, (n - n // 2, 2))
+        cells = np.floor(pts / 0.1).astype(np.int64)
+        _, first = np.unique(cells, axis=0, return_index=True)
+        want = pts[np.sort(first)]
+        if len(want) > 240:
+            want = want[np.linspace(0, len(want) - 1, 240).astype(np.int64)]
+        np.testing.assert_array_equal(_thin(pts, 240, 0.1), want)

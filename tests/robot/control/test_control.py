@@ -255,3 +255,48 @@ def test_planner_goes_around_slippery_ground_when_the_detour_is_cheap() -> None:
             wide.observe(x, y, measured_m_s=0.7, requested_m_s=1.0)
     across = planner.plan(classes, geo, start, goal, cost_multiplier=wide.cost_multiplier(geo))
     assert across.ok and abs(through(across)) < 0.5
+
+
+def _enters_keepout_stepwise(pose, v, w, disks, *, horizon_s, steps=10) -> bool:
+    """The check one predicted step at a time (the form before it was vectorized): the oracle
+    for :func:`motion_enters_keepout`."""
+    if len(disks) == 0:
+        return False
+    x, y, th = (float(a) for a in pose)
+    d_now = np.hypot(disks[:, 0] - x, disks[:, 1] - y)
+    inside_now = d_now < disks[:, 2]
+    dt = horizon_s / steps
+    for _ in range(steps):
+        x += v * dt * math.cos(th + 0.5 * w * dt)
+        y += v * dt * math.sin(th + 0.5 * w * dt)
+        th += w * dt
+        d = np.hypot(disks[:, 0] - x, disks[:, 1] - y)
+        if np.any(((d < disks[:, 2]) & ~inside_now) | (inside_now & (d < d_now - 1e-9))):
+            return True
+    return False
+
+
+def test_keepout_check_equals_the_stepwise_prediction() -> None:
+    rng = np.random.default_rng(3)
+    hits = 0
+    for _ in range(3000):
+        n = int(rng.integers(0, 6))
+        disks = np.column_stack(
+            [rng.uniform(-4, 4, n), rng.uniform(-4, 4, n), rng.uniform(0.5, 3.5, n)]
+        )
+        pose = np.array([rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(-math.pi, math.pi)])
+        v, w = float(rng.uniform(-1, 1)), float(rng.uniform(-1.2, 1.2))
+        want = _enters_keepout_stepwise(pose, v, w, disks, horizon_s=1.5)
+        assert motion_enters_keepout(pose, v, w, disks, horizon_s=1.5) == want
+        hits += want
+    assert 300 < hits < 2700  # both answers were exercised
+
+
+def test_live_marks_say_whether_the_refused_mask_has_any_cell() -> None:
+    cfg = StuckConfig(mark_ahead_m=0.45, mark_half_width_m=0.3, remember_s=90.0)
+    det = StuckDetector(cfg)
+    geometry = GridGeometry((0.0, 0.0), 0.05, 80, 80)
+    assert not det.has_live_marks(0.0)
+    assert _stall(det, 10.0, np.array([2.0, 2.0, math.pi / 2]), 0.8, 0.0)
+    for now in (0.0, 10.0, 13.9, 14.1, 50.0, 104.0, 104.2, 200.0):
+        assert det.has_live_marks(now) == bool(det.blocked_mask(geometry, now).any()), now

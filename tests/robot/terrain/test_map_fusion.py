@@ -156,3 +156,44 @@ def test_bad_input_names_the_problem() -> None:
         TerrainMapFusion(memory_sweeps=0)
     with pytest.raises(ValueError, match="free_height_m"):
         fusion.add(np.zeros(geo.shape, np.uint8), geo, free_height_m=np.zeros((2, 2)))
+
+
+def _random_layers(rng, geo):  # type: ignore[no-untyped-def]
+    u = rng.random(geo.shape)
+    classes = np.where(u < 0.05, OBSTACLE, np.where(u < 0.5, DRIVABLE, UNKNOWN)).astype(np.uint8)
+    obstacle_h = np.where(rng.random(geo.shape) < 0.2, np.inf, rng.uniform(0.0, 2.0, geo.shape))
+    free_h = np.where(rng.random(geo.shape) < 0.5, rng.uniform(0.0, 2.0, geo.shape), np.inf)
+    return classes, obstacle_h, free_h
+
+
+def test_answers_kept_between_sweeps_equal_a_fresh_fusion_of_the_same_memory() -> None:
+    # fused() and tall() remember their last answer until the memory changes: after every
+    # add, forget and clear, and when asked twice, they equal a fusion built from scratch
+    rng = np.random.default_rng(5)
+    kept = TerrainMapFusion(memory_sweeps=4, clear_after_sweeps=2)
+    history: list = []
+    ask = [_geo(0.0, 0.0, 30), _geo(0.3, -0.2, 30), _geo(0.0, 0.0, 30)]
+    for step in range(14):
+        if step == 9:
+            kept.forget_older(keep=1)
+            history = history[-1:]
+        elif step == 11:
+            kept.clear()
+            history = []
+        else:
+            geo = _geo(rng.uniform(-1, 1), rng.uniform(-1, 1), 30)
+            layers = _random_layers(rng, geo)
+            kept.add(layers[0], geo, obstacle_height_m=layers[1], free_height_m=layers[2])
+            history = (history + [(geo, layers)])[-4:]
+        fresh = TerrainMapFusion(memory_sweeps=4, clear_after_sweeps=2)
+        for geo, (cls, oh, fh) in history:
+            fresh.add(cls, geo, obstacle_height_m=oh, free_height_m=fh)
+        for geo in ask:
+            for _ in range(2):
+                got = kept.fused(geo)
+                np.testing.assert_array_equal(got, fresh.fused(geo))
+                got[:] = OBSTACLE  # the caller's copy: the remembered answer is untouched
+                tall = kept.tall(geo, 0.5)
+                np.testing.assert_array_equal(tall, fresh.tall(geo, 0.5))
+                tall[:] = True
+            np.testing.assert_array_equal(kept.tall(geo, 1.0), fresh.tall(geo, 1.0))
