@@ -156,6 +156,10 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # contact it was re-sent into the same shadow, over and over (small world seed 0: robots
     # 0 and 1 took turns, robot_back -> hostile_view -> robot_silent, from 95 s to the end)
     shadow_retry_s: float = 90.0
+    # ... nor given an exploration goal within shadow_goal_radius_m of the one it fell
+    # silent on, for shadow_retry_s (issue 17: with the goal alone barred, small world seed
+    # 7's robot 0 got one 2.1 m from it and fell silent again 22 s later)
+    shadow_goal_radius_m: float = 5.0
     # a robot whose evasion of a hazard failed this often (it could not get out: jammed
     # with others in a corridor, the way out behind a wall) is not sent to evade it again;
     # the full mission re-sent three robots out of one keep-out every 37 s for 600 s
@@ -215,6 +219,7 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "frontier_gone_m",
             "neutralize_retry_s",
             "shadow_retry_s",
+            "shadow_goal_radius_m",
             "duplicate_m",
             "contact_fresh_s",
             "contact_steady_s",
@@ -706,7 +711,7 @@ class TaskAllocator:
         """Robot ``rid`` just fell silent: the hostile it was on its way to watch is not given
         it for ``shadow_retry_s`` (the lock needs the watchers heard, paper 2: a watcher in a
         radio shadow cannot hold it), nor is the exploration goal it was on its way to (nor
-        one within ``exploration.blacklist_radius_m`` of it): back in contact at the shadow's
+        one within ``shadow_goal_radius_m`` of it): back in contact at the shadow's
         edge for a second or two, its backlog not through yet, it was re-sent into the same
         shadow on a map that lacked what it had seen there (issue 17; chaos bench seed 9:
         robots 1 and 2 never heard again). Another robot may take that goal, and what the
@@ -1417,7 +1422,7 @@ class TaskAllocator:
                 if ctx.now_s - t < cfg.shadow_retry_s
             ]
             self._explore_shadowed[rid] = shadow
-            bl = self._failed_goals.get(rid, []) + global_bad + [g for g, _ in shadow]
+            bl = self._failed_goals.get(rid, []) + global_bad
             avoid = [d for d in self._avoid.get(rid, []) if d[3] > ctx.now_s]
             self._avoid[rid] = avoid
             waiting.append(
@@ -1427,6 +1432,10 @@ class TaskAllocator:
                     self._position(r),
                     np.asarray(bl, dtype=np.float64).reshape(-1, 2),
                     np.asarray([d[:3] for d in avoid], dtype=np.float64).reshape(-1, 3),
+                    np.asarray(
+                        [(g[0], g[1], cfg.shadow_goal_radius_m) for g, _ in shadow],
+                        dtype=np.float64,
+                    ).reshape(-1, 3),
                 )
             )
         if not waiting:

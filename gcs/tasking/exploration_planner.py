@@ -99,6 +99,9 @@ class Explorer:
     blacklist_in_map: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     # ``(K, 3)`` discs ``(x_m, y_m, radius_m)`` in map its routes must not enter
     avoid_in_map: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    # ``(K, 3)`` discs in map where it gets no goal (its routes may cross them): the radio
+    # shadow it fell silent in, for a while (allocator ``shadow_goal_radius_m``)
+    goals_off_in_map: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def _avoid(e: Explorer) -> NDArray[np.float64]:
@@ -178,7 +181,9 @@ def _blacklisted(ex: Explorer, goals: NDArray[np.float64], r: float) -> NDArray[
 
 
 def _in_avoid(e: Explorer, goals: NDArray[np.float64]) -> NDArray[np.bool_]:
-    discs = _avoid(e)
+    """Goals inside ``e``'s avoid discs or its goals-off discs."""
+    off = np.asarray(e.goals_off_in_map, dtype=np.float64).reshape(-1, 3)
+    discs = np.vstack([_avoid(e), off])
     out = np.zeros(len(goals), dtype=bool)
     for x, y, r in discs:
         out |= np.hypot(goals[:, 0] - x, goals[:, 1] - y) <= r

@@ -77,6 +77,22 @@ def test_failed_goals_are_not_offered_again() -> None:
             assert np.hypot(gl.goal_in_map[0] - bad[0], gl.goal_in_map[1] - bad[1]) > 2.0
 
 
+def test_no_goal_in_a_goals_off_disc_but_routes_may_cross_it() -> None:
+    """The radio shadow a robot fell silent in (allocator ``shadow_goal_radius_m``): no goal
+    within the disc; a goal beyond it is reached through it."""
+    g = corridor()
+    east = _plan(g, {1: (25.0, 3.0)}).goals[1].goal_in_map
+    assert east[0] > 34.0
+    off = np.asarray([[east[0], east[1], 5.0]])
+    plan = _plan(g, {1: (25.0, 3.0)}, bl1=(np.zeros((0, 2)), np.zeros((0, 3)), off))
+    assert plan.goals[1].goal_in_map[0] < 6.0  # the west end, not anywhere near the east
+    # with the west end off too, the east end is reached through a disc on the way
+    off2 = np.asarray([[30.0, 3.0, 2.0], [5.0, 3.0, 4.0]])
+    plan = _plan(g, {1: (15.0, 3.0)}, bl1=(np.zeros((0, 2)), np.zeros((0, 3)), off2))
+    goal = plan.goals[1]
+    assert goal.goal_in_map[0] > 34.0 and goal.distance_m == pytest.approx(20.0, abs=1.5)
+
+
 def test_no_frontier_means_explored() -> None:
     v = blank(12, 12)
     box(v, 0, 0, 12, 12, OCCUPIED)
