@@ -137,7 +137,8 @@ class MatchResult:
     optimum of the search, the 3x3 covariance, the raw and normalized score (in [0, 1]), and
     how many branch-and-bound nodes were scored. ``runner_up_score``: with
     ``MatcherConfig.runner_up_radius_m``, the normalized score of the best transform at least
-    that far from the best one when it reaches ``runner_up_ratio`` of the best, else 0."""
+    that far from the best one when it reaches ``runner_up_ratio`` of the best, else 0;
+    ``runner_up_a_from_b``: that transform (discrete), None when there is none."""
 
     a_from_b: np.ndarray
     a_from_b_discrete: np.ndarray
@@ -146,6 +147,7 @@ class MatchResult:
     normalized_score: float
     nodes_evaluated: int
     runner_up_score: float = 0.0
+    runner_up_a_from_b: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -784,13 +786,21 @@ class CorrelativeMatcher:
         guess_a_from_b: np.ndarray,
         *,
         min_score: float = 0.0,
+        runner_up_radius_m: float | None = None,
     ) -> MatchResult | None:
         """Best ``a_from_b`` in the window around ``guess_a_from_b`` (branch and bound).
 
         ``query_points_m``: points ``(N, 2)`` in B's frame (e.g. :func:`grid_points`).
         ``min_score``: normalized score a match must reach; below it the search prunes and
         returns None (as the brute-force oracle does with the same threshold).
+        ``runner_up_radius_m``: this call's runner-up exclusion radius (None: the config's
+        ``runner_up_radius_m``; 0: no runner-up search), so that a caller searches for
+        look-alikes only where they matter.
         """
+        if runner_up_radius_m is None:
+            runner_up_radius_m = self.config.runner_up_radius_m
+        if not (math.isfinite(runner_up_radius_m) and runner_up_radius_m >= 0):
+            raise ValueError(f"runner_up_radius_m must be >= 0, got {runner_up_radius_m}")
         p = self._prepare(ref, query_points_m, guess_a_from_b)
         threshold = _threshold(min_score, len(p.points))
         best, j, ty, tx, evaluated = _branch_and_bound(
@@ -799,19 +809,26 @@ class CorrelativeMatcher:
         if best < threshold:
             return None
         result = self._result(ref, p, guess_a_from_b, best, j, ty, tx, evaluated)
-        radius = self.config.runner_up_radius_m / ref.resolution_m
+        radius = runner_up_radius_m / ref.resolution_m
         if radius <= 0:
             return result
         # the best other place (MatcherConfig.runner_up_radius_m), pruned at the ratio
         floor = max(threshold, int(math.ceil(self.config.runner_up_ratio * best - 1e-9)))
-        second, _j, _ty, _tx, more = _branch_and_bound(
+        second, j2, ty2, tx2, more = _branch_and_bound(
             ref.pyramid, ref.shape[1], p.idx, p.count, p.n_xy, floor, p.j_guess, ty, tx,
             radius * radius,
         )  # fmt: skip
+        if second < floor:
+            return dataclasses.replace(result, nodes_evaluated=result.nodes_evaluated + int(more))
+        g = np.asarray(guess_a_from_b, dtype=np.float64)
+        res = ref.resolution_m
         return dataclasses.replace(
             result,
             nodes_evaluated=result.nodes_evaluated + int(more),
-            runner_up_score=float(second / (255.0 * len(p.points))) if second >= floor else 0.0,
+            runner_up_score=float(second / (255.0 * len(p.points))),
+            runner_up_a_from_b=np.array(
+                [g[0] + int(tx2) * res, g[1] + int(ty2) * res, _wrap(float(p.yaws[int(j2)]))]
+            ),
         )
 
     def _result(

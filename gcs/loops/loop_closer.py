@@ -199,6 +199,8 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     grid_window_rad: float = math.inf
     max_turn_scale_yaw_rad: float = math.radians(20.0)
     max_grid_distortion_rad: float = math.radians(5.0)
+    look_alike_radius_m: float = 0.0
+    look_alike_chi2: float = 11.34
     # long-loop candidate source (gcs.loops.long_loop_search, issue 19 item 5)
     long_loops: LongLoopConfig = msgspec.field(default_factory=LongLoopConfig)
 
@@ -261,6 +263,10 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             raise ValueError("max_rejected_kept and max_deferred_kept must be >= 0")
         if self.max_wide_per_step < 0 or self.min_scan_points < 1:
             raise ValueError("need max_wide_per_step >= 0 and min_scan_points >= 1")
+        if not (math.isfinite(self.look_alike_radius_m) and self.look_alike_radius_m >= 0):
+            raise ValueError(f"look_alike_radius_m: expected >= 0, got {self.look_alike_radius_m}")
+        if not (math.isfinite(self.look_alike_chi2) and self.look_alike_chi2 > 0):
+            raise ValueError(f"look_alike_chi2: expected > 0, got {self.look_alike_chi2}")
         if not (self.edge_floor_sigma_xy_m >= 0 and self.edge_floor_sigma_yaw_rad >= 0):
             raise ValueError("edge covariance floors must be >= 0")
 
@@ -859,6 +865,36 @@ class LoopCloser:
         )
         return cov + floor  # type: ignore[no-any-return]
 
+    def _look_alike_radius_m(self, prior_xyt: FloatArray) -> float | None:
+        """This match's runner-up exclusion radius (config ``look_alike_radius_m``; None:
+        the matcher's own ``runner_up_radius_m``): 0, no runner-up search, when the candidate's
+        prior (``prior_xyt``, the Dijkstra projection's covariance, vector components) is so
+        tight that nothing that far from the guess lies within ``look_alike_chi2`` of it."""
+        cfg = self.config
+        r = cfg.look_alike_radius_m
+        if r <= 0.0:
+            return None
+        lam = float(np.linalg.eigvalsh(np.asarray(prior_xyt, dtype=np.float64)[:2, :2])[-1])
+        floor = cfg.validation.floor_sigma_xy_m**2
+        return r if (lam + floor) * cfg.look_alike_chi2 >= r * r else 0.0
+
+    def _plausible_look_alike(
+        self, result: MatchResult, guess: FloatArray, prior_xyt: FloatArray
+    ) -> bool:
+        """Whether a match's runner-up is a place the graph cannot rule out: with
+        ``look_alike_radius_m`` > 0, within ``look_alike_chi2`` (3 dof) of the guess under the
+        candidate's prior (floored like hypotheses); without, any runner-up in the window."""
+        cfg = self.config
+        if cfg.look_alike_radius_m <= 0.0 or result.runner_up_a_from_b is None:
+            return True
+        d = np.asarray(result.runner_up_a_from_b, dtype=np.float64) - np.asarray(guess, float)
+        d[2] = se2.wrap_angle(d[2])
+        v = cfg.validation
+        cov = np.asarray(prior_xyt, dtype=np.float64) + np.diag(
+            [v.floor_sigma_xy_m**2, v.floor_sigma_xy_m**2, v.floor_sigma_yaw_rad**2]
+        )
+        return bool(d @ np.linalg.solve(cov, d) <= cfg.look_alike_chi2)
+
     def _ambiguous(self, cov: FloatArray) -> bool:
         """Whether a match (its edge covariance ``cov``, body frame) constrains too little to
         be a closure: a translation standard deviation beyond ``max_match_sigma_xy_m`` or a
@@ -882,11 +918,16 @@ class LoopCloser:
         min_score = cfg.wide_min_score if cand.wide else cfg.min_score
         self.stats.matches += 1
         self.stats.wide_matches += cand.wide
-        result = matcher.match(table, self._scans[b], guess, min_score=min_score)
+        radius = self._look_alike_radius_m(cand.covariance_xyt)
+        result = matcher.match(
+            table, self._scans[b], guess, min_score=min_score, runner_up_radius_m=radius
+        )
         if result is None:
             self.stats.below_min_score += 1
             return None
-        if result.runner_up_score > 0.0:  # another place fits nearly as well (a look-alike)
+        if result.runner_up_score > 0.0 and self._plausible_look_alike(
+            result, guess, cand.covariance_xyt
+        ):  # another place the graph cannot rule out fits nearly as well
             self.stats.look_alikes += 1
             return None
         cov = self._edge_covariance(result)
