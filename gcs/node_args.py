@@ -8,6 +8,7 @@ import argparse
 from pathlib import Path
 
 from gcs.operator.node_hooks import add_operator_arguments
+from protocol.cli_parser import CommandParser
 from protocol.process_cli import add_link_arguments
 
 __all__ = ["gcs_parser"]
@@ -38,7 +39,7 @@ _LINK_HELP = {
 
 def gcs_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     """``magic gcs``'s parser; ``epilog``: a text after the options (exit statuses)."""
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="magic gcs",
         epilog=epilog,
         description=_DESCRIPTION,

@@ -17,6 +17,8 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from protocol.cli_parser import CommandParser
+
 __all__ = ["main"]
 
 #: Subcommands with their own parser (``magic X --help`` is theirs): what each produces.
@@ -67,7 +69,7 @@ class _HelpFormatter(argparse.HelpFormatter):
 def _build_parser() -> argparse.ArgumentParser:
     from mission.bench import BENCH_DIR_ENV, SUITES, bench_root
 
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="magic",
         description="magic-recon: supervise a team of autonomous ground robots (MAGIC 2010).\n"
         "`magic COMMAND --help` says what each command takes, produces and where.",

@@ -70,6 +70,7 @@ from mission.lockstep_protocol import (
     gcs_end_key,
     gcs_go_key,
 )
+from protocol.cli_parser import CommandParser
 
 __all__ = ["GcsSetup", "OperatorSetup", "RemoteGcs", "main"]
 
@@ -544,7 +545,7 @@ def _open_link(args: argparse.Namespace, setup: GcsSetup) -> tuple[Any, Any]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="python -m mission.lockstep_gcs",
         description="The GCS process of a lockstep run (started by magic run --gcs-process).",
     )

@@ -20,6 +20,7 @@ import numpy as np
 
 from gcs.ground_station import GroundStation
 from gcs.journal import GcsJournal, JournalError, ReplaySummary, replay_journal
+from protocol.cli_parser import CommandParser
 
 __all__ = ["ReplayDiff", "compare_replay", "compare_stations", "main", "replay_run"]
 
@@ -90,9 +91,8 @@ def compare_replay(run: str | Path, live: GroundStation) -> ReplayDiff:
 def main(argv: list[str]) -> int:
     """``magic replay RUN_DIR [--tol-m M]``: 0 when two replays agree (nodes, edges, poses
     within the tolerance), 1 when they do not, 2 on a missing or damaged journal."""
-    import argparse
 
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="magic replay RUN_DIR",
         description="Replay a mission's GCS journal (RUN_DIR/journal.sqlite) through a fresh "
         "GCS: prints the graph it rebuilds and replay_pose_diff_max_m between two independent "

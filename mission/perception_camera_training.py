@@ -19,7 +19,6 @@ trains, writes the versioned file and prints the held-out evaluation.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -30,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.cli_parser import CommandParser
 from robot.perception.camera_model import Intrinsics
 from robot.perception.colour_classifier import (
     CLASSES,
@@ -280,9 +280,7 @@ def evaluate(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="magic perception colour", description=__doc__.splitlines()[0]
-    )
+    ap = CommandParser(prog="magic perception colour", description=__doc__.splitlines()[0])
     ap.add_argument("--train-seeds", type=int, nargs="+", default=list(TRAIN_SEEDS))
     ap.add_argument("--test-seeds", type=int, nargs="+", default=list(TEST_SEEDS))
     ap.add_argument("--per-target", type=int, default=4, help="views per object per world")

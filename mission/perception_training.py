@@ -30,7 +30,6 @@ Here the dataset comes from seeded simulated worlds (:mod:`sim.world_generator`)
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -43,6 +42,7 @@ import msgspec
 import numpy as np
 from numpy.typing import NDArray
 
+from protocol.cli_parser import CommandParser
 from robot.perception.lidar_detector import LidarDetector, LidarDetectorConfig
 from robot.perception.shape_classifier import (
     DEFAULT_THRESHOLDS_PATH,
@@ -788,7 +788,7 @@ def evaluate_colour(
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="magic perception", description=__doc__.splitlines()[0])
+    ap = CommandParser(prog="magic perception", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("record", help="record labelled sweeps in seeded simulated worlds")
     r.add_argument("--seeds", type=int, nargs="+", required=True)

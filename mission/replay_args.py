@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import argparse
 
+from protocol.cli_parser import CommandParser
+
 __all__ = ["replay_parser"]
 
 
 def replay_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     """``magic replay --carmen``'s parser; ``epilog``: a text after the options (exit
     statuses)."""
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="magic replay",
         epilog=epilog,
         description="Replay a CARMEN laser log through the GCS: pose nodes and scan grids into "

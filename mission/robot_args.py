@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from protocol.cli_parser import CommandParser
 from protocol.process_cli import add_link_arguments
 
 __all__ = ["robot_parser"]
@@ -14,7 +15,7 @@ __all__ = ["robot_parser"]
 
 def robot_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     """``magic robot``'s parser; ``epilog``: a text after the options (exit statuses)."""
-    p = argparse.ArgumentParser(prog="magic robot", description="Run robot nodes.", epilog=epilog)
+    p = CommandParser(prog="magic robot", description="Run robot nodes.", epilog=epilog)
     p.add_argument(
         "--id",
         required=True,

@@ -965,6 +965,19 @@ def _run_link(config: RunConfig, args: Any) -> LinkConfig:
     return link
 
 
+def _kernels_cold() -> bool:
+    """True when no compiled numba kernel is cached yet (the first run after an install):
+    the robots' and the GCS's kernels are then compiled before the mission moves, minutes
+    on a small machine. Numba caches next to the sources, or under ``NUMBA_CACHE_DIR``."""
+    import os
+
+    cache_dir = os.environ.get("NUMBA_CACHE_DIR")
+    if cache_dir:
+        return not any(Path(cache_dir).rglob("*.nbi"))
+    root = Path(__file__).resolve().parent.parent
+    return not any(root.glob("robot/**/__pycache__/*.nbi"))
+
+
 def _run_dir(out: str | None, config: RunConfig) -> Path:
     """The run directory: ``out``, or a fresh ``runs/<UTC date-time>-<world>-<seed>``; a
     directory that already holds a run (``record/``) is refused (ValueError)."""
@@ -1119,6 +1132,14 @@ def main(argv: list[str] | None = None) -> int:
         err.print(f"magic run: {hint}", markup=False, soft_wrap=True)
     if no_consoles:
         err.print(f"magic run: {no_consoles}", markup=False, soft_wrap=True)
+    if not args.quiet and _kernels_cold():
+        err.print(
+            "magic run: first run after install: compiling the robots' and the GCS's numba "
+            "kernels before the mission moves (a few minutes, once; later runs load them "
+            "from the cache)",
+            markup=False,
+            soft_wrap=True,
+        )
     try:
         if args.quiet:
             report = run_mission(config, out_dir=out_dir, on_console=console_line, **ops)

@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 from typing import cast
 
+from protocol.cli_parser import CommandParser
+
 __all__ = ["DEFAULT_DURATION_S", "DEFAULT_SEED", "run_parser"]
 
 #: ``RunConfig``'s defaults the help states (one definition: :class:`mission.run.RunConfig`
@@ -50,7 +52,7 @@ latest decision.
 
 def run_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     """``magic run``'s parser; ``epilog``: a text after the run's own (exit statuses)."""
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="magic run",
         description="Run the MAGIC mission on this machine, end to end: the simulator, one\n"
         "robot node per robot and the ground-control station (global map, loop closing, task\n"
@@ -67,7 +69,8 @@ def run_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     p.add_argument(
         "--world",
         metavar="WORLD",
-        help="world: a name in configs/world/ (small, magic_phase) or a YAML path (default: small)",
+        help="world: a name in configs/world/ (small, magic_phase, magic_team100) or a YAML path "
+        "(default: small)",
     )
     p.add_argument(
         "--duration",

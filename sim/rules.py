@@ -65,6 +65,11 @@ class Event:
     robots: tuple[int, ...] = field(default=())
     civilians: tuple[int, ...] = field(default=())
 
+    def __str__(self) -> str:
+        """One line for people: ``t=82.0 s neutralized static_ooi:0 (laser)``."""
+        cause = f" ({self.cause})" if self.cause else ""
+        return f"t={self.time_s:.1f} s {self.kind} {self.subject}{cause}"
+
 
 class Rules:
     """Rule state for one phase.

@@ -264,7 +264,7 @@ def main(argv: list[str]) -> int:
             link.close()
         sim.close()
     for ev in sim.events:
-        print(f"event t={ev.time_s:.2f} {ev.kind} {ev.subject} ({ev.cause})", file=out)
+        print(f"event {ev}", file=out)
     if stopped_by:
         name = signal.Signals(stopped_by[0]).name
         print(f"magic sim: stopped by {name} at t={sim.time_s:.2f} s", file=out, flush=True)

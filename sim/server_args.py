@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from protocol.cli_parser import CommandParser
 from protocol.process_cli import add_link_arguments
 
 __all__ = ["sim_parser"]
@@ -14,7 +15,7 @@ __all__ = ["sim_parser"]
 
 def sim_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     """``magic sim``'s parser; ``epilog``: a text after the options (exit statuses)."""
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="magic sim", description="Run the PyBullet simulator server.", epilog=epilog
     )
     p.add_argument(

@@ -40,6 +40,7 @@ from gcs.operator.grammar import (
     suggest,
 )
 from protocol import operator as op
+from protocol.cli_parser import CommandParser
 from protocol.config import ConfigError
 
 __all__ = ["Console", "main"]
@@ -254,7 +255,7 @@ def _plain(rst: str) -> str:
 def _parser() -> argparse.ArgumentParser:
     from protocol.process_cli import add_link_arguments
 
-    p = argparse.ArgumentParser(
+    p = CommandParser(
         prog="magic console",
         description=_plain(__doc__.split("\n\n", 1)[1]) if __doc__ else None,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -60,7 +60,8 @@ def test_usage_errors_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]
     assert info.value.code == 2
     out, err = capsys.readouterr()
     assert out == ""
-    assert err.startswith("usage: magic")
+    # one line naming the problem and where help is, not argparse's usage block
+    assert err.startswith("magic") and err.count("\n") == 1 and "--help says" in err
 
 
 def test_help_lists_every_subcommand(capsys: pytest.CaptureFixture[str]) -> None:

@@ -322,3 +322,13 @@ def test_a_gcs_process_killed_with_sigkill_is_restarted_and_loses_nothing(
     assert station.stats.pose_nodes >= nodes > at_kill  # the mission went on after the kill
     diff = compare_replay(journal, station)
     assert diff.nodes_equal and diff.edges_equal and diff.pose_diff_max_m <= 1e-9
+
+
+def test_a_cold_kernel_cache_is_told_before_the_first_run(tmp_path, monkeypatch) -> None:
+    from mission.run import _kernels_cold
+
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    assert _kernels_cold()  # nothing compiled yet: the run says it compiles first
+    (tmp_path / "robot" / "terrain").mkdir(parents=True)
+    (tmp_path / "robot" / "terrain" / "free_space._ray_floor-32.py311.nbi").write_bytes(b"x")
+    assert not _kernels_cold()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sim.rules import Rules, RulesConfig
+from sim.rules import Event, Rules, RulesConfig
 
 DT = 0.05
 
@@ -149,3 +149,10 @@ def test_a_broken_visual_lock_restarts() -> None:
 def test_rules_config_rejects_nonsense() -> None:
     with pytest.raises(ValueError, match="laser_hold_s must be finite and > 0"):
         RulesConfig(laser_hold_s=float("nan"))
+
+
+def test_an_event_reads_as_one_line_for_people() -> None:
+    assert str(Event(81.99999999999748, "neutralized", "static_ooi:0", "laser")) == (
+        "t=82.0 s neutralized static_ooi:0 (laser)"
+    )
+    assert str(Event(3.0, "robot_lost", "robot:2")) == "t=3.0 s robot_lost robot:2"
