@@ -12,6 +12,7 @@ Configuration is decoded strictly: no str-to-number coercion, unknown keys are e
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -19,12 +20,31 @@ import msgspec
 import yaml
 from msgspec import inspect as mi
 
-__all__ = ["ConfigError", "config_path", "decode_config", "load_config", "load_config_text"]
+__all__ = [
+    "ConfigError",
+    "config_path",
+    "configs_dir",
+    "decode_config",
+    "load_config",
+    "load_config_text",
+]
 
 T = TypeVar("T")
 
+
+def configs_dir(source_root: Path | None = None, prefix: Path | None = None) -> Path:
+    """The shipped configuration files: the source tree's ``configs/`` (a checkout, an
+    editable install; ``source_root``: the folder above the packages), else the copy a wheel
+    installs as data files under ``<prefix>/share/magic-recon/configs`` (pyproject's
+    ``data-files``; ``prefix``: default ``sys.prefix``)."""
+    root = Path(__file__).resolve().parent.parent if source_root is None else source_root
+    tree = root / "configs"
+    installed = (Path(sys.prefix) if prefix is None else prefix) / "share/magic-recon/configs"
+    return installed if not tree.is_dir() and installed.is_dir() else tree
+
+
 #: Where the shipped configuration files live (the repository's ``configs/`` folder).
-CONFIGS_DIR = Path(__file__).resolve().parent.parent / "configs"
+CONFIGS_DIR = configs_dir()
 
 _PATH_RE = re.compile(r" - at `\$(?P<path>[^`]*)`$")
 _EXPECTED_RE = re.compile(r"^Expected `(?P<want>[^`]+)`, got `(?P<got>[^`]+)`")

@@ -275,3 +275,16 @@ def test_config_path_finds_names_paths_and_says_what_exists(tmp_path: Path) -> N
         config_path("smal", "world")
     with pytest.raises(ConfigError, match="no such file"):
         config_path(tmp_path / "small.yaml", "world")  # an absolute path is taken as given
+
+
+def test_shipped_configs_are_found_in_a_checkout_and_in_a_wheel_install(tmp_path) -> None:
+    from protocol.config import CONFIGS_DIR, configs_dir
+
+    assert (CONFIGS_DIR / "world" / "small.yaml").is_file()  # this checkout's
+    checkout, prefix = tmp_path / "src", tmp_path / "venv"
+    (checkout / "configs").mkdir(parents=True)
+    (prefix / "share/magic-recon/configs/world").mkdir(parents=True)
+    assert configs_dir(checkout, prefix) == checkout / "configs"  # the tree's first
+    wheel = tmp_path / "site-packages"  # a wheel's packages: no configs/ beside them
+    wheel.mkdir()
+    assert configs_dir(wheel, prefix) == prefix / "share/magic-recon/configs"
