@@ -82,6 +82,15 @@ def motion_enters_keepout(
     return bool(np.any(entering | deeper))
 
 
+def _clip(x: float, lo: float, hi: float) -> float:
+    """``float(np.clip(x, lo, hi))`` for floats, the same comparisons (NaN kept), without
+    numpy's call overhead on scalars (three a control period)."""
+    if x != x:
+        return x
+    x = x if x > lo else lo
+    return x if x < hi else hi
+
+
 class PathFollower:
     """Pure pursuit with limits; call :meth:`step` at the control rate."""
 
@@ -166,9 +175,7 @@ class PathFollower:
             else:
                 bearing = math.atan2(target[1] - pos[1], target[0] - pos[0])
                 err = float(wrap_angle(bearing - float(pose_in_odom[2])))
-                w_des = float(
-                    np.clip(cfg.yaw_gain * err, -cfg.max_yaw_rate_rad_s, cfg.max_yaw_rate_rad_s)
-                )
+                w_des = _clip(cfg.yaw_gain * err, -cfg.max_yaw_rate_rad_s, cfg.max_yaw_rate_rad_s)
                 vmax = min(cfg.max_speed_m_s, speed_limit_m_s or math.inf)
                 if abs(err) > cfg.turn_in_place_rad:
                     v_des = 0.0
@@ -186,11 +193,9 @@ class PathFollower:
 
     def _limit(self, v_des: float, w_des: float, dt_s: float) -> tuple[float, float]:
         cfg = self.config
-        dv = float(np.clip(v_des - self._v, -cfg.max_accel_m_s2 * dt_s, cfg.max_accel_m_s2 * dt_s))
-        dw = float(
-            np.clip(
-                w_des - self._w, -cfg.max_yaw_accel_rad_s2 * dt_s, cfg.max_yaw_accel_rad_s2 * dt_s
-            )
+        dv = _clip(v_des - self._v, -cfg.max_accel_m_s2 * dt_s, cfg.max_accel_m_s2 * dt_s)
+        dw = _clip(
+            w_des - self._w, -cfg.max_yaw_accel_rad_s2 * dt_s, cfg.max_yaw_accel_rad_s2 * dt_s
         )
         self._v += dv
         self._w += dw

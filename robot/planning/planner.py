@@ -188,14 +188,18 @@ class PathPlanner:
         res = geometry.resolution_m
 
         unknown = cls == UNKNOWN
-        rr, cc = np.ogrid[0 : geometry.rows, 0 : geometry.cols]
         reach2 = (cfg.robot_radius_m / res) ** 2 + 1e-9  # the same disc as the C-space kernel
-        under_robot = (rr - s_rc[0]) ** 2 + (cc - s_rc[1]) ** 2 <= reach2
+        # the disc is tested only in its bounding window (the rest of the map is outside it)
+        k = int(math.floor(math.sqrt(reach2))) + 1
+        r_lo, r_hi = max(0, s_rc[0] - k), min(geometry.rows, s_rc[0] + k + 1)
+        c_lo, c_hi = max(0, s_rc[1] - k), min(geometry.cols, s_rc[1] + k + 1)
+        rr, cc = np.ogrid[r_lo:r_hi, c_lo:c_hi]
+        under_robot = np.zeros(geometry.shape, dtype=bool)
+        under_robot[r_lo:r_hi, c_lo:c_hi] = (rr - s_rc[0]) ** 2 + (cc - s_rc[1]) ** 2 <= reach2
         unknown &= ~under_robot
         obstacle = cls == OBSTACLE
         hard = obstacle | unknown if cfg.unknown == "obstacle" else obstacle
         blocked = configuration_space(hard, robot_radius_m=cfg.robot_radius_m, resolution_m=res)
-        cost = np.ones(geometry.shape)
         if cost_multiplier is not None:
             m = np.asarray(cost_multiplier, dtype=np.float64)
             if m.shape != geometry.shape:
@@ -204,7 +208,9 @@ class PathPlanner:
                 )
             if not (np.all(np.isfinite(m)) and np.all(m >= 1.0)):
                 raise ValueError("cost_multiplier: values must be finite and >= 1")
-            cost *= m
+            cost = m.copy()  # 1 * m, without the pass
+        else:
+            cost = np.ones(geometry.shape)
         if cfg.unknown == "cost":
             cost[unknown] *= cfg.unknown_cost
         clearance = clearance_field(hard, resolution_m=res)

@@ -300,3 +300,16 @@ def test_live_marks_say_whether_the_refused_mask_has_any_cell() -> None:
     assert _stall(det, 10.0, np.array([2.0, 2.0, math.pi / 2]), 0.8, 0.0)
     for now in (0.0, 10.0, 13.9, 14.1, 50.0, 104.0, 104.2, 200.0):
         assert det.has_live_marks(now) == bool(det.blocked_mask(geometry, now).any()), now
+
+
+def test_scalar_clip_equals_numpys() -> None:
+    from robot.control.path_follower import _clip
+
+    rng = np.random.default_rng(4)
+    values = [*rng.normal(0.0, 2.0, 2000).tolist(), 1.2, -1.2, 0.0, -0.0, math.inf, -math.inf]
+    for x in values:
+        for lo, hi in ((-1.2, 1.2), (-0.04, 0.04), (-0.15, 0.15)):
+            want = float(np.clip(x, lo, hi))
+            got = _clip(x, lo, hi)
+            assert got == want and math.copysign(1.0, got) == math.copysign(1.0, want), (x, lo)
+    assert math.isnan(_clip(math.nan, -1.0, 1.0)) and math.isnan(float(np.clip(math.nan, -1, 1)))
