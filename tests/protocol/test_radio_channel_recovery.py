@@ -80,3 +80,51 @@ def test_an_arrival_that_fills_a_gap_is_acknowledged_at_once() -> None:
     out = gcs.receive(packets[0].stream, packets[0].payload, 1.0)
     assert [m.node_index for m in out] == [0, 1, 2, 3, 4]
     assert not gcs.ack_due(1.0) and gcs.ack_due(1.0 + gcs.config.ack_prompt_delay_s)
+
+
+def _first_node(*, prompt_first: bool, drop_first: int) -> tuple[float, float, RadioChannel]:
+    """A robot standing at the start sends its first pose node alone (nothing follows it to
+    reveal a loss); its first ``drop_first`` transmissions are lost on the air. Returns the
+    mission seconds the GCS delivers it and the robot's acknowledgement frees it, and the
+    robot's channel."""
+    from protocol.radio_channel import ReliabilityConfig
+
+    cfg = ReliabilityConfig(prompt_first_message=prompt_first)
+    robot = RadioChannel(3, Direction.UP, grant_bps=9600.0, seed=1, config=cfg)
+    gcs = RadioChannel(3, Direction.DOWN, grant_bps=9600.0, seed=2, config=cfg)
+    robot.send(_node(0))
+    sent = 0
+    t = 0.0
+    delivered = math.inf
+    while t < 60.0 and robot.held_bytes:
+        t += 0.05
+        for p in robot.poll(t):
+            if p.stream == "pose_node":
+                sent += 1
+                if sent <= drop_first:
+                    continue  # lost on the air
+                if gcs.receive(p.stream, p.payload, t):
+                    delivered = t
+        for p in gcs.poll(t):
+            robot.receive(p.stream, p.payload, t)
+    return delivered, t, robot
+
+
+def test_a_streams_lost_first_message_is_resent_promptly_when_configured() -> None:
+    """``prompt_first_message``: a stream's first message is acked at once and resent after
+    ``prompt_rto_s``, doubling: lost twice, delivered after ~1 + 2 s instead of the
+    ``rto_initial_s`` 10 s and a backed-off 12 s more (robot 2 untasked until 23 s in the
+    chaos bench, seed 9); arrived, it is acked at once and never resent; the stream's later
+    messages keep the delayed acks' timeout."""
+    late, _, _ = _first_node(prompt_first=False, drop_first=2)
+    soon, _, _ = _first_node(prompt_first=True, drop_first=2)
+    assert late >= 10.0 + 12.0 - 0.1
+    assert soon <= 1.0 + 2.0 + 0.2
+    delivered, freed, robot = _first_node(prompt_first=True, drop_first=0)
+    assert robot.stats.retransmitted == 0
+    assert freed - delivered <= robot.config.ack_prompt_delay_s + 0.1
+    _, freed_late, _ = _first_node(prompt_first=False, drop_first=0)
+    assert freed_late - delivered >= 1.0  # without it the ack waits (delayed acks)
+    robot.send(_node(1))
+    robot.poll(freed + 0.05)
+    assert robot.rto_s >= robot.config.ack_max_delay_s  # bulk messages keep the delayed acks
