@@ -1069,6 +1069,15 @@ def main(argv: list[str] | None = None) -> int:
         if overrides:
             config = msgspec.structs.replace(config, **overrides)
         _check_inputs(config)
+        if args.print_config:
+            import yaml
+
+            out.print(
+                yaml.safe_dump(msgspec.to_builtins(config), sort_keys=False).rstrip(),
+                markup=False,
+                soft_wrap=True,
+            )
+            return 0
         if config.remote_robots and not args.mission:
             ids = ",".join(map(str, config.remote_robots))
             raise ValueError(

@@ -64,7 +64,8 @@ def run_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     p.add_argument(
         "--config",
         metavar="YAML",
-        help="run configuration, a mission.run.RunConfig YAML (default: built-in defaults)",
+        help="run configuration, a mission.run.RunConfig YAML: any subset of the keys "
+        "--print-config lists (default: built-in defaults)",
     )
     p.add_argument(
         "--world",
@@ -155,6 +156,12 @@ def run_parser(epilog: str | None = None) -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--quiet", action="store_true", help="no progress, only the summary (default: progress)"
+    )
+    p.add_argument(
+        "--print-config",
+        action="store_true",
+        help="print the run's whole configuration (every key --config takes, with the "
+        "defaults, --config's values and the flags above applied) as YAML and exit",
     )
     from gcs.operator.node_hooks import add_operator_arguments
 

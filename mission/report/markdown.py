@@ -141,12 +141,26 @@ def write_markdown(record: RunRecord, scored: Scored, plots: list[Path], path: P
         lines += ["", "A start hint is the deployment plan's loose prior (its placement sigma), "
                   "not a measurement: its error is expected up to that sigma."]  # fmt: skip
     lines += ["", "## Plots", ""]
-    lines += ["The exported global map: [map/global_map.png](map/global_map.png) "
-              "(and PGM + YAML for ROS map_server in map/).", ""]  # fmt: skip
+    if (path.parent / "map" / "global_map.png").is_file():  # a run stopped early has none
+        lines += ["The exported global map: [map/global_map.png](map/global_map.png) "
+                  "(and PGM + YAML for ROS map_server in map/).", ""]  # fmt: skip
+    else:
+        lines += ["No global map was exported (the run stopped before its end).", ""]
     for p in plots:
         lines += [f"![{p.stem}](plots/{p.name})", ""]
-    if record.notes or m.get("truth_period_s", 0.0) > 1.0:
+    planned_s, ran_s = meta.get("duration_s"), m.get("mission_s")
+    stopped = (
+        isinstance(planned_s, int | float)
+        and isinstance(ran_s, int | float)
+        and ran_s < planned_s - 0.5
+    )
+    if record.notes or stopped or m.get("truth_period_s", 0.0) > 1.0:
         lines += ["## Notes", ""]
+        if stopped:
+            lines.append(
+                f"- the run stopped early: {ran_s:.1f} of {planned_s:g} mission-s ran (^C, "
+                "SIGTERM or a failure: run.log says which); every figure is of what ran"
+            )
         lines += [f"- {n}" for n in record.notes]
         tp = m.get("truth_period_s", math.nan)
         if math.isfinite(tp) and tp > 1.0:

@@ -332,3 +332,12 @@ def test_a_cold_kernel_cache_is_told_before_the_first_run(tmp_path, monkeypatch)
     (tmp_path / "robot" / "terrain").mkdir(parents=True)
     (tmp_path / "robot" / "terrain" / "free_space._ray_floor-32.py311.nbi").write_bytes(b"x")
     assert not _kernels_cold()
+
+
+def test_print_config_lists_every_key_and_reads_back(capsys) -> None:
+    from protocol.config import load_config_text
+
+    assert main(["run", "--print-config", "--duration", "42", "--seed", "3"]) == 0
+    text = capsys.readouterr().out
+    config = load_config_text(text, RunConfig, source="printed")
+    assert config == msgspec.structs.replace(RunConfig(), duration_s=42.0, seed=3)

@@ -60,6 +60,8 @@ def test_run_directory_holds_record_report_and_plots(run: tuple[Path, dict[str, 
     assert doc["config"]["world_name"] == "small"
     assert set(doc["plots"]) == set(PLOTS)
     md = (run_dir / "report.md").read_text()
+    assert "[map/global_map.png](map/global_map.png)" in md
+    assert "stopped early" not in md  # it ran its whole duration
     for name in PLOTS:
         assert f"(plots/{name})" in md
         img = cv2.imread(str(run_dir / "plots" / name))
@@ -192,7 +194,10 @@ def test_an_unfinished_run_still_reports_what_it_has(
     assert math.isnan(m["ate_rmse_m"]) and math.isnan(m["occupancy_f1"])
     assert m["explored_frac"] == pytest.approx(load_run(run_dir).samples[-1]["explored_frac"])
     assert m["uplink_bps"] == pytest.approx(metrics["uplink_bps"])
-    assert "did not finish" in (copy / "report.md").read_text()
+    md = (copy / "report.md").read_text()
+    assert "did not finish" in md
+    assert "map/global_map.png" not in md  # no dead link: the copy has no map/
+    assert "No global map was exported" in md
 
 
 def test_bad_run_dirs_are_one_line_and_status_2(
