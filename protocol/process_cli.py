@@ -426,13 +426,27 @@ def spin_until(
     progress_period_s: float = 5.0,
 ) -> None:
     """Call ``spin_once`` until ``stop`` is set or ``duration_s`` mission seconds (by ``now``)
-    have passed, reporting ``status()`` to ``progress`` every ``progress_period_s`` wall s."""
+    have passed, reporting ``status()`` to ``progress`` every ``progress_period_s`` wall s.
+    While the mission clock stands still (the simulator ended, paused or not started) the
+    status is reported once, saying so, not repeated unchanged until ^C."""
     last = time.monotonic()
     start = now()
+    reported_t: float | None = None
+    still_said = False
     while not stop.is_set():
         spin_once()
         if duration_s is not None and now() - start >= duration_s:
             return
         if progress is not None and time.monotonic() - last >= progress_period_s:
-            progress(status())
+            t = now()
+            if t != reported_t:
+                progress(status())
+                still_said = False
+            elif not still_said:
+                progress(
+                    f"{status()} (the mission clock stands at t={t:.1f} s: the simulator has "
+                    "ended, paused or not started; waiting, quiet until it moves)"
+                )
+                still_said = True
+            reported_t = t
             last = time.monotonic()

@@ -24,6 +24,7 @@ from protocol.process_cli import (
     raise_on_sigterm,
     signal_name_for,
     signals_received,
+    spin_until,
     stop_cause,
     stop_exception,
     stop_on_interrupt,
@@ -207,3 +208,28 @@ def test_stop_cause_finds_a_stop_wrapped_by_c_code() -> None:
     assert isinstance(stop, Terminated) and exit_code_for(stop) == 143
     assert stop_cause(ValueError("plain")) is None
     assert type(stop_cause(KeyboardInterrupt())) is KeyboardInterrupt
+
+
+def test_a_still_mission_clock_is_reported_once_not_repeated() -> None:
+    clock = {"t": 0.0}
+    spins = {"n": 0}
+    lines: list[str] = []
+    stop = threading.Event()
+
+    def spin_once() -> None:
+        spins["n"] += 1
+        if spins["n"] <= 3:
+            clock["t"] += 1.0  # the simulator runs 3 s, then ends: the clock stands at 3.0
+        if spins["n"] >= 12:
+            stop.set()
+
+    spin_until(
+        spin_once,
+        now=lambda: clock["t"],
+        stop=stop,
+        progress=lines.append,
+        status=lambda: f"t={clock['t']:.1f}",
+        progress_period_s=0.0,
+    )
+    assert lines[:3] == ["t=1.0", "t=2.0", "t=3.0"]
+    assert len(lines) == 4 and "stands at t=3.0 s" in lines[3]  # once, then quiet
