@@ -252,6 +252,15 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     (Mahalanobis above ``fiducial_gate_chi2``, 3 dof; 0: no gate). The sigmas are wide, so the
     drift a sighting is there to correct passes; what is refused is a sighting the map
     contradicts beyond any drift (a tag read off the wrong face, a teammate mistaken).
+    ``fiducial_max_sigma_yaw_rad``: a sighting whose heading (the tag's, with the teammate's
+    motion and stand-in added) is known only this loosely makes no edge; it is counted
+    (``fiducials_loose_heading``) and left out, as a scan match whose heading sigma exceeds
+    ``loops.max_match_sigma_yaw_rad`` is no closure (the same bound: half the 5 deg that makes
+    an edge false, so an edge twice its sigma off is still a true one). A tag seen on one
+    face only fixes its heading to the robot detector's 17 deg (``single_face_sigma_yaw_rad``):
+    in the full mission (magic_phase, 14 robots) every one of the 28 false fiducial edges
+    (5.2-30 deg off, position within 0.5 m) had a heading sigma above 5 deg, 6-22 deg: they were
+    within 1.9 sigma of the truth, right for their covariance and still false edges.
     ``fiducial_max_sigma_xy_m``: a sighting whose teammate's pose at that time is known only
     this loosely (a stand-in silent for long) is refused as ``fiducial_stale``: it says
     nothing (the quick mission bench's seed 7 took one with sigmas 70.6 m and pi rad, which
@@ -295,6 +304,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     fiducial_gate_sigma_yaw_rad: float = 0.5
     fiducial_gate_chi2: float = 16.27  # chi-square 0.999, 3 dof
     fiducial_max_sigma_xy_m: float = 5.0
+    fiducial_max_sigma_yaw_rad: float = math.radians(2.5)
     min_grid_resolution_m: float = 0.02
     max_grid_resolution_m: float = 1.0
     gap_covariance_scale: float = 4.0
@@ -327,6 +337,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
             "fiducial_gate_sigma_xy_m",
             "fiducial_gate_sigma_yaw_rad",
             "fiducial_max_sigma_xy_m",
+            "fiducial_max_sigma_yaw_rad",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -368,6 +379,7 @@ class GroundStationStats:
     fiducials: int = 0
     detections: int = 0
     fiducials_redundant: int = 0
+    fiducials_loose_heading: int = 0
     sightings_held: int = 0
     duplicates: int = 0
     gaps_bridged: int = 0
@@ -943,6 +955,11 @@ class GroundStation:
                 f"{sigma_xy:.1f} m (its last pose is stale); the sighting says nothing",
             )
         self._gate_fiducial(key_a, other.graph_keys[i], z_i, cov_i, what)
+        if not cov_i[2, 2] <= self.config.fiducial_max_sigma_yaw_rad**2:
+            # its heading is too loose to be a true edge (config docstring): no edge, not an
+            # error (the robot measured what it could)
+            self.stats.fiducials_loose_heading += 1
+            return
         if self.config.fiducials_link_only:
             comp = self.graph.components()
             if comp[key_a] == comp[other.graph_keys[i]]:

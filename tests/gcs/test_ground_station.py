@@ -568,7 +568,13 @@ def test_a_fiducial_waits_for_the_teammate_node_of_its_time() -> None:
     (edge,) = gs.graph.edges(Provenance.FIDUCIAL)
     assert edge.key_b == gs.key_of(0, 6)  # the node of its time, not the latest of t=2 s
     # a teammate standing still makes no new node: after fiducial_wait_s its latest one serves
-    gs2 = GroundStation(GroundStationConfig(robots=(0, 1), fiducial_wait_s=5.0))
+    # (a stand-in's heading is loose by construction: the bound on it is lifted here, so that
+    # the stand-in's covariance can be checked; tests/gcs/test_ground_station_fiducials.py)
+    gs2 = GroundStation(
+        GroundStationConfig(
+            robots=(0, 1), fiducial_wait_s=5.0, fiducial_max_sigma_yaw_rad=2 * math.pi
+        )
+    )
     for m in n0[:3]:
         gs2.handle(0, m, now_s=6.0)
     for m in n1[:7]:
