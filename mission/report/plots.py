@@ -53,6 +53,16 @@ _EVENT_STYLE = {  # kind -> (colour, marker)
 }
 
 
+#: Planner decisions whose event name reads wrong to a person (the planner's "lost" is a
+#: robot silent too long to count on, not a robot the rules disabled).
+_PLANNER_WORDS = {
+    "planner_robot_lost": "robot silent too long, not counted on",
+    "planner_robot_silent": "robot silent",
+    "planner_robot_back": "robot heard again",
+    "planner_goal_in_shadow": "robot fell silent on its goal",
+}
+
+
 def _num(metrics: dict[str, float], key: str, spec: str, scale: float = 1.0) -> str:
     """A metric formatted for a title; ``n/a`` when the run cannot say (NaN or absent)."""
     v = metrics.get(key, math.nan)
@@ -345,20 +355,26 @@ def events(record: RunRecord, scored: Scored, path: Path) -> Path:
     rows: dict[str, list[tuple[float, str]]] = defaultdict(list)
     for e in record.events:
         kind = str(e.get("kind"))
-        what = f"{kind}: {e['object_kind']}" if kind == "detection" and "object_kind" in e else kind
-        label = f"{what} ({'truth' if e.get('source') == 'sim' else 'mission'})"
+        if kind.startswith("planner_"):  # the GCS's planner decisions, in words
+            words = _PLANNER_WORDS.get(kind, kind.removeprefix("planner_").replace("_", " "))
+            label = f"planner: {words} (mission)"
+        else:
+            what = f"{kind}: {e['object_kind']}" if "object_kind" in e else kind
+            label = f"{what} ({'truth' if e.get('source') == 'sim' else 'mission'})"
         rows[label].append((float(e["t_s"]), kind))
     for o in scored.objects:  # first detection of each truth object, as scored
         if o["detected_s"] is not None:
             rows[f"{o['kind']} detected (scored)"].append((float(o["detected_s"]), "detection"))
-    fig, ax = plt.subplots(figsize=(10, 0.45 * max(len(rows), 2) + 1.8))
-    names = sorted(rows)
+    fig, ax = plt.subplots(figsize=(10, 0.45 * max(len(rows), 2) + 2.2))
+    # top to bottom: truth, scored, the GCS's detections and events, its planner's decisions
+    order = {"(truth)": 0, "(scored)": 1, "(mission)": 2}
+    names = sorted(rows, key=lambda n: (order.get(n.rsplit(" ", 1)[-1], 3), "planner" in n, n))
     for i, name in enumerate(names):
         for t, kind in rows[name]:
             colour, marker = _EVENT_STYLE.get(kind, ("#7f7f7f", "o"))
             ax.plot(t, i, marker=marker, color=colour, ms=9, ls="none")
     ax.set_yticks(range(len(names)), names)
-    ax.set_ylim(-0.7, max(len(names), 1) - 0.3)
+    ax.set_ylim(max(len(names), 1) - 0.3, -0.7)  # the first row on top
     end_s = scored.metrics.get("mission_s", 1.0)
     ax.set_xlim(0, 1.03 * max(end_s if math.isfinite(end_s) else 1.0, 1.0))
     ax.set_xlabel("mission time (s)")
@@ -367,7 +383,10 @@ def events(record: RunRecord, scored: Scored, path: Path) -> Path:
     m = scored.metrics
     ax.set_title(
         f"Events: {int(m.get('blasts', 0))} blasts, {int(m.get('robots_lost', 0))} robots lost, "
-        f"{int(m.get('civilians_harmed', 0))} civilians harmed"
+        f"{int(m.get('civilians_harmed', 0))} civilians harmed\n"
+        "(truth): the simulator's rules; (scored): a truth object's first detection; "
+        "(mission): what the GCS knew and decided",
+        fontsize=10,
     )
     ax.grid(axis="x", alpha=0.3)
     return _save(fig, path)
