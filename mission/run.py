@@ -1197,6 +1197,8 @@ def main(argv: list[str] | None = None) -> int:
     out.print(format_progress(report, total_s))
     if report.run_dir:
         out.print(_headline(report), soft_wrap=True, markup=False)
+    if args.rerun_save:
+        out.print(f"views: the rerun recording is {args.rerun_save}", soft_wrap=True, markup=False)
     if log_path is not None:
         where = f"log: {logged.warnings} warnings and errors in {log_path}"
         out.print(where, soft_wrap=True, markup=False)

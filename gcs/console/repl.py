@@ -98,7 +98,8 @@ class Console:
             if not self.client.wait_for_gcs(self.wait_s):
                 self.out(
                     f"error: no GCS answers on mission {self.client.mission!r}; not sent "
-                    "(is `magic gcs` running, and --connect pointing at its --listen?)"
+                    "(is `magic run` or `magic gcs` running? `magic run` prints the console "
+                    "command that reaches it; else --connect must point at the GCS's --listen)"
                 )
                 return False
         try:
