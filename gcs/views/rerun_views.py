@@ -405,7 +405,14 @@ class RerunViews:
         """gRPC URL of a live viewer, starting it for spawn/web; None if unreachable."""
         try:
             if spec.kind == "spawn":
-                rr.spawn(port=DEFAULT_GRPC_PORT, connect=False, hide_welcome_screen=True)
+                # recording=: without it rerun checks the global recording, which this
+                # station never makes, and ignores the call ("Rerun is disabled")
+                rr.spawn(
+                    port=DEFAULT_GRPC_PORT,
+                    connect=False,
+                    hide_welcome_screen=True,
+                    recording=self.rec,
+                )
                 url = f"rerun+http://127.0.0.1:{DEFAULT_GRPC_PORT}/proxy"
             elif spec.kind == "web":
                 url = self.rec.serve_grpc(default_blueprint=self.blueprint)
