@@ -33,6 +33,7 @@ import collections
 import logging
 import math
 import socket
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -214,6 +215,14 @@ def operator_blueprint() -> rrb.Blueprint:
         name="SAGE",
     )
     return rrb.Blueprint(rrb.Tabs(toc, soc, dashboard, sage), collapse_panels=True)
+
+
+def _viewer_executable() -> str | None:
+    """The rerun viewer installed beside this Python (rerun-sdk ships it in the venv's
+    ``bin/``), found when the venv is not activated (``.venv/bin/magic gcs --rerun spawn``
+    with ``bin/`` not on PATH); None: rerun searches PATH."""
+    beside = Path(sys.executable).parent / "rerun"
+    return str(beside) if beside.is_file() else None
 
 
 class RerunViews:
@@ -412,6 +421,7 @@ class RerunViews:
                     connect=False,
                     hide_welcome_screen=True,
                     recording=self.rec,
+                    executable_path=_viewer_executable(),
                 )
                 url = f"rerun+http://127.0.0.1:{DEFAULT_GRPC_PORT}/proxy"
             elif spec.kind == "web":
