@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from collections import Counter
 
+import pytest
+
 from protocol.messages import Direction, PoseNode, decode_frame
 from protocol.radio_channel import RadioChannel
 
@@ -128,3 +130,35 @@ def test_a_streams_lost_first_message_is_resent_promptly_when_configured() -> No
     robot.send(_node(1))
     robot.poll(freed + 0.05)
     assert robot.rto_s >= robot.config.ack_max_delay_s  # bulk messages keep the delayed acks
+
+
+def test_a_lone_lost_node_is_resent_after_one_later_one_when_configured() -> None:
+    """``fast_retransmit_after``: a robot that moves slowly sends a pose node now and then; one
+    lost waits for three later ones (or the delayed acks' timeout) by default, for the next
+    one with 1. Nodes every 2 s, node seq 2 lost once: with 3 it is delivered after the
+    fourth node goes (or the timeout), with 1 right after the third."""
+    from protocol.radio_channel import ReliabilityConfig
+
+    def delivered_s(after: int) -> float:
+        cfg = ReliabilityConfig(fast_retransmit_after=after)
+        robot = RadioChannel(3, Direction.UP, grant_bps=9600.0, seed=1, config=cfg)
+        gcs = RadioChannel(3, Direction.DOWN, grant_bps=9600.0, seed=2, config=cfg)
+        t, lost_once, got = 0.0, False, []
+        while t < 30.0 and 1 not in got:
+            if abs(t / 2.0 - round(t / 2.0)) < 1e-9:
+                robot.send(_node(int(round(t / 2.0))))
+            t = round(t + 0.05, 6)
+            for p in robot.poll(t):
+                if p.stream == "pose_node" and decode_frame(p.payload, Direction.UP).seq == 2:
+                    if not lost_once:
+                        lost_once = True
+                        continue
+                got += [m.node_index for m in gcs.receive(p.stream, p.payload, t)]
+            for p in gcs.poll(t):
+                robot.receive(p.stream, p.payload, t)
+        return t
+
+    assert delivered_s(1) <= 4.0 + 0.5  # node 2 (seq 3) arrives at 4 s, acked at once
+    assert delivered_s(3) >= 8.0  # three later nodes: not before node 4 (8 s), or timeout
+    with pytest.raises(ValueError, match="fast_retransmit_after"):
+        ReliabilityConfig(fast_retransmit_after=0)
