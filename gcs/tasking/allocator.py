@@ -158,7 +158,7 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     shadow_retry_s: float = 90.0
     # ... nor given an exploration goal within shadow_goal_radius_m of the one it fell
     # silent on, for shadow_retry_s (issue 17: with the goal alone barred, small world seed
-    # 7's robot 0 got one 2.1 m from it and fell silent again 22 s later)
+    # 7's robot 0 got one 2.1 m from it and fell silent again 22 s later); 0: off
     shadow_goal_radius_m: float = 5.0
     # a robot whose evasion of a hazard failed this often (it could not get out: jammed
     # with others in a corridor, the way out behind a wall) is not sent to evade it again;
@@ -219,7 +219,6 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "frontier_gone_m",
             "neutralize_retry_s",
             "shadow_retry_s",
-            "shadow_goal_radius_m",
             "duplicate_m",
             "contact_fresh_s",
             "contact_steady_s",
@@ -242,6 +241,11 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError(
                 f"tasking needs 0 <= avoid_from_m <= avoid_to_m (finite), got "
                 f"{self.avoid_from_m}, {self.avoid_to_m}"
+            )
+        if not (math.isfinite(self.shadow_goal_radius_m) and self.shadow_goal_radius_m >= 0):
+            raise ValueError(
+                f"tasking shadow_goal_radius_m must be finite and >= 0, got "
+                f"{self.shadow_goal_radius_m}"
             )
         if self.evade_attempts < 1:
             raise ValueError(f"tasking evade_attempts must be >= 1, got {self.evade_attempts}")
@@ -721,6 +725,8 @@ class TaskAllocator:
         if a is None or a.goal_in_map is None:
             return
         if a.purpose.split(":")[0] == "explore":
+            if self.config.shadow_goal_radius_m <= 0:
+                return  # off: its exploration goal may be given again at once
             self._explore_shadowed.setdefault(rid, []).append((a.goal_in_map, ctx.now_s))
             x, y = a.goal_in_map
             self._event(

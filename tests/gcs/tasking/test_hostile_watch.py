@@ -253,3 +253,18 @@ def test_a_watcher_stuck_on_its_way_is_replaced() -> None:
         kinds += [e.kind for e in alloc.events if e.robot_id == stuck]
     assert "stalled" in kinds
     assert stuck not in on_watch(alloc) and len(on_watch(alloc)) == 2
+
+
+def test_the_exploration_shadow_rule_can_be_switched_off() -> None:
+    v = blank(40, 6, FREE)
+    box(v, 36.0, 0.0, 40.0, 6.0, UNKNOWN)
+    r = robot(1, (25.0, 3.0))
+    alloc = TaskAllocator(TaskingConfig(shadow_goal_radius_m=0.0))
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=0.0)
+    east = alloc.assignments[1].goal_in_map
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=12.0)  # silent
+    assert not any(e.kind == "goal_in_shadow" for e in alloc.events)
+    heard([r], 20.0)
+    alloc.plan(TaskingState(occupancy(v), [r]), now_s=20.0)
+    g = alloc.assignments[1].goal_in_map
+    assert g is not None and east is not None and math.dist(g, east) < 2.0
