@@ -257,10 +257,12 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     (``fiducials_loose_heading``) and left out, as a scan match whose heading sigma exceeds
     ``loops.max_match_sigma_yaw_rad`` is no closure (the same bound: half the 5 deg that makes
     an edge false, so an edge twice its sigma off is still a true one). A tag seen on one
-    face only fixes its heading to the robot detector's 17 deg (``single_face_sigma_yaw_rad``):
-    in the full mission (magic_phase, 14 robots) every one of the 28 false fiducial edges
-    (5.2-30 deg off, position within 0.5 m) had a heading sigma above 5 deg, 6-22 deg: they were
-    within 1.9 sigma of the truth, right for their covariance and still false edges.
+    face only fixes its heading to the robot detector's 17 deg (``single_face_sigma_yaw_rad``).
+    The full mission (magic_phase, 14 robots, at 66b4360), its journal's first 720 s replayed:
+    19 of its 20 false fiducial edges were such (heading sigma 6-22 deg, 5-25 deg off, within
+    1.9 sigma, positions within 0.5 m): right for their covariance and still false edges, and
+    they tore the map (with this bound: false fiducials 20 -> 1, false closures 13 -> 6, the
+    gross ones, 2.8-4.2 m and 18-29 deg off between robot 11 and robots 2 and 4, gone).
     ``fiducial_max_sigma_xy_m``: a sighting whose teammate's pose at that time is known only
     this loosely (a stand-in silent for long) is refused as ``fiducial_stale``: it says
     nothing (the quick mission bench's seed 7 took one with sigmas 70.6 m and pi rad, which
