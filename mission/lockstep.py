@@ -74,6 +74,7 @@ __all__ = [
     "TeamOverProcesses",
     "WorkerDied",
     "seed_streams",
+    "step_wait_s",
     "worker_groups",
 ]
 
@@ -273,6 +274,15 @@ def _ids_text(ids: list[int]) -> str:
     return ",".join(parts)
 
 
+def step_wait_s(
+    time_s: float, step_timeout_s: float, startup_timeout_s: float, startup_mission_s: float
+) -> float:
+    """How long a lockstep step at mission time ``time_s`` waits for its robots: the longer
+    ``startup_timeout_s`` before ``startup_mission_s`` (kernels compiling at the first sweep,
+    plan and image), ``step_timeout_s`` after."""
+    return max(step_timeout_s, startup_timeout_s) if time_s < startup_mission_s else step_timeout_s
+
+
 class TeamOverProcesses:
     """The same team with its robot nodes in worker processes (``magic robot --lockstep
     --id 0-7``: a group of nodes per process, :class:`~mission.robot_process.LockstepGroup`),
@@ -300,7 +310,11 @@ class TeamOverProcesses:
     time, as in one process.
     A worker that ends raises :class:`WorkerDied` (which, its robots, exit status, last
     stderr line); a robot that does not answer within ``step_timeout_s`` a TimeoutError naming
-    it; two processes answering for one robot a ValueError naming the robot and both.
+    it; two processes answering for one robot a ValueError naming the robot and both. Until
+    ``startup_mission_s`` mission seconds the wait is ``startup_timeout_s`` instead: the robots'
+    numba kernels compile at their first sweep, plan and image (minutes on a cold cache, the
+    first run after an install, where 30 s had ended the run); a worker that dies is noticed at
+    once either way.
     """
 
     def __init__(
@@ -313,7 +327,9 @@ class TeamOverProcesses:
         on_ground_message: Callable[[int, Any], None],
         robot_config: RobotNodeConfig | None = None,
         connect_timeout_s: float = 60.0,
-        step_timeout_s: float = 30.0,
+        step_timeout_s: float = 120.0,
+        startup_timeout_s: float = 900.0,
+        startup_mission_s: float = 5.0,
         workers: int | None = None,
         remote_robots: tuple[int, ...] = (),
         link: LinkConfig | None = None,
@@ -333,6 +349,8 @@ class TeamOverProcesses:
         self.realtime = False
         self.seeds = seeds
         self.step_timeout_s = step_timeout_s
+        self.startup_timeout_s = startup_timeout_s
+        self.startup_mission_s = startup_mission_s
         self.clock = sim.clock  # the simulator's mission clock
         self.nodes: dict[int, RobotNode] = {}
         unknown = sorted(set(remote_robots) - set(sim.robot_ids))
@@ -576,7 +594,10 @@ class TeamOverProcesses:
             self.remote.go(sim.time_s, grants)
         if on_step is not None:
             on_step()
-        done = self._wait_done(sim.time_s, self.step_timeout_s)
+        wait_s = step_wait_s(
+            sim.time_s, self.step_timeout_s, self.startup_timeout_s, self.startup_mission_s
+        )
+        done = self._wait_done(sim.time_s, wait_s)
         if self.remote is not None:
             self.remote.end(sim.time_s, done, sim.time_s + sim.config.step_s)
         else:

@@ -22,6 +22,7 @@ from mission.lockstep import (
     TeamOverProcesses,
     WorkerDied,
     seed_streams,
+    step_wait_s,
     worker_groups,
 )
 from mission.lockstep_protocol import parse_robot_ids, robot_host_key
@@ -261,3 +262,10 @@ def test_a_link_config_file_gives_the_endpoints(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="mode"):
         link_config(_radio(), p.parse_args(["--link-config", str(path)]))
     assert msgspec.structs.replace(cfg, mode="router").mode == "router"
+
+
+def test_the_first_mission_seconds_wait_long_enough_for_kernels_to_compile() -> None:
+    # a cold numba cache compiles at the first sweep (1.2 s): 30 s had ended first runs
+    assert step_wait_s(1.2, 120.0, 900.0, 5.0) == 900.0
+    assert step_wait_s(5.0, 120.0, 900.0, 5.0) == 120.0  # then a hung robot is named sooner
+    assert step_wait_s(1.2, 120.0, 0.0, 5.0) == 120.0  # never shorter than the step's
