@@ -136,9 +136,10 @@ def test_latest_reliable_stream_retransmits_newest_until_acked() -> None:
     gcs_side.send(update)
     first = gcs_side.poll(0.0)
     assert [p.stream for p in first] == ["hazard_update"]
-    # the first transmission is lost: it comes again after the timeout
-    assert gcs_side.poll(1.0) == []
-    again = gcs_side.poll(gcs_side.config.rto_initial_s + 0.1)
+    # the first transmission is lost: it comes again after the timeout (a stream's first
+    # message: the prompt one, nothing follows it to reveal its loss)
+    assert gcs_side.poll(0.9 * gcs_side.config.prompt_rto_s) == []
+    again = gcs_side.poll(gcs_side.config.prompt_rto_s + 0.1)
     assert [p.stream for p in again] == ["hazard_update"]
     # a newer update supersedes the old one, which is then never delivered
     newer = HazardUpdate(2.0, [], [])
