@@ -204,8 +204,9 @@ def test_a_fiducial_read_off_the_wrong_face_is_refused_and_a_drifted_one_taken()
 
 def test_a_fiducial_of_a_long_silent_teammate_is_refused_as_stale() -> None:
     """Robot 1's last pose node is 30 s older than the sighting: its stand-in could be 30 m
-    away, so the sighting says nothing and is refused with its reason."""
-    gs = GroundStation(GroundStationConfig(robots=(0, 1)))
+    away, so the sighting says nothing and is refused with its reason. (A stand-in's heading
+    is loose by construction: the heading bound is lifted so the staleness rule alone acts.)"""
+    gs = GroundStation(GroundStationConfig(robots=(0, 1), fiducial_max_sigma_yaw_rad=2 * math.pi))
     gs.add_start_hint(1, map_from_odom=(2.0, -1.0, 0.0), sigma_xy_m=0.3, sigma_yaw_rad=0.05)
     for rid in (0, 1):
         node = PoseNode(0, 0.0, (0.0, 0.0, 0.0), (0.0,) * 3, (0.0,) * 6)  # type: ignore[arg-type]
