@@ -267,7 +267,12 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     world's journals, seed 3, two true tags of 3.9-4.4 deg were lost and two false closures
     came in; at 5 deg seeds 0 / 7 / 3 / 11: ATE 0.118 / 0.431 / 0.085 / 0.145 ->
     0.136 / 0.430 / 0.085 / 0.139 m, false closures 0 / 2 / 0 / 0 -> 0 / 3 / 0 / 0, false
-    fiducials 0 / 1 / 0 / 0 -> 0).
+    fiducials 0 / 1 / 0 / 0 -> 0); the whole journal: ATE 5.55 -> 1.21 m, false fiducials
+    28 -> 1, false closures 21 -> 22. Off by default (0: no bound): at 5 deg the four-robot
+    team-mapping trial (tests/mission/test_team_mapping.py, ideal radio) kept 2 of its 10 tag
+    edges and took a false closure (0.58 m); at 10 deg the trial's ATE was 0.38 m and the full
+    mission's 720 s 2.16 m (8 false fiducials kept); at 15 deg the trial passed (ATE 0.21 m).
+    A bound that holds for both is not found yet.
     ``fiducial_max_sigma_xy_m``: a sighting whose teammate's pose at that time is known only
     this loosely (a stand-in silent for long) is refused as ``fiducial_stale``: it says
     nothing (the quick mission bench's seed 7 took one with sigmas 70.6 m and pi rad, which
@@ -311,7 +316,7 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
     fiducial_gate_sigma_yaw_rad: float = 0.5
     fiducial_gate_chi2: float = 16.27  # chi-square 0.999, 3 dof
     fiducial_max_sigma_xy_m: float = 5.0
-    fiducial_max_sigma_yaw_rad: float = math.radians(5.0)
+    fiducial_max_sigma_yaw_rad: float = 0.0
     min_grid_resolution_m: float = 0.02
     max_grid_resolution_m: float = 1.0
     gap_covariance_scale: float = 4.0
@@ -347,6 +352,8 @@ class GroundStationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tru
             "fiducial_max_sigma_yaw_rad",
         ):
             v = getattr(self, name)
+            if name == "fiducial_max_sigma_yaw_rad" and v == 0.0:
+                continue  # 0: no bound
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v}")
         if not (math.isfinite(self.fiducial_gate_chi2) and self.fiducial_gate_chi2 >= 0):
@@ -962,7 +969,8 @@ class GroundStation:
                 f"{sigma_xy:.1f} m (its last pose is stale); the sighting says nothing",
             )
         self._gate_fiducial(key_a, other.graph_keys[i], z_i, cov_i, what)
-        if not cov_i[2, 2] <= self.config.fiducial_max_sigma_yaw_rad**2:
+        bound = self.config.fiducial_max_sigma_yaw_rad
+        if bound > 0.0 and not cov_i[2, 2] <= bound**2:
             # its heading is too loose to be a true edge (config docstring): no edge, not an
             # error (the robot measured what it could)
             self.stats.fiducials_loose_heading += 1

@@ -34,14 +34,16 @@ def _station_with_tag(sigma_yaw_rad: float, **config: float) -> GroundStation:
 def test_a_tag_whose_heading_is_loose_makes_no_edge_and_is_counted_not_rejected() -> None:
     # one face seen: the detector's heading sigma is 17 deg (19 of the full mission's 20 false
     # fiducial edges in its first 720 s were such, 5-25 deg off, positions within 0.5 m)
-    loose = _station_with_tag(math.radians(17.2))
+    assert GroundStationConfig().fiducial_max_sigma_yaw_rad == 0.0  # no bound by default
+    bound = math.radians(5.0)  # as measured on the full mission
+    loose = _station_with_tag(math.radians(17.2), fiducial_max_sigma_yaw_rad=bound)
     assert loose.graph.edges(Provenance.FIDUCIAL) == []
     assert loose.stats.fiducials == 0 and loose.stats.fiducials_loose_heading == 1
     assert loose.stats.rejected_total == 0  # not bad input: the robot measured what it could
     # the map robot alone is placed: robot 1 is not linked by a loose tag
     assert not loose.linked(1)
     # a tag whose heading is known to 1 deg links the two robots
-    tight = _station_with_tag(math.radians(1.0))
+    tight = _station_with_tag(math.radians(1.0), fiducial_max_sigma_yaw_rad=bound)
     (edge,) = tight.graph.edges(Provenance.FIDUCIAL)
     assert edge.key_a == tight.key_of(1, 6) and edge.key_b == tight.key_of(0, 6)
     assert tight.stats.fiducials == 1 and tight.stats.fiducials_loose_heading == 0
