@@ -196,17 +196,11 @@ def evasion_goal(
     corridor jammed there, each evasion timing out, for 600 s of the full mission); else the
     nearest in line of sight; else the nearest."""
     p = np.asarray(position_in_map, dtype=np.float64).reshape(2)
-    (r, c) = grid.cells_of(p)[0]
-    k = max(0, int(math.ceil(search_m / grid.resolution_m)))
-    rows, cols = grid.shape
-    r0, r1 = max(0, r - k), min(rows, r + k + 1)
-    c0, c1 = max(0, c - k), min(cols, c + k + 1)
-    if r0 >= r1 or c0 >= c1:
+    near = grid.traversable_near(p, search_m)
+    if near is None:
         return None
-    rr, cc = np.nonzero(grid.traversable[r0:r1, c0:c1])
-    if rr.size == 0:
-        return None
-    pts = grid.centers_of(np.stack([rr + r0, cc + c0], axis=1))
+    _, rr, cc = near
+    pts = grid.centers_of(np.stack([rr, cc], axis=1))
     d = np.hypot(*(pts - p).T)
     keep = d <= search_m + 1e-9
     pts, d = pts[keep], d[keep]

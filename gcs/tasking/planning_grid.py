@@ -64,25 +64,35 @@ class PlanningGrid:
         rows, cols = self.shape
         return (rc[:, 0] >= 0) & (rc[:, 0] < rows) & (rc[:, 1] >= 0) & (rc[:, 1] < cols)  # type: ignore[no-any-return]
 
-    def snap(self, point_in_map: ArrayLike, max_m: float) -> tuple[int, int] | None:
-        """The traversable cell nearest ``point_in_map`` within ``max_m`` (a robot whose own
-        cell lies in the clearance band of a wall still plans from beside it); None if none."""
+    def traversable_near(
+        self, point_in_map: ArrayLike, radius_m: float
+    ) -> tuple[tuple[int, int], NDArray[np.int64], NDArray[np.int64]] | None:
+        """The cell of ``point_in_map`` and the (row, col) indices of the traversable cells in
+        the square of half-side ``radius_m`` around it; None if there are none."""
         (r, c) = self.cells_of(point_in_map)[0]
-        k = max(0, int(math.ceil(max_m / self.resolution_m)))
+        k = max(0, int(math.ceil(radius_m / self.resolution_m)))
         rows, cols = self.shape
         r0, r1 = max(0, r - k), min(rows, r + k + 1)
         c0, c1 = max(0, c - k), min(cols, c + k + 1)
         if r0 >= r1 or c0 >= c1:
             return None
-        win = self.traversable[r0:r1, c0:c1]
-        rr, cc = np.nonzero(win)
+        rr, cc = np.nonzero(self.traversable[r0:r1, c0:c1])
         if rr.size == 0:
             return None
-        d2 = (rr + r0 - r) ** 2 + (cc + c0 - c) ** 2
+        return (int(r), int(c)), rr.astype(np.int64) + r0, cc.astype(np.int64) + c0
+
+    def snap(self, point_in_map: ArrayLike, max_m: float) -> tuple[int, int] | None:
+        """The traversable cell nearest ``point_in_map`` within ``max_m`` (a robot whose own
+        cell lies in the clearance band of a wall still plans from beside it); None if none."""
+        near = self.traversable_near(point_in_map, max_m)
+        if near is None:
+            return None
+        (r, c), rr, cc = near
+        d2 = (rr - r) ** 2 + (cc - c) ** 2
         i = int(np.argmin(d2))
         if d2[i] * self.resolution_m**2 > max_m**2 + 1e-9:
             return None
-        return int(rr[i] + r0), int(cc[i] + c0)
+        return int(rr[i]), int(cc[i])
 
 
 def coarsen(
