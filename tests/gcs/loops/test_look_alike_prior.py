@@ -11,20 +11,7 @@ import pytest
 from gcs.graph.pose_graph import PoseGraph
 from gcs.loops.candidate_search import Candidate
 from gcs.loops.loop_closer import LoopCloser, LoopCloserConfig
-
-
-def _two_rooms() -> tuple[np.ndarray, np.ndarray]:
-    """Points of one room (3 x 3 m, a few pillars) and of two identical ones 4 m apart."""
-    rng = np.random.default_rng(4)
-    room = np.concatenate(
-        [
-            np.column_stack([np.full(60, x), np.linspace(-1.5, 1.5, 60)])
-            for x in (-1.5, *rng.uniform(-1.2, 1.2, 2), 1.5)
-        ]
-        + [np.column_stack([np.linspace(-1.5, 1.5, 60), np.full(60, y)]) for y in (-1.5, 1.5)]
-        + [rng.uniform(-1.2, 1.2, (3, 2)).repeat(10, axis=0)]
-    )
-    return room, np.concatenate([room, room + [4.0, 0.0]])
+from tests.gcs.loops.test_match_ambiguity import two_rooms
 
 
 @pytest.mark.parametrize(
@@ -40,7 +27,7 @@ def test_a_runner_up_counts_only_where_the_graph_cannot_rule_it_out(
 ) -> None:
     """Node 0 saw both rooms, node 1 one of them: the match fits either room (the matcher's
     runner-up is the other, 4 m away). Node 1 truly stands in the second room (x = 4 m)."""
-    room, both = _two_rooms()
+    room, both = two_rooms()
     cfg = LoopCloserConfig(look_alike_radius_m=1.0)
     graph = PoseGraph()
     prior = np.diag([prior_sigma_m**2, prior_sigma_m**2, 0.01])
@@ -73,7 +60,7 @@ def test_a_runner_up_counts_only_where_the_graph_cannot_rule_it_out(
 def test_the_matcher_reports_where_its_runner_up_is_and_the_rule_is_off_by_default() -> None:
     from gcs.loops.correlative_matcher import CorrelativeMatcher, points_grid
 
-    room, both = _two_rooms()
+    room, both = two_rooms()
     cfg = LoopCloserConfig()
     assert cfg.look_alike_radius_m == 0.0  # off: the matcher's own runner_up_radius_m rules
     matcher = CorrelativeMatcher(cfg.matcher)

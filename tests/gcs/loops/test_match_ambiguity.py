@@ -30,6 +30,20 @@ def test_a_loose_heading_or_translation_is_ambiguous() -> None:
         LoopCloserConfig(max_match_sigma_yaw_rad=0.0)
 
 
+def two_rooms() -> tuple[np.ndarray, np.ndarray]:
+    """Points of one room (3 x 3 m, a few pillars) and of two identical ones 4 m apart."""
+    rng = np.random.default_rng(4)
+    room = np.concatenate(
+        [
+            np.column_stack([np.full(60, x), np.linspace(-1.5, 1.5, 60)])
+            for x in (-1.5, *rng.uniform(-1.2, 1.2, 2), 1.5)
+        ]
+        + [np.column_stack([np.linspace(-1.5, 1.5, 60), np.full(60, y)]) for y in (-1.5, 1.5)]
+        + [rng.uniform(-1.2, 1.2, (3, 2)).repeat(10, axis=0)]
+    )
+    return room, np.concatenate([room, room + [4.0, 0.0]])
+
+
 @pytest.mark.parametrize(
     ("radius_m", "wide", "closure"),
     [
@@ -48,16 +62,7 @@ def test_a_view_that_fits_two_places_is_no_closure(
     counted as a look-alike; without it the same match becomes a hypothesis."""
     from gcs.loops.candidate_search import Candidate
 
-    rng = np.random.default_rng(4)
-    room = np.concatenate(
-        [
-            np.column_stack([np.full(60, x), np.linspace(-1.5, 1.5, 60)])
-            for x in (-1.5, *rng.uniform(-1.2, 1.2, 2), 1.5)
-        ]
-        + [np.column_stack([np.linspace(-1.5, 1.5, 60), np.full(60, y)]) for y in (-1.5, 1.5)]
-        + [rng.uniform(-1.2, 1.2, (3, 2)).repeat(10, axis=0)]
-    )
-    both = np.concatenate([room, room + [4.0, 0.0]])
+    room, both = two_rooms()
     cfg = LoopCloserConfig()
     cfg = msgspec.structs.replace(
         cfg, matcher=msgspec.structs.replace(cfg.matcher, runner_up_radius_m=radius_m)
