@@ -60,7 +60,7 @@ from protocol.messages import (
     TerrainGrid,
 )
 from protocol.radio import RadioConfig
-from protocol.se2 import inverse, transform_points
+from protocol.se2 import compose, inverse, transform_points
 from robot.node import RobotNodeConfig
 from sim.simulator import Simulator, SimulatorConfig, load_world_config
 
@@ -603,6 +603,7 @@ class _Recording:
     (scoring reads the truth; the GCS never does)."""
 
     sample_period_s = 5.0
+    sighting_period_s = 1.0
 
     def __init__(self, run_dir: Path, config: RunConfig, asm: Assembly) -> None:
         from mission.report.recorder import MissionRecorder
@@ -618,6 +619,7 @@ class _Recording:
             roles={rid: role.value for rid, role in asm.roles.items()},
         )
         self._next_sample_s = 0.0
+        self._next_sighting_s = 0.0
         self.gcs.taps.append(self._on_uplink)
         self.gcs.control.on_event = self._on_planner_event
         if self.gcs.operator is not None:  # operator commands: interactions (paper Fig. 24)
@@ -658,9 +660,41 @@ class _Recording:
     def step(self, asm: Assembly) -> None:
         sim = asm.sim
         self.rec.track(sim.time_s, sim=sim)
+        if sim.time_s + 1e-9 >= self._next_sighting_s:
+            self._next_sighting_s = sim.time_s + self.sighting_period_s
+            self._record_sightings(asm)
         if sim.time_s + 1e-9 >= self._next_sample_s:
             self._next_sample_s = sim.time_s + self.sample_period_s
             self._sample()
+
+    def _record_sightings(self, asm: Assembly) -> None:
+        """Each in-process robot's own hostile tracks as ``robot_sighting`` events in the world
+        frame (the robot's track in its ``odom``, placed through its true pose: scoring only), so
+        the report can tell a hostile seen by a robot the GCS never heard from one nobody saw.
+        Robots in worker processes (``--robot-processes``) are not read: their sightings are
+        not recorded and the report says n/a."""
+        sim = asm.sim
+        nodes = asm.team.nodes
+        if not nodes:
+            return
+        alive = sim.alive()
+        poses = sim.robot_poses()
+        for k, rid in enumerate(sim.robot_ids):
+            node = nodes.get(rid)
+            if node is None or node.perception is None or not alive[k]:
+                continue
+            tracks = node.perception.hostile_tracks_in_odom(sim.time_s)
+            if not len(tracks):
+                continue
+            world_from_odom = compose(poses[k], inverse(node.odometry.pose_in_odom))
+            for x_w, y_w in transform_points(world_from_odom, tracks[:, :2]):
+                self.rec.event(
+                    sim.time_s,
+                    "robot_sighting",
+                    object_kind="hostile",
+                    robot_id=rid,
+                    position_world=[float(x_w), float(y_w)],
+                )
 
     def _sample(self) -> None:
         _sample_into(self.rec, self.asm, self.gcs.station)
