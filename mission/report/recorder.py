@@ -36,7 +36,9 @@ Events: ``kind`` is free text; these are understood by the report:
 ``detection`` (``object_kind``: ``static_ooi`` / ``toxic_vat`` / ``hostile`` / ...,
 ``position_in_map``: (x, y)), ``interaction`` (an operator command: interactions per minute),
 ``mode`` (``robot_id``, ``mode``: a robot's reported autonomy mode changed, :meth:`mode`),
-``neutralization``, ``blast``, ``robot_lost``, ``closure``. The simulator's own rule events
+``neutralization``, ``blast``, ``robot_lost``, ``closure``, ``robot_sighting`` (a robot's own
+hostile track, ``robot_id``, ``position_world``: (x, y), recorded by ``magic run`` from
+in-process robots whether or not the GCS heard of it). The simulator's own rule events
 (``detonation``, ``neutralized``, ``robot_lost``, ``civilian_harmed``) are read from ``sim`` at
 each sample and are what the scores count (truth), with ``source: sim``.
 """
