@@ -9,7 +9,11 @@ ground estimates in unobserved cells too, and lets the up-detector reject points
 ground such as overhanging tree canopy (:func:`filter_height_range`).
 
 The propagation is a two-pass chamfer transform over the 8-connected grid (steps of 1 and
-sqrt(2) cells), exact for that metric, ``O(rows * cols)``.
+sqrt(2) cells), exact for that metric, ``O(rows * cols)``. Each pass takes a row's
+neighbours in the row before it in one loop the compiler vectorizes, then the row's own
+neighbour in a running scan: 1.45 -> 0.56 ms thread CPU at 400 x 400, the same values as the
+cell-by-cell sweep (session 13, load ~20; the robot node runs it for terrain classification
+and for perception's segmentation every sweep).
 """
 
 from __future__ import annotations
@@ -52,31 +56,35 @@ def _lowest_two(x, y, z, ox, oy, res, rows, cols):  # type: ignore[no-untyped-de
 
 @nb.njit(cache=True, nogil=True)
 def _chamfer_min(g, step, diag):  # type: ignore[no-untyped-def]
+    # every cell the minimum of the same candidates as the cell-by-cell sweep, in another
+    # order (no NaN: bounds are finite or +inf), so the same values (module docstring)
     rows, cols = g.shape
     for r in range(rows):
-        for c in range(cols):
-            v = g[r, c]
-            if c > 0:
-                v = min(v, g[r, c - 1] + step)
-            if r > 0:
-                v = min(v, g[r - 1, c] + step)
+        row = g[r]
+        if r > 0:
+            up = g[r - 1]
+            for c in range(cols):
+                v = min(row[c], up[c] + step)
                 if c > 0:
-                    v = min(v, g[r - 1, c - 1] + diag)
+                    v = min(v, up[c - 1] + diag)
                 if c + 1 < cols:
-                    v = min(v, g[r - 1, c + 1] + diag)
-            g[r, c] = v
+                    v = min(v, up[c + 1] + diag)
+                row[c] = v
+        for c in range(1, cols):
+            row[c] = min(row[c], row[c - 1] + step)
     for r in range(rows - 1, -1, -1):
-        for c in range(cols - 1, -1, -1):
-            v = g[r, c]
-            if c + 1 < cols:
-                v = min(v, g[r, c + 1] + step)
-            if r + 1 < rows:
-                v = min(v, g[r + 1, c] + step)
+        row = g[r]
+        if r + 1 < rows:
+            down = g[r + 1]
+            for c in range(cols):
+                v = min(row[c], down[c] + step)
                 if c + 1 < cols:
-                    v = min(v, g[r + 1, c + 1] + diag)
+                    v = min(v, down[c + 1] + diag)
                 if c > 0:
-                    v = min(v, g[r + 1, c - 1] + diag)
-            g[r, c] = v
+                    v = min(v, down[c - 1] + diag)
+                row[c] = v
+        for c in range(cols - 2, -1, -1):
+            row[c] = min(row[c], row[c + 1] + step)
     return g
 
 

@@ -51,6 +51,49 @@ def test_propagation_matches_brute_force(seed: int) -> None:
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
 
 
+def _chamfer_cell_by_cell(g: np.ndarray, step: float, diag: float) -> np.ndarray:
+    """The two-pass chamfer sweep one cell at a time (the kernel's form before session 13)."""
+    rows, cols = g.shape
+    for r in range(rows):
+        for c in range(cols):
+            v = g[r, c]
+            if c > 0:
+                v = min(v, g[r, c - 1] + step)
+            if r > 0:
+                v = min(v, g[r - 1, c] + step)
+                if c > 0:
+                    v = min(v, g[r - 1, c - 1] + diag)
+                if c + 1 < cols:
+                    v = min(v, g[r - 1, c + 1] + diag)
+            g[r, c] = v
+    for r in range(rows - 1, -1, -1):
+        for c in range(cols - 1, -1, -1):
+            v = g[r, c]
+            if c + 1 < cols:
+                v = min(v, g[r, c + 1] + step)
+            if r + 1 < rows:
+                v = min(v, g[r + 1, c] + step)
+                if c + 1 < cols:
+                    v = min(v, g[r + 1, c + 1] + diag)
+                if c > 0:
+                    v = min(v, g[r + 1, c - 1] + diag)
+            g[r, c] = v
+    return g
+
+
+@pytest.mark.parametrize("frac", [0.02, 0.3, 0.9])
+def test_propagation_equals_the_cell_by_cell_sweep_exactly(frac: float) -> None:
+    # the row-at-a-time kernel takes each cell's minimum over the same candidates
+    rng = np.random.default_rng(int(frac * 100))
+    bounds = np.full((37, 53), np.inf)
+    mask = rng.random(bounds.shape) < frac
+    bounds[mask] = rng.normal(0.0, 0.3, mask.sum())
+    got = propagate_ground(bounds, resolution_m=0.05, ground_slope_deg=20.0)
+    rise = math.tan(math.radians(20.0)) * 0.05
+    want = _chamfer_cell_by_cell(bounds.copy(), rise, rise * math.sqrt(2.0))
+    np.testing.assert_array_equal(got, want)
+
+
 def test_ground_under_canopy_stays_low() -> None:
     """Canopy points above observed ground do not raise the ground estimate."""
     geo = GridGeometry((0.0, 0.0), 0.1, 10, 10)

@@ -197,3 +197,25 @@ def test_answers_kept_between_sweeps_equal_a_fresh_fusion_of_the_same_memory() -
                 np.testing.assert_array_equal(tall, fresh.tall(geo, 0.5))
                 tall[:] = True
             np.testing.assert_array_equal(kept.tall(geo, 1.0), fresh.tall(geo, 1.0))
+
+
+def test_a_grid_asked_again_elsewhere_before_the_next_sweep_equals_a_fresh_fusion() -> None:
+    # between sweeps the last answer's lattice window serves the cells a moved grid shares
+    # with it (the rest computed): any shift, size or no overlap gives a fresh fusion's answer
+    rng = np.random.default_rng(11)
+    kept = TerrainMapFusion(memory_sweeps=5, clear_after_sweeps=2)
+    fresh_maps = []
+    for _ in range(5):
+        geo = _geo(rng.uniform(-1, 1), rng.uniform(-1, 1), 25)
+        layers = _random_layers(rng, geo)
+        kept.add(layers[0], geo, obstacle_height_m=layers[1], free_height_m=layers[2])
+        fresh_maps.append((geo, layers))
+    for _ in range(25):
+        n = int(rng.integers(5, 40))
+        geo = GridGeometry.centered(
+            rng.uniform(-3, 3, 2), resolution_m=0.1, rows=n, cols=int(rng.integers(5, 40))
+        )
+        fresh = TerrainMapFusion(memory_sweeps=5, clear_after_sweeps=2)
+        for g, (cls, oh, fh) in fresh_maps:
+            fresh.add(cls, g, obstacle_height_m=oh, free_height_m=fh)
+        np.testing.assert_array_equal(kept.fused(geo), fresh.fused(geo))
