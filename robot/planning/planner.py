@@ -28,6 +28,14 @@ free.
 When no path exists the result says so (``status`` and ``reason``) with an empty path: the
 robot node stops, waits for the map to change (the memory forgets old sweeps) and reports it.
 Everything is in the terrain map's frame (``odom``), metres.
+
+Cost (issue 14, session 13, thread CPU at load ~20): a plan over a 400 x 400 map about 6 ms,
+of which the clearance field (a distance transform) 1.3 (plus as much on OpenCV's second
+thread), Dijkstra with A* 2.4, configuration space 0.3, smoothing 0.6. The configuration
+space and clearance field of the last obstacle grid are kept (:attr:`PathPlanner.field_reuses`
+counts the reuses): a plan over the same obstacles reuses them, exactly (they are pure
+functions of the grid). In the small world's first 60 s about one plan in ten was such a
+repeat (the second plan to the nearest reachable cell, a robot that has not moved a cell).
 """
 
 from __future__ import annotations
@@ -135,6 +143,31 @@ class PathPlanner:
 
     def __init__(self, config: PlannerConfig | None = None) -> None:
         self.config = config or PlannerConfig()
+        # the last obstacle grid's configuration space and clearance field (both pure
+        # functions of it): a replan over the same obstacles (the second plan to the nearest
+        # reachable cell, a robot that has not moved a cell since the last sweep) reuses them
+        self._fields: (
+            tuple[NDArray[np.bool_], float, NDArray[np.bool_], NDArray[np.float64]] | None
+        ) = None
+        self.field_reuses = 0
+
+    def _obstacle_fields(
+        self, hard: NDArray[np.bool_], resolution_m: float
+    ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+        """``(configuration space, clearance field)`` of ``hard``, kept for the next call
+        (the answers are never written to: only read by the plan, relaxation and smoothing)."""
+        if self._fields is not None:
+            last, last_res, blocked, clearance = self._fields
+            if last_res == resolution_m and np.array_equal(last, hard):
+                self.field_reuses += 1
+                return blocked, clearance
+        cfg = self.config
+        blocked = configuration_space(
+            hard, robot_radius_m=cfg.robot_radius_m, resolution_m=resolution_m
+        )
+        clearance = clearance_field(hard, resolution_m=resolution_m)
+        self._fields = (hard.copy(), resolution_m, blocked, clearance)
+        return blocked, clearance
 
     def plan(
         self,
@@ -199,7 +232,7 @@ class PathPlanner:
         unknown &= ~under_robot
         obstacle = cls == OBSTACLE
         hard = obstacle | unknown if cfg.unknown == "obstacle" else obstacle
-        blocked = configuration_space(hard, robot_radius_m=cfg.robot_radius_m, resolution_m=res)
+        blocked, clearance = self._obstacle_fields(hard, res)
         if cost_multiplier is not None:
             m = np.asarray(cost_multiplier, dtype=np.float64)
             if m.shape != geometry.shape:
@@ -213,7 +246,6 @@ class PathPlanner:
             cost = np.ones(geometry.shape)
         if cfg.unknown == "cost":
             cost[unknown] *= cfg.unknown_cost
-        clearance = clearance_field(hard, resolution_m=res)
         comfort = cfg.clearance_m - cfg.robot_radius_m
         if cfg.clearance_cost > 0 and comfort > 0:
             tight = clearance < cfg.clearance_m

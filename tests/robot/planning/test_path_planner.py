@@ -246,3 +246,38 @@ def test_clearance_cost_prefers_going_around_over_squeezing_between() -> None:
     door[99:101, 89:111] = DRIVABLE
     result = PathPlanner(PlannerConfig(clearance_cost=2.0)).plan(door, GEO, (0, -3), (0, 3))
     assert result.ok and result.min_clearance_m >= 0.4
+
+
+@pytest.mark.parametrize("unknown", ["free", "obstacle"])
+def test_a_planner_reusing_its_last_obstacle_fields_plans_as_a_fresh_one(unknown: str) -> None:
+    # the configuration space and clearance of the last obstacle grid are kept: plans over
+    # the same grid again (other start or goal), a changed grid and the first grid again
+    # equal those of a planner that has planned nothing before
+    rng = np.random.default_rng(3)
+    geo = GridGeometry((0.0, 0.0), 0.1, 60, 60)
+    maps = []
+    for _ in range(3):
+        cls = np.full(geo.shape, DRIVABLE, dtype=np.uint8)
+        cls[rng.random(geo.shape) < 0.1] = UNKNOWN
+        for _ in range(8):
+            r, c = rng.integers(0, 55, 2)
+            cls[r : r + int(rng.integers(1, 12)), c : c + int(rng.integers(1, 4))] = OBSTACLE
+        maps.append(cls)
+    config = PlannerConfig(unknown=unknown)  # type: ignore[arg-type]
+    kept = PathPlanner(config)
+    order = [0, 0, 1, 1, 0, 2, 2]
+    for k, i in enumerate(order):
+        start, goal = rng.uniform(0.5, 5.5, 2), rng.uniform(0.5, 5.5, 2)
+        got = kept.plan(maps[i], geo, start, goal)
+        want = PathPlanner(config).plan(maps[i], geo, start, goal)
+        assert got.status == want.status and got.reason == want.reason, k
+        np.testing.assert_array_equal(got.path_in_odom, want.path_in_odom)
+        np.testing.assert_array_equal(got.dijkstra_cells, want.dijkstra_cells)
+        assert (got.length_m, got.min_clearance_m, got.escaped, got.goal_in_odom) == (
+            want.length_m,
+            want.min_clearance_m,
+            want.escaped,
+            want.goal_in_odom,
+        )
+    if unknown == "free":
+        assert kept.field_reuses == 3  # the repeats of the same grid
