@@ -138,12 +138,23 @@ def _detector() -> cv2.aruco.ArucoDetector:
     return _DETECTOR
 
 
+def _uniform(gray: np.ndarray) -> bool:
+    """Whether every pixel of a 2D uint8 image has the first pixel's value."""
+    flat = gray.reshape(-1)
+    return bool(cv2.countNonZero(cv2.absdiff(flat, np.full_like(flat, flat[0]))) == 0)
+
+
 def detect_tags(rgb: np.ndarray) -> list[TagDetection]:
     """AprilTag 36h11 tags in an ``(H, W, 3)`` uint8 RGB (or ``(H, W)`` grey) image."""
     img = np.asarray(rgb)
     if img.dtype != np.uint8 or img.ndim not in (2, 3):
         raise ValueError(f"detect_tags: expected a uint8 image, got {img.dtype} {img.shape}")
     gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+    if gray.size and _uniform(gray):
+        # one grey level (the simulator's flat answer for a frame with nothing to find):
+        # the detector's adaptive threshold (pixel > local mean - 7) is the same everywhere,
+        # no contour, no tag; 0.03 ms for the test against ~2 ms for the search at 320x240
+        return []
     corners, ids, _ = _detector().detectMarkers(gray)
     if ids is None:
         return []

@@ -200,3 +200,21 @@ def test_a_fiducial_sighting_joins_two_robots_that_never_share_a_scan(scene: Sce
     assert math.hypot(*(frames[1][:2] - truth[:2])) < 0.1
     assert abs((frames[1][2] - truth[2] + math.pi) % (2 * math.pi) - math.pi) < math.radians(3)
     assert gs.stats.fiducials == 1
+
+
+@pytest.mark.parametrize(("w", "h"), [(320, 240), (160, 120), (640, 192), (16, 16)])
+def test_a_flat_image_has_no_tag_and_the_detector_agrees(w: int, h: int) -> None:
+    # detect_tags answers a one-grey-level image (the simulator's frame with nothing to
+    # find) without searching it: the search itself finds nothing there at any level
+    import cv2
+
+    from robot.perception.fiducial_detector import _detector, _uniform
+
+    for level in (0, 37, 128, 255):
+        rgb = np.full((h, w, 3), level, dtype=np.uint8)
+        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        assert _uniform(gray)
+        assert _detector().detectMarkers(gray)[1] is None
+        assert detect_tags(rgb) == []
+    rgb[h // 2, w // 3] = (0, 255, 0)
+    assert not _uniform(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
