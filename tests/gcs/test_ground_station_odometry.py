@@ -48,7 +48,13 @@ def test_odometry_check_config_rejects_bad_values() -> None:
         OdometryCheckConfig(chi2=0.0)
 
 
-def _drive(slip: dict[int, float], *, check: bool, seed: int = 5) -> tuple[GroundStation, float]:
+def _drive(
+    slip: dict[int, float],
+    *,
+    check: bool,
+    seed: int = 5,
+    odometry_check: OdometryCheckConfig | None = None,
+) -> tuple[GroundStation, float]:
     """A robot drives 16 m along a street of a random world; on the steps in ``slip`` its
     wheels report ``1 + slip`` times the distance the body moved. Returns the station and the
     final position error (m) of its estimate."""
@@ -62,7 +68,7 @@ def _drive(slip: dict[int, float], *, check: bool, seed: int = 5) -> tuple[Groun
         step = np.asarray(relative(truth[i - 1], truth[i]), dtype=float)
         step[:2] *= 1.0 + slip.get(i, 0.0)
         odom.append(compose(odom[-1], step))
-    cfg = GroundStationConfig(odometry_check=OdometryCheckConfig(enabled=check))
+    cfg = GroundStationConfig(odometry_check=odometry_check or OdometryCheckConfig(enabled=check))
     gs = GroundStation(cfg)
     cov = covariance_to_upper(ODOM_COV)
     for i, pose in enumerate(odom):
@@ -92,6 +98,20 @@ def test_a_slipping_step_is_replaced_by_its_scan_match_and_a_clean_drive_is_unto
     clean, err_clean = _drive({}, check=True)
     assert clean.stats.odometry_checks == 16 and clean.stats.odometry_replaced == 0
     assert err_clean < 0.05
+
+
+def test_a_match_farther_from_the_step_than_slip_can_take_the_robot_is_not_taken() -> None:
+    # step 5: the match puts the body 1 m ahead where the wheels say 1 m back, a difference of
+    # 2 m on a 1 m step, which no slip makes (in the mission: a corridor's look-alike 1.7 m
+    # behind a 1.2 m step); the same match is taken when the bound allows it
+    gs, _ = _drive({5: -2.0}, check=True)
+    assert gs.stats.odometry_implausible == 1 and gs.stats.odometry_replaced == 0
+    loose = OdometryCheckConfig(max_slip_frac=3.0)
+    gs, err = _drive({5: -2.0}, check=True, odometry_check=loose)
+    assert gs.stats.odometry_implausible == 0 and gs.stats.odometry_replaced == 1
+    assert err < 0.3
+    with pytest.raises(ValueError, match="max_slip_frac"):
+        OdometryCheckConfig(max_slip_frac=0.0)
 
 
 def _teammates(seen_at_s: float) -> tuple[GroundStation, np.ndarray, np.ndarray, np.ndarray]:
