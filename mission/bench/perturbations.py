@@ -12,7 +12,16 @@ defect public logs are known to carry, so a replay can be scored on data it was 
 * :func:`coarsen_clock`: timestamps quantized to ``step_s`` (1e4 s) around ``epoch_s``
   (1.13486e9): what ``%g`` printing of a Unix time gives (``1.13486e+09``).
 * :func:`jump_clock`: ``jump_s`` (4.29e9 s, a 32-bit wrap) added to every stamp from one scan on.
-* :func:`drop_scans`: a stretch of scans removed (an odometry and laser gap).
+* :func:`freeze_odometry`: an odometry gap: the wheel encoders drop out for a stretch of scans
+  while the laser keeps coming. What a CARMEN log then shows: every laser record carries the
+  last odometry pose the base reported, so the odometry is *frozen* (bitwise the same pose) over
+  the stretch; when the encoders come back the increments resume from the frozen pose, and the
+  motion driven meanwhile is simply missing from the odometry (the offset between ``odom`` and
+  the world has jumped by it). A driver that restarts instead resets to a new origin; the
+  frozen stretch in front of it is the same, and it is the one modelled here.
+* :func:`drop_scans`: a stretch of scans removed, laser and odometry both (a *data* gap: a
+  logger that stopped writing). No estimator can recover what nobody recorded: see
+  :mod:`mission.bench.robustness` for why this one is reported apart.
 
 Each function leaves its input untouched (the arrays are copied).
 """
@@ -33,6 +42,7 @@ __all__ = [
     "coarsen_clock",
     "drop_scans",
     "freeze_clock",
+    "freeze_odometry",
     "jump_clock",
     "scale_turns",
 ]
@@ -111,8 +121,34 @@ def jump_clock(
     return _with_time(log, t)
 
 
+def freeze_odometry(log: CarmenLog, start: int, count: int) -> CarmenLog:
+    """``log`` whose odometry is frozen over scans ``start .. start+count-1`` (an odometry gap).
+
+    Those scans carry scan ``start - 1``'s odometry pose (the last one the base reported); from
+    scan ``start + count`` on the odometry's own increments resume from that pose, so the motion
+    of the ``count`` steps from ``start - 1`` to ``start + count - 1`` is lost (module
+    docstring). The laser, the laser poses and the base poses (the reference) are untouched.
+    """
+    n = len(log)
+    if not (1 <= start < n and count > 0):
+        raise ValueError(
+            f"freeze_odometry: start {start}, count {count} outside 1..{n - 1} (a pose before)"
+        )
+    odom = np.array(log.odometry_in_log, dtype=np.float64, copy=True)
+    stop = min(n, start + count)
+    frozen = odom[start - 1].copy()
+    out = odom.copy()
+    out[start:stop] = frozen
+    if stop < n:
+        # the increments after the dropout, chained from the frozen pose
+        after = relative(odom[stop - 1], odom[stop:]).reshape(-1, 3)
+        out[stop:] = compose(frozen, after)
+        out[stop:, 2] = wrap_angle(out[stop:, 2])
+    return dataclasses.replace(log, odometry_in_log=out)
+
+
 def drop_scans(log: CarmenLog, start: int, count: int) -> CarmenLog:
-    """``log`` without scans ``start .. start+count-1`` (an odometry and laser gap)."""
+    """``log`` without scans ``start .. start+count-1`` (a data gap: laser and odometry)."""
     n = len(log)
     if not (0 <= start < n and count > 0):
         raise ValueError(f"drop_scans: start {start}, count {count} outside a log of {n} scans")

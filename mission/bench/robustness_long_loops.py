@@ -2,10 +2,10 @@
 
 Every shipped CARMEN log with reference poses (Intel, ACES, Freiburg 079) is replayed through
 :func:`mission.replay.run_replay` as the replay part does (seeded odometry noise,
-:data:`mission.bench.robustness.NOISE_SCALE` times the pose-node model), whole and with an
-odometry gap (a tenth of the scans dropped from the middle: no closure can span the gap unless
-something finds the place again without the graph's help). The GCS runs its default
-configuration: what is measured is what ships.
+:data:`mission.bench.robustness.NOISE_SCALE` times the pose-node model), whole and with a
+data gap (``data_gap``: a tenth of the scans, laser and odometry, dropped from the middle: no
+closure can span the gap unless something finds the place again without the graph's help).
+The GCS runs its default configuration: what is measured is what ships.
 
 Evaluation only (the GCS never reads the reference poses): a node *revisits after a long loop*
 when it lies within :data:`REVISIT_M` of a node that the robot left at least :data:`LOOP_M`
@@ -13,7 +13,7 @@ of travel before (travel and distances on the reference poses); it is *closed* w
 end of an accepted automatic closure whose other end lies at least :data:`LOOP_M` of travel
 away. Metrics:
 
-- ``long_loop_revisits_closed_frac_{log}`` (and ``_{log}_gap``): closed over revisiting nodes;
+- ``long_loop_revisits_closed_frac_{log}`` (and ``_{log}_data_gap``): closed over revisiting nodes;
 - ``long_loop_revisits_{log}``: how many nodes revisit (the denominator);
 - ``long_loop_ate_m_{log}``: the run's ATE against the reference poses;
 - ``long_loop_false_closures``: accepted closures off the reference by more than 0.5 m or
@@ -23,8 +23,8 @@ away. Metrics:
 (:func:`mission.bench.robustness.replay_run`, one run for both parts): its quick prefix (316
 of 440 scans) ends after 30 scans came back to a place left 50 m before, and holds 30 of the
 whole log's 51 long-loop revisits (its first long loop comes after 250 scans). Without
-``--quick`` all three logs, each whole and with the gap (the replay part's clean and gap
-runs again).
+``--quick`` all three logs, each whole and with the data gap (the replay part's
+clean and ``data_gap`` runs again).
 The Duke DP-SLAM log has no reference poses and is skipped with that reason.
 """
 
@@ -97,7 +97,7 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
             )
         ]
         if not quick:
-            runs.append((f"{name}_gap", functools.partial(replay_run, name, None, "gap")))
+            runs.append((f"{name}_data_gap", functools.partial(replay_run, name, None, "data_gap")))
         for label, replay in runs:
             t0 = time.perf_counter()
             result = replay()

@@ -16,7 +16,9 @@ from gcs.replay.relations import parse_relations, read_relations
 from mission.replay import (
     OdometryNoiseConfig,
     ReplayConfig,
+    ReplayNode,
     ScanGridConfig,
+    iter_replay_messages,
     replay_messages,
     replay_odometry,
     robot_odometry,
@@ -587,11 +589,23 @@ def test_perturbations_of_a_log() -> None:
         coarsen_clock,
         drop_scans,
         freeze_clock,
+        freeze_odometry,
         jump_clock,
         scale_turns,
     )
 
     log = synthetic_log(laps=0.5)
+    frozen = freeze_odometry(log, 10, 5)  # scans 10..14 carry scan 9's pose, then resume
+    odom, froz = log.odometry_in_log, frozen.odometry_in_log
+    np.testing.assert_array_equal(froz[10:15], np.repeat(odom[9:10], 5, axis=0))
+    np.testing.assert_allclose(
+        relative(froz[14:-1], froz[15:]), relative(odom[14:-1], odom[15:]), atol=1e-9
+    )
+    assert np.hypot(*relative(froz[9], froz[15])[:2]) < 0.31  # the 1.5 m of 9 -> 14 are lost
+    np.testing.assert_array_equal(frozen.laser_in_log, log.laser_in_log)
+    np.testing.assert_array_equal(frozen.ranges_m, log.ranges_m)
+    with pytest.raises(ValueError, match="freeze_odometry"):
+        freeze_odometry(log, 0, 5)
     same = scale_turns(log, 1.0)
     np.testing.assert_allclose(relative(same.odometry_in_log, log.odometry_in_log), 0, atol=1e-9)
     bent = scale_turns(log, 1.08)
@@ -777,3 +791,54 @@ def test_fr079_prefix_with_its_relations_is_saved_and_not_misaligned(
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert "relations_offset_s" not in summary and summary["nodes"] > 20
     assert (tmp_path / "run" / "map.png").is_file() and "evaluation missing" in out
+
+
+def test_absent_odometry_is_told_from_a_standstill_by_the_laser() -> None:
+    """A frozen odometry while the ranges change is a dropout; the same pose with the same
+    ranges (a robot at rest) is not."""
+    from mission.bench.perturbations import freeze_odometry
+    from mission.replay import odometry_dropouts
+
+    log = synthetic_log(laps=0.7)
+    assert odometry_dropouts(log).runs == []
+    found = odometry_dropouts(freeze_odometry(log, 30, 15))
+    assert found.runs == [(30, 15)] and np.flatnonzero(found.absent).tolist() == list(range(30, 45))
+    assert found.range_change_m[0] > 0.2
+    rest = log.subset(np.r_[np.arange(20), np.full(10, 19), np.arange(20, len(log))])
+    still = odometry_dropouts(rest)
+    assert still.runs == [] and still.standstills == 1 and not still.absent.any()
+
+
+def test_the_laser_bridges_an_odometry_gap_and_the_nodes_say_so() -> None:
+    """The encoders drop out for 15 scans (4.5 m with a corner): the replay's robot carries its
+    chain across on the laser (scan_odometry), the nodes over the stretch state a wider
+    covariance than odometry's, and the replay says what it found; without the laser the
+    chain stays frozen and the node after it is widened by what the robot can have done."""
+    from mission.bench.perturbations import freeze_odometry
+
+    log = synthetic_log(laps=0.7)
+    frozen = freeze_odometry(log, 30, 15)
+    notes: list[str] = []
+    nodes = list(iter_replay_messages(frozen, ReplayConfig(), notes))
+    assert len(notes) == 1 and "odometry absent: 15 scan(s)" in notes[0]
+    assert "15 step(s) matched" in notes[0]
+    a = max((n for n in nodes if n.scan <= 29), key=lambda n: n.scan)
+    b = min((n for n in nodes if n.scan >= 45), key=lambda n: n.scan)
+    truth = relative(log.laser_in_log[a.scan], log.laser_in_log[b.scan])
+    across = relative(a.pose_node.pose_in_odom, b.pose_node.pose_in_odom)
+    assert np.hypot(*(across[:2] - truth[:2])) < 0.1
+    assert abs(math.remainder(across[2] - truth[2], 2 * math.pi)) < math.radians(1.0)
+    off = ReplayConfig(scan_odometry=None)
+    plain = replay_messages(log, off)
+
+    def xy_var(ns: list[ReplayNode], lo: int, hi: int) -> float:
+        covs = [covariance_from_upper(n.pose_node.odom_covariance) for n in ns if lo < n.scan <= hi]
+        return max(float(c[0, 0] + c[1, 1]) for c in covs)
+
+    assert xy_var(nodes, 30, 45) > 2 * xy_var(plain, 30, 45)
+    blind = {n.scan: n.pose_node for n in replay_messages(frozen, off)}
+    assert not any(30 <= k < 45 for k in blind)  # frozen: no motion, no node
+    after = min(k for k in blind if k >= 45)
+    cov = covariance_from_upper(blind[after].odom_covariance)
+    yaw_var = [covariance_from_upper(n.pose_node.odom_covariance)[2, 2] for n in plain]
+    assert cov[2, 2] > 4 * max(yaw_var)

@@ -13,6 +13,7 @@ from robot.odometry.scan_odometry import (
     ScanOdometry,
     ScanOdometryConfig,
     ScanOdometryStats,
+    constant_velocity_window,
     match_step,
     refine_odometry,
 )
@@ -206,3 +207,53 @@ def test_thinning_keeps_the_first_point_of_each_cell_as_unique_rows_do() -> None
         if len(want) > 240:
             want = want[np.linspace(0, len(want) - 1, 240).astype(np.int64)]
         np.testing.assert_array_equal(_thin(pts, 240, 0.1), want)
+
+
+def test_absent_odometry_is_bridged_by_the_laser() -> None:
+    """The encoders drop out for 15 steps (the odometry frozen, the scans still coming): a
+    constant-velocity prior and a widened search carry the chain through the full turn in
+    place; with no scans there either, the prior's steps are kept and listed."""
+    truth = _truth()
+    segs = _segments()
+    scans = [_scan(p, segs) for p in truth]
+    odom = truth.copy()
+    odom[20:35] = odom[19]  # frozen from step 20 to 34
+    after = np.array([_rel(truth[34], p) for p in truth[35:]])
+    odom[35:] = np.array([compose(odom[19], a) for a in after])
+    absent = np.zeros(len(truth), dtype=bool)
+    absent[20:35] = True
+    stats = ScanOdometryStats()
+    refined = refine_odometry(odom, scans, ScanOdometryConfig(), stats, absent=absent)
+    assert stats.bridged == 15 and stats.prior_steps == []
+    across = _rel(refined[19], refined[35])
+    true_across = _rel(truth[19], truth[35])
+    # 96 deg turned in place on the laser alone (measured: 9 cm off at the end)
+    assert np.hypot(*(across[:2] - true_across[:2])) < 0.15
+    assert abs(_wrap(across[2] - true_across[2])) < math.radians(1.0)
+    frozen = refine_odometry(odom, scans, ScanOdometryConfig())  # told nothing: a standstill
+    assert abs(_wrap(_rel(frozen[19], frozen[35])[2] - true_across[2])) > math.radians(60)
+    # without scans in the stretch the prior (the last step, here a 6 deg turn) is kept
+    blind = [s if not absent[k] else np.zeros((0, 2)) for k, s in enumerate(scans)]
+    stats = ScanOdometryStats()
+    kept = refine_odometry(odom, blind, ScanOdometryConfig(), stats, absent=absent)
+    assert stats.prior_steps == list(range(20, 35)) and stats.bridged == 0
+    prior = _rel(kept[19], kept[20])
+    np.testing.assert_allclose(prior, _rel(kept[18], kept[19]), atol=1e-9)
+
+
+def test_the_bridge_window_is_the_logs_own_departure_from_constant_velocity() -> None:
+    cfg = ScanOdometryConfig()
+    steady = _chain(np.array([(0.1, 0.0, 0.0)] * 30), np.zeros(3))
+    none = np.zeros(len(steady), dtype=bool)
+    window = constant_velocity_window(steady, none, None, cfg)
+    assert window.half_xy_m == cfg.max_shift_m and window.half_yaw_rad == cfg.min_turn_window_rad
+    jerky = _chain(np.array([(0.1, 0.0, 0.0), (0.5, 0.0, 0.3)] * 15), np.zeros(3))
+    window = constant_velocity_window(jerky, none, None, cfg)
+    assert window.half_xy_m == pytest.approx(cfg.bridge_margin * 0.4)
+    assert window.half_yaw_rad == pytest.approx(cfg.bridge_margin * 0.3)
+    # the steps that are absent say nothing about the robot's motion
+    gone = none.copy()
+    gone[1:] = True
+    assert constant_velocity_window(jerky, gone, None, cfg).half_xy_m == cfg.max_step_m
+    with pytest.raises(ValueError, match="absent has 3 scans"):
+        refine_odometry(np.zeros((4, 3)), [np.zeros((0, 2))] * 4, absent=np.zeros(3, bool))
