@@ -11,6 +11,11 @@ hostiles called static OOIs with boxes alone, 0 with the angle).
 chosen by the image memory, takes the pixels inside its outline and names the class whose box
 holds the largest fraction of them (at least ``min_fraction``), else ``other``.
 
+Cost (issue 14, session 13): the 8-bit pixels of a candidate are looked up in per-value
+tables of the class boxes (one of 256 Y values, one of 65536 Cr, Cb pairs with their chroma
+angle) built once per thresholds from the same features and comparisons (equal for all
+16.7M YCrCb values): 0.39 -> 0.024 ms thread CPU for 3000 pixels.
+
 Thresholds ship as a versioned JSON file beside this module
 (``colour_thresholds_v1.json``); :func:`load_thresholds` refuses a corrupt, mismatched or
 incomplete file with an error naming the file and what is wrong.
@@ -178,9 +183,53 @@ def _features(ycrcb: np.ndarray) -> np.ndarray:
     return np.column_stack([ycrcb, hue])
 
 
+_LUTS: dict[tuple[object, ...], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _class_bits(thresholds: ColourThresholds) -> tuple[np.ndarray, np.ndarray]:
+    """Per 8-bit ``Y`` (256,) and per ``(Cr, Cb)`` (65536,): a uint8 whose bit ``k`` says the
+    value is inside class ``k``'s box (Y; Cr, Cb and the chroma angle), from the same float
+    features and comparisons as :func:`classify_pixels` makes per pixel; kept per thresholds."""
+    key = tuple((c, thresholds.boxes[c]) for c in CLASSES)
+    got = _LUTS.get(key)
+    if got is not None:
+        return got
+    lo, hi = thresholds.lo_hi()
+    v = np.arange(256, dtype=float)
+    cr = np.repeat(v, 256)
+    cb = np.tile(v, 256)
+    feat = _features(np.column_stack([np.zeros(len(cr)), cr, cb]))
+    y_bits = np.zeros(256, dtype=np.uint8)
+    cc_bits = np.zeros(len(cr), dtype=np.uint8)
+    for k in range(len(CLASSES)):
+        y_in = (v >= lo[k, 0]) & (v <= hi[k, 0])
+        cc_in = np.all((feat[:, 1:] >= lo[k, 1:]) & (feat[:, 1:] <= hi[k, 1:]), axis=1)
+        y_bits |= y_in.astype(np.uint8) << k
+        cc_bits |= cc_in.astype(np.uint8) << k
+    if len(_LUTS) >= 8:
+        _LUTS.clear()
+    _LUTS[key] = (y_bits, cc_bits)
+    return y_bits, cc_bits
+
+
 def classify_pixels(ycrcb: np.ndarray, thresholds: ColourThresholds) -> tuple[str, float]:
     """The class whose box holds the largest share of ``(N, 3)`` YCrCb pixels and that share;
-    ``("other", share)`` below ``min_fraction``."""
+    ``("other", share)`` below ``min_fraction``.
+
+    8-bit pixels (as :func:`classify_candidate` gives them) are looked up in per-value tables
+    of the same box tests (:func:`_class_bits`): the same shares, 4x less CPU than testing
+    every pixel's features (session 13)."""
+    raw = np.asarray(ycrcb)
+    if raw.dtype == np.uint8 and raw.size:
+        p8 = raw.reshape(-1, 3)
+        y_bits, cc_bits = _class_bits(thresholds)
+        bits = y_bits[p8[:, 0]] & cc_bits[p8[:, 1].astype(np.intp) * 256 + p8[:, 2]]
+        n = len(p8)
+        frac = np.array([np.count_nonzero(bits & (1 << k)) for k in range(len(CLASSES))]) / n
+        k = int(np.argmax(frac))
+        if frac[k] < thresholds.min_fraction:
+            return "other", float(frac[k])
+        return CLASSES[k], float(frac[k])
     px = np.asarray(ycrcb, dtype=float).reshape(-1, 3)
     if len(px) == 0:
         return "other", 0.0

@@ -210,3 +210,32 @@ def test_a_corrupt_or_mismatched_threshold_file_is_a_clear_error(tmp_path: Path)
         assert "bad.json" in str(err.value)
     with pytest.raises(ColourThresholdError, match="cannot read"):
         load_thresholds(tmp_path / "missing.json")
+
+
+def test_eight_bit_pixels_by_table_give_the_per_pixel_tests_answer() -> None:
+    # uint8 pixels go through per-value tables of the box tests; float pixels through the
+    # features of each pixel: the same class and share for any pixels, and the tables hold
+    # exactly the per-pixel tests for every (Cr, Cb) at a few Y
+    from robot.perception.colour_classifier import _class_bits, _features
+
+    thr = load_thresholds()
+    rng = np.random.default_rng(4)
+    lo, hi = thr.lo_hi()
+    for trial in range(400):
+        n = int(rng.choice([1, 5, 17, 300, 4000]))
+        k = trial % 4
+        mid, half = (lo[k, :3] + hi[k, :3]) / 2, (hi[k, :3] - lo[k, :3]) / 2 + 12
+        px = np.clip(np.round(rng.uniform(mid - half, mid + half, (n, 3))), 0, 255)
+        if trial % 5 == 0:
+            px = rng.integers(0, 256, (n, 3))
+        px8 = px.astype(np.uint8)
+        assert classify_pixels(px8, thr) == classify_pixels(px8.astype(float), thr)
+    y_bits, cc_bits = _class_bits(thr)
+    cr, cb = np.meshgrid(np.arange(256), np.arange(256), indexing="ij")
+    for y in (0, 90, 181, 255):
+        px8 = np.column_stack([np.full(cr.size, y), cr.ravel(), cb.ravel()]).astype(np.uint8)
+        f = _features(px8.astype(float))
+        inside = np.all((f[None] >= lo[:, None]) & (f[None] <= hi[:, None]), axis=2)
+        bits = y_bits[px8[:, 0]] & cc_bits[px8[:, 1].astype(np.intp) * 256 + px8[:, 2]]
+        for k in range(len(lo)):
+            np.testing.assert_array_equal(inside[k], (bits & (1 << k)) != 0)
