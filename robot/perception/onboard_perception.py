@@ -26,6 +26,13 @@ messages against its pose nodes. Per call:
 * :meth:`OnboardPerception.on_thumbnail_request`: a :class:`~protocol.messages.DetectionImage`
   cropped from the image the object's colour test used (only on request, paper 6.1).
 
+CPU (issue 14, session 13; the 14-robot ``magic_phase``'s first 60 mission-s, seed 0,
+thread CPU, mean of two runs at load ~20, reports identical): :meth:`OnboardPerception.on_image`
+7.9 -> 6.8 CPU-ms per robot-mission-s (colour tests 2.3 -> 1.3: per-value tables in
+:mod:`robot.perception.colour_classifier`; flat frames' tag search 0.22 -> 0.11); what is
+left is the tag search of real images (3.3) and the teammates' pose fits (1.3);
+:meth:`OnboardPerception.on_sweep` 3.2 -> 3.0. The robot node as a whole: 37.5 -> 32.1.
+
 Bad input never stops the robot: non-finite points are dropped and counted, an image that
 never arrives is counted and its candidates may be asked about again, an image of the wrong
 shape is counted and skipped. A bad thresholds file is an error at construction, naming it.

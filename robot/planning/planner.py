@@ -36,6 +36,8 @@ space and clearance field of the last obstacle grid are kept (:attr:`PathPlanner
 counts the reuses): a plan over the same obstacles reuses them, exactly (they are pure
 functions of the grid). In the small world's first 60 s about one plan in ten was such a
 repeat (the second plan to the nearest reachable cell, a robot that has not moved a cell).
+In the 14-robot ``magic_phase`` (first 60 mission-s, seed 0, mean of two runs at load ~20,
+reports identical) planning cost 3.9 -> 3.4 CPU-ms per robot-mission-s.
 """
 
 from __future__ import annotations
