@@ -18,7 +18,8 @@ _HEADLINE: tuple[tuple[str, str, str], ...] = (
     ("static_ooi_detected_frac", "static OOIs detected", "pct"),
     ("static_ooi_neutralized_frac", "static OOIs neutralized", "pct"),
     ("toxic_vats_detected_frac", "toxic vats detected", "pct"),
-    ("hostiles_detected_frac", "hostiles detected", "pct"),
+    ("hostiles_seen_frac", "hostiles seen by a robot (heard by the GCS or not)", "pct"),
+    ("hostiles_detected_frac", "hostiles detected at the GCS", "pct"),
     ("hostiles_neutralized_frac", "hostiles neutralized", "pct"),
     ("robots_lost", "robots lost", "int"),
     ("civilians_harmed", "civilians harmed", "int"),
@@ -114,11 +115,12 @@ def write_markdown(record: RunRecord, scored: Scored, plots: list[Path], path: P
         lines.append("| team | " + " | ".join(_fmt(v, how) for v in team) + " |")
     lines += _interaction_lines(record, scored)
     lines += ["", "## Objects of interest (truth)", "",
-              "| object | id | detected at (s) | neutralized at (s) | detonated at (s) |",
-              "| --- | ---: | ---: | ---: | ---: |"]  # fmt: skip
+              "| object | id | seen by a robot at (s) | detected at the GCS at (s) "
+              "| neutralized at (s) | detonated at (s) |",
+              "| --- | ---: | ---: | ---: | ---: | ---: |"]  # fmt: skip
     for o in scored.objects:
-        when = [_fmt(o[k], "f1") if o[k] is not None else "-" for k in
-                ("detected_s", "neutralized_s", "detonated_s")]  # fmt: skip
+        when = [_fmt(o.get(k), "f1") if o.get(k) is not None else "-" for k in
+                ("seen_s", "detected_s", "neutralized_s", "detonated_s")]  # fmt: skip
         lines.append(f"| {o['kind']} | {o['id']} | " + " | ".join(when) + " |")
     wrong = [
         (what, ce, i)

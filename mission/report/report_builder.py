@@ -13,7 +13,12 @@ Metrics (all floats; NaN where the record cannot say, e.g. no pose node yet):
 * objects: ``static_ooi_detected_frac``, ``static_ooi_neutralized_frac``,
   ``toxic_vats_detected_frac``, ``hostiles_detected_frac``, ``hostiles_neutralized_frac``
   (detected: a GCS hazard or a detection event within ``ooi_match_m`` / ``hostile_match_m``
-  of the object, in the truth frame; neutralized: the simulator's rule events);
+  of the object, in the truth frame: what reached the GCS; neutralized: the simulator's rule
+  events); ``hostiles_seen_frac``: hostiles a robot's own perception labelled, heard by the
+  GCS or not (``robot_sighting`` events: ``position_world``, placed by the recorder from the
+  robot's true pose; a robot that saw a hostile from a radio shadow and was lost there
+  backed away from it, "a hostile 5.7 m off", while the GCS never heard of it: small world
+  seed 7); NaN when the record holds no robot sightings (robots in other processes);
 * losses: ``robots_lost``, ``civilians_harmed``, ``blasts``;
 * estimation: ``closures`` (automatic loop closures accepted), ``false_closures``,
   ``closure_error_max_m``; the same for ``fiducial_edges`` and ``operator_edges`` (start
@@ -248,6 +253,15 @@ def _objects(record: RunRecord, metrics: dict[str, float]) -> list[dict[str, Any
             "neutralized_s": neutralized.get(subject), "detonated_s": detonated.get(subject),
         })  # fmt: skip
     hostile_ids = [h["human_id"] for h in record.meta.get("humans", []) if h["kind"] == "hostile"]
+    robot_seen = [
+        e for e in record.events
+        if e.get("kind") == "robot_sighting" and e.get("position_world") is not None
+    ]  # fmt: skip
+    seen_t = np.array([float(e["t_s"]) for e in robot_seen], dtype=np.float64)
+    seen_kinds = np.array([str(e.get("object_kind", "")).lower() for e in robot_seen], dtype=str)
+    seen_xy = np.array(
+        [[float(v) for v in e["position_world"][:2]] for e in robot_seen], dtype=np.float64
+    ).reshape(-1, 2)
     for hid in hostile_ids:
         track = np.array(
             [(float(s["t_s"]), h[1], h[2]) for s in record.samples
@@ -260,8 +274,19 @@ def _objects(record: RunRecord, metrics: dict[str, float]) -> list[dict[str, Any
                 axis=1,
             )
             hit = (kinds == "hostile") & (np.hypot(*(xy - where).T) <= cfg.hostile_match_m)
+        seen = np.zeros(len(seen_t), dtype=bool)
+        if len(track) and len(seen_t):
+            at = np.stack(
+                [
+                    np.interp(seen_t, track[:, 0], track[:, 1]),
+                    np.interp(seen_t, track[:, 0], track[:, 2]),
+                ],
+                axis=1,
+            )
+            seen = (seen_kinds == "hostile") & (np.hypot(*(seen_xy - at).T) <= cfg.hostile_match_m)
         objects.append({
             "kind": "hostile", "id": hid, "xy_m": None, "detected_s": _first(t, hit),
+            "seen_s": _first(seen_t, seen),
             "neutralized_s": neutralized.get(f"hostile:{hid}"),
             "detonated_s": detonated.get(f"hostile:{hid}"),
         })  # fmt: skip
@@ -279,6 +304,7 @@ def _objects(record: RunRecord, metrics: dict[str, float]) -> list[dict[str, Any
         metrics[f"{name}_detected_frac"] = frac(kind, "detected_s")
     metrics["static_ooi_neutralized_frac"] = frac("static_ooi", "neutralized_s")
     metrics["hostiles_neutralized_frac"] = frac("hostile", "neutralized_s")
+    metrics["hostiles_seen_frac"] = frac("hostile", "seen_s") if robot_seen else math.nan
     return objects
 
 

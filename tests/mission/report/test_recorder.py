@@ -254,3 +254,42 @@ def test_magic_report_help_says_what_it_writes(capsys: pytest.CaptureFixture[str
     assert info.value.code == 0
     out = " ".join(capsys.readouterr().out.split())
     assert "RUN_DIR" in out and "report.json" in out and "report.md" in out
+
+
+def test_a_hostile_a_robot_saw_is_reported_apart_from_what_reached_the_gcs(
+    run: tuple[Path, dict[str, float]], tmp_path: Path
+) -> None:
+    # issue 14: the report said "hostiles detected 0%" while a robot (silent, then lost)
+    # had backed away from "a hostile 5.7 m off": what robots saw and what the GCS heard
+    # are two lines
+    run_dir, metrics = run
+    copy = tmp_path / "copy"
+    shutil.copytree(run_dir, copy)
+    assert math.isnan(build_report(copy)["hostiles_seen_frac"])  # none recorded: n/a
+    samples = [
+        json.loads(s) for s in (copy / "record" / "samples.jsonl").read_text().splitlines() if s
+    ]
+    last = next(s for s in reversed(samples) if s.get("hostiles_truth"))
+    _, x, y = last["hostiles_truth"][0]
+    lines = [
+        # a robot's sighting 1 m off the hostile (within hostile_match_m): seen
+        {"t_s": last["t_s"], "kind": "robot_sighting", "source": "mission", "robot_id": 2,
+         "object_kind": "hostile", "position_world": [x + 1.0, y]},
+        # a civilian called a hostile 20 m off: not this hostile
+        {"t_s": last["t_s"], "kind": "robot_sighting", "source": "mission", "robot_id": 1,
+         "object_kind": "hostile", "position_world": [x + 20.0, y]},
+    ]  # fmt: skip
+    with (copy / "record" / "events.jsonl").open("a") as f:
+        for line in lines:
+            f.write(json.dumps(line) + "\n")
+    m = build_report(copy)
+    assert m["hostiles_seen_frac"] == 1.0
+    assert m["hostiles_detected_frac"] == metrics["hostiles_detected_frac"]  # the GCS's, as was
+    text = (copy / "report.md").read_text()
+    assert "hostiles seen by a robot (heard by the GCS or not) | 100.0%" in text
+    assert "hostiles detected at the GCS" in text
+    hostile = next(
+        o for o in json.loads((copy / "report.json").read_text())["objects"]
+        if o["kind"] == "hostile"
+    )  # fmt: skip
+    assert hostile["seen_s"] == last["t_s"]
