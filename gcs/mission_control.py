@@ -64,6 +64,10 @@ class MissionControlConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tr
     site's outer walls looks like open frontier."""
 
     plan_period_s: float = 2.0
+    # mission time when the mission ends (None: not known), for the planners' end-of-mission
+    # rule (TaskingConfig.end_contact_s: in the last minutes, goals only where the robot can
+    # be back in radio contact before the end)
+    mission_end_s: float | None = None
     disruptors: tuple[int, ...] = ()
     area_in_map: tuple[tuple[float, float], ...] = ()
     tasking: TaskingConfig = msgspec.field(default_factory=TaskingConfig)
@@ -75,6 +79,10 @@ class MissionControlConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=Tr
             raise ValueError(f"plan_period_s: expected seconds > 0, got {self.plan_period_s}")
         if any(r < 0 for r in self.disruptors):
             raise ValueError(f"disruptors: ids must be >= 0, got {self.disruptors}")
+        if self.mission_end_s is not None and not math.isfinite(self.mission_end_s):
+            raise ValueError(
+                f"mission_end_s: expected finite mission seconds, got {self.mission_end_s}"
+            )
         if self.journal_size < 1:
             raise ValueError(f"journal_size: expected >= 1, got {self.journal_size}")
         if self.area_in_map and (
@@ -112,6 +120,7 @@ def tasking_state(
     approved: frozenset[int] = frozenset(),
     area_in_map: Sequence[tuple[float, float]] = (),
     occupancy: OccupancyMap | None = None,
+    mission_end_s: float = math.inf,
 ) -> TaskingState:
     """What the allocator needs, from the station only: every robot heard from (its role from
     ``roles``, sensor if absent), its pose and ``map_from_odom`` when linked to ``map``, its
@@ -150,6 +159,7 @@ def tasking_state(
         trajectory_xy_in_map=xy,
         hostile_seen_s=station.hostile_sightings(),
         approved_hazard_ids=approved,
+        mission_end_s=mission_end_s,
     )
 
 
@@ -208,6 +218,9 @@ class MissionControl:
             approved=frozenset(self.approved),
             area_in_map=self.config.area_in_map,
             occupancy=self.occupancy,
+            mission_end_s=(
+                math.inf if self.config.mission_end_s is None else self.config.mission_end_s
+            ),
         )
         tasks = self.allocator.plan(state, now_s)
         for event in self.allocator.events:

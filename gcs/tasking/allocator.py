@@ -22,7 +22,10 @@ goals, lock bookkeeping); it does no IO. Each call, in order of urgency:
    disruptors spread over the highway;
 5. exploration (:mod:`~gcs.tasking.exploration_planner`, 5.1.1) for the other sensor robots:
    a new goal when the last was reached, failed or its frontier is gone; a robot never gets
-   back a goal it failed; no frontier left: ``explored`` and the sensor robots park.
+   back a goal it failed; no frontier left: ``explored`` and the sensor robots park. Goals
+   go on as tours along the frontier (a robot out of radio contact sweeps it, then comes
+   back to contact); in the last ``end_contact_s`` of the mission (``TaskingState.
+   mission_end_s``) only goals a robot can be back in contact from before the end.
 
 Goals leave in each robot's private frame (``waypoints_in_odom = odom_from_map * waypoints_in_map``,
 paper 4.1).
@@ -52,6 +55,7 @@ from gcs.tasking.exploration_planner import (
     failed_route_discs,
     plan_exploration,
     return_leg,
+    shortcut,
 )
 from gcs.tasking.frontiers import Frontiers, find_frontiers
 from gcs.tasking.hostile_planner import (
@@ -205,6 +209,13 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # the relay spot of each sensor robot out of contact (relay_planner.relay_spots) before
     # spreading (paper 4.1: robots used as relays when a robot leaves radio range)
     relays: bool = True
+    # the end of the mission (TaskingState.mission_end_s): what a robot out of radio contact
+    # saw when the mission ends never reaches the GCS's map. In the last end_contact_s an
+    # exploration goal is given only if the robot can drive to it and on to the nearest
+    # point of radio contact (straight lines, at end_speed_m_s) before the end, and goals
+    # are not extended into tours; 0: off
+    end_contact_s: float = 90.0
+    end_speed_m_s: float = 0.5
     first_task_id: int = 1_000_000
     exploration: ExplorationConfig = msgspec.field(default_factory=ExplorationConfig)
     highway: TrajectoryGraphConfig = msgspec.field(default_factory=TrajectoryGraphConfig)
@@ -232,6 +243,7 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             "stall_progress_s",
             "avoid_s",
             "avoid_radius_m",
+            "end_speed_m_s",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
@@ -249,6 +261,10 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError(
                 f"tasking shadow_goal_radius_m must be finite and >= 0, got "
                 f"{self.shadow_goal_radius_m}"
+            )
+        if not (math.isfinite(self.end_contact_s) and self.end_contact_s >= 0):
+            raise ValueError(
+                f"tasking end_contact_s must be finite and >= 0, got {self.end_contact_s}"
             )
         if self.evade_attempts < 1:
             raise ValueError(f"tasking evade_attempts must be >= 1, got {self.evade_attempts}")
@@ -294,7 +310,8 @@ class TaskingState:
     map: ``GroundStation.poses_in_map`` with each key's robot); ``hostile_seen_s``:
     ``hazard_id -> robot_id -> last time that robot detected that hostile``;
     ``approved_hazard_ids``: neutralizations an operator approved; ``neutralized_hazard_ids``:
-    hazards known neutralized (the allocator also tracks the ones it completed)."""
+    hazards known neutralized (the allocator also tracks the ones it completed);
+    ``mission_end_s``: when the mission ends (``inf``: not known)."""
 
     occupancy: OccupancyMap
     robots: list[RobotInfo]
@@ -305,6 +322,8 @@ class TaskingState:
     hostile_seen_s: dict[int, dict[int, float]] = field(default_factory=dict)
     approved_hazard_ids: frozenset[int] = frozenset()
     neutralized_hazard_ids: frozenset[int] = frozenset()
+    # when the mission ends (mission seconds; inf: not known): see TaskingConfig.end_contact_s
+    mission_end_s: float = math.inf
 
 
 @dataclass
@@ -320,6 +339,9 @@ class Assignment:
     timeout_s: float = math.inf
     # ``(K, 2)`` the way sent, from where the robot was (``_goto`` tasks)
     route_in_map: NDArray[np.float64] | None = None
+    # ``(T, 2)`` an exploration tour's goals after ``goal_in_map`` (claimed while the robot
+    # is out of contact: it drives them)
+    tour_in_map: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True)
@@ -708,6 +730,23 @@ class TaskAllocator:
             # the robot's own position, not the bin's centre: a centre may be in a wall
             self._contact_bins.add(key)
             self._contact_xy.append((float(x), float(y)))
+
+    @property
+    def failed_views(self) -> list[tuple[float, float, float, float]]:
+        """Where disruptors failed to laser an OOI for want of line of sight: ``(ooi x, ooi y,
+        disruptor x, disruptor y)`` in ``map`` (a copy; the journal saves it)."""
+        return list(self._failed_views)
+
+    def restore_failed_views(self, views: list[tuple[float, float, float, float]]) -> None:
+        """Give back :attr:`failed_views` (a resumed GCS, from its journal). ``ValueError``
+        naming the row if one is not four finite numbers; nothing is changed then."""
+        rows = []
+        for i, row in enumerate(views):
+            view = tuple(float(v) for v in row)
+            if len(view) != 4 or not all(math.isfinite(v) for v in view):
+                raise ValueError(f"failed view {i}: expected 4 finite numbers, got {row!r}")
+            rows.append((view[0], view[1], view[2], view[3]))
+        self._failed_views = rows
 
     @property
     def contact_in_map(self) -> NDArray[np.float64]:
@@ -1280,7 +1319,11 @@ class TaskAllocator:
                 blocked=ctx.blocked,
             )[: len(idle)]
         key = (tuple(idle), tuple(relay.tolist()))
-        if key == self._spread_key and ctx.now_s - self._spread_at_s < cfg.spread_period_s:
+        # the relay spots alone changing (robots falling silent and heard again, contact
+        # growing) re-targets the same idle disruptors at most every spread_period_s: re-
+        # planned at each change they never arrived (full mission seed 0, 335-445 s: 40
+        # re-targets, one disruptor sent to 6 spots in 34 s, none held as a relay)
+        if key[0] == self._spread_key[0] and ctx.now_s - self._spread_at_s < cfg.spread_period_s:
             return
         self._spread_key, self._spread_at_s = key, ctx.now_s
         wide = region & self._clear_of_obstacles(ctx, cfg.park_clearance_m)
@@ -1362,6 +1405,7 @@ class TaskAllocator:
         # it may still be at it (its timeout). Released, it went to the next robot planned,
         # into the same shadow (small world seed 7: two robots took turns at goals 1 m apart
         # in the south-east shadow from 140 s to the end, while the middle stayed unseen)
+        # (and the further goals of its tour)
         for rid, held in self.assignments.items():
             if (
                 held.purpose == "explore:released"
@@ -1371,6 +1415,8 @@ class TaskAllocator:
                 and ctx.now_s - held.issued_s <= held.timeout_s
             ):
                 claimed.append(held.goal_in_map)
+                if held.tour_in_map is not None:
+                    claimed.extend((float(x), float(y)) for x, y in held.tour_in_map)
         global_bad = self._globally_failed()
         for rid, r in sensors.items():
             a = self.assignments.get(rid)
@@ -1452,6 +1498,27 @@ class TaskAllocator:
         gains = information_gain(
             ctx.grid, frontiers.goal_cells, sensor_range_m=cfg.exploration.sensor_range_m
         )
+        explore_cfg = cfg.exploration
+        left_s = ctx.state.mission_end_s - ctx.now_s
+        contact = self.contact_in_map
+        if left_s <= cfg.end_contact_s and len(contact) and len(frontiers.goals_in_map):
+            # the end is near: only goals the robot can reach and come back to contact from
+            # before it (the rest are blacklisted for it in this plan), no tours
+            explore_cfg = msgspec.structs.replace(explore_cfg, tour_goals=0)
+            goals = frontiers.goals_in_map
+            back_m = np.full(len(goals), np.inf)
+            for chunk in range(0, len(contact), 4096):
+                c = contact[chunk : chunk + 4096]
+                d = np.hypot(goals[:, None, 0] - c[None, :, 0], goals[:, None, 1] - c[None, :, 1])
+                back_m = np.minimum(back_m, d.min(axis=1))
+            reach_m = cfg.end_speed_m_s * max(left_s, 0.0)
+            for k, e in enumerate(waiting):
+                out_m = np.hypot(*(goals - np.asarray(e.position_in_map)).T)
+                late = goals[out_m + back_m > reach_m]
+                if len(late):
+                    waiting[k] = dataclasses.replace(
+                        e, blacklist_in_map=np.vstack([e.blacklist_in_map, late])
+                    )
         plan = plan_exploration(
             ctx.grid,
             frontiers,
@@ -1460,7 +1527,7 @@ class TaskAllocator:
             claimed_in_map=np.asarray(claimed, dtype=np.float64).reshape(-1, 2),
             highway=ctx.highway,
             highway_blocked=ctx.blocked,
-            config=cfg.exploration,
+            config=explore_cfg,
         )
         if plan.explored and not claimed:
             if not self.stats.explored:
@@ -1470,7 +1537,6 @@ class TaskAllocator:
             self.stats.explored = True
         elif not plan.explored:
             self.stats.explored = False
-        contact = self.contact_in_map
         for rid, g in plan.goals.items():
             wps = g.waypoints_in_map
             if cfg.exploration.return_to_contact:
@@ -1489,8 +1555,22 @@ class TaskAllocator:
                         if cell is not None
                         else np.asarray(self._position(sensors[rid]))
                     )
+                if len(g.tour_in_map) and len(back):
+                    home = shortcut(
+                        ctx.grid,
+                        wps[-1],
+                        back[-1],
+                        limit_m=float(
+                            np.hypot(*np.diff(np.vstack([wps[-1:], back]), axis=0).T).sum()
+                        ),
+                        tolerance_m=cfg.exploration.path_tolerance_m,
+                    )
+                    if home is not None:
+                        back = home
                 wps = np.vstack([wps, back])
             self._goto(ctx, sensors[rid], wps, "explore", goal_in_map=g.goal_in_map)
+            if len(g.tour_in_map):
+                self.assignments[rid].tour_in_map = g.tour_in_map
         for rid in plan.unassigned:
             if (self._purpose(rid) or "").split(":")[0] != "park":
                 self._event(ctx, "park", rid, f"robot {rid}: no frontier goal, parked")

@@ -18,6 +18,13 @@ enter it at the waypoint nearest the robot, leave at the one nearest the goal
 an unbounded grid search (``far_grid_fallback``).
 
 Radio shadows: :func:`return_leg` gives each goal the way back to where the GCS heard robots.
+Tours: each goal assigned goes on through up to ``tour_goals`` further frontier goals (each the
+best by the same utility from the last, within ``tour_leg_m`` of travel, ``goal_separation_m``
+from every goal taken; the robots take one stop each a round, the best first). A robot the GCS
+hears is re-planned at its first goal; one out of contact drives the tour, sweeping the
+frontier, and then :func:`shortcut` home to contact. Without tours a robot in a shadow drove
+out to one goal ~10 m off and back to contact, again and again (full mission, seed 0, 240-440
+s: 70-80 % of the exploring robot-seconds on ground already seen, explored +0.04 per 120 s).
 
 Failure memory: each robot carries goals it failed to reach (``blacklist_in_map``); candidates
 within ``blacklist_radius_m`` of one are never offered to that robot again. It also carries
@@ -52,6 +59,7 @@ __all__ = [
     "failed_route_discs",
     "plan_exploration",
     "return_leg",
+    "shortcut",
 ]
 
 
@@ -70,9 +78,26 @@ class ExplorationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
     # it hears long before it drives it; one it does not hear comes back by itself
     return_to_contact: bool = True
     contact_radius_m: float = 2.0
+    # tours (see plan_exploration): after its goal a robot goes on through up to tour_goals
+    # more frontier goals, each within tour_leg_m of the last and at least goal_separation_m
+    # from every goal taken, while the tour adds at most tour_length_m of travel. A robot the
+    # GCS hears is re-planned at its first goal anyway (the rest is never driven); one in a
+    # radio shadow drives on along the frontier instead of back to contact after each goal.
+    # Full mission (magic_phase, seed 0, 240-345 s): robots in shadows drove out ~10 m to a
+    # goal and back to contact, star patterns, 70-80 % of exploring robot-seconds on known
+    # ground (explored 0.29 at 300 s and +0.04 per 120 s). Measured at 66f8349 (load 8-10):
+    # magic_phase seed 0, explored at 300 / 360 / 420 / 450 s 0.296 / 0.309 / 0.330 / 0.341
+    # without tours, 0.304 / 0.336 / 0.374 / 0.380 with them (and the relay and end rules);
+    # quick mission seeds 0 / 7 / 3 / 11: 0.962 / 0.860 / 0.960 / 0.944 (median 0.952) ->
+    # 0.952 / 0.919 / 0.928 / 0.956 (median 0.940; seed 0 with tours alone)
+    tour_goals: int = 3
+    tour_leg_m: float = 20.0
+    tour_length_m: float = 45.0
 
     def __post_init__(self) -> None:
-        for name in ("near_radius_m", "sensor_range_m", "path_tolerance_m"):
+        if self.tour_goals < 0:
+            raise ValueError(f"exploration tour_goals must be >= 0, got {self.tour_goals}")
+        for name in ("near_radius_m", "sensor_range_m", "path_tolerance_m", "tour_leg_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"exploration {name} must be finite and > 0, got {v}")
@@ -82,6 +107,7 @@ class ExplorationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
             "min_gain_m2",
             "goal_separation_m",
             "blacklist_radius_m",
+            "tour_length_m",
         ):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -145,7 +171,9 @@ def _highway_blocked_for(
 
 @dataclass(frozen=True)
 class ExplorationGoal:
-    """``waypoints_in_map`` ``(K, 2)`` end at ``goal_in_map``; ``via_highway``: a far goal."""
+    """``waypoints_in_map`` ``(K, 2)`` go to ``goal_in_map`` and end there, or, on a tour,
+    at the last of ``tour_in_map`` ``(T, 2)`` (the further goals, in order); ``via_highway``:
+    a far goal."""
 
     robot_id: int
     goal_in_map: tuple[float, float]
@@ -153,6 +181,7 @@ class ExplorationGoal:
     distance_m: float
     gain_m2: float
     via_highway: bool
+    tour_in_map: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass(frozen=True)
@@ -374,7 +403,92 @@ def plan_exploration(
             out[e.robot_id] = ExplorationGoal(
                 e.robot_id, (float(goal[0]), float(goal[1])), wps, cost_m, float(gains_c[j]), via_hw
             )
+    if cfg.tour_goals > 0:
+        out = _tours(grid, explorers, trav, out, goals_c, cells_c, gains_c, base, claimed, cfg)
     return ExplorationPlan(out, False, [e.robot_id for e in explorers if e.robot_id not in out])
+
+
+def _tours(
+    grid: PlanningGrid,
+    explorers: list[Explorer],
+    trav: list[NDArray[np.bool_]],
+    out: dict[int, ExplorationGoal],
+    goals_c: NDArray[np.float64],
+    cells_c: NDArray[np.int64],
+    gains_c: NDArray[np.float64],
+    base: NDArray[np.float64],
+    claimed: NDArray[np.float64],
+    cfg: ExplorationConfig,
+) -> dict[int, ExplorationGoal]:
+    """Each goal of ``out`` extended into a tour (see :class:`ExplorationConfig`), one stop
+    per robot a round, the robots with the best next stop first: from its last stop, the
+    candidate of best ``gain - distance_weight * travel`` within ``tour_leg_m`` of travel on
+    the robot's own traversable grid, at least ``goal_separation_m`` from every goal
+    assigned, claimed (``base`` marks those near them) or on a tour already, not
+    blacklisted or in the robot's avoid discs, while the tour stays within
+    ``tour_length_m``."""
+    sep = cfg.goal_separation_m
+    taken = [np.asarray(g.goal_in_map) for g in out.values()] + [np.asarray(c) for c in claimed]
+    index = {e.robot_id: i for i, e in enumerate(explorers)}
+    ok: dict[int, NDArray[np.bool_]] = {}
+    cur: dict[int, tuple[int, int]] = {}
+    length = dict.fromkeys(out, 0.0)
+    legs: dict[int, list[NDArray[np.float64]]] = {rid: [] for rid in out}
+    stops: dict[int, list[NDArray[np.float64]]] = {rid: [] for rid in out}
+    for rid, g in out.items():
+        e = explorers[index[rid]]
+        cell = grid.cells_of(np.asarray(g.goal_in_map))[0]
+        if grid.inside(cell[None])[0]:
+            cur[rid] = (int(cell[0]), int(cell[1]))
+            ok[rid] = np.isfinite(base) & ~(
+                _blacklisted(e, goals_c, cfg.blacklist_radius_m) | _in_avoid(e, goals_c)
+            )
+    for _ in range(cfg.tour_goals):
+        bids: list[tuple[float, int, int, GridDistances]] = []
+        for rid in sorted(cur):
+            limit = min(cfg.tour_leg_m, cfg.tour_length_m - length[rid])
+            if limit <= 0:
+                continue
+            free = ok[rid].copy()
+            for t in taken:
+                free &= np.hypot(goals_c[:, 0] - t[0], goals_c[:, 1] - t[1]) >= sep
+            if not free.any():
+                continue
+            d = grid_distances(
+                trav[index[rid]], cur[rid], resolution_m=grid.resolution_m, limit_m=limit
+            )
+            dist = d.at(cells_c)
+            u = np.where(
+                free & np.isfinite(dist), gains_c - cfg.distance_weight_m2_per_m * dist, -np.inf
+            )
+            j = int(np.argmax(u))
+            if np.isfinite(u[j]) and u[j] > 0:
+                bids.append((float(u[j]), rid, j, d))
+        if not bids:
+            break
+        bids.sort(key=lambda b: (-b[0], b[1]))
+        for _, rid, j, d in bids:
+            if any(math.dist(goals_c[j], t) < sep for t in taken):
+                continue  # a robot before it in this round took a stop near it
+            cell = (int(cells_c[j, 0]), int(cells_c[j, 1]))
+            legs[rid].append(_grid_waypoints(grid, d, cell, goals_c[j], cfg.path_tolerance_m))
+            stops[rid].append(goals_c[j].copy())
+            taken.append(goals_c[j].copy())
+            length[rid] += float(d.at(np.asarray([cell]))[0])
+            cur[rid] = cell
+    result = dict(out)
+    for rid, g in out.items():
+        if stops[rid]:
+            result[rid] = ExplorationGoal(
+                g.robot_id,
+                g.goal_in_map,
+                np.vstack([g.waypoints_in_map, *legs[rid]]),
+                g.distance_m,
+                g.gain_m2,
+                g.via_highway,
+                np.asarray(stops[rid], dtype=np.float64).reshape(-1, 2),
+            )
+    return result
 
 
 def failed_route_discs(
@@ -473,3 +587,25 @@ def return_leg(
         if d.min() > radius_m:
             back.append(contact[int(np.argmin(d))])
     return np.asarray(back, dtype=np.float64).reshape(-1, 2)
+
+
+def shortcut(
+    grid: PlanningGrid,
+    from_in_map: NDArray[np.float64],
+    to_in_map: NDArray[np.float64],
+    *,
+    limit_m: float,
+    tolerance_m: float,
+) -> NDArray[np.float64] | None:
+    """``(K, 2)`` waypoints of the shortest way over ``grid`` from ``from_in_map`` to
+    ``to_in_map`` (ending there), or None when there is none shorter than ``limit_m`` or
+    either end has no traversable cell within a cell. The way home from the end of a tour:
+    straight back to the point of contact, not back along the tour."""
+    start = grid.snap(from_in_map, grid.resolution_m * 1.5)
+    goal = grid.snap(to_in_map, grid.resolution_m * 1.5)
+    if start is None or goal is None or not math.isfinite(limit_m):
+        return None
+    d = grid_distances(grid.traversable, start, resolution_m=grid.resolution_m, limit_m=limit_m)
+    if not math.isfinite(float(d.at(np.asarray([goal]))[0])):
+        return None
+    return _grid_waypoints(grid, d, goal, np.asarray(to_in_map, dtype=np.float64), tolerance_m)

@@ -873,3 +873,146 @@ def test_a_neutralization_that_missed_the_ooi_is_retried_from_the_same_side() ->
     world seed 11: sent 65 m round to a pose 9.5 m off, from which it never saw the OOI)."""
     first, again = _redispatch_after_failing("laser not on the target: the OOI not seen")
     assert math.dist(again, first) < 1e-6
+
+
+def test_a_tour_goes_home_the_short_way_and_is_claimed_while_its_robot_is_silent() -> None:
+    """Known answer: a known 40 x 20 m yard (walled west, south and east) whose north side
+    is one long frontier. Robot 1, heard steadily at (2, 2) (a point of contact), gets a
+    goal on the north side and a tour east along it; after the tour the way home goes
+    straight back to the point of contact across the yard (the grid's shortest way, not
+    back along the tour). It falls silent: robot 2 planned then gets no goal near any stop
+    of robot 1's tour (robot 1 is driving them)."""
+    v = blank(44, 30)
+    box(v, 0.0, 0.0, 40.5, 20.0, OCCUPIED)
+    box(v, 0.5, 0.5, 40.0, 20.0, FREE)
+    r1 = robot(1, (2.0, 2.0))
+    alloc = TaskAllocator()
+    t = 0.0
+    while t <= alloc.config.contact_steady_s + 1.0:  # heard steadily at (2, 2)
+        r1.last_heard_s = t
+        out = alloc.plan(TaskingState(occupancy(v), [r1]), now_s=t)
+        t += 1.0
+    alloc.assignments.clear()
+    out = alloc.plan(TaskingState(occupancy(v), [r1]), now_s=t)
+    wps = goals_in_map(out, {1: r1})[1]
+    a = alloc.assignments[1]
+    assert a.goal_in_map is not None and a.goal_in_map[1] > 18.0
+    assert a.tour_in_map is not None and len(a.tour_in_map) >= 2
+    stops = np.vstack([a.goal_in_map, a.tour_in_map])
+    assert (stops[:, 1] > 18.0).all() and (np.diff(stops[:, 0]) > 0).all()
+    end = a.tour_in_map[-1]
+    k = int(np.argmin(np.hypot(*(wps - end).T)))
+    home = wps[k:]
+    assert math.dist(home[-1], (2.0, 2.0)) <= alloc.config.exploration.contact_radius_m + 0.5
+    home_m = float(np.hypot(*np.diff(home, axis=0).T).sum())
+    assert home_m <= 1.1 * math.dist(end, (2.0, 2.0)) + 1.0  # across, not back along it
+    # robot 1 falls silent on its tour; robot 2 in the yard is planned
+    r1.pose_in_map = (float(stops[0, 0]), float(stops[0, 1]) - 1.0, 0.0)
+    r2 = robot(2, (20.0, 10.0), heard=t + 15.0)
+    out = alloc.plan(TaskingState(occupancy(v), [r1, r2]), now_s=t + 15.0)
+    assert alloc.assignments[1].purpose == "explore:released"
+    g2 = alloc.assignments[2].goal_in_map
+    assert g2 is not None
+    sep = alloc.config.exploration.goal_separation_m
+    assert np.hypot(*(stops - np.asarray(g2)).T).min() >= sep - 1e-6
+
+
+def test_relay_spots_changing_do_not_retarget_an_idle_disruptor_before_spread_period() -> None:
+    """Robots falling silent and heard again change the relay spots from plan to plan: the
+    idle disruptor sent to a relay spot is not re-targeted before spread_period_s (re-
+    targeted at each change it never got anywhere: full mission seed 0, one disruptor sent
+    to 6 spots in 34 s); after it, it is. Known answer: contact along a road from x 5 to x
+    20; robot 1 silent at x 38 (relay spot x ~20), then heard while robot 2 falls silent at
+    x 1 (relay spot x ~5)."""
+    v = blank(45, 6, FREE)
+    xs = np.arange(0.5, 41.0, 0.5)
+    road = np.stack([xs, np.full_like(xs, 3.0)], 1)
+    cfg = TaskingConfig()
+    s1, s2 = robot(1, (5.0, 3.0)), robot(2, (5.0, 2.0))
+    d = robot(21, (12.0, 3.0), Role.DISRUPTOR)
+
+    def state() -> TaskingState:
+        return TaskingState(
+            occupancy(v),
+            [s1, s2, d],
+            trajectory_robot_ids=np.ones(len(xs), dtype=np.int64),
+            trajectory_keys=np.arange(len(xs)),
+            trajectory_xy_in_map=road,
+        )
+
+    alloc = TaskAllocator(cfg)
+    t = 0.0
+    for x in np.arange(5.0, 20.01, 0.5):  # heard steadily along the road from x 5 to 20
+        s1.pose_in_map = (float(x), 3.0, 0.0)
+        s1.last_heard_s = s2.last_heard_s = d.last_heard_s = t
+        alloc.plan(state(), now_s=t)
+        t += 1.0
+    # robot 1 silent at x 38, robot 2 heard at x 1 until 9 s before the next plan
+    s1.pose_in_map, s1.last_heard_s = (38.0, 3.0, 0.0), t - cfg.silent_after_s - 1.0
+    s2.pose_in_map, s2.last_heard_s = (1.0, 3.0, 0.0), t - cfg.silent_after_s + 1.0
+    d.last_heard_s = t
+    alloc.assignments.pop(21, None)
+    alloc._spread_at_s = -math.inf
+    alloc.plan(state(), now_s=t)
+    first = alloc.assignments[21]
+    assert first.goal_in_map is not None and first.goal_in_map[0] == pytest.approx(21.0, abs=1.5)
+    # 2 s on: robot 1 heard, robot 2 silent: the relay spot moves to x ~5, but not yet
+    t += 2.0
+    s1.last_heard_s = d.last_heard_s = t
+    assert 21 not in [rid for rid, _ in alloc.plan(state(), now_s=t)]  # robot 1: back
+    assert alloc.assignments[21].task_id == first.task_id
+    # spread_period_s on: re-targeted to it
+    t += cfg.disruptor.spread_period_s
+    s1.last_heard_s = d.last_heard_s = t
+    out = alloc.plan(state(), now_s=t)
+    assert 21 in [rid for rid, _ in out]
+    goal = alloc.assignments[21].goal_in_map
+    assert goal is not None and goal[0] < 8.0
+
+
+def test_near_the_end_goals_only_where_the_robot_can_be_back_in_contact() -> None:
+    """Known answer: the 40 x 20 m yard, contact at (2, 2) where robot 1 is. With no mission
+    end it gets a goal on the north side and a tour. 80 s before the end (0.5 m/s: 40 m) it
+    gets a goal only if out and back to contact fit in 40 m (the north side's west end,
+    ~18 m each way), and no tour; 30 s before (15 m) none does: it parks in contact (what
+    it would see out there would not reach the GCS before the end)."""
+    v = blank(44, 30)
+    box(v, 0.0, 0.0, 40.5, 20.0, OCCUPIED)
+    box(v, 0.5, 0.5, 40.0, 20.0, FREE)
+
+    def run(end_s: float) -> TaskAllocator:
+        r1 = robot(1, (2.0, 2.0))
+        alloc = TaskAllocator()
+        t = 0.0
+        while t <= alloc.config.contact_steady_s + 1.0:
+            r1.last_heard_s = t
+            alloc.plan(TaskingState(occupancy(v), [r1], mission_end_s=end_s), now_s=t)
+            t += 1.0
+        alloc.assignments.clear()
+        alloc.plan(TaskingState(occupancy(v), [r1], mission_end_s=end_s), now_s=t)
+        return alloc
+
+    free = run(math.inf).assignments[1]
+    assert free.purpose == "explore" and free.tour_in_map is not None
+    t_end = TaskingConfig().contact_steady_s + 2.0
+    late = run(t_end + 80.0).assignments[1]
+    assert late.purpose == "explore" and late.tour_in_map is None
+    assert late.goal_in_map is not None
+    assert 2 * math.dist(late.goal_in_map, (2.0, 2.0)) <= 0.5 * 80.0
+    assert run(t_end + 30.0).assignments[1].purpose == "park"
+
+
+def test_failed_views_are_read_and_restored_through_the_public_accessors() -> None:
+    """The journal saves and restores the failed views through ``failed_views`` /
+    ``restore_failed_views`` (not the private list); a bad row is named and changes
+    nothing."""
+    alloc = TaskAllocator()
+    assert alloc.failed_views == []
+    alloc.restore_failed_views([(12.5, -3.25, 9.0, -1.0)])
+    views = alloc.failed_views
+    assert views == [(12.5, -3.25, 9.0, -1.0)]
+    views.append((0.0, 0.0, 0.0, 0.0))  # a copy
+    assert len(alloc.failed_views) == 1
+    with pytest.raises(ValueError, match="failed view 1"):
+        alloc.restore_failed_views([(1.0, 2.0, 3.0, 4.0), (1.0, float("nan"), 3.0, 4.0)])
+    assert alloc.failed_views == [(12.5, -3.25, 9.0, -1.0)]

@@ -188,3 +188,56 @@ def test_an_explorers_avoid_discs_route_it_around_or_elsewhere() -> None:
     ex2 = [Explorer(2, g.snap((14.0, 3.0), 1.0), (14.0, 3.0))]
     assert plan_exploration(g, f, gains, ex2, config=CFG).goals[2].goal_in_map[0] < 6.0
     assert np.hypot(*(plan.goals[1].waypoints_in_map - disc[0, :2]).T).min() > 2.5
+
+
+def strip():  # type: ignore[no-untyped-def]
+    """A known strip y in [0.5, 4] from x 0.5 to 39.5, walled south, west and east, with
+    the unknown north of it: one long frontier along y ~4."""
+    v = blank(40, 12)
+    box(v, 0.0, 0.0, 40.0, 4.0, OCCUPIED)
+    box(v, 0.5, 0.5, 39.5, 4.0, FREE)
+    return coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+
+
+def test_a_goal_goes_on_as_a_tour_along_the_frontier() -> None:
+    """Known answer: a robot at the west end of a strip whose north side is one frontier gets
+    a goal near it and then a tour east along the frontier, each further goal at least
+    goal_separation_m from the last, every one on the way (the waypoints pass through them),
+    the tour no longer than tour_length_m: a robot out of contact there sweeps the frontier
+    instead of driving back to contact after the first goal (full mission: star patterns)."""
+    g = strip()
+    plan = _plan(g, {1: (2.0, 2.0)})
+    goal = plan.goals[1]
+    assert goal.goal_in_map[0] < 8.0
+    tour = goal.tour_in_map
+    assert 1 <= len(tour) <= CFG.tour_goals
+    stops = np.vstack([goal.goal_in_map, tour])
+    assert (np.diff(stops[:, 0]) > 0).all()  # on east along the frontier
+    assert (np.hypot(*np.diff(stops, axis=0).T) >= CFG.goal_separation_m - 1e-9).all()
+    assert (stops[:, 1] > 3.0).all()  # on the frontier
+    wps = goal.waypoints_in_map
+    assert np.allclose(wps[-1], tour[-1])
+    for s in stops:  # each stop is a waypoint
+        assert np.hypot(*(wps - s).T).min() < 1e-6
+    # the tour's travel after the first goal stays within tour_length_m
+    after = wps[int(np.argmin(np.hypot(*(wps - stops[0]).T))) :]
+    assert np.hypot(*np.diff(after, axis=0).T).sum() <= CFG.tour_length_m + 1.0
+    # tours off: the goal alone
+    off = _plan(g, {1: (2.0, 2.0)}, config=ExplorationConfig(tour_goals=0))
+    assert len(off.goals[1].tour_in_map) == 0
+    assert np.allclose(off.goals[1].waypoints_in_map[-1], off.goals[1].goal_in_map)
+
+
+def test_tours_keep_clear_of_other_robots_goals_and_claims() -> None:
+    """Two robots at the strip's two ends: neither's tour comes within goal_separation_m of
+    the other's goal or tour stops, nor of a claimed goal."""
+    g = strip()
+    claimed = np.asarray([[20.0, 3.5]])
+    plan = _plan(g, {1: (2.0, 2.0), 2: (38.0, 2.0)}, claimed_in_map=claimed)
+    s1 = np.vstack([plan.goals[1].goal_in_map, plan.goals[1].tour_in_map])
+    s2 = np.vstack([plan.goals[2].goal_in_map, plan.goals[2].tour_in_map])
+    assert len(s1) > 1 and len(s2) > 1
+    d = np.hypot(s1[:, None, 0] - s2[None, :, 0], s1[:, None, 1] - s2[None, :, 1])
+    assert d.min() >= CFG.goal_separation_m - 1e-9
+    for s in (s1, s2):
+        assert np.hypot(*(s - claimed[0]).T).min() >= CFG.goal_separation_m - 1e-9
