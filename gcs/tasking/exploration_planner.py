@@ -86,10 +86,14 @@ class ExplorationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
     # Full mission (magic_phase, seed 0, 240-345 s): robots in shadows drove out ~10 m to a
     # goal and back to contact, star patterns, 70-80 % of exploring robot-seconds on known
     # ground (explored 0.29 at 300 s and +0.04 per 120 s). Measured at 66f8349 (load 8-10):
-    # magic_phase seed 0, explored at 300 / 360 / 420 / 450 s 0.296 / 0.309 / 0.330 / 0.341
-    # without tours, 0.304 / 0.336 / 0.374 / 0.380 with them (and the relay and end rules);
-    # quick mission seeds 0 / 7 / 3 / 11: 0.962 / 0.860 / 0.960 / 0.944 (median 0.952) ->
-    # 0.952 / 0.919 / 0.928 / 0.956 (median 0.940; seed 0 with tours alone)
+    # magic_phase seed 0, explored at 180 / 300 / 420 / 540 / 600 s 0.249 / 0.296 / 0.330 /
+    # 0.374 / 0.393 without tours, 0.247 / 0.304 / 0.374 / 0.394 / 0.425 with them (and the
+    # relay and end rules, mission_end_s 600); heard exploring robots added 1548 / 1437 m2
+    # of new ground in 240-360 / 360-480 s (566 / 607 without). Quick mission seeds 0 / 7 /
+    # 3 / 11: 0.962 / 0.860 / 0.960 / 0.944 (median 0.952) -> 0.954 / 0.919 / 0.928 / 0.956
+    # (median 0.941); robots lost 0 / 0 / 0 / 0 -> 1 / 0 / 0 / 1 (hostile 0: seed 0 a heard
+    # robot blasted as the hostile was first detected, seed 11 one silent on its tour, the
+    # hostile not yet known to the GCS)
     tour_goals: int = 3
     tour_leg_m: float = 20.0
     tour_length_m: float = 45.0
