@@ -999,7 +999,7 @@ def _assignments_json(allocator: Any) -> dict[str, Any]:
 def _failed_views_json(allocator: Any) -> list[list[float]]:
     """The allocator's failed views (neutralizations that failed for want of line of sight:
     ``(ooi x, ooi y, disruptor x, disruptor y)`` in ``map``) as JSON rows."""
-    return [[float(v) for v in row] for row in getattr(allocator, "_failed_views", ())]
+    return [[float(v) for v in row] for row in allocator.failed_views]
 
 
 def _restore_failed_views(allocator: Any, rows: Any) -> int:
@@ -1016,7 +1016,7 @@ def _restore_failed_views(allocator: Any, rows: Any) -> int:
             log.error("assignments record: failed_views[%d] is %r, not 4 numbers: left out", i, row)
             continue
         views.append(view)
-    allocator._failed_views = views
+    allocator.restore_failed_views(views)
     return len(views)
 
 

@@ -521,23 +521,23 @@ def test_a_resumed_gcs_keeps_the_neutralizations_failed_views(
     follower = JournalFollower(path)
     _turns(first, items, 0, 10)
     alloc = first.control.allocator
-    # what Allocator._failed_view records when a neutralization fails for want of line of sight
-    alloc._failed_views.append((12.5, -3.25, 9.0, -1.0))
+    # what the allocator records when a neutralization fails for want of line of sight
+    alloc.restore_failed_views([(12.5, -3.25, 9.0, -1.0)])
     _turns(first, items, 10, 12)
     assert first.journal is not None
     rec = first.journal.latest_record("assignments")
     assert rec is not None and rec.json()["failed_views"] == [[12.5, -3.25, 9.0, -1.0]]
-    alloc._failed_views.append((4.0, 4.0, 1.0, 1.0))
+    alloc.restore_failed_views([*alloc.failed_views, (4.0, 4.0, 1.0, 1.0)])
     _turns(first, items, 12, 14)
-    views = [tuple(v) for v in alloc._failed_views]
+    views = alloc.failed_views
     scratch = tmp_path / "scratch.sqlite"
     with sqlite3.connect(scratch) as copy, sqlite3.connect(path) as src:
         src.backup(copy)
     resumed, _ = first.crash_and_resume()
-    assert resumed.control.allocator._failed_views == views
+    assert resumed.control.allocator.failed_views == views
     follower.catch_up()
     took = follower.take_over(first.control.config)
-    assert took.control.allocator._failed_views == views
+    assert took.control.allocator.failed_views == views
     took.journal.close()
     # a damaged row in the newest assignments record: left out, the rest restored
     with sqlite3.connect(scratch) as db:
@@ -549,7 +549,7 @@ def test_a_resumed_gcs_keeps_the_neutralizations_failed_views(
         db.execute("UPDATE records SET body = ? WHERE seq = ?", (json.dumps(fields).encode(), seq))
     with caplog.at_level("ERROR", logger="gcs.journal"):
         damaged = resume_control(scratch, first.control.config)
-    assert damaged.control.allocator._failed_views == views[1:]
+    assert damaged.control.allocator.failed_views == views[1:]
     assert "failed_views[0]" in caplog.text
     damaged.journal.close()
     assert resumed.journal is not None
