@@ -98,6 +98,8 @@ from robot.control.hostile_evasion import (
     EvasionConfig,
     evasion_goal,
     hostile_threat,
+    suspect_tracks,
+    walk_velocity,
     way_clearance_m,
 )
 from robot.control.keepout import KeepoutConfig, keepout_disks_in_odom, rasterize_disks
@@ -391,6 +393,14 @@ class RobotNode:
         # own hostile tracks as last seen: (x, y, vx, vy, seen_s), odom; and where they are now
         self._ghosts: list[tuple[float, float, float, float, float]] = []
         self._own_hostiles = np.zeros((0, 4))
+        # where this robot saw a hostile (x, y, seen_s; odom, one a second), for suspects
+        self._sightings: deque[tuple[float, float, float]] = deque(maxlen=256)
+        # unlabelled person tracks taken for a hostile (hostile_evasion.suspect_tracks):
+        # (x, y, vx, vy) rows in odom, and their keep-out disks as last drawn in
+        self._suspects = np.zeros((0, 4))
+        self._suspect_disks = np.zeros((0, 2))
+        # the GCS's hostile hazards as sightings, by row: (x, y, first heard there), odom
+        self._hazard_heard: dict[int, tuple[float, float, float]] = {}
         # where a holding robot was when it backed away (task id, odom xy, since): it returns
         self._evade_return: tuple[int, np.ndarray, float] | None = None
         self._facing_hostile = False
@@ -446,6 +456,12 @@ class RobotNode:
         """Keep-out disks of the GCS's hazards and of this robot's own dangerous detections
         (static OOIs, hostile tracks: at once, paper 5.2)."""
         own = self.perception.own_hazards_in_odom() if self.perception is not None else []
+        la = self.config.evasion.lookahead_s / 4.0  # where it will be in a second
+        own = list(own) + [
+            (ObjectKind.HOSTILE, float(x + la * vx), float(y + la * vy))
+            for x, y, vx, vy in self._suspects
+        ]
+        self._suspect_disks = self._suspects[:, :2].copy()
         self._keepout = keepout_disks_in_odom(
             self.robot_id, self._hazards, own, config=self.config.keepout
         )
@@ -965,7 +981,8 @@ class RobotNode:
             self._planned_goal = None
             return
         driving = self.deadlock.phase is Phase.DRIVE
-        if driving and self._should_yield(goal, result, classes, geometry):
+        # a robot backing away from a hostile does not wait for a teammate to pass
+        if driving and not self._evading and self._should_yield(goal, result, classes, geometry):
             self.stats.yields += 1
             self._path_found = True  # waiting for a teammate to pass is not a missing path
             self.follower.set_path(np.zeros((0, 2)))
@@ -1127,6 +1144,8 @@ class RobotNode:
                 and self._obstacle_ahead(pose, cfg.conservative_stop_m)
             ):
                 v = 0.0
+        elif self._evading and not self.follower.has_path and self.deadlock.phase is Phase.DRIVE:
+            v, w = self._flee(pose)  # backing away, and the planner found no way: away at once
         elif (turn := self._face_hostile(pose, intent)) is not None:
             v, w = 0.0, turn  # holding: keep a hostile out of the LIDAR's blind quarter
         elif intent.mode in (AutonomyMode.PAUSED, AutonomyMode.IDLE):
@@ -1181,32 +1200,39 @@ class RobotNode:
             waypoints_in_odom=goal.reshape(1, 2).copy(),
         )
 
-    def _hostiles(self) -> np.ndarray:
-        """Hostiles as ``(N, 4)`` rows ``(x, y, vx, vy)`` in ``odom``: this robot's own tracks
-        (with their velocity) and the GCS's hostile hazards (still, through this robot's
-        ``map_from_odom``)."""
-        rows = [self._hostile_ghosts()]
+    def _gcs_hostiles(self) -> np.ndarray:
+        """The GCS's hostile hazards as ``(N, 4)`` rows ``(x, y, 0, 0)`` in ``odom``."""
         hz = self._hazards
-        if hz is not None and any(h.kind is ObjectKind.HOSTILE for h in hz.hazards):
-            cached = self._hazard_hostiles
-            if cached is None or cached[0] is not hz:  # made once per hazard update
-                only = msgspec.structs.replace(
-                    hz, hazards=[h for h in hz.hazards if h.kind is ObjectKind.HOSTILE]
-                )
-                disks = keepout_disks_in_odom(self.robot_id, only, config=self.config.keepout)
-                cached = (hz, np.column_stack([disks[:, :2], np.zeros((len(disks), 2))]))
-                self._hazard_hostiles = cached
-            rows.append(cached[1])
-        return np.vstack(rows) if rows else np.zeros((0, 4))
+        if hz is None or not any(h.kind is ObjectKind.HOSTILE for h in hz.hazards):
+            return np.zeros((0, 4))
+        cached = self._hazard_hostiles
+        if cached is None or cached[0] is not hz:  # made once per hazard update
+            only = msgspec.structs.replace(
+                hz, hazards=[h for h in hz.hazards if h.kind is ObjectKind.HOSTILE]
+            )
+            disks = keepout_disks_in_odom(self.robot_id, only, config=self.config.keepout)
+            cached = (hz, np.column_stack([disks[:, :2], np.zeros((len(disks), 2))]))
+            self._hazard_hostiles = cached
+        return cached[1]
 
     def _face_hostile(self, pose: np.ndarray, intent: Any) -> float | None:
         """The turn rate that brings this robot's nearest own hostile (tracked, or lost
-        within ``memory_s``) within ``face_rad`` of its heading, when it holds still (no
-        waypoints, not tele-operated) and the hostile is within ``face_within_m`` beyond
-        ``face_rad`` (the LIDAR sees 270 deg: a walker behind is lost, then walks on
-        unseen); None otherwise."""
+        within ``memory_s``; without one, the nearest of the GCS's hostile sightings it first
+        heard of within ``suspect_memory_s``) within ``face_rad`` of its heading, when it
+        holds still (no waypoints, not tele-operated) and the hostile is within
+        ``face_within_m`` beyond ``face_rad`` (the LIDAR sees 270 deg: a walker behind is
+        lost, then walks on unseen); None otherwise."""
         cfg = self.config.evasion
         h = self._own_hostiles
+        if not len(h):
+            # none of its own: the GCS's sightings it heard of lately (a walker coming from
+            # behind a holding robot is in the LIDAR's blind quarter until it is too late)
+            recent = [
+                (x, y)
+                for x, y, t in self._hazard_heard.values()
+                if self._now - t <= cfg.suspect_memory_s
+            ]
+            h = np.array(recent, dtype=np.float64).reshape(-1, 2)
         if intent.teleop is not None or len(intent.waypoints_in_odom) or not len(h):
             self._facing_hostile = False
             return None
@@ -1222,15 +1248,30 @@ class RobotNode:
             return None
         return float(np.clip(2.0 * err, -cfg.face_turn_rate_rad_s, cfg.face_turn_rate_rad_s))
 
-    def _hostile_ghosts(self) -> np.ndarray:
-        """This robot's own hostile tracks now, and those it lost within the evasion's
+    def _hostile_ghosts(self, gcs_hostiles: np.ndarray) -> np.ndarray:
+        """This robot's own hostile tracks now, the unlabelled person tracks taken for a
+        hostile (:func:`~robot.control.hostile_evasion.suspect_tracks`, near its own recent
+        sightings or ``gcs_hostiles``), and the hostile tracks it lost within the evasion's
         ``memory_s``, carried on along their last velocity (a walker behind the robot, in the
         LIDAR's blind quarter, is not gone: a robot turning to drive away lost the track at
         4 m and stopped evading, and the walker came on)."""
         now = self._now
         if self.perception is None:
             return np.zeros((0, 4))
-        live = self.perception.hostile_tracks_in_odom(now)
+        labelled = self.perception.hostile_tracks_in_odom(now)
+        for x, y, _, _ in labelled:
+            last = self._sightings[-1] if self._sightings else None
+            if last is None or now - last[2] >= 1.0 or math.hypot(x - last[0], y - last[1]) > 2:
+                self._sightings.append((float(x), float(y), now))
+        suspects = self._suspect_rows(now, labelled, gcs_hostiles)
+        moved = len(suspects) != len(self._suspect_disks) or (
+            len(suspects)
+            and float(np.hypot(*(suspects[:, :2] - self._suspect_disks).T).max()) > 1.0
+        )
+        self._suspects = suspects
+        if moved:
+            self._update_keepout()  # the planner keeps out of a suspect's disk too
+        live = np.vstack([labelled, suspects])
         memory_s = self.config.evasion.memory_s
         rows = [live]
         kept: list[tuple[float, float, float, float, float]] = []
@@ -1248,6 +1289,54 @@ class RobotNode:
         self._own_hostiles = np.vstack(rows)
         return self._own_hostiles
 
+    def _suspect_rows(
+        self, now: float, labelled: np.ndarray, gcs_hostiles: np.ndarray
+    ) -> np.ndarray:
+        """Confirmed person tracks measured lately and walking, neither coloured (hostile or
+        civilian) nor one of ``labelled``, that
+        :func:`~robot.control.hostile_evasion.suspect_tracks` takes for a hostile: ``(N, 4)``
+        rows ``(x, y, vx, vy)`` in ``odom`` now."""
+        cfg = self.config.evasion
+        heard = self._hazard_heard
+        if len(gcs_hostiles) != len(heard) or any(
+            math.hypot(x - h[0], y - h[1]) > 1.0
+            for (x, y, _, _), h in zip(gcs_hostiles, heard.values(), strict=False)
+        ):
+            # a hazard heard anew, or moved (a newer sighting): its age starts now
+            old = list(heard.values())
+            heard.clear()
+            for k, (x, y, _, _) in enumerate(gcs_hostiles):
+                same = [h for h in old if math.hypot(x - h[0], y - h[1]) <= 1.0]
+                heard[k] = same[0] if same else (float(x), float(y), now)
+        if self.perception is None or not (len(self._sightings) or heard):
+            return np.zeros((0, 4))
+        rows = []
+        for t in self.perception.lidar.tracker.tracks:
+            if not t.confirmed or t.kind != 0 or t.missed > 1:
+                continue
+            history = np.asarray(t.history, dtype=np.float64).reshape(-1, 3)
+            v = walk_velocity(history, now, cfg)
+            if v is None:
+                continue  # clutter (a post, a corner): people tracks mostly are
+            # from its latest measurement, along its walk (the filter's velocity of a
+            # segment's centre swings by a metre a second)
+            p = history[-1, 1:] + v * max(0.0, now - float(history[-1, 0]))
+            if len(labelled) and float(np.hypot(*(labelled[:, :2] - p).T).min()) < 1.0:
+                continue  # a hostile track already (labelled lately)
+            rows.append((float(p[0]), float(p[1]), float(v[0]), float(v[1])))
+        if not rows:
+            return np.zeros((0, 4))
+        out = np.array(rows, dtype=np.float64)
+        # the GCS's sightings stand while the GCS keeps them (a walker patrols a loop: it
+        # comes back by its old sightings; small world seed 3, a robot drove at an uncoloured
+        # walker 2 m from a GCS sighting it had heard of 90 s before, and was lost), each as
+        # far as a walker may have gone in suspect_memory_s
+        oldest = now - cfg.suspect_memory_s
+        gcs_seen = [(x, y, max(t, oldest)) for x, y, t in heard.values()]
+        sightings = np.array(list(self._sightings) + gcs_seen, dtype=np.float64).reshape(-1, 3)
+        keep = suspect_tracks(out[:, :2], sightings, now, cfg)
+        return out[keep]
+
     def _watch_hostiles(self, now: float, pose: np.ndarray) -> None:
         """Start, refresh or end backing away from a hostile (:mod:`robot.control.
         hostile_evasion`): it starts when a hostile is, or in ``lookahead_s`` will be, within
@@ -1261,7 +1350,9 @@ class RobotNode:
             if self._evading:
                 self._stop_evading(now, "")
             return
-        hostiles = self._hostiles()
+        gcs_hostiles = self._gcs_hostiles()
+        own = self._hostile_ghosts(gcs_hostiles)
+        hostiles = np.vstack([own, gcs_hostiles])
         back = self._evade_return
         if back is not None and (
             back[0] != inner.task_id
@@ -1270,7 +1361,10 @@ class RobotNode:
         ):
             self._evade_return = None  # back, or another task, or the way back stays shut
             self._planned_goal = None
-        d = hostile_threat(pose[:2], hostiles, cfg)
+        # the GCS's sightings are where a walker was: as far as its keep-out disk (a walker
+        # coming closer is this robot's own track or suspect, with its closing speed)
+        still = msgspec.structs.replace(cfg, react_s=0.0)
+        d = min(hostile_threat(pose[:2], own, cfg), hostile_threat(pose[:2], gcs_hostiles, still))
         start_m = cfg.blast_radius_m + cfg.margin_m
         if not self._evading and d < start_m:
             self._evading, self._evade_goal, self._evade_refresh = True, None, True
@@ -1300,6 +1394,7 @@ class RobotNode:
                 hostiles,
                 cfg,
                 robot_radius_m=self.config.planner.robot_radius_m,
+                heading_rad=float(pose[2]),
             )
             if goal is not None:
                 self._evade_goal = goal
@@ -1485,8 +1580,27 @@ class RobotNode:
         blocking = (classes == OBSTACLE) & tall
         return not bool(np.any(blocking[rc[:, 0], rc[:, 1]]))
 
-    def _obstacle_ahead(self, pose: np.ndarray, distance_m: float) -> bool:
-        classes, geometry = self._current_map()
+    def _flee(self, pose: np.ndarray) -> tuple[float, float]:
+        """While backing away from a hostile with no path to the evasion goal: turn away from
+        the nearest hostile and drive while the terrain (keep-outs aside: the robot is in
+        one) is clear ``flee_clear_m`` ahead. Small world seed 3 at 66f8349 with the
+        suspects: a robot backing away stood 7 s with no path (its goal across a keep-out)
+        while the walker came from 5.8 m to the trigger."""
+        cfg = self.config.evasion
+        # its own tracks first: the GCS's sightings are where a walker was
+        rows = self._own_hostiles if len(self._own_hostiles) else self._gcs_hostiles()
+        if not len(rows):
+            return 0.0, 0.0
+        k = int(np.argmin(np.hypot(rows[:, 0] - pose[0], rows[:, 1] - pose[1])))
+        away = math.atan2(pose[1] - rows[k, 1], pose[0] - rows[k, 0])
+        err = float(wrap_angle(away - pose[2]))
+        w = float(np.clip(2.0 * err, -cfg.face_turn_rate_rad_s, cfg.face_turn_rate_rad_s))
+        if abs(err) > 0.5 or self._obstacle_ahead(pose, cfg.flee_clear_m, keepout=False):
+            return 0.0, w
+        return min(cfg.flee_speed_m_s, self.follower.config.max_speed_m_s), w
+
+    def _obstacle_ahead(self, pose: np.ndarray, distance_m: float, *, keepout: bool = True) -> bool:
+        classes, geometry = self._current_map(keepout=keepout)
         r = self.config.planner.robot_radius_m
         ahead = np.linspace(0.0, distance_m + r, 12)
         pts = pose[:2] + np.outer(ahead, [math.cos(pose[2]), math.sin(pose[2])])

@@ -46,7 +46,11 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     """Metres, seconds, radians; see the module docstring."""
 
     blast_radius_m: float = 5.0
-    margin_m: float = 1.0
+    # the view ring's inner edge is blast_radius_m + margin_m from the sighting: a robot backs
+    # away on its own from a walker that may reach its blast radius plus 0.75 m within 1.5 s
+    # at 0.8 m/s (robot.control.hostile_evasion: 6.95 m off), so a watcher placed nearer (at
+    # 1.0: 6 m) backs away as soon as it sees the walker, and a sighting is seconds old
+    margin_m: float = 2.5
     view_range_m: float = 12.0
     lock_s: float = 30.0
     view_gap_s: float = 1.5

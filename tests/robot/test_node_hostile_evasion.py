@@ -10,7 +10,15 @@ from typing import Any
 import numpy as np
 import pytest
 
-from protocol.messages import RelayTask, TaskStatus
+from protocol.messages import (
+    GoToTask,
+    Hazard,
+    HazardUpdate,
+    ObjectKind,
+    RelayTask,
+    RobotFrame,
+    TaskStatus,
+)
 from robot.node import RobotNode
 from sim.simulator import Simulator
 from sim.world_generator import Human
@@ -54,3 +62,76 @@ def test_a_holding_robot_backs_out_of_an_approaching_hostiles_radius_and_returns
     assert any("resuming the task" in d for d in details), details
     # and it came back to hold where its task had it
     assert float(np.hypot(end[0] - START[0], end[1] - START[1])) < 0.75, end
+
+
+# a walker the camera cannot colour (grey): the robot knows a hostile only from the GCS's
+# hazard where it was seen, and its LIDAR's unlabelled person track (issue 14: small world
+# seeds 3, 7, 11 at 66f8349, robots drove head-on at an uncoloured walker to 4.8, 3.4 and
+# 2.9 m; the trigger is 2.5 m, the blast 5 m)
+GREY_RGBA = (0.5, 0.5, 0.5, 1.0)
+
+
+def _run(
+    robot: tuple[float, float, float],
+    route: tuple[tuple[float, float], ...],
+    task: Any,
+    *,
+    until_s: float,
+    heard_until_s: float = math.inf,
+) -> tuple[float, list[str], RobotNode]:
+    """A robot at ``robot`` (world = map) with ``task``, the GCS's hazard of a hostile at
+    the route's start heard every second until ``heard_until_s``; the grey walker walks
+    ``route``. Returns the closest robot-walker distance, the rule events and the node."""
+    world = make_world(
+        robots=((*robot, "sensor"),),
+        humans=(Human(1, "hostile", route, 0.6, 0.25, 1.7, GREY_RGBA),),
+        size_m=(40.0, 20.0),
+    )
+    closest_m = math.inf
+    with Simulator(world) as sim:
+        node = RobotNode(0, send=lambda _m: None)
+        frames = [RobotFrame(0, robot)]
+        hazard = Hazard(7, ObjectKind.HOSTILE, route[0], 5.0)
+        node.handle_downlink(HazardUpdate(0.0, [hazard], frames))
+        node.handle_downlink(task)
+        driver = sim.driver(0)
+        next_heard = 1.0
+        while sim.time_s < until_s:
+            sim.step()
+            if sim.time_s >= next_heard and sim.time_s <= heard_until_s:
+                node.handle_downlink(HazardUpdate(sim.time_s, [hazard], frames))
+                next_heard += 1.0
+            for command in node.process(driver.poll(0.0)):
+                driver.send(command)
+            pose = sim.robot_poses()[0]
+            walker = sim.routes.positions(sim.time_s)[0]
+            closest_m = min(closest_m, math.hypot(*(pose[:2] - walker)))
+        return closest_m, [str(e) for e in sim.events], node
+
+
+@pytest.mark.parametrize("heard_until_s", [math.inf, 4.0], ids=["heard", "silent"])
+def test_a_driving_robot_keeps_out_of_an_uncoloured_walkers_blast_coming_head_on(
+    heard_until_s: float,
+) -> None:
+    # the robot's goal is 26 m east along the walker's way; the walker comes west at it
+    # (silent: the GCS is not heard after 4 s; the robot drives its task on, alone)
+    route = ((30.0, 10.0), (2.0, 10.0))
+    goal = GoToTask(1, 0.0, [(26.0, 0.0)])
+    closest_m, events, node = _run(
+        (4.0, 10.0, 0.0), route, goal, until_s=30.0, heard_until_s=heard_until_s
+    )
+    assert not events, events
+    assert node.stats.evasions >= 1
+    assert closest_m > 5.0, closest_m
+
+
+def test_a_holding_robot_keeps_out_of_an_uncoloured_walker_coming_from_behind() -> None:
+    # the robot holds facing east; the walker comes from 11 m behind it (west), the LIDAR's
+    # blind quarter, through where it holds
+    route = ((0.5, 10.2), (30.0, 10.2))
+    closest_m, events, node = _run(
+        (11.5, 10.0, 0.0), route, RelayTask(1, 0.0, (0.0, 0.0)), until_s=40.0
+    )
+    assert not events, events
+    assert node.stats.evasions >= 1
+    assert closest_m > 5.0, closest_m

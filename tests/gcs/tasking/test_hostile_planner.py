@@ -59,3 +59,20 @@ def test_views_where_the_gcs_hears_robots_come_first() -> None:
     # no heard cell in the ring: the nearest view as before
     far = np.asarray([[0.0, 0.0]])
     assert view_positions(g, h, robots, CFG, contact_in_map=far) == {1: north}
+
+
+def test_watchers_are_placed_where_the_robot_does_not_back_away_from_a_still_hostile() -> None:
+    # issue 14: a watcher placed within the distance at which the robot backs away on its
+    # own (robot.control.hostile_evasion: a walker that may reach its blast radius plus
+    # margin within react_s) backs away as soon as it sees the walker
+    from robot.control.hostile_evasion import EvasionConfig, hostile_threat
+
+    ev = EvasionConfig()
+    g = coarsen(occupancy(blank(40, 40, FREE)), resolution_m=RES, robot_radius_m=0.3)
+    h = (20.0, 20.0)
+    # robots right beside the hostile: the nearest admissible cells are the ring's inner edge
+    views = view_positions(g, h, {1: (20.0, 27.0), 2: (13.0, 20.0)}, CFG)
+    assert len(views) == 2
+    still = np.array([[*h, 0.0, 0.0]])
+    for p in views.values():
+        assert hostile_threat(np.asarray(p), still, ev) >= ev.blast_radius_m + ev.margin_m

@@ -1,0 +1,94 @@
+"""The robot's own hostile rules on constructed situations with known answers (issue 14:
+robots drove at walkers their camera had not coloured, and trusted a walker's tracked
+velocity that pointed the wrong way)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robot.control.hostile_evasion import (
+    EvasionConfig,
+    evasion_goal,
+    hostile_threat,
+    suspect_tracks,
+    walk_velocity,
+    walking,
+)
+from robot.terrain.grid import DRIVABLE, GridGeometry
+
+CFG = EvasionConfig()
+START_M = CFG.blast_radius_m + CFG.margin_m  # an evasion starts below this
+
+
+def test_a_walker_whose_track_says_it_walks_away_is_a_threat_when_it_could_reach_the_robot() -> (
+    None
+):
+    # 6.5 m off, its track says 0.6 m/s away from the robot (a walker that turned at its
+    # route's corner: the velocity from the last sweeps is the old leg's)
+    away = np.array([[6.5, 0.0, 0.6, 0.0]])
+    assert hostile_threat(np.zeros(2), away, CFG) < START_M
+    # the same walker 9 m off is not (it cannot close to the blast radius in react_s)
+    far = np.array([[9.0, 0.0, 0.6, 0.0]])
+    assert hostile_threat(np.zeros(2), far, CFG) >= START_M + CFG.release_m
+
+
+def test_a_walker_coming_head_on_is_a_threat_early_and_one_walking_past_far_off_is_not() -> None:
+    head_on = np.array([[8.0, 0.0, -0.6, 0.0]])  # 4 s ahead: 5.6 m
+    assert hostile_threat(np.zeros(2), head_on, CFG) == pytest.approx(5.6)
+    past = np.array([[0.0, 9.0, 0.6, 0.0]])  # walks by 9 m off, across
+    assert hostile_threat(np.zeros(2), past, CFG) > START_M
+    assert hostile_threat(np.zeros(2), np.zeros((0, 4)), CFG) == math.inf
+
+
+def test_an_uncoloured_person_where_a_hostile_may_have_walked_is_taken_for_it() -> None:
+    now = 100.0
+    # a hostile seen at (0, 0) 10 s ago: it may be 2 + 0.8 * 10 = 10 m from there now
+    sightings = np.array([[0.0, 0.0, now - 10.0]])
+    tracks = np.array([[9.5, 0.0], [0.0, -10.5], [20.0, 0.0]])
+    assert suspect_tracks(tracks, sightings, now, CFG).tolist() == [True, False, False]
+    # the reach stops growing at suspect_reach_max_m
+    old = np.array([[0.0, 0.0, now - 50.0]])
+    assert suspect_tracks(tracks, old, now, CFG).tolist() == [True, True, False]
+    # a sighting older than suspect_memory_s says nothing
+    stale = np.array([[0.0, 0.0, now - CFG.suspect_memory_s - 1.0]])
+    assert not suspect_tracks(tracks, stale, now, CFG).any()
+    # nothing seen: nobody is a suspect
+    assert not suspect_tracks(tracks, np.zeros((0, 3)), now, CFG).any()
+
+
+def test_the_evasion_goal_is_the_safe_cell_the_robot_faces_not_the_one_behind_it() -> None:
+    # an open 30 x 10 m strip; a still hostile due north of the robot: the safe cells east
+    # and west are as far by path, the robot faces east
+    geometry = GridGeometry(origin_m=(-15.0, -5.0), resolution_m=0.2, rows=50, cols=150)
+    classes = np.full(geometry.shape, DRIVABLE, dtype=np.uint8)
+    hostile = np.array([[0.0, 3.0, 0.0, 0.0]])
+    cfg = EvasionConfig(predict_s=0.0)
+    east = evasion_goal(
+        classes, geometry, np.zeros(2), hostile, cfg, robot_radius_m=0.3, heading_rad=0.0
+    )
+    west = evasion_goal(
+        classes, geometry, np.zeros(2), hostile, cfg, robot_radius_m=0.3, heading_rad=math.pi
+    )
+    assert east is not None and west is not None
+    for goal in (east, west):
+        assert math.dist(goal, (0.0, 3.0)) >= cfg.blast_radius_m + cfg.clear_m - 0.2
+    assert east[0] > 0 > west[0]
+
+
+def test_a_walker_is_walking_and_a_post_whose_segment_jitters_is_not() -> None:
+    now = 50.0
+    t = np.arange(now - 2.9, now + 1e-9, 0.1)
+    walker = np.column_stack([t, 0.6 * (t - t[0]), np.zeros_like(t)])  # 0.6 m/s for 2.9 s
+    assert walking(walker, now, CFG)
+    v = walk_velocity(walker, now, CFG)
+    assert v is not None and np.allclose(v, (0.6, 0.0))
+    rng = np.random.default_rng(3)
+    post = np.column_stack([t, rng.normal(0.0, 0.15, len(t)), rng.normal(0.0, 0.15, len(t))])
+    assert not walking(post, now, CFG)
+    # a walker seen for half a second says nothing yet; measurements before the window
+    # do not count
+    assert not walking(walker[-5:], now, CFG)
+    assert not walking(walker, now + 10.0, CFG)
