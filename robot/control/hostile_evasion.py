@@ -46,13 +46,14 @@ are rows ``(x_m, y_m, vx_m_s, vy_m_s)`` (zero velocity when unknown: the GCS's h
 Measured (small world, ``magic run --duration 300``, seeds 0/7/3/11, traced every 0.5 s; load
 2-14): at 66f8349 no robot was lost but robots came within 2.75/3.35/4.84/2.94 m of the walker
 (the trigger is 2.5 m), 8.5/25.5/2.0/19.5 robot-seconds inside its blast radius, explored
-0.962/0.860/0.960/0.944. With suspects, the closing speed, the turn cost, no yield while
-backing away, the flee with no path (robot node) and the GCS's view ring from 7.5 m: seed 0
-0 lost, closest 4.90 m, 2.0 robot-s within 5 m, explored 0.951; seed 3 0 lost, 4.83 m, 2.5
-robot-s, 0.930 (before the GCS's sightings were kept as suspects' seeds past
-``suspect_memory_s``, seed 3 lost robot 0 at 231 s: it drove at an uncoloured walker 2 m from
-a sighting it had heard of 90 s before); seed 11 (that version) 0 lost, 3.23 m, 8.5 robot-s,
-0.972.
+0.962/0.860/0.960/0.944 (median 0.952). With suspects, the closing speed, the turn cost, no
+yield while backing away, the flee with no path (robot node) and the GCS's view ring from
+7.5 m (dd73057): 0 lost, closest 4.90/5.86/4.83/3.23 m, 2.0/0/2.5/8.5 robot-s within 5 m,
+explored 0.952/0.939/0.930/0.972 (median 0.946), hostiles locked 0 before and after. Before
+the GCS's sightings were kept as suspects' seeds past ``suspect_memory_s``, seed 3 lost robot
+0 at 231 s: it drove at an uncoloured walker 2 m from a sighting it had heard of 90 s before.
+Left: a walker turning at its route's corner is "not walking" for a moment and its
+velocity points the old way (seed 11, 3.23 m).
 """
 
 from __future__ import annotations
