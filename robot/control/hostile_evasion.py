@@ -48,7 +48,8 @@ Measured (small world, ``magic run --duration 300``, seeds 0/7/3/11, traced ever
 (the trigger is 2.5 m), 8.5/25.5/2.0/19.5 robot-seconds inside its blast radius, explored
 0.962/0.860/0.960/0.944 (median 0.952). With suspects, the closing speed, the turn cost, no
 yield while backing away, the flee with no path (robot node) and the GCS's view ring from
-7.5 m (dd73057): 0 lost, closest 4.90/5.86/4.83/3.23 m, 2.0/0/2.5/8.5 robot-s within 5 m,
+7.5 m (66f8349 with this module, robot/node.py and the hostile planner of dd73057): 0 lost,
+closest 4.90/5.86/4.83/3.23 m, 2.0/0/2.5/8.5 robot-s within 5 m,
 explored 0.952/0.939/0.930/0.972 (median 0.946), hostiles locked 0 before and after. Before
 the GCS's sightings were kept as suspects' seeds past ``suspect_memory_s``, seed 3 lost robot
 0 at 231 s: it drove at an uncoloured walker 2 m from a sighting it had heard of 90 s before.
