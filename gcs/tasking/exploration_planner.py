@@ -93,8 +93,15 @@ class ExplorationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True,
     # 3 / 11: 0.962 / 0.860 / 0.960 / 0.944 (median 0.952) -> 0.954 / 0.919 / 0.928 / 0.956
     # (median 0.941); robots lost 0 / 0 / 0 / 0 -> 1 / 0 / 0 / 1 (hostile 0: seed 0 a heard
     # robot blasted as the hostile was first detected, seed 11 one silent on its tour, the
-    # hostile not yet known to the GCS)
-    tour_goals: int = 3
+    # hostile not yet known to the GCS). OFF by default since: at dd73057 (every helper's
+    # change of session 13 in; load ~4) the quick mission with tours gave explored 0.923 /
+    # 0.886 / 0.878 / 0.948 (median 0.905), false closures 3 / 0 / 0 / 1, F1 median 0.815,
+    # against 0.926 / 0.935 / 0.947 / 0.948 (median 0.941), 1 / 0 / 0 / 0 and 0.840 with
+    # tour_goals 0 (robots lost 0 in both): in the small world most goals are in contact, and
+    # a tour's claimed stops keep the others off the nearby frontier. magic_phase's gain is
+    # one seed; turn them on there with --config (mission: {tasking: {exploration:
+    # {tour_goals: 3}}}).
+    tour_goals: int = 0
     tour_leg_m: float = 20.0
     tour_length_m: float = 45.0
 

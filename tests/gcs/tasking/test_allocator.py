@@ -17,6 +17,7 @@ from gcs.tasking.allocator import (
     TaskingState,
 )
 from gcs.tasking.disruptor_planner import DisruptorConfig
+from gcs.tasking.exploration_planner import ExplorationConfig
 from protocol.messages import (
     GoToTask,
     Hazard,
@@ -29,6 +30,9 @@ from protocol.messages import (
 )
 from protocol.se2 import transform_points
 from tests.gcs.tasking.maps import FREE, OCCUPIED, UNKNOWN, blank, box, occupancy, room
+
+#: tours are off by default (ExplorationConfig.tour_goals); the tour tests turn them on
+TOURS = TaskingConfig(exploration=ExplorationConfig(tour_goals=3))
 
 
 def robot(
@@ -886,7 +890,7 @@ def test_a_tour_goes_home_the_short_way_and_is_claimed_while_its_robot_is_silent
     box(v, 0.0, 0.0, 40.5, 20.0, OCCUPIED)
     box(v, 0.5, 0.5, 40.0, 20.0, FREE)
     r1 = robot(1, (2.0, 2.0))
-    alloc = TaskAllocator()
+    alloc = TaskAllocator(TOURS)
     t = 0.0
     while t <= alloc.config.contact_steady_s + 1.0:  # heard steadily at (2, 2)
         r1.last_heard_s = t
@@ -982,7 +986,7 @@ def test_near_the_end_goals_only_where_the_robot_can_be_back_in_contact() -> Non
 
     def run(end_s: float) -> TaskAllocator:
         r1 = robot(1, (2.0, 2.0))
-        alloc = TaskAllocator()
+        alloc = TaskAllocator(TOURS)
         t = 0.0
         while t <= alloc.config.contact_steady_s + 1.0:
             r1.last_heard_s = t

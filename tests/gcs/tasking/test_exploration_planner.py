@@ -20,6 +20,7 @@ from gcs.tasking.trajectory_graph import build_trajectory_graph
 from tests.gcs.tasking.maps import FREE, OCCUPIED, RES, blank, box, occupancy
 
 CFG = ExplorationConfig()
+TOURS = ExplorationConfig(tour_goals=3)  # tours are off by default
 
 
 def corridor(x0: float = 5.0, x1: float = 35.0):  # type: ignore[no-untyped-def]
@@ -206,11 +207,11 @@ def test_a_goal_goes_on_as_a_tour_along_the_frontier() -> None:
     the tour no longer than tour_length_m: a robot out of contact there sweeps the frontier
     instead of driving back to contact after the first goal (full mission: star patterns)."""
     g = strip()
-    plan = _plan(g, {1: (2.0, 2.0)})
+    plan = _plan(g, {1: (2.0, 2.0)}, config=TOURS)
     goal = plan.goals[1]
     assert goal.goal_in_map[0] < 8.0
     tour = goal.tour_in_map
-    assert 1 <= len(tour) <= CFG.tour_goals
+    assert 1 <= len(tour) <= TOURS.tour_goals
     stops = np.vstack([goal.goal_in_map, tour])
     assert (np.diff(stops[:, 0]) > 0).all()  # on east along the frontier
     assert (np.hypot(*np.diff(stops, axis=0).T) >= CFG.goal_separation_m - 1e-9).all()
@@ -221,7 +222,7 @@ def test_a_goal_goes_on_as_a_tour_along_the_frontier() -> None:
         assert np.hypot(*(wps - s).T).min() < 1e-6
     # the tour's travel after the first goal stays within tour_length_m
     after = wps[int(np.argmin(np.hypot(*(wps - stops[0]).T))) :]
-    assert np.hypot(*np.diff(after, axis=0).T).sum() <= CFG.tour_length_m + 1.0
+    assert np.hypot(*np.diff(after, axis=0).T).sum() <= TOURS.tour_length_m + 1.0
     # tours off: the goal alone
     off = _plan(g, {1: (2.0, 2.0)}, config=ExplorationConfig(tour_goals=0))
     assert len(off.goals[1].tour_in_map) == 0
@@ -233,7 +234,7 @@ def test_tours_keep_clear_of_other_robots_goals_and_claims() -> None:
     the other's goal or tour stops, nor of a claimed goal."""
     g = strip()
     claimed = np.asarray([[20.0, 3.5]])
-    plan = _plan(g, {1: (2.0, 2.0), 2: (38.0, 2.0)}, claimed_in_map=claimed)
+    plan = _plan(g, {1: (2.0, 2.0), 2: (38.0, 2.0)}, claimed_in_map=claimed, config=TOURS)
     s1 = np.vstack([plan.goals[1].goal_in_map, plan.goals[1].tour_in_map])
     s2 = np.vstack([plan.goals[2].goal_in_map, plan.goals[2].tour_in_map])
     assert len(s1) > 1 and len(s2) > 1
