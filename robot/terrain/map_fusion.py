@@ -167,9 +167,9 @@ class TerrainMapFusion:
         free[drivable] = 0
         # seen > top - margin, i.e. seen >= top - margin + 1: in [0, 255] for any top <= 254
         # (255, unknown, has top margin + 1), so one uint8 comparison in fused()
-        need = height.astype(np.int16)
-        need[height == _NONE] = self.clear_margin_cm + 1
-        need = np.clip(need - (self.clear_margin_cm - 1), 0, 255).astype(np.uint8)
+        top = height.astype(np.int16)
+        top[height == _NONE] = self.clear_margin_cm + 1
+        need = np.clip(top - (self.clear_margin_cm - 1), 0, 255).astype(np.uint8)
         self._maps.append((geometry.lattice_index(), height, drivable, free, need))
         self._version += 1
 
