@@ -214,6 +214,11 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # exploration goal is given only if the robot can drive to it and on to the nearest
     # point of radio contact (straight lines, at end_speed_m_s) before the end, and goals
     # are not extended into tours; 0: off
+    # The rule acts only when the mission's end is known (MissionControlConfig.mission_end_s,
+    # unset by default). Quick mission at bbbb9f5 with mission_end_s 300, seeds 0 / 7 / 3 / 11:
+    # explored 0.925 / 0.925 / 0.944 / 0.938 (median 0.932), ATE median 0.276 m, F1 0.819,
+    # against 0.941, 0.223 m and 0.840 without it (0 lost both): in the small world nearly
+    # every goal is in contact, so it only takes goals away; it stays unset by default.
     end_contact_s: float = 90.0
     end_speed_m_s: float = 0.5
     first_task_id: int = 1_000_000
