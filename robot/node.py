@@ -404,6 +404,8 @@ class RobotNode:
         # where a holding robot was when it backed away (task id, odom xy, since): it returns
         self._evade_return: tuple[int, np.ndarray, float] | None = None
         self._facing_hostile = False
+        # the evasion's threat test for the GCS's sightings, where a walker was (no closing)
+        self._still_evasion = msgspec.structs.replace(self.config.evasion, react_s=0.0)
         self._battery_frac = math.nan  # unknown until the hardware reports it
         self._start_s: float | None = None
 
@@ -1363,7 +1365,7 @@ class RobotNode:
             self._planned_goal = None
         # the GCS's sightings are where a walker was: as far as its keep-out disk (a walker
         # coming closer is this robot's own track or suspect, with its closing speed)
-        still = msgspec.structs.replace(cfg, react_s=0.0)
+        still = self._still_evasion
         d = min(hostile_threat(pose[:2], own, cfg), hostile_threat(pose[:2], gcs_hostiles, still))
         start_m = cfg.blast_radius_m + cfg.margin_m
         if not self._evading and d < start_m:
