@@ -438,9 +438,7 @@ def odometry_gaps(
         return empty
     # the log's own stretches: neither gaps nor steps whose odometry froze (no motion seen)
     ok = ~gap & ~odometry_dropouts(log).absent[1:]
-    cum_path = np.r_[0.0, np.cumsum(ds[ok])]
-    cum_turn = np.r_[0.0, np.cumsum(dyaw[ok])]
-    cum_time = np.r_[0.0, np.cumsum(np.where(timed[ok], dt[ok], 0.0))]
+    cum_path, cum_turn, cum_time = _cumulative_motion(ds, dyaw, np.where(timed, dt, 0.0), ok)
     model = _node_model(config)
     turn_var = model.turn_std_rad_per_sqrt_rad**2
     max_turn = math.pi**2 / 3.0 / turn_var if turn_var > 0 else math.inf
@@ -468,6 +466,19 @@ def odometry_gaps(
         f"{quantile:g}): up to {most_turn:.3g} rad turned, {most_path:.3g} m driven unseen"
     )
     return OdometryGaps(idx, widen, [line], xy_var)
+
+
+def _cumulative_motion(
+    ds: FloatArray, dyaw: FloatArray, dt: FloatArray, ok: NDArray[np.bool_]
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Cumulative path, turning and time over the log's own steps ``ok`` (leading 0): what
+    :func:`_window_quantile` reads the log's stretches from (:func:`odometry_gaps`,
+    :func:`_prior_widening`)."""
+    return (
+        np.r_[0.0, np.cumsum(ds[ok])],
+        np.r_[0.0, np.cumsum(dyaw[ok])],
+        np.r_[0.0, np.cumsum(dt[ok])],
+    )
 
 
 @dataclass(frozen=True)
@@ -625,10 +636,7 @@ def _prior_widening(
     rel = relative(odom[:-1], odom[1:]).reshape(-1, 3)
     ds, dyaw = np.hypot(rel[:, 0], rel[:, 1]), np.abs(rel[:, 2])
     dt = np.maximum(np.diff(times), 0.0)
-    ok = ~drop.absent[1:]
-    cum_path = np.r_[0.0, np.cumsum(ds[ok])]
-    cum_turn = np.r_[0.0, np.cumsum(dyaw[ok])]
-    cum_time = np.r_[0.0, np.cumsum(dt[ok])]
+    cum_path, cum_turn, cum_time = _cumulative_motion(ds, dyaw, dt, ~drop.absent[1:])
     model = _node_model(config)
     turn_var = model.turn_std_rad_per_sqrt_rad**2
     widen: dict[int, list[OdometryIncrement]] = {}
