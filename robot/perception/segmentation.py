@@ -22,6 +22,10 @@ Contract of :func:`segment_sweep`:
 Every point at least ``min_height_m`` above the ground, objects' and higher ones alike, is
 kept in ``Segmentation.above_ground_xyz`` (it is needed to see a tree's canopy above its
 trunk); points above ``max_height_m`` belong to no object.
+
+The segments' ground heights (the median of each segment's point heights above the ground
+model) come from one compiled pass, numpy's medians bit for bit (issue 14, session 14: one
+``np.median`` call per segment was ~25 % of the segmentation's time in the quick mission).
 """
 
 from __future__ import annotations
@@ -182,6 +186,26 @@ def _label_similar(top, join, reach, sensor_rc, join_slope, reach_slope, reach_m
     return labels, n
 
 
+@nb.njit(cache=True, nogil=True)
+def _medians(
+    values: NDArray[np.float64], starts: NDArray[np.int64], ends: NDArray[np.int64]
+) -> NDArray[np.float64]:  # pragma: no cover - compiled (tested against np.median)
+    """``np.median(values[s:e])`` of every run, in one call: numpy's mean of the middle value
+    of the sorted run, or of its middle two, summed from 0.0 as numpy's mean sums them
+    (``0.0 + x``; ``((0.0 + a) + b) / 2``: a zero's sign is numpy's whichever equal value
+    the sort puts in the middle), so the same numbers for finite values, bit for bit (~20 us
+    a call saved per segment)."""
+    out = np.empty(len(starts))
+    for k in range(len(starts)):
+        run = np.sort(values[starts[k] : ends[k]])
+        n = len(run)
+        if n % 2:
+            out[k] = 0.0 + run[n // 2]
+        else:
+            out[k] = ((0.0 + run[n // 2 - 1]) + run[n // 2]) / 2.0
+    return out
+
+
 def segment_sweep(
     points_in_odom: ArrayLike,
     sensor_xy_in_odom: ArrayLike,
@@ -247,13 +271,10 @@ def segment_sweep(
     ends = np.r_[starts[1:], len(lab_sorted)]
     keep = ends - starts >= cfg.min_points
     starts, ends = starts[keep], ends[keep]
+    grounds = _medians(xyz_sorted[:, 2] - h_sorted, starts, ends)
     segments = [
-        Segment(
-            xyz_sorted[s:e],
-            h_sorted[s:e],
-            float(np.median(xyz_sorted[s:e, 2] - h_sorted[s:e])),
-        )
-        for s, e in zip(starts.tolist(), ends.tolist(), strict=True)
+        Segment(xyz_sorted[s:e], h_sorted[s:e], g)
+        for s, e, g in zip(starts.tolist(), ends.tolist(), grounds.tolist(), strict=True)
     ]
     return Segmentation(
         segments, above_xyz, sensor, dropped, xyz_sorted, h_sorted, starts, ends, rows_sorted

@@ -37,7 +37,13 @@ counts the reuses): a plan over the same obstacles reuses them, exactly (they ar
 functions of the grid). In the small world's first 60 s about one plan in ten was such a
 repeat (the second plan to the nearest reachable cell, a robot that has not moved a cell).
 In the 14-robot ``magic_phase`` (first 60 mission-s, seed 0, mean of two runs at load ~20,
-reports identical) planning cost 3.9 -> 3.4 CPU-ms per robot-mission-s.
+reports identical) planning cost 3.9 -> 3.4 CPU-ms per robot-mission-s. Session 14 (issue 14):
+the step costs are one compiled pass (clearance scaling and blocked cells, the same operations
+in the same order as the numpy passes), the unknown-cell masks are built only for the
+``obstacle`` and ``cost`` policies that read them: a plan over a 400 x 400 map with long paths
+13.4 -> 10.8 ms; in the quick mission (small world, 300 mission-s, at 38fac2c, seeds 0 / 7,
+one run each at load ~12, thread CPU, reports identical) planning took 6.78 / 5.64 -> 6.10 /
+5.20 CPU-s (3436 / 1885 plans).
 """
 
 from __future__ import annotations
@@ -47,6 +53,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import msgspec
+import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -131,6 +138,40 @@ class PlanResult:
     @property
     def ok(self) -> bool:
         return self.status == "ok"
+
+
+@nb.njit(cache=True, nogil=True)
+def _finite_at_least_one(m: NDArray[np.float64]) -> bool:  # pragma: no cover - compiled
+    """Whether every value of ``m`` is finite and ``>= 1`` (NaN is not)."""
+    for v in m.ravel():
+        if not (v >= 1.0 and v < np.inf):
+            return False
+    return True
+
+
+@nb.njit(cache=True, nogil=True)
+def _clearance_costs(
+    cost: NDArray[np.float64],
+    clearance: NDArray[np.float64],
+    blocked: NDArray[np.bool_],
+    clearance_m: float,
+    clearance_cost: float,
+    comfort_m: float,
+    tight_on: bool,
+) -> None:  # pragma: no cover - compiled (tested against the numpy passes it replaced)
+    """In place, one pass: blocked cells ``inf``; with ``tight_on``, the others closer than
+    ``clearance_m`` to an obstacle multiplied by ``1 + clearance_cost * min(1, (clearance_m -
+    clearance) / comfort_m)``, the same operations in the same order as the numpy passes
+    (``cost[tight] *= ...; cost[blocked] = inf``) they replace (no fused multiply-adds:
+    numba's default): the same costs, bit for bit."""
+    rows, cols = cost.shape
+    for i in range(rows):
+        for j in range(cols):
+            if blocked[i, j]:
+                cost[i, j] = np.inf
+            elif tight_on and clearance[i, j] < clearance_m:
+                t = (clearance_m - clearance[i, j]) / comfort_m
+                cost[i, j] = cost[i, j] * (1.0 + clearance_cost * min(1.0, t))
 
 
 def _xy(name: str, v: ArrayLike) -> NDArray[np.float64]:
@@ -222,18 +263,22 @@ class PathPlanner:
         g_rc = geometry.cell_index(goal)
         res = geometry.resolution_m
 
-        unknown = cls == UNKNOWN
         reach2 = (cfg.robot_radius_m / res) ** 2 + 1e-9  # the same disc as the C-space kernel
         # the disc is tested only in its bounding window (the rest of the map is outside it)
         k = int(math.floor(math.sqrt(reach2))) + 1
         r_lo, r_hi = max(0, s_rc[0] - k), min(geometry.rows, s_rc[0] + k + 1)
         c_lo, c_hi = max(0, s_rc[1] - k), min(geometry.cols, s_rc[1] + k + 1)
-        rr, cc = np.ogrid[r_lo:r_hi, c_lo:c_hi]
-        under_robot = np.zeros(geometry.shape, dtype=bool)
-        under_robot[r_lo:r_hi, c_lo:c_hi] = (rr - s_rc[0]) ** 2 + (cc - s_rc[1]) ** 2 <= reach2
-        unknown &= ~under_robot
+
+        def under_robot() -> NDArray[np.bool_]:
+            rr, cc = np.ogrid[r_lo:r_hi, c_lo:c_hi]
+            out = np.zeros(geometry.shape, dtype=bool)
+            out[r_lo:r_hi, c_lo:c_hi] = (rr - s_rc[0]) ** 2 + (cc - s_rc[1]) ** 2 <= reach2
+            return out
+
+        # unknown cells count only under the "obstacle" and "cost" policies ("free": as drivable)
+        unknown = (cls == UNKNOWN) & ~under_robot() if cfg.unknown != "free" else None
         obstacle = cls == OBSTACLE
-        hard = obstacle | unknown if cfg.unknown == "obstacle" else obstacle
+        hard = obstacle | unknown if unknown is not None and cfg.unknown == "obstacle" else obstacle
         blocked, clearance = self._obstacle_fields(hard, res)
         if cost_multiplier is not None:
             m = np.asarray(cost_multiplier, dtype=np.float64)
@@ -241,20 +286,23 @@ class PathPlanner:
                 raise ValueError(
                     f"cost_multiplier: shape {m.shape} does not match geometry {geometry.shape}"
                 )
-            if not (np.all(np.isfinite(m)) and np.all(m >= 1.0)):
+            if not _finite_at_least_one(m):
                 raise ValueError("cost_multiplier: values must be finite and >= 1")
             cost = m.copy()  # 1 * m, without the pass
         else:
             cost = np.ones(geometry.shape)
-        if cfg.unknown == "cost":
+        if unknown is not None and cfg.unknown == "cost":
             cost[unknown] *= cfg.unknown_cost
         comfort = cfg.clearance_m - cfg.robot_radius_m
-        if cfg.clearance_cost > 0 and comfort > 0:
-            tight = clearance < cfg.clearance_m
-            cost[tight] *= 1.0 + cfg.clearance_cost * np.minimum(
-                1.0, (cfg.clearance_m - clearance[tight]) / comfort
-            )
-        cost[blocked] = np.inf
+        _clearance_costs(
+            cost,
+            clearance,
+            blocked,
+            cfg.clearance_m,
+            cfg.clearance_cost,
+            comfort,
+            cfg.clearance_cost > 0 and comfort > 0,
+        )
 
         def fail(status: PlanStatus, reason: str) -> PlanResult:
             empty = np.empty((0, 2))
@@ -271,7 +319,7 @@ class PathPlanner:
                     f"start cell {s_rc} is within robot_radius_m ({cfg.robot_radius_m} m) of an "
                     f"obstacle (clearance {start_clearance:.3f} m)",
                 )
-            exit_cells = blocked & under_robot & (clearance >= start_clearance - 1e-9)
+            exit_cells = blocked & under_robot() & (clearance >= start_clearance - 1e-9)
             cost[exit_cells] = 1.0 if cost_multiplier is None else cost_multiplier[exit_cells]
             escaped = True
         if blocked[g_rc]:

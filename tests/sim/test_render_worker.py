@@ -73,3 +73,33 @@ def test_a_render_worker_that_dies_leaves_the_simulator_drawing_the_same_images(
     for a, b in zip(here, there, strict=True):
         assert a.request_id == b.request_id
         assert np.array_equal(a.rgb, b.rgb), a.request_id
+
+
+def test_a_job_drawn_again_gets_the_same_pixels_undrawn() -> None:
+    """The worker answers a repeated job from its recent images (speed), with the pixels a
+    fresh drawing gives; a job that differs in the objects gone is drawn."""
+    from sim.render_worker import RenderJob, _draw, _Recent
+    from sim.scene import Scene
+
+    world = _world()
+    cfg = SimulatorConfig(render_workers=0)
+    with Simulator(world, config=cfg) as sim:
+        job, _ = sim._render_job(0, ImageRequest(1, 0.0, 320, 240))
+        turned, _ = sim._render_job(1, ImageRequest(2, 0.0, 320, 240))
+    fresh = Scene(world, analytic_ground=True, cull=True)
+    kept = Scene(world, analytic_ground=True, cull=True)
+    recent = _Recent(size=1)
+    try:
+        first = recent.draw(kept, job)
+        again = recent.draw(kept, job)
+        assert recent.hits == 1 and np.array_equal(again, _draw(fresh, job))
+        assert np.array_equal(first, again)
+        other = recent.draw(kept, turned)  # evicts the first (size 1)
+        assert recent.hits == 1 and np.array_equal(other, _draw(fresh, turned))
+        gone = RenderJob(**{**vars(job), "hidden_oois": frozenset({0})})
+        without = recent.draw(kept, gone)
+        assert recent.hits == 1 and np.array_equal(without, _draw(fresh, gone))
+        assert not np.array_equal(without, first)  # the object was in view
+    finally:
+        fresh.close()
+        kept.close()

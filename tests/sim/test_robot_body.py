@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sim.ground_truth import rasterize
-from sim.robot_body import RobotBodyConfig, SkidSteerBodies, footprints_overlap
+from sim.robot_body import RobotBodyConfig, SkidSteerBodies, footprints_overlap, pose_matrices
 from sim.world_generator import Solid
 from tests.sim.simworlds import box, make_world
 
@@ -187,3 +187,48 @@ def test_robot_clearance_shortcut_agrees_with_every_rectangle_test(spread_m: flo
         cand = b.state.pose + rng.normal(0.0, [0.05, 0.05, 0.1], (5, 3))
         got = b._clear_of_others(cand, None, None)
         assert np.array_equal(got, _clear_of_robots_reference(b, cand))
+
+
+def test_kept_footprint_counts_and_transforms_are_those_computed_afresh() -> None:
+    """A step reuses the last step's footprint count of the pose it starts from and the
+    transforms of an unchanged state (speed): the same motion as counting and computing
+    afresh, also when the poses are moved between steps."""
+    wall = box("wall", 10.0, 5.0, 10.15, 15.0, 2.5)
+    starts = [(8.6, 10.0, 0.3), (7.0, 12.0, -0.2), (8.9, 7.0, 0.0)]
+    kept, fresh = _bodies([wall], starts), _bodies([wall], starts)
+    rng = np.random.default_rng(5)
+    for step in range(120):
+        if step % 40 == 39:  # someone moves the bodies (a test, a reset)
+            moved = kept.state.pose + rng.normal(0.0, 0.2, kept.state.pose.shape)
+            kept.state.pose, fresh.state.pose = moved.copy(), moved.copy()
+        v, w = rng.uniform(0.2, 1.0, 3), rng.uniform(-0.3, 0.3, 3)
+        kept.step(0.05, v, w)
+        fresh._count_of = None
+        fresh.step(0.05, v, w)
+        assert np.array_equal(kept.state.pose, fresh.state.pose)
+        assert np.array_equal(kept.state.blocked_steps, fresh.state.blocked_steps)
+        m = kept.world_from_base_matrices()
+        m[:] = 0.0  # the caller's copy: the kept transforms are untouched
+        st = fresh.state
+        expected = pose_matrices(st.pose, st.z_m, st.roll_rad, st.pitch_rad)
+        assert np.array_equal(kept.world_from_base_matrices(), expected)
+    assert (kept.state.blocked_steps > 0).any()  # the wall was met
+
+
+def test_compiled_footprint_overlaps_are_the_numpy_verdicts() -> None:
+    """The compiled separating-axis test (speed) gives the numpy reference's verdicts, for
+    crowds from overlapping to touching to apart, and for equal and opposite headings."""
+    from sim.robot_body import footprints_overlap_reference
+
+    rng = np.random.default_rng(8)
+    half = {"half_length_m": 0.38, "half_width_m": 0.3}
+    agree = 0
+    for _ in range(400):
+        a = np.column_stack([rng.uniform(0, 2.0, (5, 2)), rng.uniform(-math.pi, math.pi, 5)])
+        b = np.column_stack([rng.uniform(0, 2.0, (4, 2)), rng.uniform(-math.pi, math.pi, 4)])
+        b[0] = a[0] + [0.76, 0.0, 0.0]  # touching end to end
+        b[1, 2] = a[1, 2] + math.pi
+        got = footprints_overlap(a, b, **half)
+        assert np.array_equal(got, footprints_overlap_reference(a, b, **half))
+        agree += int(got.sum())
+    assert 0 < agree < 400 * 20
