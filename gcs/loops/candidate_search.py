@@ -29,6 +29,30 @@ discounted by a Gaussian factor when the expected position lies beyond ``max_dis
 helps most. Ties (to the centimetre) go to the nearer node. At most ``max_per_node``
 candidates are kept per new node (highest priority first).
 
+Overlap (``overlap_m``, off by default). After a long stretch without closures every
+candidate of a new node shares that node's large uncertainty, so the expected correction no
+longer tells them apart: whole Intel (noise seed 1, clock jump, 38fac2c), node 840 had 200
+candidates with sigmas of 1.3-2.0 m within 6 m, and sigma alone kept the eight 4.4-4.6 m away
+whose paths were 2-5 % looser; the pairs 3.1 m away (nodes 488, 489), which match at 0.68 and
+0.61 within 0.07 m and 1.4 deg of the truth, were never tried and the late loop stayed open
+(ATE 0.416 m against the clean run's 0.071: the clean run had drawn those pairs). With
+``overlap_m`` the priority is also discounted by ``exp(-d^2 / (2 overlap_m^2))`` for the
+expected distance ``d``, so that among candidates of like uncertainty the budget goes to the
+grids that overlap. Measured on the robustness bench's replays (``magic bench robustness``,
+noise seed 1, 5 m for every replay, load 10-13; /tmp/team/robust19/full_ovl.log, session 14):
+whole Intel clean 0.071 -> 0.068 m (closures 470 -> 911), clock jump 0.416 -> 0.068 m (5.85 ->
+1.00 x clean), turns x1.08 1.76 -> 1.18 x clean, odometry gap 0.199 -> 0.191 m, false
+closures 1 -> 0 over its runs; whole Freiburg 079 clean 0.160 -> 0.128 m and false closures
+4 -> 0, but turns x0.92 2 -> 11 false (a look-alike, scans 1515-1524 against 1190-1195, 1.3 m
+off, now matched from six neighbouring nodes that agree), frozen clock 1 -> 18 false (1063
+closures against 165); quick bench ``perturbed_ate_ratio_max`` 1.149 -> 1.21 (ACES odometry
+gap 0.140 m against a clean 0.115). At 6 m whole Freiburg 079 clean took 6 false closures
+(0.340 m), at 8 m 11 (0.172 m; Intel clean 0.090 m). The quick mission with 5 m (seeds 0 / 7)
+gave ATE 0.242 / 0.473 m and F1 0.784 / 0.634 against 0.205 / 0.619 and 0.817 / 0.799. Nearer
+pairs are tried more often, and where a place has a look-alike a metre off, the look-alike
+is tried from more nodes and its matches agree: the closer's cycles cannot tell them from a
+true group, so this waits for a look-alike test that can.
+
 Robots in different components (not yet linked by a fiducial, an operator hint or an accepted
 closure) are never candidates: there is no bounded window to search (a robot with no seed
 stays unlinked). The module is pure: it works on a projection result and node arrays.
@@ -60,7 +84,11 @@ IntArray = NDArray[np.int64]
 
 
 class CandidateSearchConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
-    """Gates of candidate generation (metres, radians); see the module docstring."""
+    """Gates of candidate generation (metres, radians); see the module docstring.
+
+    ``overlap_m``: the expected distance at which the priority is discounted by ``exp(-1/2)``
+    (module docstring, "Overlap"; inf, the default: not at all).
+    """
 
     max_distance_m: float = 5.0
     min_sigma_xy_m: float = 0.05
@@ -73,6 +101,7 @@ class CandidateSearchConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     wide_yaw_rad: float = math.pi
     yaw_class_rad: float = math.radians(15.0)
     max_per_node: int = 8
+    overlap_m: float = math.inf
 
     def __post_init__(self) -> None:
         for name in (
@@ -86,6 +115,8 @@ class CandidateSearchConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite number, got {v}")
+        if not self.overlap_m > 0:  # inf: distance within max_distance_m does not matter
+            raise ValueError(f"overlap_m: expected > 0, got {self.overlap_m}")
         if not self.gap_sigma_xy_m > 0:  # inf: never
             raise ValueError(f"gap_sigma_xy_m: expected > 0, got {self.gap_sigma_xy_m}")
         if not (math.isfinite(self.min_sigma_xy_m) and self.min_sigma_xy_m >= 0):
@@ -188,8 +219,10 @@ def search_candidates(
     # the uncertainty region comes close enough (across a gap: the coarse gate, above)
     keep &= (d - need_xy <= cfg.max_distance_m) | (near[idx] & (sigma_xy >= cfg.gap_sigma_xy_m))
     # expected correction, discounted by the chance that the grids overlap at all
+    # and, with overlap_m, by how much two grids that far apart are expected to share
     priority = sigma_xy * np.exp(
         -0.5 * (np.maximum(d - cfg.max_distance_m, 0.0) / np.maximum(sigma_xy, 1e-9)) ** 2
+        - 0.5 * (d / cfg.overlap_m) ** 2
     )
     out: list[Candidate] = []
     for k in np.nonzero(keep)[0]:
