@@ -29,29 +29,30 @@ discounted by a Gaussian factor when the expected position lies beyond ``max_dis
 helps most. Ties (to the centimetre) go to the nearer node. At most ``max_per_node``
 candidates are kept per new node (highest priority first).
 
-Overlap (``overlap_m``, off by default). After a long stretch without closures every
-candidate of a new node shares that node's large uncertainty, so the expected correction no
-longer tells them apart: whole Intel (noise seed 1, clock jump, 38fac2c), node 840 had 200
-candidates with sigmas of 1.3-2.0 m within 6 m, and sigma alone kept the eight 4.4-4.6 m away
-whose paths were 2-5 % looser; the pairs 3.1 m away (nodes 488, 489), which match at 0.68 and
-0.61 within 0.07 m and 1.4 deg of the truth, were never tried and the late loop stayed open
-(ATE 0.416 m against the clean run's 0.071: the clean run had drawn those pairs). With
-``overlap_m`` the priority is also discounted by ``exp(-d^2 / (2 overlap_m^2))`` for the
-expected distance ``d``, so that among candidates of like uncertainty the budget goes to the
-grids that overlap. Measured on the robustness bench's replays (``magic bench robustness``,
-noise seed 1, 5 m for every replay, load 10-13; /tmp/team/robust19/full_ovl.log, session 14):
-whole Intel clean 0.071 -> 0.068 m (closures 470 -> 911), clock jump 0.416 -> 0.068 m (5.85 ->
-1.00 x clean), turns x1.08 1.76 -> 1.18 x clean, odometry gap 0.199 -> 0.191 m, false
-closures 1 -> 0 over its runs; whole Freiburg 079 clean 0.160 -> 0.128 m and false closures
-4 -> 0, but turns x0.92 2 -> 11 false (a look-alike, scans 1515-1524 against 1190-1195, 1.3 m
-off, now matched from six neighbouring nodes that agree), frozen clock 1 -> 18 false (1063
-closures against 165); quick bench ``perturbed_ate_ratio_max`` 1.149 -> 1.21 (ACES odometry
-gap 0.140 m against a clean 0.115). At 6 m whole Freiburg 079 clean took 6 false closures
-(0.340 m), at 8 m 11 (0.172 m; Intel clean 0.090 m). The quick mission with 5 m (seeds 0 / 7)
-gave ATE 0.242 / 0.473 m and F1 0.784 / 0.634 against 0.205 / 0.619 and 0.817 / 0.799. Nearer
-pairs are tried more often, and where a place has a look-alike a metre off, the look-alike
-is tried from more nodes and its matches agree: the closer's cycles cannot tell them from a
-true group, so this waits for a look-alike test that can.
+Overlap (``overlap_m``, off by default). After a long stretch without closures every candidate
+of a new node shares that node's large uncertainty, so the expected correction no longer tells
+them apart: whole Intel (noise seed 1, clock jump, 38fac2c), node 840 had 200 candidates with
+sigmas of 1.3-2.0 m within 6 m, and sigma alone kept the eight 4.4-4.6 m away whose paths were
+2-5 % looser; the pairs 3.1 m away (nodes 488, 489), which match at 0.68 and 0.61 within 0.07 m
+and 1.4 deg of the truth, were never tried and the late loop stayed open (ATE 0.416 m against
+the clean run's 0.071: the clean run had drawn those pairs). With ``overlap_m`` the priority is
+also discounted by ``exp(-d^2 / (2 overlap_m^2))`` for the expected distance ``d``, so that
+among candidates of like uncertainty the budget goes to the grids that overlap. Measured on the
+robustness bench's replays (``magic bench robustness``, noise seed 1, 5 m for every replay,
+load 10-13; /tmp/team/robust19/full_ovl.log, session 14): whole Intel clean 0.071 -> 0.068 m
+(closures 470 -> 911), clock jump 0.416 -> 0.068 m (5.85 -> 1.00 x clean), turns x1.08 1.76 ->
+1.18 x clean, odometry gap 0.199 -> 0.191 m, false closures 1 -> 0 over its runs; whole
+Freiburg 079 clean 0.160 -> 0.128 m and false closures 4 -> 0, but turns x0.92 2 -> 11 false (a
+look-alike, scans 1515-1524 against 1190-1195, 1.3 m off, now matched from six neighbouring
+nodes that agree), frozen clock 1 -> 18 false (1063 closures against 165); quick bench
+``perturbed_ate_ratio_max`` 1.149 -> 1.21 (ACES odometry gap 0.140 m against a clean 0.115);
+the full run's ``perturbed_ate_ratio_max`` 5.85 -> 2.79 (Intel's odometry gap),
+``false_closures`` 27 -> 58. At 6 m whole Freiburg 079 clean took 6 false closures (0.340 m),
+at 8 m 11 (0.172 m; Intel clean 0.090 m). The quick mission with 5 m (seeds 0 / 7) gave ATE
+0.242 / 0.473 m and F1 0.784 / 0.634 against 0.205 / 0.619 and 0.817 / 0.799. Nearer pairs are
+tried more often, and where a place has a look-alike a metre off, the look-alike is tried from
+more nodes and its matches agree: the closer's cycles cannot tell them from a true group, so
+this waits for a look-alike test that can.
 
 Robots in different components (not yet linked by a fiducial, an operator hint or an accepted
 closure) are never candidates: there is no bounded window to search (a robot with no seed

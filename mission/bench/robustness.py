@@ -153,7 +153,9 @@ Session 14 (robust19; 38fac2c, noise seed 1, whole logs; scripts and pickles in
   make there (835-484, 836-484, 874-876 against 484, scores 0.60-0.67) were 5 m look-alikes
   and the graph check rightly refused them. Ranking candidates also by overlap
   (``CandidateSearchConfig.overlap_m``, off: its docstring) closes it (0.068 m, 1.00 x clean)
-  but lets Freiburg 079's look-alikes in (false closures 27 -> 50+ over the full run).
+  but lets Freiburg 079's look-alikes in: the full run with it (/tmp/team/robust19/full_ovl.json)
+  gives perturbed_ate_ratio_max 5.85 -> 2.79 (Intel odometry gap), clock 1.17, turns 1.69,
+  false closures 27 -> 58 (Freiburg 079 frozen and coarse clocks 18 each, turns x0.92 11).
 - Whole Freiburg 079 false closures are of three kinds: (a) scans 457-475 against 1314-1380,
   4.5-8 deg off the reference with 0.05-0.2 m, where the reference and ``fr079.relations``
   disagree by up to 4.4 deg (session 13, below); (b) groups matched from several old places
