@@ -232,3 +232,17 @@ def test_compiled_footprint_overlaps_are_the_numpy_verdicts() -> None:
         assert np.array_equal(got, footprints_overlap_reference(a, b, **half))
         agree += int(got.sum())
     assert 0 < agree < 400 * 20
+
+
+def test_compiled_footprint_counts_are_the_numpy_counts() -> None:
+    """The compiled footprint count (speed) is the numpy reference's, along walls, on the
+    map's edges and off the map."""
+    wall = box("wall", 10.0, 5.0, 10.15, 15.0, 2.5)
+    b = _bodies([wall], [(9.0, 10.0, 0.0)])
+    rng = np.random.default_rng(9)
+    poses = np.column_stack(
+        [rng.uniform(-1.0, 22.0, (3000, 2)), rng.uniform(-math.pi, math.pi, 3000)]
+    )
+    got = b.blocked_count(poses)
+    assert np.array_equal(got, b.blocked_count_reference(poses))
+    assert got.dtype == np.int64 and 0 < int((got > 0).sum()) < len(poses)
