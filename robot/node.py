@@ -92,12 +92,13 @@ from protocol.sensors import (
     VelocityCommand,
     WheelTicks,
 )
-from robot.comms_watchdog import CommsWatchdogConfig, LinkAwareTasks
+from robot.comms_watchdog import CommsWatchdogConfig, LinkAwareTasks, LinkState
 from robot.control.deadlock import DeadlockBreaker, DeadlockConfig, Phase, path_block_distance
 from robot.control.hostile_evasion import (
     EvasionConfig,
     evasion_goal,
     hostile_threat,
+    keep_in_view_goal,
     suspect_tracks,
     walk_velocity,
     way_clearance_m,
@@ -208,7 +209,8 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     comms: CommsWatchdogConfig = CommsWatchdogConfig()  # without the GCS: robot.comms_watchdog
     keepout: KeepoutConfig = KeepoutConfig()
     # a hostile (its own track or the GCS's hazard) coming within its blast radius plus a
-    # margin: the robot backs away, whatever it was doing (but tele-operation), and resumes
+    # margin: the robot backs away, whatever it was doing (but tele-operation), and resumes;
+    # with no task it keeps its own hostile in view (keep_view: RobotNode._keep_view)
     evasion: EvasionConfig = EvasionConfig()
     stuck: StuckConfig = StuckConfig()
     deadlock: DeadlockConfig = DeadlockConfig()
@@ -293,6 +295,7 @@ class NodeStats:
     trail_backoffs: int = 0  # back-offs that followed the trail, reversed (no planned way)
     deadlock_failures: int = 0  # tasks failed because no escape from a deadlock worked
     evasions: int = 0  # times it backed away from a hostile coming close
+    keep_view_starts: int = 0  # times an idle robot began following a hostile to keep it in view
     yields: int = 0  # plans not taken: the path got blocked and the detour was long
     memory_refreshes: int = 0  # older sweeps forgotten: the newest saw the blocked way clear
     slip_measurements: int = 0  # sweep pairs whose match measured the speed over ground
@@ -404,6 +407,10 @@ class RobotNode:
         # where a holding robot was when it backed away (task id, odom xy, since): it returns
         self._evade_return: tuple[int, np.ndarray, float] | None = None
         self._facing_hostile = False
+        # an idle robot keeping its hostile in view: where it drives (odom; None: it holds)
+        self._keep_goal: np.ndarray | None = None
+        self._watching = False  # no task, its own hostile near: it watches (_keep_view)
+        self._watch_since_s: float | None = None
         # the evasion's threat test for the GCS's sightings, where a walker was (no closing)
         self._still_evasion = msgspec.structs.replace(self.config.evasion, react_s=0.0)
         self._battery_frac = math.nan  # unknown until the hardware reports it
@@ -1103,6 +1110,7 @@ class RobotNode:
         now = self._now
         pose = self.odometry.pose_in_odom
         self._watch_hostiles(now, pose)
+        self._keep_view(now, pose)
         intent = self._intent()
         laser_target = self._laser_aim(intent.laser_target_in_odom, intent.task_id, pose)
         laser_ok = laser_target is not None and self._line_of_sight(pose, laser_target)
@@ -1185,6 +1193,14 @@ class RobotNode:
         inner = self.tasks.intent
         goal = self._evade_goal
         back = self._evade_return
+        if not self._evading and self._watching and self.tasks.current_task_id == 0:
+            if self._keep_goal is None:
+                return Intent()  # it holds, watching (_keep_view)
+            return Intent(
+                mode=AutonomyMode.AUTONOMOUS,
+                task_id=0,
+                waypoints_in_odom=self._keep_goal.reshape(1, 2).copy(),
+            )
         if (
             not self._evading
             and back is not None
@@ -1401,6 +1417,59 @@ class RobotNode:
             if goal is not None:
                 self._evade_goal = goal
                 self._planned_goal = None  # plan to it now
+
+    def _keep_view(self, now: float, pose: np.ndarray) -> None:
+        """A robot with no task (its last goal reached, as a watcher at its view position
+        is) watches a hostile within ``keep_within_m`` (its own track, or a GCS sighting it
+        heard of within ``keep_heard_s``): it holds, or follows its own walker going out of
+        range (:func:`~robot.control.hostile_evasion.keep_in_view_goal`),
+        rather than go back to its last point of contact when the link is silent (the
+        rules' lock needs no radio), for at most ``keep_silent_s`` of silence. Backing away
+        comes first, and any task ends it. The GCS's view position is where the walker was
+        seen seconds before; the lock needs the walker in view for 30 s while it walks on."""
+        cfg = self.config.evasion
+        inner = self.tasks.intent
+        free = (
+            cfg.keep_view
+            and self.tasks.current_task_id == 0
+            and inner.teleop is None
+            and inner.mode is not AutonomyMode.PAUSED
+            and self._start_s is not None
+            and now - self._start_s >= self.config.calibrate_still_s
+            and not self._evading
+        )
+        h = self._own_hostiles
+        # its own hostile, or one the GCS told it of lately (a watcher at its view position
+        # while the walker is on the far side of its loop), near
+        told = [(x, y) for x, y, t in self._hazard_heard.values() if now - t <= cfg.keep_heard_s]
+        near_xy = np.vstack([h[:, :2], np.asarray(told, dtype=np.float64).reshape(-1, 2)])
+        near = free and bool(
+            len(near_xy) and float(np.hypot(*(near_xy - pose[:2]).T).min()) <= cfg.keep_within_m
+        )
+        if near and self._watch_since_s is None:
+            self._watch_since_s = now
+        elif not near:
+            self._watch_since_s = None
+        silent = self.tasks.state is not LinkState.CONNECTED
+        if near and silent and self._watch_since_s is not None:
+            near = now - self._watch_since_s <= cfg.keep_silent_s
+        goal = None
+        if near:
+            goal = keep_in_view_goal(pose[:2], h, cfg, following=self._keep_goal is not None)
+        if near != self._watching:
+            self._watching = near
+            self._planned_goal = None
+        if goal is None:
+            if self._keep_goal is not None:
+                self._keep_goal = None
+                self._planned_goal = None
+            return
+        if self._keep_goal is None or math.dist(goal, self._keep_goal) > cfg.keep_arrive_m * 2:
+            if self._keep_goal is None:
+                self.stats.keep_view_starts += 1
+            self._keep_goal = goal
+            self._planned_goal = None  # plan to it now
+            self._evade_return = None  # it watches from here on, not from where it held
 
     def _stop_evading(self, now: float, detail: str) -> None:
         self._evading, self._evade_goal, self._evade_refresh = False, None, False

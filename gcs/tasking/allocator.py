@@ -160,6 +160,13 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # contact it was re-sent into the same shadow, over and over (small world seed 0: robots
     # 0 and 1 took turns, robot_back -> hostile_view -> robot_silent, from 95 s to the end)
     shadow_retry_s: float = 90.0
+    # ... and one that fell silent on its way to watch a hostile is not sent to watch it for
+    # view_shadow_retry_s (0: off; one silent at its view position never is). Watchers sent
+    # into the walker's radio shadow fall silent on their way, are heard again seconds later
+    # and, barred, are sent to explore just as both come within 12 m of the walker (small
+    # world seed 7 at ec6bf10: 122.6 s silent, 126.8 s back and off exploring); 0 goes with
+    # the robots' keep_view (robot.control.hostile_evasion, off: its measurement there)
+    view_shadow_retry_s: float = 90.0
     # ... nor given an exploration goal within shadow_goal_radius_m of the one it fell
     # silent on, for shadow_retry_s (issue 17); 0: off. Small world, 300 s, seeds 0/7/3/11,
     # with the hostile rules: 2 m explored 0.878/0.843/0.960/0.948 (ATE 0.23/0.55/0.19/0.13),
@@ -253,6 +260,10 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"tasking {name} must be finite and > 0, got {v}")
+        if not (math.isfinite(self.view_shadow_retry_s) and self.view_shadow_retry_s >= 0):
+            raise ValueError(
+                f"tasking view_shadow_retry_s must be >= 0, got {self.view_shadow_retry_s}"
+            )
         if not (math.isfinite(self.robot_radius_m) and self.robot_radius_m >= 0):
             raise ValueError(f"tasking robot_radius_m must be >= 0, got {self.robot_radius_m}")
         if self.lost_after_s < self.silent_after_s:
@@ -786,14 +797,19 @@ class TaskAllocator:
             return
         if a.hazard_id is None or a.purpose.split(":")[0] != "hostile_view":
             return
-        self._view_shadowed.setdefault(a.hazard_id, {})[rid] = ctx.now_s
+        retry_s = self.config.view_shadow_retry_s
+        if retry_s <= 0 or not math.isfinite(a.timeout_s):
+            # off, or silent at its view position: it watches on, out of contact (the rules'
+            # lock does not need the radio; robot.control.hostile_evasion.keep_in_view_goal)
+            return
+        self._view_shadowed.setdefault(a.hazard_id, {})[rid] = ctx.now_s + retry_s
         x, y = a.goal_in_map
         self._event(
             ctx,
             "goal_in_shadow",
             rid,
             f"robot {rid} fell silent on its way to watch hostile {a.hazard_id} from "
-            f"({x:.1f}, {y:.1f}): not sent to watch it for {self.config.shadow_retry_s:g} s",
+            f"({x:.1f}, {y:.1f}): not sent to watch it for {retry_s:g} s",
             a.hazard_id,
         )
 
@@ -1100,15 +1116,21 @@ class TaskAllocator:
             if a.purpose != "hostile_view" or a.hazard_id != hid or rid not in ctx.available:
                 continue
             r = ctx.available[rid]
-            on_way = a.goal_in_map is not None and (
-                math.dist(self._position(r), a.goal_in_map) > self.config.goal_reached_m
+            # a watcher at its view position holds (timeout_s inf from its arrival), or
+            # follows the walker to keep it in view (robot.control.hostile_evasion
+            # .keep_in_view_goal): not on its way, not stalled
+            on_way = (
+                a.goal_in_map is not None
+                and math.isfinite(a.timeout_s)
+                and math.dist(self._position(r), a.goal_in_map) > self.config.goal_reached_m
             )
             if on_way and self._stalled(ctx, r, a):
                 # stuck on its way (a doorway's jamb: full mission, a robot 1300 s in one
                 # doorway was sent to watch from there): another watches, it is not sent to
                 # this hostile for shadow_retry_s
                 self._avoid_route(ctx, r, a)
-                self._view_shadowed.setdefault(hid, {})[rid] = ctx.now_s
+                until_s = ctx.now_s + self.config.shadow_retry_s
+                self._view_shadowed.setdefault(hid, {})[rid] = until_s
                 del self.assignments[rid]
                 self._event(
                     ctx, "stalled", rid, f"robot {rid} stuck on its way to watch hostile {hid}", hid
@@ -1120,6 +1142,18 @@ class TaskAllocator:
         ]
         moved = math.dist(self._hostile_at.get(hid, h.position_in_map), h.position_in_map)
         if len(viewers) >= cfg.viewers and moved < cfg.replan_move_m:
+            return True
+        # watchers that see it now stay where they are (they keep it in view themselves);
+        # the others are placed around them
+        seen = ctx.state.hostile_seen_s.get(hid, {})
+        fixed = {
+            rid: self._position(ctx.available[rid])
+            for rid in viewers
+            if ctx.now_s - seen.get(rid, -math.inf) <= cfg.view_gap_s
+            and not math.isfinite(self.assignments[rid].timeout_s)
+        }
+        if len(fixed) >= cfg.viewers:
+            self._hostile_at[hid] = h.position_in_map
             return True
         shadowed = self._view_shadowed.get(hid, {})
         pool = {
@@ -1133,7 +1167,7 @@ class TaskAllocator:
                     and math.dist(self._position(r), h.position_in_map) <= cfg.watch_reach_m
                 )
             )
-            and ctx.now_s - shadowed.get(rid, -math.inf) >= self.config.shadow_retry_s
+            and ctx.now_s >= shadowed.get(rid, -math.inf)
         }
         if len(pool) < cfg.viewers:
             return False
@@ -1144,11 +1178,14 @@ class TaskAllocator:
             cfg,
             contact_in_map=self.contact_in_map,
             contact_radius_m=self.config.exploration.contact_radius_m,
+            fixed_in_map=fixed,
         )
         if len(views) < min(cfg.viewers, 2):
             return False
         self._hostile_at[hid] = h.position_in_map
         for rid, p in views.items():
+            if rid in fixed:
+                continue
             cur = self.assignments.get(rid)
             if (
                 cur is not None

@@ -6,8 +6,27 @@ coordinated this by hand (5.1.3); here it is a planner:
 
 * :func:`view_positions`: for the ``viewers`` robots nearest the OOI, traversable cells in the
   ring ``[blast_radius_m + margin_m, view_range_m]`` around it with line of sight, the first
-  robot's nearest, each following one at least ``min_bearing_sep_rad`` around the OOI from
-  those taken (two views from one side are one view if it turns a corner).
+  robot's cheapest (travel plus ``range_weight`` per metre off ``view_pref_m``), each
+  following one at least ``min_bearing_sep_rad`` around the OOI from those taken (two views
+  from one side are one view if it turns a corner). Watchers that see the walker now stay
+  where they are (``fixed_in_map``): the robot keeps a walker in view itself
+  (:func:`robot.control.hostile_evasion.keep_in_view_goal`), and one still on its way is
+  placed around them. Why (small world, quick mission at 38fac2c, seeds 0/7, traced every
+  step against the rules' own view test): the nearest cell of the ring lay on its 12 m
+  edge, and with radio contact first on the edge towards the GCS: watchers held 13 to 17 m
+  from the walker's loop for minutes (the lock range is 12 m), two robots saw the walker
+  together for at most 8.2 s, and no cell within 12 m with line of sight sees more than 29 s
+  of its 59 s loop. A watcher that fell silent at its view watches on (the lock needs no
+  radio); only one silent on its way is kept off that hostile (``view_shadow_retry_s``).
+  Measured (quick mission at ec6bf10 with this, seeds 0/7/3/11, load ~10): two sensor robots
+  within 12 m of the walker 8/25/30/36 s of the run (longest 8/11/17/22 s) against 8/6/0/0
+  at 38fac2c; locked 0 before and after (the lock needs 30 s); explored
+  0.955/0.913/0.955/0.889 (median 0.934 against 0.941), ATE median 0.166 against 0.223 m,
+  F1 0.888 against 0.840, false closures 0/2/0/0 (1/0/0/0), 0 robots lost, closest
+  approach 4.70/6.44/5.25/5.89 m (4.90/5.50/5.22/4.33). Left: watchers reach their views
+  one at a time and through the walker's radio shadow; the GCS hears a walker seldom (seed
+  7 at ec6bf10: both watchers back in contact 10 m from it were sent to explore; why is
+  not known yet).
 * :class:`HostileLock`: bookkeeping of the lock: who saw the OOI when (the GCS's detections),
   since when two robots have kept it in view with no gap above ``view_gap_s``, and whether the
   lock has held ``lock_s``.
@@ -51,7 +70,14 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # at 0.8 m/s (robot.control.hostile_evasion: 6.95 m off), so a watcher placed nearer (at
     # 1.0: 6 m) backs away as soon as it sees the walker, and a sighting is seconds old
     margin_m: float = 2.5
-    view_range_m: float = 12.0
+    # the ring's outer edge: the rules' lock range is 12 m (sim.rules), and a walker walks on
+    view_range_m: float = 11.0
+    # within the ring, a view this far off the sighting is preferred: each metre off it costs
+    # range_weight metres of travel (view_positions)
+    view_pref_m: float = 9.0
+    range_weight: float = 3.0
+    # a view where the GCS has not heard robots costs this many metres more (view_positions)
+    unheard_cost_m: float = 4.0
     lock_s: float = 30.0
     view_gap_s: float = 1.5
     viewers: int = 2
@@ -88,6 +114,7 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
         for name in (
             "blast_radius_m",
             "view_range_m",
+            "view_pref_m",
             "lock_s",
             "view_gap_s",
             "watch_budget_s",
@@ -104,6 +131,10 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError(
                 f"hostile view_range_m {self.view_range_m} must exceed blast_radius_m + margin_m"
             )
+        for name in ("range_weight", "unheard_cost_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"hostile {name} must be finite and >= 0, got {v}")
         if self.viewers < 1:
             raise ValueError(f"hostile viewers must be >= 1, got {self.viewers}")
         if not (math.isfinite(self.max_watch_frac) and 0 <= self.max_watch_frac <= 1):
@@ -131,12 +162,21 @@ def view_positions(
     *,
     contact_in_map: ArrayLike | None = None,
     contact_radius_m: float = 2.0,
+    fixed_in_map: dict[int, tuple[float, float]] | None = None,
 ) -> dict[int, tuple[float, float]]:
     """``robot_id -> view position`` for up to ``viewers`` of ``robots_in_map`` (the nearest
-    first); robots with no admissible cell are left out. With ``contact_in_map`` ``(C, 2)``
-    (where the GCS heard robots at once), cells within ``contact_radius_m`` of one come
-    first, nearest first, then the others: the lock counts only sightings the GCS hears
-    (a watcher in a radio shadow cannot hold it)."""
+    first); robots with no admissible cell are left out. Of the admissible cells a robot
+    takes the one with the least straight-line distance from it plus ``range_weight`` times
+    the cell's distance from ``view_pref_m`` off the hostile (the nearest cell alone lies on
+    the ring's outer edge, out of view a few seconds after the walker walks on). With
+    ``contact_in_map`` ``(C, 2)`` (where the GCS heard robots at once), a cell farther than
+    ``contact_radius_m`` from all of them costs ``unheard_cost_m`` more: the GCS's own lock
+    bookkeeping hears only watchers in contact, but the rules' lock does not need the radio
+    (:mod:`sim.rules`), and contact first put every view on the ring's edge nearest the GCS
+    (small world at 38fac2c: views 10 to 17 m off the walker's loop, on its side towards the
+    GCS). ``fixed_in_map``: watchers that stay where they are (they
+    see the hostile now): they count among the ``viewers``, their bearings are taken, and
+    they are returned as they are."""
     h = np.asarray(hostile_in_map, dtype=np.float64).reshape(2)
     if not robots_in_map:
         return {}
@@ -163,19 +203,29 @@ def view_positions(
         near = np.abs(contact - h).max(axis=1) <= config.view_range_m + contact_radius_m
         for c in contact[near]:
             heard |= np.hypot(*(pts - c).T) <= contact_radius_m
-    order = sorted(robots_in_map, key=lambda rid: math.dist(robots_in_map[rid], h))
     out: dict[int, tuple[float, float]] = {}
     bearings: list[float] = []
+    for rid, q in (fixed_in_map or {}).items():
+        if len(out) >= config.viewers:
+            break
+        out[rid] = (float(q[0]), float(q[1]))
+        bearings.append(math.atan2(q[1] - h[1], q[0] - h[0]))
+    order = sorted(
+        (rid for rid in robots_in_map if rid not in out),
+        key=lambda rid: math.dist(robots_in_map[rid], h),
+    )
+    off_pref = config.range_weight * np.abs(d[ok] - config.view_pref_m)
     for rid in order:
         if len(out) >= config.viewers:
             break
         p = np.asarray(robots_in_map[rid], dtype=np.float64)
-        dist = np.hypot(*(pts - p).T)
+        dist = np.hypot(*(pts - p).T) + off_pref
         bearing = np.arctan2(pts[:, 1] - h[1], pts[:, 0] - h[0])
         for b in bearings:
             sep = np.abs((bearing - b + np.pi) % (2 * np.pi) - np.pi)
             dist = np.where(sep >= config.min_bearing_sep_rad, dist, np.inf)
-        for j in np.lexsort((dist, ~heard)):
+        dist = dist + np.where(heard, 0.0, config.unheard_cost_m)
+        for j in np.argsort(dist, kind="stable"):
             if not np.isfinite(dist[j]):
                 continue
             if line_of_sight(grid, pts[j], h):

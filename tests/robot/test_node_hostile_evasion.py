@@ -19,12 +19,16 @@ from protocol.messages import (
     RobotFrame,
     TaskStatus,
 )
-from robot.node import RobotNode
+from robot.control.hostile_evasion import EvasionConfig
+from robot.node import RobotNode, RobotNodeConfig
 from sim.simulator import Simulator
 from sim.world_generator import Human
 from tests.sim.simworlds import make_world
 
 pytestmark = pytest.mark.slow
+
+# keep_view is off by default (robot.control.hostile_evasion: its measurement)
+KEEP_VIEW = RobotNodeConfig(evasion=EvasionConfig(keep_view=True))
 
 HOSTILE_RGBA = (0.9, 0.05, 0.05, 1.0)
 START = (8.0, 10.0, 0.0)
@@ -135,3 +139,62 @@ def test_a_holding_robot_keeps_out_of_an_uncoloured_walker_coming_from_behind() 
     assert not events, events
     assert node.stats.evasions >= 1
     assert closest_m > 5.0, closest_m
+
+
+def test_a_robot_with_no_task_follows_a_walker_leaving_its_view() -> None:
+    # issue 14: the rules' lock needs the walker in view (within 12 m) for 30 s; a watcher
+    # that holds where the GCS sent it loses a walker walking on within seconds. Here the
+    # red walker starts 8 m east of an idle robot and walks east for 30 s (18 m)
+    start = (6.0, 10.0, 0.0)
+    route = ((14.0, 10.0), (38.0, 10.0))
+    world = make_world(
+        robots=((*start, "sensor"),),
+        humans=(Human(1, "hostile", route, 0.6, 0.25, 1.7, HOSTILE_RGBA),),
+        size_m=(40.0, 20.0),
+    )
+    closest_m, far_s = math.inf, 0.0
+    with Simulator(world) as sim:
+        node = RobotNode(0, send=lambda _m: None, config=KEEP_VIEW)
+        driver = sim.driver(0)
+        while sim.time_s < 30.0:
+            sim.step()
+            for command in node.process(driver.poll(0.0)):
+                driver.send(command)
+            pose = sim.robot_poses()[0]
+            d = math.hypot(*(pose[:2] - sim.routes.positions(sim.time_s)[0]))
+            closest_m = min(closest_m, d)
+            far_s += sim.config.step_s if d > 12.0 else 0.0  # out of the rules' lock range
+        events = [str(e) for e in sim.events]
+    assert not events, events
+    assert node.stats.keep_view_starts >= 1
+    assert closest_m > 5.0, closest_m
+    # holding where it stood it would be 26 m off at the end, out of range from 10 s on
+    assert far_s <= 3.0, far_s
+
+
+def test_a_robot_at_its_view_watches_on_through_a_silence_instead_of_going_back() -> None:
+    # issue 14: a watcher sent to a view of a hostile falls silent there (the small world's
+    # walker patrols a radio shadow); with no task left it went back to its last point of
+    # radio contact at once, away from the walker. The GCS is heard until 3 s; the robot
+    # drives 10 m east to its view, 10 m short of the hostile the GCS told it of
+    start = (4.0, 10.0, 0.0)
+    world = make_world(robots=((*start, "sensor"),), size_m=(40.0, 20.0))
+    with Simulator(world) as sim:
+        node = RobotNode(0, send=lambda _m: None, config=KEEP_VIEW)
+        frames = [RobotFrame(0, start)]
+        hazard = Hazard(7, ObjectKind.HOSTILE, (24.0, 10.0), 5.0)
+        node.handle_downlink(GoToTask(1, 0.0, [(10.0, 0.0)]))
+        driver = sim.driver(0)
+        next_heard = 1.0
+        while sim.time_s < 45.0:
+            sim.step()
+            if next_heard <= sim.time_s <= 3.0:
+                node.handle_downlink(HazardUpdate(sim.time_s, [hazard], frames))
+                next_heard += 1.0
+            for command in node.process(driver.poll(0.0)):
+                driver.send(command)
+        end = sim.robot_poses()[0]
+    assert node.tasks.state.name != "CONNECTED"  # the link is silent
+    assert node.tasks.current_task_id == 0  # its goal reached
+    # it stayed at its view, 10 m off the hostile, not back at the point of contact
+    assert float(np.hypot(end[0] - 14.0, end[1] - 10.0)) < 1.5, end

@@ -165,12 +165,13 @@ def test_a_silent_robots_goal_goes_to_another_once_it_is_lost() -> None:
 def test_a_robot_that_fell_silent_watching_a_hostile_is_not_sent_to_watch_it_again_soon() -> None:
     """Radio shadow: a watcher falls silent on its way to its view of a hostile and comes
     back (its comms watchdog returns it to where it last heard the GCS); it is not sent to
-    watch that hostile again for ``shadow_retry_s`` (a mission looped so from 95 s to the
-    end), then it is."""
+    watch that hostile again for ``view_shadow_retry_s`` when that is set (a mission looped
+    so from 95 s to the end), then it is (off by default since watchers hold at their view
+    through a silence: test_hostile_watch)."""
     occ = occupancy(blank(20, 20, FREE))
     hostile = Hazard(9, ObjectKind.HOSTILE, (15.0, 15.0), 5.0)
     r1, r2 = robot(1, (3.0, 3.0)), robot(2, (3.0, 5.0))
-    alloc = TaskAllocator(TaskingConfig(shadow_retry_s=60.0))
+    alloc = TaskAllocator(TaskingConfig(view_shadow_retry_s=60.0))
 
     def plan(t: float) -> None:
         state = TaskingState(occ, [r1, r2], hazards=[hostile])

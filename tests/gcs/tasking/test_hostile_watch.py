@@ -268,3 +268,60 @@ def test_the_exploration_shadow_rule_can_be_switched_off() -> None:
     alloc.plan(TaskingState(occupancy(v), [r]), now_s=20.0)
     g = alloc.assignments[1].goal_in_map
     assert g is not None and east is not None and math.dist(g, east) < 2.0
+
+
+def test_a_watcher_silent_at_its_view_watches_on_and_one_silent_on_its_way_is_kept_off() -> None:
+    # issue 14: the rules' lock does not need the radio; a watcher that fell silent at its
+    # view position was barred from that hostile for shadow_retry_s when heard again
+    v = blank(40, 40, FREE)
+    rs = [robot(1, (5.0, 5.0)), robot(2, (35.0, 5.0)), robot(3, (20.0, 38.0))]
+    h = Hazard(9, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    cfg = TaskingConfig(view_shadow_retry_s=90.0)
+    alloc = TaskAllocator(cfg)
+
+    def plan(t: float) -> dict[int, object]:
+        return dict(
+            alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {3: t}}), t)
+        )
+
+    msgs = plan(0.0)
+    there, on_way = sorted(on_watch(alloc))
+    r_there = next(r for r in rs if r.robot_id == there)
+    goal = alloc.assignments[there].goal_in_map
+    assert goal is not None
+    r_there.pose_in_map = (goal[0], goal[1], 0.0)
+    task = msgs[there]
+    assert isinstance(task, GoToTask)
+    r_there.status = TaskStatus(task.task_id, TaskState.SUCCEEDED, 1.0)
+    heard(rs, 2.0)
+    plan(2.0)
+    assert not math.isfinite(alloc.assignments[there].timeout_s)  # holding at its view
+    # both watchers fall silent; the third robot is heard
+    t = 2.0 + cfg.silent_after_s + 1.0
+    heard([r for r in rs if r.robot_id not in (there, on_way)], t)
+    plan(t)
+    shadowed = {e.robot_id for e in alloc.events if e.kind == "goal_in_shadow"}
+    assert shadowed == {on_way}
+
+
+def test_with_the_shadow_rule_off_a_watcher_that_fell_silent_on_its_way_is_sent_again() -> None:
+    # issue 14 (small world seed 7): both watchers fell silent on their way into the
+    # walker's radio shadow, were heard again 4 s later and, barred for 90 s, sent to explore
+    v = blank(40, 40, FREE)
+    rs = [robot(1, (5.0, 5.0)), robot(2, (35.0, 5.0))]
+    h = Hazard(9, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    cfg = TaskingConfig(view_shadow_retry_s=0.0)
+    alloc = TaskAllocator(cfg)
+
+    def plan(t: float) -> None:
+        alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {1: t}}), t)
+
+    plan(0.0)
+    assert sorted(on_watch(alloc)) == [1, 2]
+    t = cfg.silent_after_s + 1.0  # both silent on their way
+    plan(t)
+    assert not [e for e in alloc.events if e.kind == "goal_in_shadow"]
+    t += 4.0
+    heard(rs, t)  # heard again
+    plan(t)
+    assert sorted(on_watch(alloc)) == [1, 2]

@@ -92,3 +92,25 @@ def test_a_walker_is_walking_and_a_post_whose_segment_jitters_is_not() -> None:
     # do not count
     assert not walking(walker[-5:], now, CFG)
     assert not walking(walker, now + 10.0, CFG)
+
+
+def test_an_idle_robot_follows_a_walker_leaving_its_view_and_stays_when_it_is_near() -> None:
+    from robot.control.hostile_evasion import keep_in_view_goal
+
+    cfg = EvasionConfig(keep_view=True)  # off by default (its docstring's measurement)
+    p = np.array([0.0, 0.0])
+    walker = np.array([[12.0, 0.0, 0.6, 0.0]])  # walking away, 12 m off
+    goal = keep_in_view_goal(p, walker, cfg, following=False)
+    assert goal is not None and np.allclose(goal, [12.0 - cfg.keep_m, 0.0])
+    # within keep_far_m it stays; once following, it goes on to keep_m + keep_arrive_m
+    mid = np.array([[9.5, 0.0, 0.0, 0.0]])
+    assert keep_in_view_goal(p, mid, cfg, following=False) is None
+    assert keep_in_view_goal(p, mid, cfg, following=True) is not None
+    # too far to be its watch (beyond keep_within_m), or none: it stays
+    assert keep_in_view_goal(p, np.array([[30.0, 0.0, 0.0, 0.0]]), cfg, following=True) is None
+    assert keep_in_view_goal(p, np.zeros((0, 4)), cfg, following=True) is None
+    # the goal is outside the distance at which it would back away from a still walker
+    assert hostile_threat(goal, np.array([[12.0, 0.0, 0.0, 0.0]]), cfg) >= (
+        cfg.blast_radius_m + cfg.margin_m
+    )
+    assert keep_in_view_goal(p, walker, EvasionConfig(keep_view=False), following=False) is None
