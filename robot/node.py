@@ -760,7 +760,7 @@ class RobotNode:
         # requested: what the wheels did (the odometry's travel without the slip it already
         # takes out), else the slip corrected on board would read as firm ground
         scale = self.odometry.distance_scale_between(prev_time_s, time_s)
-        requested_m = travel / max(scale, 1e-3) if cfg.slip_correct_position else travel
+        requested_m = travel / max(scale, 1e-3)
         self.traversability.observe(
             float(mid[0]),
             float(mid[1]),
