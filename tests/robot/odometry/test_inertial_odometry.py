@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -23,6 +24,7 @@ from robot.odometry.inertial_odometry import (
 from robot.odometry.pose_node_maker import PoseNodeMaker
 
 M_PER_TICK = 0.0007
+ACCEL_SLIP_STEP_M_S = 0.1  # the measured setting (robot.odometry.inertial_odometry)
 
 
 def drive(
@@ -46,6 +48,7 @@ def drive(
     t = 0.0
     dist = 0.0
     half_track = 0.25
+    v_prev = 0.0  # the accelerometer feels every change of speed (here all within a sample)
     odo.add_imu(ImuSample(0.0, (0.0, 0.0, bias), (0.0, 0.0, GRAVITY_M_S2)))
     odo.add_ticks(WheelTicks(0.0, 0, 0))
     for duration, v, w in segments:
@@ -62,7 +65,8 @@ def drive(
             bias += bias_walk * math.sqrt(dt) * rng.standard_normal()
             vib = 0.3 * rng.standard_normal(3) if (v or w) else 0.002 * rng.standard_normal(3)
             gyro = (0.0, 0.0, w + bias + gyro_noise / math.sqrt(dt) * rng.standard_normal())
-            accel = (vib[0], vib[1], GRAVITY_M_S2 + vib[2])
+            accel = (vib[0] + (v - v_prev) / dt, vib[1], GRAVITY_M_S2 + vib[2])
+            v_prev = v
             odo.add_imu(ImuSample(t, gyro, accel))
             odo.add_ticks(WheelTicks(t, int(left), int(right)))
     return odo, np.array([x, y, float(wrap_angle(yaw))]), dist
@@ -421,3 +425,130 @@ def test_shift_position_moves_the_history_with_the_pose() -> None:
     assert odo.pose_at(0.5)[:2] == pytest.approx(before[:2] + np.array([-0.2, 0.1]))
     with pytest.raises(ValueError, match="shift_position"):
         odo.shift_position(math.nan, 0.0)
+
+
+def drive_over_slip(
+    segments: list[tuple[float, float, float]],
+    *,
+    config: OdometryConfig,
+    rate_hz: float = 20.0,
+    accel_noise: float = 0.03,
+    seed: int = 0,
+    weave_rad_s: float = 0.0,
+) -> tuple[InertialOdometry, float, list[OdometryIncrement]]:
+    """Straight ``(duration_s, wheel_speed_m_s, slip)`` segments: the wheels turn at the
+    speed (reaching it at 1 m/s^2), the body moves ``1 - slip`` of it (sand the encoders do
+    not see); the accelerometer feels the body's changes of speed. ``weave_rad_s``: the
+    wheels also weave left and right at up to this rate (period 4 s), the body turning
+    ``1 - slip / 2`` of it, as the simulator's skid steer does. Returns the odometry, the
+    true distance and the increments."""
+    rng = np.random.default_rng(seed)
+    odo = InertialOdometry(config)
+    dt = 1.0 / rate_hz
+    t = wheel_v = body_v = wheel = dist = turn = 0.0
+    odo.add_imu(ImuSample(0.0, (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY_M_S2)))
+    odo.add_ticks(WheelTicks(0.0, 0, 0))
+    incs = []
+    for duration, v, slip in segments:
+        for _ in range(int(round(duration * rate_hz))):
+            t += dt
+            wheel_v += float(np.clip(v - wheel_v, -dt, dt))
+            new_body_v = wheel_v * (1.0 - slip)
+            ax = (new_body_v - body_v) / dt + accel_noise * rng.standard_normal()
+            body_v = new_body_v
+            wheel += wheel_v * dt
+            dist += body_v * dt
+            az = GRAVITY_M_S2 + accel_noise * rng.standard_normal()
+            w = weave_rad_s * math.sin(0.5 * math.pi * t) if wheel_v > 0 else 0.0
+            turn += w * 0.25 * dt  # half the 0.5 m track
+            gyro = (0.0, 0.0, w * (1.0 - 0.5 * slip))
+            odo.add_imu(ImuSample(t, gyro, (ax, 0.0, az)))
+            left, right = int((wheel - turn) / M_PER_TICK), int((wheel + turn) / M_PER_TICK)
+            inc = odo.add_ticks(WheelTicks(t, left, right))
+            if inc is not None:
+                incs.append(inc)
+    return odo, dist, incs
+
+
+def test_accelerometer_sees_the_slip_the_wheels_cannot() -> None:
+    """Sand (25 % slip) crossed at 0.8 m/s: the body slows when it enters and speeds up when
+    it leaves while the wheels keep turning alike; the accelerometer measures both steps, the
+    distance over the sand is scaled by the traction they give, and its variance grows."""
+    sand = [(3.0, 0.0, 0.0), (6.0, 0.8, 0.0), (8.0, 0.8, 0.25), (6.0, 0.8, 0.0), (2.0, 0.0, 0.0)]
+    on = OdometryConfig(m_per_tick=M_PER_TICK, accel_slip_step_m_s=ACCEL_SLIP_STEP_M_S)
+    odo, dist, incs = drive_over_slip(sand, config=on)
+    assert odo.accel_slip_steps == 2  # in, out
+    assert abs(odo.distance_m - dist) < 0.1
+    assert sum(i.distance_var_m2 for i in incs) > 0.3 * (0.3 * 0.25) ** 2 * 6.0
+    off = OdometryConfig(m_per_tick=M_PER_TICK, accel_slip_step_m_s=0.0)
+    odo_off, dist_off, incs_off = drive_over_slip(sand, config=off)
+    assert odo_off.accel_slip_steps == 0
+    assert odo_off.distance_m - dist_off > 1.2  # the slip, 0.25 of 6.4 m, uncorrected
+    assert sum(i.distance_var_m2 for i in incs_off) == 0.0
+
+
+def test_leaving_the_sand_ends_the_turn_traction_learnt_on_it() -> None:
+    """Weaving over the sand, the body turns less than the wheels: the turn traction learns a
+    loss. Leaving it (the accelerometer's step back), that loss is the sand's, not the firm
+    ground's: the distance after the sand is not scaled by it."""
+    cfg = OdometryConfig(
+        m_per_tick=M_PER_TICK,
+        effective_track_m=0.5,
+        slip_per_skid=1.5,
+        accel_slip_step_m_s=ACCEL_SLIP_STEP_M_S,
+    )
+    segs = [(3.0, 0.0, 0.0), (5.0, 0.8, 0.0), (8.0, 0.8, 0.25)]
+    odo, dist, _ = drive_over_slip(segs, config=cfg, weave_rad_s=0.6)
+    assert odo.skid_loss > 0.1  # learnt on the sand
+    on_sand = odo.distance_m - dist
+    odo, dist, _ = drive_over_slip(segs + [(8.0, 0.8, 0.0)], config=cfg, weave_rad_s=0.6)
+    assert odo.accel_slip_steps == 2
+    assert abs(odo.distance_m - dist - on_sand) < 0.1  # 6.3 m after the sand, as driven
+
+
+def test_accelerometer_slip_is_forgotten_when_the_wheels_stop() -> None:
+    """A stop in the sand ends what is known of the ground: the traction returns to 1."""
+    on = OdometryConfig(m_per_tick=M_PER_TICK, accel_slip_step_m_s=ACCEL_SLIP_STEP_M_S)
+    odo, _, _ = drive_over_slip([(3.0, 0.0, 0.0), (5.0, 0.8, 0.0), (4.0, 0.8, 0.25)], config=on)
+    assert odo.inertial_traction == pytest.approx(0.75, abs=0.03)
+    odo, _, _ = drive_over_slip(
+        [(3.0, 0.0, 0.0), (5.0, 0.8, 0.0), (4.0, 0.8, 0.25), (2.0, 0.0, 0.25)], config=on
+    )
+    assert odo.inertial_traction == 1.0
+    # and so is the turn traction learnt weaving over the sand: after a stop at its edge, the
+    # firm ground beyond is driven at the calibrated scale
+    skid = msgspec.structs.replace(on, effective_track_m=0.5, slip_per_skid=1.5)
+    segs = [(3.0, 0.0, 0.0), (5.0, 0.8, 0.0), (8.0, 0.8, 0.25), (2.0, 0.0, 0.25)]
+    odo, dist, _ = drive_over_slip(segs, config=skid, weave_rad_s=0.6)
+    at_stop = odo.distance_m - dist
+    odo, dist, _ = drive_over_slip(segs + [(8.0, 0.8, 0.0)], config=skid, weave_rad_s=0.6)
+    assert abs(odo.distance_m - dist - at_stop) < 0.1
+
+
+def test_accelerometer_slip_ignores_starts_stops_and_noise() -> None:
+    """Firm ground with the wheels' own starts, stops and changes of speed (the body follows
+    them) and an accelerometer three times as noisy as the simulated one: no slip step is
+    seen, the distance stays right."""
+    firm = []
+    for k in range(12):
+        firm += [(2.0, 0.0, 0.0), (5.0, 0.3 + 0.06 * k, 0.0), (3.0, 0.9 - 0.05 * k, 0.0)]
+    odo, dist, _ = drive_over_slip(
+        firm,
+        config=OdometryConfig(m_per_tick=M_PER_TICK, accel_slip_step_m_s=ACCEL_SLIP_STEP_M_S),
+        accel_noise=0.1,
+        seed=4,
+    )
+    assert dist > 50.0
+    assert odo.accel_slip_steps == 0
+    assert abs(odo.distance_m - dist) < 0.005 * dist
+
+
+def test_accelerometer_slip_ignores_wheel_count_jitter() -> None:
+    """The wheels' counts jitter 5 % per 100 Hz reading (the zero-velocity drive's slip
+    noise): one reading's speed change is noise; the means over the windows see no step."""
+    stop_and_go = []
+    for k in range(4):
+        stop_and_go += [(5.0, 0.0, 0.0), (40.0, 0.5, 0.05 * (-1) ** k)]
+    on = OdometryConfig(m_per_tick=M_PER_TICK, accel_slip_step_m_s=ACCEL_SLIP_STEP_M_S)
+    odo, _, _ = drive(stop_and_go, odo=InertialOdometry(on), slip_std=0.05, seed=3)
+    assert odo.accel_slip_steps == 0
