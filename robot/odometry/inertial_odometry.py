@@ -81,7 +81,16 @@ so:
   closures 1/0/0/0 -> 0/0/0/0, no robot lost, explored median 0.941 -> 0.920 (seed 0's
   worse ATE: robots 1 and 2 turned about 1 deg off the anchor before the sand, the same
   odometry edges as the baseline's; the closures placed them otherwise). Seed 7, robot 0's
-  four nodes over the sand: 0.27-0.31 m too long each -> 0.11-0.15 m;
+  four nodes over the sand: 0.27-0.31 m too long each -> 0.11-0.15 m. At ff687aa (after
+  03e9b05's hostile watch) with it on (load ~6): ATE 0.208/0.428/0.125/0.122 ->
+  0.265/0.110/0.073/0.108 m (median 0.166 -> 0.109), F1 0.875/0.828/0.901/0.905 ->
+  0.773/0.800/0.932/0.929 (median 0.888 -> 0.865), false closures 0/2/0/0 -> 0/0/1/1,
+  none lost: F1 is scored in the map anchored at robot 0's start, and seeds 0 and 7 placed
+  whole robots 0.25-0.8 m off it where their own trajectories were right (ATE aligned per
+  run 0.11 m on seed 7, F1 0.800 against 0.963 at the true poses): not turned on. Not
+  adding the turn traction's variance while this traction governs (seed 0's robot 2 sent
+  sand nodes right to 0.03 m with sigmas of 0.3 m) measured worse: ATE median 0.155, F1
+  0.844, 6 false closures;
 * **heading aided by the LIDAR** (:meth:`InertialOdometry.correct_heading`, paper 4.1's
   laser-aided odometry): a sweep matched against the last few
   (:class:`robot.odometry.scan_odometry.ScanOdometry`) says how far the heading drifted since
