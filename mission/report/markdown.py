@@ -32,6 +32,7 @@ _HEADLINE: tuple[tuple[str, str, str], ...] = (
     ("closure_error_max_m", "largest closure error (m)", "f3"),
     ("ate_rmse_m", "ATE RMSE (m)", "f3"),
     ("occupancy_f1", "occupancy F1 of the global map", "f3"),
+    ("occupancy_f1_aligned", "... with the map aligned as for the ATE", "f3"),
     ("occupancy_precision", "occupancy precision", "f3"),
     ("occupancy_recall", "occupancy recall", "f3"),
     ("uplink_bps", "uplink, team (bit/s)", "f0"),

@@ -23,7 +23,9 @@ Metrics (all floats; NaN where the record cannot say, e.g. no pose node yet):
 * estimation: ``closures`` (automatic loop closures accepted), ``false_closures``,
   ``closure_error_max_m``; the same for ``fiducial_edges`` and ``operator_edges`` (start
   hints and accepted suggestions); ``ate_rmse_m``, ``occupancy_f1`` / ``_precision`` /
-  ``_recall``;
+  ``_recall`` (the map in the GCS's frame, anchored at the first robot's start as the run
+  placed it), ``occupancy_f1_aligned`` (the map moved by the rigid alignment the ATE uses: its
+  shape apart from its anchoring; a diagnostic, not the issue's metric);
 * radio: ``uplink_bps``, ``downlink_bps`` (team) and per robot ``robot<id>.uplink_bps``,
   ``robot<id>.downlink_bps``, ``robot<id>.radio_share``; ``broadcast_radio_share`` (the
   GCS's broadcasts to the team, metered once); ``radio_use_frac`` (all traffic over
@@ -52,7 +54,12 @@ from mission.report.map_scoring import (
     occupancy_scores,
 )
 from mission.report.recorder import FORMAT_VERSION, ReportConfig
-from mission.report.trajectory_scoring import ate_rmse_m, closure_errors, false_closures
+from mission.report.trajectory_scoring import (
+    ate_rmse_m,
+    closure_errors,
+    false_closures,
+    rigid_world_from_map,
+)
 
 __all__ = ["RunDirError", "RunRecord", "build_report", "load_run", "score_run"]
 
@@ -528,6 +535,18 @@ def score_run(record: RunRecord) -> Scored:
             if np.count_nonzero(ok) >= 3
             else math.nan
         )
+        metrics["occupancy_f1_aligned"] = math.nan
+        if occupancy is not None and np.count_nonzero(ok) >= 3:
+            aligned = rigid_world_from_map(
+                f["node_map_from_base"][ok], f["node_world_from_base"][ok]
+            )
+            metrics["occupancy_f1_aligned"] = occupancy_scores(
+                occupancy,
+                record.truth_occupied,
+                res,
+                aligned,
+                tolerance_m=cfg.occupancy_tolerance_m,
+            ).f1
         for prefix, count, false_name in (
             ("closure", "closures", "false_closures"),
             ("fiducial", "fiducial_edges", "false_fiducial_edges"),
@@ -546,9 +565,9 @@ def score_run(record: RunRecord) -> Scored:
         ka, kb = f["closure_key_a"], f["closure_key_b"]
         metrics["cross_robot_closures"] = float(np.count_nonzero((ka >> 32) != (kb >> 32)))
     else:
-        for k in ("pose_nodes", "ate_rmse_m", "closures", "cross_robot_closures",
-                  "false_closures", "closure_error_max_m", "closure_error_median_m",
-                  "fiducial_edges", "false_fiducial_edges"):  # fmt: skip
+        for k in ("pose_nodes", "ate_rmse_m", "occupancy_f1_aligned", "closures",
+                  "cross_robot_closures", "false_closures", "closure_error_max_m",
+                  "closure_error_median_m", "fiducial_edges", "false_fiducial_edges"):  # fmt: skip
             metrics[k] = math.nan
     if record.track_t is not None and len(record.track_t) >= 2:
         metrics["truth_period_s"] = float(np.median(np.diff(record.track_t)))

@@ -7,7 +7,9 @@
   pose of its two nodes; a *false* closure is off by more than ``max_m`` or ``max_rad`` (the
   issue's 0.5 m / 5 deg).
 * ATE RMSE is :func:`mission.team_mapping.ate_rmse_m` (rigid 2D alignment, no scale),
-  re-exported here.
+  re-exported here; :func:`rigid_world_from_map` is that alignment as a pose, so that the map
+  can be scored in it too (``occupancy_f1_aligned``: the map's shape apart from where the
+  GCS's frame was anchored).
 """
 
 from __future__ import annotations
@@ -20,7 +22,13 @@ from numpy.typing import NDArray
 from mission.team_mapping import ate_rmse_m
 from protocol.se2 import relative, wrap_angle
 
-__all__ = ["ate_rmse_m", "closure_errors", "false_closures", "interpolate_poses"]
+__all__ = [
+    "ate_rmse_m",
+    "closure_errors",
+    "false_closures",
+    "interpolate_poses",
+    "rigid_world_from_map",
+]
 
 
 def interpolate_poses(
@@ -43,6 +51,22 @@ def interpolate_poses(
     xy = a[:, :2] + w * (b[:, :2] - a[:, :2])
     yaw = wrap_angle(a[:, 2] + w[:, 0] * wrap_angle(b[:, 2] - a[:, 2]))
     return np.column_stack([xy, yaw])
+
+
+def rigid_world_from_map(
+    map_from_base: NDArray[np.float64], world_from_base: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """``world_from_map`` ``(3,)``: the rigid 2D transform (Umeyama without scale, as
+    :func:`ate_rmse_m`) that takes the estimated positions ``map_from_base`` ``(N, 3)`` closest
+    to the true ``world_from_base`` ``(N, 3)`` in least squares."""
+    e = np.asarray(map_from_base, dtype=np.float64)[:, :2]
+    t = np.asarray(world_from_base, dtype=np.float64)[:, :2]
+    me, mt = e.mean(axis=0), t.mean(axis=0)
+    u, _, vt = np.linalg.svd((e - me).T @ (t - mt))
+    d = np.sign(np.linalg.det(u @ vt))
+    r = (u @ np.diag([1.0, d]) @ vt).T
+    xy = mt - r @ me
+    return np.array([xy[0], xy[1], math.atan2(r[1, 0], r[0, 0])])
 
 
 def closure_errors(
