@@ -12,7 +12,8 @@ lockstep, recorded and scored by :mod:`mission.report` in a run directory under
 
 Metrics (the issue's names): the worst over the seeds, each also per seed (``name.seedN``):
 ``explored_frac``, ``static_ooi_detected_frac``, ``static_ooi_neutralized_frac``,
-``hostiles_neutralized_frac``, ``occupancy_f1`` (lowest); ``robots_lost``,
+``hostiles_neutralized_frac``, ``occupancy_f1`` (lowest; also ``occupancy_f1_aligned``, the
+map scored after the ATE's rigid alignment, a diagnostic); ``robots_lost``,
 ``civilians_harmed``, ``false_closures``, ``ate_rmse_m``, ``radio_use_frac`` (highest);
 ``rtf``: whole-system mission-s per wall second (lowest; setup excluded); ``wall_s``: the
 bench's own wall time; ``tasks_sent``, ``closures`` (sum over the seeds). A metric the report
@@ -43,6 +44,7 @@ _LOWEST = (
     "static_ooi_neutralized_frac",
     "hostiles_neutralized_frac",
     "occupancy_f1",
+    "occupancy_f1_aligned",
     "rtf",
 )
 _HIGHEST = (
