@@ -1439,13 +1439,17 @@ class RobotNode:
             and not self._evading
         )
         h = self._own_hostiles
-        # its own hostile, or one the GCS told it of lately (a watcher at its view position
-        # while the walker is on the far side of its loop), near
-        told = [(x, y) for x, y, t in self._hazard_heard.values() if now - t <= cfg.keep_heard_s]
-        near_xy = np.vstack([h[:, :2], np.asarray(told, dtype=np.float64).reshape(-1, 2)])
-        near = free and bool(
-            len(near_xy) and float(np.hypot(*(near_xy - pose[:2]).T).min()) <= cfg.keep_within_m
-        )
+        near = False
+        if free:  # (every control step: the lookup only when it may watch)
+            # its own hostile, or one the GCS told it of lately (a watcher at its view position
+            # while the walker is on the far side of its loop), near
+            told = [
+                (x, y) for x, y, t in self._hazard_heard.values() if now - t <= cfg.keep_heard_s
+            ]
+            near_xy = np.vstack([h[:, :2], np.asarray(told, dtype=np.float64).reshape(-1, 2)])
+            near = bool(
+                len(near_xy) and float(np.hypot(*(near_xy - pose[:2]).T).min()) <= cfg.keep_within_m
+            )
         if near and self._watch_since_s is None:
             self._watch_since_s = now
         elif not near:
