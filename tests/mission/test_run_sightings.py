@@ -66,7 +66,7 @@ def test_a_robot_watching_a_hostile_records_sightings_where_the_hostile_is(
     for e in seen:
         t_s = float(e["t_s"])  # type: ignore[arg-type]
         k = int(np.argmin(np.abs(track[:, 0] - t_s)))
-        x_w, y_w = e["position_world"]  # type: ignore[misc]
+        x_w, y_w = (float(v) for v in e["position_world"])  # type: ignore[attr-defined]
         err_m.append((t_s, math.hypot(x_w - track[k, 1], y_w - track[k, 2])))
         line_m.append(abs(x_w - ROUTE[0][0]))
     print("sighting errors (t_s, m):", np.round(err_m, 2))
