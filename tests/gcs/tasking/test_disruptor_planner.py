@@ -18,7 +18,7 @@ from gcs.tasking.trajectory_graph import build_trajectory_graph
 from tests.gcs.tasking.maps import FREE, OCCUPIED, RES, blank, box, occupancy
 
 CFG = DisruptorConfig()
-NO_CLEAR = DisruptorConfig(los_clear_m=0.0)
+NO_CLEAR = DisruptorConfig(los_clear_m=0.0, ooi_blob_m=0.0)
 
 
 def _poly(*corners: tuple[float, float], step: float = 0.5) -> np.ndarray:
@@ -98,7 +98,7 @@ def test_an_ooi_that_is_an_obstacle_in_the_map_can_still_be_seen() -> None:
     box(v, 15.5, 4.5, 16.75, 5.75, OCCUPIED)  # the OOI and the cells around it
     g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
     hw = _highway(_poly((1, 5), (11, 5)))
-    clear = DisruptorConfig(los_clear_m=1.0)
+    clear = DisruptorConfig(los_clear_m=1.0, ooi_blob_m=0.0)
     nodes = neutralization_nodes(g, hw, (16.0, 5.0), [(16.0, 5.0)], clear)
     assert nodes.size > 0
     assert min(math.dist(hw.nodes_in_map[i], (16.0, 5.0)) for i in nodes) >= 3.5
@@ -187,3 +187,30 @@ def test_after_a_failed_view_the_disruptor_goes_to_another_side_of_the_ooi() -> 
         g, only, 1, ooi, [ooi], {3: (5.0, 20.0)}, None, CFG, failed_views_in_map=everywhere
     )
     assert last is not None
+
+
+def test_the_oois_own_blob_does_not_hide_it_however_near_the_viewer_it_reaches() -> None:
+    """The OOI's occupied cells reach 0.75 m towards the road from the sighting (the sighting
+    placed behind the cylinder's scanned face, coarse cells inflating it): beyond
+    los_clear_m (0.5 m), so with ooi_blob_m 0 no waypoint sees it (small world seed 0 at
+    8183549: the road 6.2 m off was refused, the disruptor went 58 m round to a pose 9.7 m
+    off and never found the OOI); the blob is wholly within ooi_blob_m (1 m) of the sighting,
+    so by default it is the OOI itself and the road sees it. The same blob joined to a wall
+    still blocks."""
+    v = blank(30, 10, FREE)
+    box(v, 15.25, 4.75, 16.0, 5.25, OCCUPIED)  # the scanned face, west of the sighting
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    hw = _highway(_poly((1, 5), (11, 5)))
+    sighting = (16.0, 5.0)
+    off = DisruptorConfig(ooi_blob_m=0.0)
+    assert neutralization_nodes(g, hw, sighting, [sighting], off).size == 0
+    nodes = neutralization_nodes(g, hw, sighting, [sighting], CFG)
+    assert nodes.size > 0
+    assert min(math.dist(hw.nodes_in_map[i], sighting) for i in nodes) >= 3.5
+    # the grid itself is left as it was
+    assert not line_of_sight(g, hw.nodes_in_map[nodes[0]], (15.45, 5.0))
+    box(v, 15.25, 5.0, 15.5, 10, OCCUPIED)  # a wall the blob is part of
+    g = coarsen(occupancy(v), resolution_m=RES, robot_radius_m=0.3)
+    assert neutralization_nodes(g, hw, sighting, [sighting], CFG).size == 0
+    with pytest.raises(ValueError, match="ooi_blob_m"):
+        DisruptorConfig(ooi_blob_m=-1.0)
