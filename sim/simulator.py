@@ -108,7 +108,17 @@ class SimulatorConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     ``render_workers``: a process with a copy of the scene that renders the camera images
     while the robots and the ground side work, started at the first image request (-1: one
     when there are two cores; 0: images rendered in this process; the same pixels either
-    way, :mod:`sim.render_worker`)."""
+    way, :mod:`sim.render_worker`).
+
+    ``step_s`` 0.1 (10 Hz: control, IMU, encoders, two LIDAR lines a step) measured on the
+    quick mission (issue 14, session 15, at 8183549, seeds 0 / 7 / 3 / 11, together with
+    the perception's 2 s tag images at 240 x 180, see ``PerceptionConfig``): 93.4 / 95.7 /
+    99.2 / 92.5 CPU-s a run against 120.8 / 124.8 (seeds 0 / 7) at 0.05 (load 10-16; the
+    robot nodes' control 12 -> 7.5, the step 20.5 -> 17, the ground side's per-step work
+    halved), but the map worse: ATE median 0.144 -> 0.212 m (0.102 / 0.218 / 0.398 /
+    0.207), F1 median 0.906 -> 0.774 (0.849 / 0.767 / 0.724 / 0.781); the same perception
+    alone gave 0.195 m / 0.864, so most of the loss is the 10 Hz odometry (the gyro's
+    noise and turns integrated at half the rate). Stays 0.05."""
 
     step_s: float = 0.05
     seed: int = 0

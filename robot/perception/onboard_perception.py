@@ -115,7 +115,16 @@ class PerceptionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     # every fiducial_period_s a coarse image of now (1 s: the 60 deg view pans 0.8 rad, so
     # consecutive images leave no gap); one showing a teammate's tag is asked
     # again at fiducial_width_px x fiducial_height_px for the pose (yaw p95 at 1-3 m: 6.6 deg
-    # at 320x240, 1.3 deg at 640x480); 0: tags only in images asked for objects
+    # at 320x240, 1.3 deg at 640x480); 0: tags only in images asked for objects.
+    # Issue 14, session 15 (quick mission at 8183549, seeds 0 / 7 / 3 / 11, thread CPU at
+    # load 10-16): these images are most of the render worker's ~1830 a run (22.1 / 23.4
+    # CPU-s of the run's 120.8 / 124.8, seeds 0 / 7). Every 2 s with the memory at 240 x 180
+    # (the colour tests' largest size too): 1115-1284 images, render 11.2 / 8.7 / 9.9 / 9.0,
+    # runs 106.7 / 104.2 / 107.2 / 105.7 CPU-s; but ATE 0.086 / 0.252 / 0.218 / 0.172 m
+    # (median 0.144 -> 0.195), F1 0.946 / 0.571 / 0.843 / 0.885 (0.906 -> 0.864), false
+    # closures 0 / 2 / 0 / 0 (0 / 0 / 1 / 0), explored median 0.920 -> 0.938, every static
+    # OOI detected and neutralized: not kept (fiducial edges 4 / 3 / 0 / 1 against 1 / 10 /
+    # 4 / 1: other sightings, another map)
     fiducial_period_s: float = 1.0
     fiducial_width_px: int = 640
     fiducial_height_px: int = 480
