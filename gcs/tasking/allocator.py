@@ -167,6 +167,14 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # world seed 7 at ec6bf10: 122.6 s silent, 126.8 s back and off exploring); 0 goes with
     # the robots' keep_view (robot.control.hostile_evasion, off: its measurement there)
     view_shadow_retry_s: float = 90.0
+    # a watcher (hostile_view) heard again after a silence keeps its watch while its hostile
+    # is live, rather than being re-planned (sent exploring): a watcher keeping the walker
+    # in view in its radio shadow came back in contact 8-11 m from it and was sent off
+    # (small world seed 7 at ec6bf10, 126.8 s). Off by default: it goes with the robots'
+    # keep_view (robot.control.hostile_evasion, off; without it a watcher back from its
+    # silence stands at its point of contact, idle, counted as watching). Measured with it,
+    # keep_view and view_shadow_retry_s 0 in keep_view's docstring (session 15)
+    watch_on_return: bool = False
     # ... nor given an exploration goal within shadow_goal_radius_m of the one it fell
     # silent on, for shadow_retry_s (issue 17); 0: off. Small world, 300 s, seeds 0/7/3/11,
     # with the hostile rules: 2 m explored 0.878/0.843/0.960/0.948 (ATE 0.23/0.55/0.19/0.13),
@@ -705,8 +713,21 @@ class TaskAllocator:
                 if ":released" not in p and ":dropped" not in p:
                     self.assignments[rid].purpose = p + ":released"
             if not silent and not lost and (rid in self._silent or rid in self._lost):
-                self._event(ctx, "robot_back", rid, f"robot {rid} heard again: re-planned")
-                self.assignments.pop(rid, None)
+                a = self.assignments.get(rid)
+                if (
+                    cfg.watch_on_return
+                    and a is not None
+                    and a.purpose == "hostile_view:released"
+                    and a.hazard_id is not None
+                    and any(h.hazard_id == a.hazard_id for h in ctx.hostiles_live)
+                ):
+                    # a watcher heard again watches on (the hostile planner re-places or
+                    # releases it): it may have kept the walker in view all the while
+                    a.purpose = "hostile_view"
+                    self._event(ctx, "robot_back", rid, f"robot {rid} heard again: watches on")
+                else:
+                    self._event(ctx, "robot_back", rid, f"robot {rid} heard again: re-planned")
+                    self.assignments.pop(rid, None)
                 self._lost.discard(rid)
             if silent:
                 self._silent.add(rid)
@@ -1015,6 +1036,8 @@ class TaskAllocator:
             if a.purpose == "hostile_view" and a.hazard_id not in current:
                 del self.assignments[rid]
         watched: list[tuple[float, float]] = []
+        watched_ids: list[int | None] = []  # the hazard each of watched stands for
+        live_ids: set[int] = set()  # of those, the ones that may be watched now
         candidates: list[Hazard] = []
         # the latest seen first: of sightings of one walking hostile, the freshest is watched
         for h in sorted(
@@ -1024,6 +1047,7 @@ class TaskAllocator:
             hid = h.hazard_id
             if hid in self.neutralized or hid in ctx.state.neutralized_hazard_ids:
                 watched.append(h.position_in_map)  # its other sightings are done with it
+                watched_ids.append(None)
                 continue
             st = self._lock.update(hid, seen.get(hid, {}), ctx.now_s)
             if st.locked:
@@ -1034,11 +1058,28 @@ class TaskAllocator:
                 self._release_viewers(hid)
                 self._watch_done(h.position_in_map)
                 watched.append(h.position_in_map)
+                watched_ids.append(None)
                 continue
             if any(math.dist(h.position_in_map, w) < cfg.same_hostile_m for w in watched):
-                self._release_viewers(hid)  # another sighting of one handled (or paused)
+                # another sighting of one handled (or paused): its watchers watch that one
+                # (HostileConfig.self_watch_m), else they are free
+                kept = next(
+                    (
+                        k
+                        for w, k in zip(watched, watched_ids, strict=True)
+                        if math.dist(h.position_in_map, w) < cfg.same_hostile_m
+                    ),
+                    None,
+                )
+                if cfg.self_watch_m > 0 and kept is not None and kept in live_ids:
+                    for a in self.assignments.values():
+                        if a.purpose == "hostile_view" and a.hazard_id == hid:
+                            a.hazard_id = kept
+                else:
+                    self._release_viewers(hid)
                 continue
             watched.append(h.position_in_map)
+            watched_ids.append(hid)
             if ctx.now_s - last_seen(h) > cfg.watch_fresh_s and st.since_s is None:
                 self._unwatch(h)  # stale: the walker is elsewhere
                 continue
@@ -1047,6 +1088,7 @@ class TaskAllocator:
                 self._release_viewers(hid)
                 continue
             candidates.append(h)
+            live_ids.add(hid)
         sensors = sum(1 for r in ctx.available.values() if r.role == Role.SENSOR)
         slots = watch_slots(sensors, cfg)
         # hostiles already watched keep their watchers (no churn), then the freshest
@@ -1146,11 +1188,18 @@ class TaskAllocator:
         # watchers that see it now stay where they are (they keep it in view themselves);
         # the others are placed around them
         seen = ctx.state.hostile_seen_s.get(hid, {})
+        # ... and so do watchers (at their views or on their way) within self_watch_m of the
+        # sighting: the GCS seldom hears them see it (the walker's radio shadow), and a new
+        # view from a sighting seconds old sent them off it (small world seed 7: a watcher
+        # 9 m from the walker sent to a view 16 m from it)
         fixed = {
             rid: self._position(ctx.available[rid])
             for rid in viewers
-            if ctx.now_s - seen.get(rid, -math.inf) <= cfg.view_gap_s
-            and not math.isfinite(self.assignments[rid].timeout_s)
+            if (
+                not math.isfinite(self.assignments[rid].timeout_s)
+                and ctx.now_s - seen.get(rid, -math.inf) <= cfg.view_gap_s
+            )
+            or math.dist(self._position(ctx.available[rid]), h.position_in_map) <= cfg.self_watch_m
         }
         if len(fixed) >= cfg.viewers:
             self._hostile_at[hid] = h.position_in_map

@@ -83,6 +83,16 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     viewers: int = 2
     min_bearing_sep_rad: float = 0.6
     replan_move_m: float = 2.0
+    # a watcher at its view within self_watch_m of the hostile's sighting is not re-placed
+    # when the sighting moves (nor sent to another sighting of the same walker: it watches
+    # that one); it keeps the walker in view itself (robot.control.hostile_evasion
+    # .keep_in_view_goal, whose keep_within_m matches 16 m); 0: off (re-placed as before).
+    # Off by default with keep_view (without it a watcher does not follow). Quick mission
+    # at 8183549 + ooi_blob_m with keep_view and the allocator's watch_on_return, seeds
+    # 0/7/3: 16 m (at its view only) changed nothing (the same runs, to 0.0004 explored);
+    # 16 m at its view or on its way, with keep_m 8 / keep_far_m 9.5: see keep_view's
+    # docstring (robot.control.hostile_evasion)
+    self_watch_m: float = 0.0
     # a watch that has not started the lock (two robots seeing the hostile) within
     # watch_budget_s is paused for watch_pause_s: its robots explore meanwhile (small world
     # seed 7: every sensor robot chased one hostile in and out of radio shadows from 166 s
@@ -131,7 +141,7 @@ class HostileConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
             raise ValueError(
                 f"hostile view_range_m {self.view_range_m} must exceed blast_radius_m + margin_m"
             )
-        for name in ("range_weight", "unheard_cost_m"):
+        for name in ("range_weight", "unheard_cost_m", "self_watch_m"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"hostile {name} must be finite and >= 0, got {v}")

@@ -325,3 +325,98 @@ def test_with_the_shadow_rule_off_a_watcher_that_fell_silent_on_its_way_is_sent_
     heard(rs, t)  # heard again
     plan(t)
     assert sorted(on_watch(alloc)) == [1, 2]
+
+
+def _watchers_back(on: bool) -> tuple[TaskAllocator, dict[int, object]]:
+    """Two watchers reach their views, fall silent there and are heard again: the allocator
+    and the tasks of the plan that hears them."""
+    v = blank(40, 40, FREE)
+    rs = [robot(1, (5.0, 5.0)), robot(2, (35.0, 5.0))]
+    h = Hazard(9, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    cfg = TaskingConfig(view_shadow_retry_s=0.0, watch_on_return=on)
+    alloc = TaskAllocator(cfg)
+
+    def plan(t: float) -> dict[int, object]:
+        state = TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {1: t}})
+        return dict(alloc.plan(state, t))
+
+    msgs = plan(0.0)
+    assert sorted(on_watch(alloc)) == [1, 2]
+    for r in rs:  # both reach their views
+        goal = alloc.assignments[r.robot_id].goal_in_map
+        assert goal is not None
+        r.pose_in_map = (goal[0], goal[1], 0.0)
+        task = msgs[r.robot_id]
+        assert isinstance(task, GoToTask)
+        r.status = TaskStatus(task.task_id, TaskState.SUCCEEDED, 1.0)
+    heard(rs, 2.0)
+    plan(2.0)
+    t = 2.0 + cfg.silent_after_s + 1.0  # both silent at their views
+    plan(t)
+    t += 6.0
+    heard(rs, t)  # heard again
+    return alloc, plan(t)
+
+
+def test_watchers_heard_again_after_a_silence_watch_on_without_a_new_task() -> None:
+    # hostile14's notes (small world seed 7 at ec6bf10, 126.8 s): two watchers that kept the
+    # walker in view in its radio shadow were heard again 8-11 m from it and re-planned (sent
+    # off); with watch_on_return they keep their watch and get no new task (a new one would
+    # end the robot's own following of the walker); switched off they are re-planned
+    alloc, msgs = _watchers_back(True)
+    back = [e.text for e in alloc.events if e.kind == "robot_back"]
+    assert sorted(on_watch(alloc)) == [1, 2]
+    assert not msgs
+    assert len(back) == 2 and all("watches on" in text for text in back)
+    alloc, msgs = _watchers_back(False)
+    back = [e.text for e in alloc.events if e.kind == "robot_back"]
+    assert msgs and set(msgs) <= {1, 2}
+    assert len(back) == 2 and all("re-planned" in text for text in back)
+
+
+def _watchers_at_views(self_watch_m: float) -> tuple[TaskAllocator, list[RobotInfo], object]:
+    """Two watchers of hostile 9 at (20, 20) at their views (arrived, holding)."""
+    v = blank(40, 40, FREE)
+    rs = [robot(1, (5.0, 5.0)), robot(2, (35.0, 5.0))]
+    h = Hazard(9, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+    cfg = TaskingConfig(hostile=HostileConfig(self_watch_m=self_watch_m))
+    alloc = TaskAllocator(cfg)
+    msgs = dict(
+        alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {1: 0.0}}), 0.0)
+    )
+    for r in rs:
+        goal = alloc.assignments[r.robot_id].goal_in_map
+        assert goal is not None
+        r.pose_in_map = (goal[0], goal[1], 0.0)
+        task = msgs[r.robot_id]
+        assert isinstance(task, GoToTask)
+        r.status = TaskStatus(task.task_id, TaskState.SUCCEEDED, 1.0)
+    heard(rs, 2.0)
+    alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {1: 2.0}}), 2.0)
+    assert all(not math.isfinite(alloc.assignments[r.robot_id].timeout_s) for r in rs)
+    return alloc, rs, v
+
+
+def test_watchers_at_their_views_are_not_re_placed_when_the_walker_moves_on() -> None:
+    # small world seed 7 (keep_view on): a watcher 9 m from the walker was sent to a view
+    # placed off a newer sighting, 16 m from the walker; within self_watch_m (16 m) of the
+    # sighting a watcher at its view keeps the walker in view itself: no new task, also for a
+    # new sighting (another hazard) of the same walker; switched off, both are re-placed
+    for on in (True, False):
+        alloc, rs, v = _watchers_at_views(16.0 if on else 0.0)
+        moved = Hazard(9, ObjectKind.HOSTILE, (23.0, 21.0), 5.0)  # 3.2 m on
+        heard(rs, 4.0)
+        state = TaskingState(occupancy(v), rs, hazards=[moved], hostile_seen_s={9: {1: 4.0}})  # type: ignore[arg-type]
+        msgs = dict(alloc.plan(state, 4.0))
+        assert sorted(on_watch(alloc)) == [1, 2]
+        assert (not msgs) if on else (bool(msgs) and set(msgs) <= {1, 2})
+        # a new sighting of the walker as hazard 10, 3 m from hazard 9's
+        alloc, rs, v = _watchers_at_views(16.0 if on else 0.0)
+        new = Hazard(10, ObjectKind.HOSTILE, (22.0, 22.0), 5.0)
+        old = Hazard(9, ObjectKind.HOSTILE, (20.0, 20.0), 5.0)
+        heard(rs, 4.0)
+        seen = {9: {1: 2.0}, 10: {2: 4.0}}
+        state = TaskingState(occupancy(v), rs, hazards=[old, new], hostile_seen_s=seen)  # type: ignore[arg-type]
+        msgs = dict(alloc.plan(state, 4.0))
+        assert on_watch(alloc) == {1: 10, 2: 10}
+        assert (not msgs) if on else (bool(msgs) and set(msgs) <= {1, 2})
