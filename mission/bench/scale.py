@@ -49,6 +49,16 @@ the child to end), which takes the quick run's wall time down by about their len
 
 ``--quick``: the radio over 60 mission-s, the teams on ``magic_phase`` (its 14 robots' site
 crowded to 64 and 100) for 0.5 mission-s after 1 s, the GCS over 60 mission-s of traffic.
+The 64-robot team then runs on and is measured again over 2.5-3.75 mission-s
+(:data:`STEADY_AFTER_S`, :data:`STEADY_S`: one whole sweep period once the first sweep's
+images are answered): ``rtf_full_64`` and ``cpu_s_per_robot_mission_s_64`` are that steady
+window's, the rate the crowd keeps up; the crowd's first half second stays beside them as
+``rtf_full_64_crowd`` / ``cpu_s_per_robot_mission_s_64_crowd`` (``rtf_full_100`` and
+``cpu_s_per_robot_mission_s`` remain the 100-robot team's crowd window). Measured (session
+15, at 22fda16, load 13): rtf_full_64 0.064 over the steady window against 0.028 over the
+crowd's; a robot node 0.072 CPU-s a mission-s there (0.116 in the crowd), the simulator and
+GCS 4.3 (7.4): ~8.9 CPU-s a mission-s in all, so at most ~0.22 on two free cores; the quick
+bench 3.4 min wall (the steady stretch ~35 s of it).
 The window holds every robot's first LIDAR sweep (its last line at 1.2-1.25 s) and what it
 sets off: the sweep's terrain and perception on board, the colour-test, tag and fine images
 it asks for, rendered and searched (before session 11 the window was 0.25-0.75 s, the team's
@@ -95,6 +105,12 @@ RES_M = 0.1
 #: broadcast and the station's ``frames_period_s``): 1 s keeps the downlink within its budget
 #: (74 bps a robot at 100 robots, 60 bps at 2 s) and a node's frame within 2 s of its arrival.
 FRAMES_PERIOD_S = 1.0
+#: ``--quick``'s steady window for the 64-robot team: after the crowd's window (1.0-1.5 s) the
+#: team runs on to 2.5 s and is measured over 2.5-3.75 s, one whole LIDAR sweep period (every
+#: robot's second sweep ends at 2.45-2.5 s, its images answered in the window; its third at
+#: 3.7-3.75 s): the work a sweep sets off once teammates' tags are known, over a sweep.
+STEADY_AFTER_S = 1.0
+STEADY_S = 1.25
 
 
 # ---- the whole team ------------------------------------------------------------------------
@@ -133,11 +149,16 @@ def full_team(
     warmup_s: float = 1.0,
     seed: int = 0,
     before_measure: Callable[[], object] | None = None,
+    steady_after_s: float = 0.0,
+    steady_s: float = 0.0,
 ) -> dict[str, float]:
     """The simulator + ``robots`` robot nodes in worker processes + the GCS on ``world``
     (its team resized, 7 sensor robots to 3 disruptors) for ``warmup_s + mission_s``:
     real-time factor and CPU over the last ``mission_s``. ``before_measure``: called after
-    the warm-up, before the measured stretch (e.g. to wait for other work to end)."""
+    the warm-up, before the measured stretch (e.g. to wait for other work to end).
+    ``steady_s`` > 0: the team then runs ``steady_after_s`` more, unmeasured, and
+    ``steady_s`` measured again: the same keys with ``_steady`` appended (a window of whole
+    LIDAR sweep periods after the crowd's first sweep: the rate the team keeps up)."""
     from mission.assembly import assemble
     from mission.lockstep import TeamOverProcesses, seed_streams
     from protocol.config import CONFIGS_DIR, config_path, load_config
@@ -168,31 +189,37 @@ def full_team(
             asm.step()
         if before_measure is not None:
             before_measure()
-        me = os.getpid()
         workers = team.worker_pids
-        others = [p for p in _children(me) if p not in workers]
-        w0 = sum(_cpu_s(p) for p in workers)
-        m0 = time.process_time()
-        o0 = sum(_cpu_s(p) for p in others)
-        t_start, wall0 = sim.time_s, time.perf_counter()
-        for _ in range(int(round(mission_s / step_s))):
-            asm.step()
-        wall = time.perf_counter() - wall0
-        done_s = sim.time_s - t_start
-        worker_cpu = sum(_cpu_s(p) for p in workers) - w0
-        main_cpu = time.process_time() - m0
-        other_cpu = sum(_cpu_s(p) for p in others) - o0
+
+        def measure(seconds: float) -> dict[str, float]:
+            others = [p for p in _children(os.getpid()) if p not in workers]
+            w0 = sum(_cpu_s(p) for p in workers)
+            m0 = time.process_time()
+            o0 = sum(_cpu_s(p) for p in others)
+            t_start, wall0 = sim.time_s, time.perf_counter()
+            for _ in range(int(round(seconds / step_s))):
+                asm.step()
+            wall = time.perf_counter() - wall0
+            done_s = sim.time_s - t_start
+            worker_cpu = sum(_cpu_s(p) for p in workers) - w0
+            main_cpu = time.process_time() - m0
+            other_cpu = sum(_cpu_s(p) for p in others) - o0
+            return {
+                "rtf": done_s / wall,
+                "cpu_s_per_robot_mission_s": worker_cpu / robots / done_s,
+                "cpu_s_sim_gcs_per_mission_s": (main_cpu + other_cpu) / done_s,
+                "cpu_s_main_per_mission_s": main_cpu / done_s,
+                "cpu_s_sim_helpers_per_mission_s": other_cpu / done_s,
+            }
+
+        out = measure(mission_s)
+        if steady_s > 0:
+            for _ in range(int(round(steady_after_s / step_s))):
+                asm.step()
+            out.update({f"{k}_steady": v for k, v in measure(steady_s).items()})
         nodes = len(asm.gcs.station.graph.nodes()) if asm.gcs is not None else 0
-    return {
-        "rtf": done_s / wall,
-        "cpu_s_per_robot_mission_s": worker_cpu / robots / done_s,
-        "cpu_s_sim_gcs_per_mission_s": (main_cpu + other_cpu) / done_s,
-        "cpu_s_main_per_mission_s": main_cpu / done_s,
-        "cpu_s_sim_helpers_per_mission_s": other_cpu / done_s,
-        "setup_s": setup_s,
-        "workers": float(len(workers)),
-        "gcs_nodes": float(nodes),
-    }
+    out.update({"setup_s": setup_s, "workers": float(len(workers)), "gcs_nodes": float(nodes)})
+    return out
 
 
 # ---- the GCS at 100 robots -----------------------------------------------------------------
@@ -536,6 +563,8 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
         metrics[name] = radio[name]
     world = "magic_phase" if quick else "magic_team100"
     team_s, warmup_s = (0.5, 1.0) if quick else (10.0, 1.0)
+    # quick: the 64-robot team's rtf over a steady window too (see _teams)
+    steady = (STEADY_AFTER_S, STEADY_S) if quick else (0.0, 0.0)
     gcs: dict[str, Any] = {}
 
     def gcs_done() -> dict[str, Any]:
@@ -546,7 +575,7 @@ def run(*, quick: bool, progress: Callable[[str], None]) -> dict[str, float]:
         return gcs
 
     try:
-        _teams(world, team_s, warmup_s, gcs_done, metrics, progress)
+        _teams(world, team_s, warmup_s, gcs_done, metrics, progress, steady=steady)
         gcs_done()
     finally:
         if not gcs:  # a failure before the GCS's result was read: it goes too
@@ -563,15 +592,43 @@ def _teams(
     gcs_done: Callable[[], dict[str, Any]],
     metrics: dict[str, float],
     progress: Callable[[str], None],
+    *,
+    steady: tuple[float, float] = (0.0, 0.0),
 ) -> None:
+    """The 64- and 100-robot teams. ``steady`` (after, seconds): the 64-robot team also runs
+    ``after`` mission-s more unmeasured and ``seconds`` measured; then ``rtf_full_64`` and
+    ``cpu_s_per_robot_mission_s_64`` are that steady window's, and the crowd window's
+    ``rtf_full_64_crowd`` / ``cpu_s_per_robot_mission_s_64_crowd`` are kept beside them."""
     for n in (64, 100):
+        after_s, steady_s = steady if n == 64 else (0.0, 0.0)
         progress(
             f"team: simulator + {n} robot nodes in workers + GCS on {world}, {warmup_s:g} s "
             f"warm-up then {team_s:g} mission-s measured"
+            + (f", then {after_s:g} s on and {steady_s:g} s measured" if steady_s > 0 else "")
         )
-        r = full_team(n, world=world, mission_s=team_s, warmup_s=warmup_s, before_measure=gcs_done)
+        r = full_team(
+            n,
+            world=world,
+            mission_s=team_s,
+            warmup_s=warmup_s,
+            before_measure=gcs_done,
+            steady_after_s=after_s,
+            steady_s=steady_s,
+        )
         metrics[f"rtf_full_{n}"] = r["rtf"]
         metrics[f"setup_s_{n}"] = r["setup_s"]
+        if steady_s > 0:
+            metrics[f"rtf_full_{n}_crowd"] = r["rtf"]
+            metrics[f"cpu_s_per_robot_mission_s_{n}_crowd"] = r["cpu_s_per_robot_mission_s"]
+            metrics[f"rtf_full_{n}"] = r["rtf_steady"]
+            metrics[f"cpu_s_per_robot_mission_s_{n}"] = r["cpu_s_per_robot_mission_s_steady"]
+            metrics[f"cpu_s_sim_gcs_per_mission_s_{n}"] = r["cpu_s_sim_gcs_per_mission_s_steady"]
+            progress(
+                f"  crowd window: rtf {r['rtf']:.3f}, {r['cpu_s_per_robot_mission_s']:.3f} CPU-s "
+                f"per robot per mission-s; steady window: rtf {r['rtf_steady']:.3f}, "
+                f"{r['cpu_s_per_robot_mission_s_steady']:.3f} per robot, simulator+GCS "
+                f"{r['cpu_s_sim_gcs_per_mission_s_steady']:.2f} per mission-s"
+            )
         if n == 100:
             metrics["cpu_s_per_robot_mission_s"] = r["cpu_s_per_robot_mission_s"]
             for key in (

@@ -49,11 +49,14 @@ def test_gcs_latency_frames_every_node_it_was_fed() -> None:
 
 @pytest.mark.slow
 def test_full_team_measures_rtf_and_cpu_of_its_workers() -> None:
-    r = full_team(4, world="small", mission_s=0.5, warmup_s=1.0)
+    r = full_team(4, world="small", mission_s=0.5, warmup_s=1.0, steady_after_s=0.5, steady_s=1.25)
     assert r["workers"] >= 1 and r["rtf"] > 0
     # the workers did the robots' work: CPU was spent there (1.0-1.5 s holds the first LIDAR
     # sweep; before it a robot costs less than a 10 ms CPU tick since the group messages)
     assert r["cpu_s_per_robot_mission_s"] > 0 and r["cpu_s_sim_gcs_per_mission_s"] > 0
+    # the steady window (2.0-3.25 s, the second sweep's end in it) is measured on its own
+    assert r["rtf_steady"] > 0 and r["cpu_s_per_robot_mission_s_steady"] > 0
+    assert r["cpu_s_sim_gcs_per_mission_s_steady"] > 0
 
 
 def test_the_radio_measurement_broadcasts_frames_at_the_period_asked() -> None:
