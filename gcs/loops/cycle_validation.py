@@ -25,6 +25,20 @@ expires, or an edge accepted elsewhere lets the graph check reject it). So no ac
 closure lies on a tested cycle that failed, with the graph or with other hypotheses; what
 remains is the paper's caveat, errors that cancel around a cycle ("this seldom occurs").
 
+Known paths (``graph_offset_m`` / ``graph_offset_rad``). The graph check above weighs the
+difference between a match and the graph's path by both covariances, so a match that states a
+loose axis (a corridor: the quick mission's false closures were nearly all translation
+sigmas of 0.19-0.25 m, just inside ``LoopCloserConfig.max_match_sigma_xy_m``, 0.5-0.97 m off
+along that axis) passes against a path that knows the relation to a few centimetres: its own
+covariance excuses the difference. And a cycle does not catch it either, since its partners
+are matched against the same grids (see "Shared data" below). So a hypothesis is also
+rejected when the path places its nodes further from it than ``graph_offset_m`` (in
+translation) or ``graph_offset_rad`` (in heading), and by more than the path's covariance
+and the floors alone allow (the same chi-square test, without the match's covariance): the
+graph then knows the relation well enough to tell the match is off by nearly a false
+closure's margin (0.5 m, 5 deg), whatever the match's response surface says. A true match
+is within that margin of the truth, so it is refused only where the path itself is off.
+
 Groups (issue 19 item 4). Cycles are tested one at a time, each at its own 99% quantile, so a
 set of hypotheses accepted together can disagree beyond its noise while each of its cycles
 passes, and one wrong member blocks its right partners until it expires. So the hypotheses
@@ -126,6 +140,26 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
 
     ``independent_cycles``: a cycle promotes only when no two of its hypotheses share a node
     (module docstring, "Shared data"; off by default: measured worse).
+
+    ``graph_offset_m`` / ``graph_offset_rad`` (0: off) reject a hypothesis the graph's own path
+    places further off than that and by more than the path's covariance allows (module
+    docstring, "Known paths"). Off by default. Measured at 0.4 m / 4 deg (session 15, GCS at
+    2b0cbc5). Replaying 20 quick-mission journals (seeds 0/7/3/11 of session 14's variants,
+    /tmp/team/closures15/res_{base,off40}.jsonl): false closures 27 -> 11 (of 11282 -> 11272
+    closures), ATE median 0.143 -> 0.139 m, F1 median 0.875 -> 0.881 (mean 0.841 -> 0.837: a
+    seed-7 journal 0.798 -> 0.719); the four baseline journals' ATE and F1 within 0.002, seed
+    3's false closure (2:74-2:57, 0.65 m off at a sigma of 0.23 m, graph check chi-square
+    7.3) gone. Live quick missions, seeds 0/7/3/11: false closures 0/0/1/0 -> 0/0/0/0, ATE
+    0.166/0.188/0.080/0.122 -> 0.098/0.188/0.087/0.102 m (median 0.144 -> 0.100), but F1
+    0.907/0.568/0.945/0.905 -> 0.835/0.568/0.913/0.908 (median 0.906 -> 0.871; seed 0's map
+    turned about the anchor, 0.935 aligned) and explored median 0.920 -> 0.902: the missions
+    took other paths, so it stays off. ``magic bench robustness --quick`` with it on: as
+    without (ratio 1.149, 0 false closures, ate_over_odometry_max 0.369). It does not catch
+    matches 5-9 deg off whose graph path agrees with them (graph check chi-square 0.4-2; 7 of
+    the 11 left). A translation-sigma bound of 0.2 m instead
+    (``LoopCloserConfig.max_match_sigma_xy_m``) took 35 journals' false closures 38 -> 8,
+    but with 18 % fewer closures their F1 mean fell 0.831 -> 0.796 (seed 7's journals
+    0.14-0.21 lower).
     """
 
     chi2_threshold: float = 11.34
@@ -143,6 +177,8 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     group_max_outliers: int = 1
     group_min_support: int = 3
     independent_cycles: bool = False
+    graph_offset_m: float = 0.0
+    graph_offset_rad: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.chi2_threshold) and self.chi2_threshold > 0):
@@ -173,6 +209,10 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
             raise ValueError(
                 f"group_max_iterations: expected >= 1, got {self.group_max_iterations}"
             )
+        for name in ("graph_offset_m", "graph_offset_rad"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {v}")
 
 
 @dataclass(frozen=True)
@@ -340,7 +380,7 @@ class CycleValidator:
                 continue
             pose, cov = compose_with_covariance([self._floored(h), _inverse(known)])
             chi2 = _chi2(pose, cov)
-            ok = chi2 <= cfg.chi2_threshold
+            ok = chi2 <= cfg.chi2_threshold and not self._off_a_known_path(h, known, pose)
             out.cycles.append(CycleCheck((h.hyp_id,), chi2, ok))
             if not ok:
                 out.rejected.append(self._pop(h.hyp_id))
@@ -387,6 +427,30 @@ class CycleValidator:
         for i in sorted(promoted, key=lambda i: (self._pending[i].time_s, i)):
             out.accepted.append(self._pop(i))
         return out
+
+    def _off_a_known_path(self, h: Hypothesis, known: Link, offset: FloatArray) -> bool:
+        """Whether the graph's path ``known`` between ``h``'s nodes places them further from
+        ``h`` (``offset``, the composed ``h * known^-1``) than ``graph_offset_m`` or
+        ``graph_offset_rad``, and by more than the path's own covariance (and the floors)
+        allow: the graph alone then tells that ``h`` is off by nearly a false closure's
+        margin, whatever the match's own covariance would excuse (config docstring)."""
+        cfg = self.config
+        if cfg.graph_offset_m <= 0.0 and cfg.graph_offset_rad <= 0.0:
+            return False
+        far = (
+            cfg.graph_offset_m > 0.0 and math.hypot(offset[0], offset[1]) > cfg.graph_offset_m
+        ) or (
+            cfg.graph_offset_rad > 0.0
+            and abs(float(se2.wrap_angle(offset[2]))) > cfg.graph_offset_rad
+        )
+        if not far:
+            return False
+        floor = np.diag(
+            [cfg.floor_sigma_xy_m**2, cfg.floor_sigma_xy_m**2, cfg.floor_sigma_yaw_rad**2]
+        )
+        z = np.asarray(h.a_from_b, dtype=np.float64)
+        pose, cov = compose_with_covariance([(z, floor), _inverse(known)])
+        return _chi2(pose, cov) > cfg.chi2_threshold
 
     def _share_a_node(self, hyp_ids: tuple[int, ...]) -> bool:
         """Whether two hypotheses of a cycle share a node (module docstring, "Shared

@@ -335,3 +335,41 @@ def test_matches_against_one_grid_confirm_nothing_and_an_independent_one_exposes
     off.add(hyp(w, 2, 104, 201, error=turned))
     res = off.validate(now_s=1.0, links=w.links, path=w.path)
     assert sorted(h.hyp_id for h in res.accepted) == [1, 2]
+
+
+def test_a_loose_match_a_tight_path_places_far_off_is_refused_with_graph_offset() -> None:
+    """A corridor match (sigma 0.23 m along the corridor, as the quick mission's seed 3 took
+    2:74-2:57, 0.65 m off) passes the graph check on its own covariance however tight the
+    graph's path is; with ``graph_offset_m`` the graph alone refuses it. A match 0.3 m off (a
+    true closure) and one 0.65 m off a loose path (the graph cannot tell) are kept, and two
+    matches that agree with each other are promoted."""
+    truth = chain(1, np.array([0.0, 0.0, 0.0]), 20, np.array([0.5, 0.0, 0.02]))
+    corridor = np.diag([0.23**2, 0.03**2, math.radians(0.9) ** 2])
+
+    def corridor_hyp(w: World, hyp_id: int, a: int, b: int, dx: float) -> Hypothesis:
+        z = se2.compose(se2.between(w.truth[a], w.truth[b]), np.array([dx, 0.0, 0.0]))
+        return Hypothesis(hyp_id, a, b, z, corridor.copy(), 0.6, 0.0)
+
+    tight = CycleValidationConfig(graph_offset_m=0.4, graph_offset_rad=math.radians(4.0))
+    for config, refused in ((CycleValidationConfig(), []), (tight, [1])):
+        w = World(truth, path_sigma_per_m=0.005)  # 8 m of odometry known to 4 cm
+        v = CycleValidator(config)
+        v.add(corridor_hyp(w, 1, 102, 118, 0.65))
+        v.add(corridor_hyp(w, 2, 103, 117, 0.3))
+        v.add(corridor_hyp(w, 3, 101, 119, 0.25))
+        res = v.validate(now_s=0.0, links=w.links, path=w.path)
+        assert sorted(h.hyp_id for h in res.rejected) == refused
+        assert {2, 3} <= {h.hyp_id for h in res.accepted}
+    # a loose path (20 cm per metre of travel) cannot tell 0.65 m off from right: kept
+    w = World(truth, path_sigma_per_m=0.2)
+    v = CycleValidator(tight)
+    v.add(corridor_hyp(w, 1, 102, 118, 0.65))
+    assert not v.validate(now_s=0.0, links=w.links, path=w.path).rejected
+    # the bound is on the heading too: 6 deg off a path known to 0.5 deg
+    w = World(truth, path_sigma_per_m=0.005)
+    v = CycleValidator(tight)
+    z = se2.compose(se2.between(w.truth[102], w.truth[118]), np.array([0.0, 0.0, 0.105]))
+    v.add(Hypothesis(1, 102, 118, z, np.diag([0.03**2, 0.03**2, 0.035**2]), 0.6, 0.0))
+    assert [h.hyp_id for h in v.validate(now_s=0.0, links=w.links, path=w.path).rejected] == [1]
+    with pytest.raises(ValueError, match="graph_offset_m"):
+        CycleValidationConfig(graph_offset_m=-1.0)
