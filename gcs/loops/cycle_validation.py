@@ -153,13 +153,22 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     0.166/0.188/0.080/0.122 -> 0.098/0.188/0.087/0.102 m (median 0.144 -> 0.100), but F1
     0.907/0.568/0.945/0.905 -> 0.835/0.568/0.913/0.908 (median 0.906 -> 0.871; seed 0's map
     turned about the anchor, 0.935 aligned) and explored median 0.920 -> 0.902: the missions
-    took other paths, so it stays off. ``magic bench robustness --quick`` with it on: as
-    without (ratio 1.149, 0 false closures, ate_over_odometry_max 0.369). It does not catch
-    matches 5-9 deg off whose graph path agrees with them (graph check chi-square 0.4-2; 7 of
-    the 11 left). A translation-sigma bound of 0.2 m instead
-    (``LoopCloserConfig.max_match_sigma_xy_m``) took 35 journals' false closures 38 -> 8,
-    but with 18 % fewer closures their F1 mean fell 0.831 -> 0.796 (seed 7's journals
-    0.14-0.21 lower).
+    took other paths (seed 0's own journal replayed with it off: ATE 0.096, F1 0.838, as with
+    it), so it stays off. ``magic bench robustness --quick`` with it on: as without (ratio
+    1.149, 0 false closures, ate_over_odometry_max 0.369). The full mission's journal
+    (magic_phase, 600 s, seed 0, at 8183549; /tmp/team/lead/full15_s0) replayed: false
+    closures 12 -> 9 (of 853 -> 872), ATE 1.429 -> 1.413 m, F1 0.482 -> 0.489. It does not
+    catch matches that agree with a graph path as far off as they are (quick journals: 7 of
+    the 11 left, 5-9 deg off at graph check chi-square 0.4-2; the full mission: robot 4's
+    0.56-3.3 m / 5-24 deg, pairs of neighbouring nodes agreeing against one old node). Nearly
+    every false closure left states a translation sigma of 0.18-0.25 m: with
+    ``LoopCloserConfig.max_match_sigma_xy_m`` 0.2 as well, the full mission's journal takes
+    1 false closure (the two robots' first nodes, 1.5 m off at 7 s; 634 closures), ATE
+    1.023 m, F1 0.530 (the bound alone: 3 false, ATE 1.436 m, F1 0.518). But not on the
+    small world: the bound alone on 35 quick journals took false closures 38 -> 8, but with
+    18 % fewer closures their F1 mean fell 0.831 -> 0.796 (seed 7's journals 0.14-0.21
+    lower); both together on 8 of them (the baseline four, res_both.jsonl) false 11 -> 2
+    (the baseline four 1 -> 2, both 5-7 deg off), F1 mean 0.847 -> 0.777.
     """
 
     chi2_threshold: float = 11.34
