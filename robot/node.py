@@ -165,11 +165,13 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
     # LIDAR's traction moved on shortfalls within the measurement's sigma). The hold
     # (traction_hold_m) and the correction of the position are built, off
     # (slip_correct_position). The slip the accelerometer sees (a straight crossing of sand,
-    # where the turn traction sees nothing) is off (accel_slip_step_m_s 0); its distance
-    # sigma is the one measured with it: accel_slip_step_m_s=0.1 here turns it on (quick
-    # mission at 8183549, seeds 0/7/3/11: F1 median 0.906 -> 0.940, seed 7 0.568 -> 0.951,
-    # ATE median 0.144 -> 0.081 m, none lost, but explored median 0.920 -> 0.899 and seed 11
-    # one false closure more: OdometryConfig's docstring)
+    # where the turn traction sees nothing) is on (accel_slip_step_m_s 0.1, with its wider
+    # distance sigma; since session 15, together with the GCS's known-path check,
+    # gcs.loops.cycle_validation.ValidationConfig.graph_offset_m). Quick mission at 7abe497,
+    # seeds 0/7/3/11, both on against both off: F1 0.666/0.568/0.914/0.905 ->
+    # 0.936/0.831/0.927/0.902 (median 0.786 -> 0.915), ATE median 0.155 -> 0.090 m, explored
+    # median 0.923 -> 0.914, false closures 0/0/1/0 -> 0/0/1/1, static OOIs all neutralized,
+    # none lost. The slip alone at 8183549: OdometryConfig's docstring.
     odometry: OdometryConfig = OdometryConfig(
         wheel_slip_frac=0.02,
         wheel_slip_per_rad_s=0.067,
@@ -179,6 +181,7 @@ class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, k
         slip_per_skid=1.5,
         slip_std_per_skid=1.0,
         displacement_gain=0.3,
+        accel_slip_step_m_s=0.1,
         accel_slip_std_share=0.6,
     )
     pose_nodes: PoseNodeConfig = PoseNodeConfig()

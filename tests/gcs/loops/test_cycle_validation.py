@@ -350,8 +350,10 @@ def test_a_loose_match_a_tight_path_places_far_off_is_refused_with_graph_offset(
         z = se2.compose(se2.between(w.truth[a], w.truth[b]), np.array([dx, 0.0, 0.0]))
         return Hypothesis(hyp_id, a, b, z, corridor.copy(), 0.6, 0.0)
 
-    tight = CycleValidationConfig(graph_offset_m=0.4, graph_offset_rad=math.radians(4.0))
-    for config, refused in ((CycleValidationConfig(), []), (tight, [1])):
+    tight = CycleValidationConfig()  # on by default: 0.4 m / 4 deg
+    assert (tight.graph_offset_m, tight.graph_offset_rad) == (0.4, math.radians(4.0))
+    off = CycleValidationConfig(graph_offset_m=0.0, graph_offset_rad=0.0)
+    for config, refused in ((off, []), (tight, [1])):
         w = World(truth, path_sigma_per_m=0.005)  # 8 m of odometry known to 4 cm
         v = CycleValidator(config)
         v.add(corridor_hyp(w, 1, 102, 118, 0.65))
