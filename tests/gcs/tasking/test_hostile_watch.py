@@ -7,6 +7,7 @@ states."""
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -327,6 +328,17 @@ def test_with_the_shadow_rule_off_a_watcher_that_fell_silent_on_its_way_is_sent_
     assert sorted(on_watch(alloc)) == [1, 2]
 
 
+def _arrive(alloc: TaskAllocator, rs: list[RobotInfo], msgs: Mapping[int, object]) -> None:
+    """Each of ``rs`` reaches the goal of its task in ``msgs`` and reports it done."""
+    for r in rs:
+        goal = alloc.assignments[r.robot_id].goal_in_map
+        assert goal is not None
+        r.pose_in_map = (goal[0], goal[1], 0.0)
+        task = msgs[r.robot_id]
+        assert isinstance(task, GoToTask)
+        r.status = TaskStatus(task.task_id, TaskState.SUCCEEDED, 1.0)
+
+
 def _watchers_back(on: bool) -> tuple[TaskAllocator, dict[int, object]]:
     """Two watchers reach their views, fall silent there and are heard again: the allocator
     and the tasks of the plan that hears them."""
@@ -342,13 +354,7 @@ def _watchers_back(on: bool) -> tuple[TaskAllocator, dict[int, object]]:
 
     msgs = plan(0.0)
     assert sorted(on_watch(alloc)) == [1, 2]
-    for r in rs:  # both reach their views
-        goal = alloc.assignments[r.robot_id].goal_in_map
-        assert goal is not None
-        r.pose_in_map = (goal[0], goal[1], 0.0)
-        task = msgs[r.robot_id]
-        assert isinstance(task, GoToTask)
-        r.status = TaskStatus(task.task_id, TaskState.SUCCEEDED, 1.0)
+    _arrive(alloc, rs, msgs)
     heard(rs, 2.0)
     plan(2.0)
     t = 2.0 + cfg.silent_after_s + 1.0  # both silent at their views
@@ -384,13 +390,7 @@ def _watchers_at_views(self_watch_m: float) -> tuple[TaskAllocator, list[RobotIn
     msgs = dict(
         alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {1: 0.0}}), 0.0)
     )
-    for r in rs:
-        goal = alloc.assignments[r.robot_id].goal_in_map
-        assert goal is not None
-        r.pose_in_map = (goal[0], goal[1], 0.0)
-        task = msgs[r.robot_id]
-        assert isinstance(task, GoToTask)
-        r.status = TaskStatus(task.task_id, TaskState.SUCCEEDED, 1.0)
+    _arrive(alloc, rs, msgs)
     heard(rs, 2.0)
     alloc.plan(TaskingState(occupancy(v), rs, hazards=[h], hostile_seen_s={9: {1: 2.0}}), 2.0)
     assert all(not math.isfinite(alloc.assignments[r.robot_id].timeout_s) for r in rs)
