@@ -103,27 +103,28 @@ so:
   0.166/0.188/0.080/0.122 -> 0.076/0.085/0.073/0.134 m (median 0.144 -> 0.081), none lost,
   but explored 0.935/0.917/0.924/0.889 -> 0.901/0.923/0.896/0.896 (median 0.920 -> 0.899)
   and false closures 0/0/1/0 -> 0/0/0/1 (seed 11: robot 0's nodes 66-97, 0.52 m, firm
-  ground, none of its nodes between on sand): not turned on (the session's rule: no median
-  worse, no seed more false closures). Seeds 1 and 2 besides (same tree, off -> on): F1
-  0.760/0.820 -> 0.919/0.910, ATE 0.279/0.140 -> 0.092/0.189 m, explored 0.945/0.923 ->
-  0.836/0.917 (seed 1: robots 0 and 2 held near the static OOIs by the pit's edge from 60 to
-  145 s, one neutralization timing out; their odometry right there), false closures 1/0 ->
-  0/0: over the six seeds F1 at least 0.902 on every one (off: 0.568-0.945), medians F1
-  0.863 -> 0.929, ATE 0.153 -> 0.089 m, explored 0.924 -> 0.899. ``accel_slip_memory_m``
-  200 with them (seeds 0/7/3/11): F1 0.757/0.880/0.948/0.913, ATE median 0.122, explored
-  0.943/0.905/0.790/0.940, false closures 0/0/0/1 (seed 0: robot 2's heading, 1.1-1.4 deg
-  off after its first 50 s in every run, this setting's or not, left unturned by the
-  closures; seed 7's pit nodes still 5.5-6 % long: not the relaxing). Offline (the
-  simulator's open world, a 25 % strip 8 m long crossed at 1 m/s, the node's odometry):
-  straight, the traction measured 0.739-0.740
-  against the body's 0.7455 and the nodes' over-count over the crossing 2.73 m (sigma 0.11)
-  -> 0.16 m (sigma 0.26; 0.48 at 0.6); weaving (0.15 rad/s, 5 s period) 0.752-0.759
-  against 0.742, over-count -0.21/-0.37 m off (the turn traction's, sigma 0.6) -> +0.31/+0.35
-  m on (sigma 0.61-0.75): where the robot turns, the turn traction measures the sand as well.
-  A pit of the generated worlds (its 1 cm box, steered across by the truth) read 0.764 against
-  0.744 (2.5 % over): the measurement's 3-sample windows, the body's speed noise and the box
-  edges' pitch steps (the accelerometer's integrated speed jumps ~0.015-0.03 m/s at each),
-  not yet taken out; longer or later windows measured worse (0.78-0.79);
+  ground, none of its nodes between on sand): alone not turned on then (the session's
+  rule: no median worse, no seed more false closures); on in robot.node since 5f7fed6,
+  with the GCS's known-path check (robot.node's comment). Seeds 1 and 2 besides (same
+  tree, off -> on): F1 0.760/0.820 -> 0.919/0.910, ATE 0.279/0.140 -> 0.092/0.189 m, explored
+  0.945/0.923 -> 0.836/0.917 (seed 1: robot 2 held 77 s in the gap between the static OOIs'
+  keep-outs by the node's yield rule, waiting on a curb's face; its odometry right), false
+  closures 1/0 -> 0/0: over the six seeds F1 at least 0.902 on every one (off: 0.568-0.945),
+  medians F1 0.863 -> 0.929, ATE 0.153 -> 0.089 m, explored 0.924 -> 0.899.
+  ``accel_slip_memory_m`` 200 with them (seeds 0/7/3/11): F1 0.757/0.880/0.948/0.913, ATE
+  median 0.122, explored 0.943/0.905/0.790/0.940, false closures 0/0/0/1 (seed 0: robot 2's
+  heading, 1.1-1.4 deg off after its first 50 s in every run, this setting's or not, left
+  unturned by the closures; seed 7's pit nodes still 5.5-6 % long: not the relaxing). Offline
+  (the simulator's open world, a 25 % strip 8 m long crossed at 1 m/s, the node's odometry):
+  straight, the traction measured 0.739-0.740 against the body's 0.7455 and the nodes'
+  over-count over the crossing 2.73 m (sigma 0.11) -> 0.16 m (sigma 0.26; 0.48 at 0.6);
+  weaving (0.15 rad/s, 5 s period) 0.752-0.759 against 0.742, over-count -0.21/-0.37 m off
+  (the turn traction's, sigma 0.6) -> +0.31/+0.35 m on (sigma 0.61-0.75): where the robot
+  turns, the turn traction measures the sand as well. A pit of the generated worlds (its 1 cm
+  box, steered across by the truth) read 0.764 against 0.744 (2.5 % over): the measurement's
+  3-sample windows, the body's speed noise and the box edges' pitch steps (the accelerometer's
+  integrated speed jumps ~0.015-0.03 m/s at each), not yet taken out; longer or later windows
+  measured worse (0.78-0.79);
 * **heading aided by the LIDAR** (:meth:`InertialOdometry.correct_heading`, paper 4.1's
   laser-aided odometry): a sweep matched against the last few
   (:class:`robot.odometry.scan_odometry.ScanOdometry`) says how far the heading drifted since
@@ -210,9 +211,10 @@ class OdometryConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw
     # traction))^2 per metre driven to the distance variance. Measured at 0.1 (module
     # docstring: with accel_slip_std_share 0.6, F1 median 0.906 -> 0.940 and seed 7 0.568
     # -> 0.951, ATE median 0.144 -> 0.081 m, but explored median 0.920 -> 0.899 and one
-    # false closure more on seed 11); 0 here and in robot.node (robot.node's traversability
-    # learning takes the wheels' travel, travel / distance_scale_between, as the requested
-    # motion since 4aa8300, so it may be turned on)
+    # false closure more on seed 11); 0 here, 0.1 in robot.node since 5f7fed6 (with the
+    # GCS's known-path check, gcs.loops.cycle_validation: both on, six seeds, F1 median
+    # 0.861 -> 0.910, ATE 0.150 -> 0.092 m, explored 0.926 -> 0.914; robot.node's
+    # traversability learning takes the wheels' travel as the requested motion, 4aa8300)
     accel_slip_step_m_s: float = 0.0
     accel_slip_step_share: float = 0.15
     accel_slip_min_speed_m_s: float = 0.25
