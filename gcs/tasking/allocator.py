@@ -1192,14 +1192,15 @@ class TaskAllocator:
         # sighting: the GCS seldom hears them see it (the walker's radio shadow), and a new
         # view from a sighting seconds old sent them off it (small world seed 7: a watcher
         # 9 m from the walker sent to a view 16 m from it)
+        at = {rid: self._position(ctx.available[rid]) for rid in viewers}
         fixed = {
-            rid: self._position(ctx.available[rid])
-            for rid in viewers
+            rid: xy
+            for rid, xy in at.items()
             if (
                 not math.isfinite(self.assignments[rid].timeout_s)
                 and ctx.now_s - seen.get(rid, -math.inf) <= cfg.view_gap_s
             )
-            or math.dist(self._position(ctx.available[rid]), h.position_in_map) <= cfg.self_watch_m
+            or math.dist(xy, h.position_in_map) <= cfg.self_watch_m
         }
         if len(fixed) >= cfg.viewers:
             self._hostile_at[hid] = h.position_in_map
