@@ -13,6 +13,8 @@
 * ``people``: confirmed person tracks (position and velocity in ``odom``) of the segments
   of human size, cylinder-shaped ones included (a person hidden to the waist has an OOI's
   shape; a track that moves, or the colour test, tells them apart);
+* ``segments_in_odom``: every segment it measured (centre, extent, top): what may be a
+  teammate carrying tags (the onboard perception's gate on its periodic tag images);
 
 and counts what it skipped. No I/O, no clocks: the caller passes the sweep's time (and,
 optionally, each point's time: people are measured at the time their points were taken).
@@ -118,6 +120,11 @@ class SweepPerception:
     person_positions_in_odom: NDArray[np.float64]
     segments: int
     dropped_nonfinite: int
+    # every measured (small) segment: rows (x_m, y_m, extent_m, top_m) in odom; extent: the
+    # larger of its bounding rectangle's sides
+    segments_in_odom: NDArray[np.float64] = dataclasses.field(
+        default_factory=lambda: np.zeros((0, 4))
+    )
 
     @property
     def confirmed_cylinders(self) -> list[CylinderCandidate]:
@@ -232,7 +239,13 @@ class LidarDetector:
             person_t = np.array([time_s + float(np.mean(times[rows[k]])) for k in ks])
             person_t = np.where(np.isfinite(person_t), person_t, time_s)
         people = self.tracker.update(time_s, person_xy, measurement_times_s=person_t)
-        return SweepPerception(time_s, cylinders, people, person_xy, len(f), dropped)
+        segs = np.zeros((len(f), 4))
+        for k, xyz in enumerate(xyzs):
+            segs[k, :2] = xyz[:, :2].mean(axis=0)
+        if len(f):
+            segs[:, 2] = np.maximum(f[:, _I_LENGTH], f[:, _I_BREADTH])
+            segs[:, 3] = f[:, _I_TOP]
+        return SweepPerception(time_s, cylinders, people, person_xy, len(f), dropped, segs)
 
     def _confirm(self, time_s: float, cands: list[CylinderCandidate]) -> list[CylinderCandidate]:
         """Attach each candidate to the nearest place within the gate (one candidate a

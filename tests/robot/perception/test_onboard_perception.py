@@ -16,6 +16,8 @@ from robot.perception.onboard_perception import OnboardPerception, PerceptionCon
 
 MOUNT = CameraMountConfig()
 PHASE_S = 3.3  # the camera's (unknown to the robot) schedule phase
+# the periodic tag image every second whatever the LIDAR saw (the gate's own test below)
+NO_GATE = PerceptionConfig(fiducial_period_s=1.0, image_timeout_s=60.0, tag_gate_memory_s=0.0)
 
 
 def _image(request_id: int, time_s: float, w: int = 320, h: int = 240) -> CameraImage:
@@ -231,7 +233,7 @@ def test_an_image_asked_for_a_candidate_stands_for_the_periodic_tag_image() -> N
     after the newest frame any coarse image was asked of."""
     from robot.perception.onboard_perception import _Job
 
-    p = OnboardPerception(0, PerceptionConfig(fiducial_period_s=1.0, image_timeout_s=60.0))
+    p = OnboardPerception(0, NO_GATE)
     p.pan_phase_s = PHASE_S
     p.on_control(10.0, np.zeros(3))
     assert [r.time_s for r in p.take_requests()] == [10.0]  # the periodic one
@@ -309,7 +311,7 @@ def test_a_colour_tests_image_is_as_small_as_its_candidates_allow() -> None:
     assert size(cfg, 2.0, radius_m=0.1) == (160, 120)
     assert size(cfg, 3.0, radius_m=0.1) == (240, 180)
     assert size(PerceptionConfig(colour_min_area_px=0.0), 1.5) == (320, 240)
-    p = OnboardPerception(0, PerceptionConfig(fiducial_period_s=1.0, image_timeout_s=60.0))
+    p = OnboardPerception(0, NO_GATE)
     p.pan_phase_s = PHASE_S
     p.on_control(10.0, np.zeros(3))
     p.take_requests()
@@ -399,3 +401,51 @@ def test_a_person_track_an_image_shows_as_a_teammate_is_not_asked_about_again() 
     assert jobs == [] and p.stats.teammate_candidates == before + 1  # held: no image
     p._person_jobs(track(7, 1.85, 0.4), 20.5, jobs)  # 10.5 s on: no longer held
     assert 7 not in p._teammate_tracks and p.stats.teammate_candidates == before + 1
+
+
+def test_the_periodic_tag_image_is_asked_only_when_it_may_show_a_teammate_or_a_person() -> None:
+    """A teammate (chassis and head, boxes in a simulated sweep through the real LIDAR
+    detector) 4 m away where the camera of now points: the periodic tag image is asked.
+    Nothing but the ground, the teammate behind the camera's view, 8 m away, or seen only in
+    a sweep older than ``tag_gate_memory_s``: no image (the period is counted as gated),
+    until the gate is off. A person track 9 m away in view, not labelled yet: the image is
+    asked (its colour test)."""
+    from tests.robot.perception.test_lidar_shape import _scan
+
+    def mate(x: float) -> list[tuple[float, ...]]:
+        return [
+            (x - 0.3, -0.25, 0.12, x + 0.3, 0.25, 0.42),
+            (x - 0.1, -0.1, 0.65, x + 0.1, 0.1, 0.85),
+        ]
+
+    ground = _scan()
+    near, far = _scan(boxes=mate(4.0)), _scan(boxes=mate(8.0))
+    person = _scan(cylinders=[(9.0, 0.0, 0.25, 0.0, 1.7)])
+    now = 10.0
+    toward = -pan_at(now, MOUNT, PHASE_S)  # the yaw that points the camera of now along +x
+
+    def periodic(
+        points: np.ndarray,
+        yaw: float,
+        *,
+        sweeps_s: tuple[float, ...] = (9.4,),
+        cfg: PerceptionConfig | None = None,
+    ) -> tuple[list[float], int]:
+        p = OnboardPerception(0, cfg or PerceptionConfig(image_timeout_s=60.0))
+        p.pan_phase_s = PHASE_S
+        # the robot placed so that its LIDAR (0.2 m ahead of base) is at the sweep's origin
+        pose = np.array([-0.2 * math.cos(yaw), -0.2 * math.sin(yaw), yaw])
+        for t in sweeps_s:
+            p.on_sweep(points, pose, t)
+        p.take_requests()  # the colour tests the sweeps asked for
+        p.on_control(now, pose)
+        return [r.time_s for r in p.take_requests()], p.stats.fiducial_periodic_gated
+
+    assert periodic(near, toward) == ([now], 0)
+    assert periodic(ground, toward) == ([], 1)
+    assert periodic(near, toward + math.pi) == ([], 1)
+    assert periodic(far, toward) == ([], 1)
+    assert periodic(near, toward, sweeps_s=(now - 3.0,)) == ([], 1)
+    assert periodic(ground, toward, cfg=NO_GATE) == ([now], 0)
+    assert periodic(person, toward, sweeps_s=(6.25, 7.5, 8.75)) == ([now], 0)
+    assert periodic(person, toward + math.pi, sweeps_s=(6.25, 7.5, 8.75)) == ([], 1)
