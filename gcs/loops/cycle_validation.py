@@ -39,6 +39,27 @@ graph then knows the relation well enough to tell the match is off by nearly a f
 closure's margin (0.5 m, 5 deg), whatever the match's response surface says. A true match
 is within that margin of the truth, so it is refused only where the path itself is off.
 
+Look-alikes. A hypothesis may carry its match's *look-alike* (:attr:`Hypothesis.look_alike`:
+the best other transform of the same search, at least a false closure's distance from the
+match and nearly as good; :class:`~gcs.loops.loop_closer.LoopCloserConfig`
+``look_alike_cycle_radius_m``). A cycle then tests not only whether the match agrees with
+its partners but which of the two places they agree with: the cycle is composed again with
+the match moved to its look-alike. A hypothesis whose consistent cycles fit its look-alike
+at least as well as its match (the least chi-square over its cycles with the look-alike no
+larger than the least with the match) is not confirmed by them, and no cycle through it
+promotes anything (its partners agree with a place the matcher could not tell apart from
+another). It waits, like a member of a failing cycle: a later, tighter cycle may tell. This
+is Olson's ambiguity test (paper 4.3.3) judged by the cycle instead of the prior: a
+look-alike the cycle's links rule out costs nothing, one they cannot rule out holds the
+match back. The quick mission's false closures that passed every other test were such
+matches: seed 11 at 1d6eb73, robots 3 and 2's nodes 52 and 19 (0.67 m, 4.6 deg off), its
+one cycle chi-square 9.5 with the match and 0.02 with the look-alike (the true place), and
+robot 1's corridor pair 182-40 (0.52 m along it), whose two cycles fitted a look-alike
+better (0.95 against 0.31, 4.4 against 0.07). ``look_alike_margin`` (0) lets a look-alike hold
+a hypothesis back only when it fits by that much better. Off unless the loop closer keeps
+look-alikes (off by default; measured in ``LoopCloserConfig``: fewer false closures on the
+quick missions' journals, the full mission's journal far worse).
+
 Groups (issue 19 item 4). Cycles are tested one at a time, each at its own 99% quantile, so a
 set of hypotheses accepted together can disagree beyond its noise while each of its cycles
 passes, and one wrong member blocks its right partners until it expires. So the hypotheses
@@ -141,6 +162,10 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     ``independent_cycles``: a cycle promotes only when no two of its hypotheses share a node
     (module docstring, "Shared data"; off by default: measured worse).
 
+    ``look_alike_margin``: a hypothesis's look-alike holds it back when the least chi-square
+    of its consistent cycles with the look-alike plus this margin is no larger than the least
+    with its match (module docstring, "Look-alikes").
+
     ``graph_offset_m`` / ``graph_offset_rad`` (0: off) reject a hypothesis the graph's own path
     places further off than that and by more than the path's covariance allows (module
     docstring, "Known paths"). On (0.4 m / 4 deg) since session 15, together with the robots'
@@ -192,6 +217,7 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
     independent_cycles: bool = False
     graph_offset_m: float = 0.4
     graph_offset_rad: float = math.radians(4.0)
+    look_alike_margin: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.chi2_threshold) and self.chi2_threshold > 0):
@@ -222,7 +248,7 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
             raise ValueError(
                 f"group_max_iterations: expected >= 1, got {self.group_max_iterations}"
             )
-        for name in ("graph_offset_m", "graph_offset_rad"):
+        for name in ("graph_offset_m", "graph_offset_rad", "look_alike_margin"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a finite number >= 0, got {v}")
@@ -231,7 +257,9 @@ class CycleValidationConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=T
 @dataclass(frozen=True)
 class Hypothesis:
     """A match waiting for confirmation: ``a_from_b`` between ``key_a`` and ``key_b``, its
-    body-frame covariance, the matcher's normalized score and when it was made."""
+    body-frame covariance, the matcher's normalized score and when it was made;
+    ``look_alike`` (None: none known) another ``a_from_b`` the match fitted nearly as well
+    (module docstring, "Look-alikes")."""
 
     hyp_id: int
     key_a: int
@@ -240,15 +268,20 @@ class Hypothesis:
     covariance: FloatArray
     score: float
     time_s: float
+    look_alike: FloatArray | None = None
 
 
 @dataclass(frozen=True)
 class CycleCheck:
-    """One cycle that was tested: its hypotheses (in order), its chi-square and verdict."""
+    """One cycle that was tested: its hypotheses (in order), its chi-square and verdict.
+    ``look_alike_chi2``: per member (in the order of ``hyp_ids``), the chi-square of the same
+    cycle with that member's match moved to its look-alike (:attr:`Hypothesis.look_alike`;
+    inf for a member without one; empty when no member has one)."""
 
     hyp_ids: tuple[int, ...]
     chi2: float
     consistent: bool
+    look_alike_chi2: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -405,9 +438,17 @@ class CycleValidator:
         self._searched = state
         searched = []
         link_cache: dict[int, dict[int, _T]] = {}
-        for ids, pose, cov in self._search(links, link_cache):
+        for ids, pose, cov, walk in self._search(links, link_cache):
             chi2 = _chi2(pose, cov)
-            check = CycleCheck(ids, chi2, chi2 <= cfg.chi2_threshold)
+            alts: tuple[float, ...] = ()
+            if any(self._pending[i].look_alike is not None for i in ids):
+                alts = tuple(
+                    math.inf
+                    if (other := self._pending[i].look_alike) is None
+                    else self._recompose(walk, link_cache, i, other)
+                    for i in ids
+                )
+            check = CycleCheck(ids, chi2, chi2 <= cfg.chi2_threshold, alts)
             out.cycles.append(check)
             searched.append(check)
         # a failing cycle blocks all its members: which one is wrong is unknown (unless the
@@ -416,6 +457,8 @@ class CycleValidator:
         for c in searched:
             if not c.consistent:
                 blocked.update(c.hyp_ids)
+
+        look_alike_ok = self._look_alike_verdicts(searched)
         promoted: set[int] = set()
         if cfg.group_test:
             promoted, outliers = self._group_verdicts(searched, links, link_cache, out)
@@ -425,6 +468,8 @@ class CycleValidator:
         else:
             for c in searched:
                 if not c.consistent or len(c.hyp_ids) < cfg.min_cycle_hypotheses:
+                    continue
+                if not look_alike_ok.issuperset(c.hyp_ids):
                     continue
                 if blocked.intersection(c.hyp_ids):
                     continue
@@ -440,6 +485,24 @@ class CycleValidator:
         for i in sorted(promoted, key=lambda i: (self._pending[i].time_s, i)):
             out.accepted.append(self._pop(i))
         return out
+
+    def _look_alike_verdicts(self, searched: list[CycleCheck]) -> set[int]:
+        """The hypotheses whose consistent cycles fit their match better than its look-alike
+        (module docstring, "Look-alikes"): the least chi-square of a consistent cycle through
+        ``h`` below the least with ``h`` moved to its look-alike. A hypothesis without a
+        look-alike, or on no consistent cycle, is not in question: it is in the set."""
+        best: dict[int, float] = {}
+        best_alt: dict[int, float] = {}
+        for c in searched:
+            if not c.consistent or not c.look_alike_chi2:
+                continue
+            for i, alt in zip(c.hyp_ids, c.look_alike_chi2, strict=True):
+                if math.isfinite(alt):
+                    best[i] = min(best.get(i, math.inf), c.chi2)
+                    best_alt[i] = min(best_alt.get(i, math.inf), alt)
+        margin = self.config.look_alike_margin
+        doubtful = {i for i in best if best_alt[i] + margin <= best[i]}
+        return set(self._pending) - doubtful
 
     def _off_a_known_path(self, h: Hypothesis, known: Link, offset: FloatArray) -> bool:
         """Whether the graph's path ``known`` between ``h``'s nodes places them further from
@@ -585,7 +648,7 @@ class CycleValidator:
 
     def _search(
         self, links: LinksFn, link_cache: dict[int, dict[int, _T]] | None = None
-    ) -> list[tuple[tuple[int, ...], FloatArray, FloatArray]]:
+    ) -> list[tuple[tuple[int, ...], FloatArray, FloatArray, _Walk]]:
         """Depth-limited search for cycles ``h, link, h, link, ...`` of 2 or more hypotheses.
 
         A cycle is searched from its lowest-id hypothesis, traversed from ``key_a`` to
@@ -594,7 +657,8 @@ class CycleValidator:
         edge, scalar arithmetic). When a search would take more than ``max_search_steps``
         extensions it is redone with two hypotheses per cycle; if even that is too long no
         cycle is reported (nothing is promoted this time: never an incomplete verdict).
-        Returns ``(hyp_ids, composed pose, covariance)``.
+        Returns ``(hyp_ids, composed pose, covariance, walk)``; ``walk`` is the traversal,
+        ``((hyp_id, forward), ...)`` in the order composed (:meth:`_recompose`).
         """
         cfg = self.config
         depth = cfg.max_cycle_hypotheses
@@ -605,20 +669,20 @@ class CycleValidator:
         while True:
             found = self._search_depth(links, depth, link_cache)
             if found is not None:
-                return [(ids, *_from_t(t)) for ids, t in found.items()]
+                return [(ids, *_from_t(t), walk) for ids, (t, walk) in found.items()]
             if depth <= 2:
                 return []
             depth = 2
 
     def _search_depth(
         self, links: LinksFn, max_h: int, link_cache: dict[int, dict[int, _T]]
-    ) -> dict[tuple[int, ...], _T] | None:
+    ) -> dict[tuple[int, ...], tuple[_T, _Walk]] | None:
         hyps = self.pending
-        by_node: dict[int, list[tuple[int, _T, int]]] = {}
+        by_node: dict[int, list[tuple[int, _T, int, bool]]] = {}
         for h in hyps:
             fwd = _to_t(*self._floored(h))
-            by_node.setdefault(h.key_a, []).append((h.hyp_id, fwd, h.key_b))
-            by_node.setdefault(h.key_b, []).append((h.hyp_id, _inverse_t(fwd), h.key_a))
+            by_node.setdefault(h.key_a, []).append((h.hyp_id, fwd, h.key_b, True))
+            by_node.setdefault(h.key_b, []).append((h.hyp_id, _inverse_t(fwd), h.key_a, False))
 
         def links_of(key: int) -> dict[int, _T]:
             if key not in link_cache:
@@ -627,10 +691,12 @@ class CycleValidator:
                 link_cache[key] = found
             return link_cache[key]
 
-        found: dict[tuple[int, ...], _T] = {}
+        found: dict[tuple[int, ...], tuple[_T, _Walk]] = {}
         budget = [self.config.max_search_steps]
 
-        def extend(start_key: int, at_key: int, used: tuple[int, ...], acc: _T) -> bool:
+        def extend(
+            start_key: int, at_key: int, used: tuple[int, ...], acc: _T, walk: _Walk
+        ) -> bool:
             budget[0] -= 1
             if budget[0] < 0:
                 return False
@@ -642,7 +708,7 @@ class CycleValidator:
                     min(rev[i:] + rev[:i] for i in range(len(rev))),
                 )
                 if canon not in found:
-                    found[canon] = _compose_t(acc, reach[start_key])
+                    found[canon] = (_compose_t(acc, reach[start_key]), walk)
             if len(used) >= max_h:
                 return True
             if len(reach) <= len(by_node):
@@ -651,25 +717,68 @@ class CycleValidator:
                 near = [(node, reach[node]) for node in by_node if node in reach]
             for node, link in near:
                 via = None
-                for hid, step, nxt in by_node[node]:
+                for hid, step, nxt, forward in by_node[node]:
                     if hid in used or hid < used[0]:
                         continue
                     if via is None:
                         via = _compose_t(acc, link)
-                    if not extend(start_key, nxt, (*used, hid), _compose_t(via, step)):
+                    if not extend(
+                        start_key,
+                        nxt,
+                        (*used, hid),
+                        _compose_t(via, step),
+                        (*walk, (hid, forward)),
+                    ):
                         return False
             return True
 
         for h in hyps:
             # start at key_a, traverse h first; only cycles whose lowest id is h are searched
-            if not extend(h.key_a, h.key_b, (h.hyp_id,), _to_t(*self._floored(h))):
+            start = _to_t(*self._floored(h))
+            if not extend(h.key_a, h.key_b, (h.hyp_id,), start, ((h.hyp_id, True),)):
                 return None
         return found
+
+    def _recompose(
+        self,
+        walk: _Walk,
+        link_cache: dict[int, dict[int, _T]],
+        swap: int,
+        alternative: FloatArray,
+    ) -> float:
+        """The chi-square of the cycle ``walk`` (as :meth:`_search_depth` composed it) with
+        hypothesis ``swap``'s match replaced by ``alternative`` (same covariance); inf when a
+        link of the walk is no longer cached."""
+        acc: _T | None = None
+        first = self._pending[walk[0][0]]
+        start_key = first.key_a if walk[0][1] else first.key_b
+        at_key = start_key
+        for hid, forward in walk:
+            h = self._pending[hid]
+            z, cov = self._floored(h)
+            step = _to_t(alternative if hid == swap else z, cov)
+            if not forward:
+                step = _inverse_t(step)
+            begin, end = (h.key_a, h.key_b) if forward else (h.key_b, h.key_a)
+            if acc is None:
+                acc = step
+            else:
+                link = link_cache.get(at_key, {}).get(begin)
+                if link is None:
+                    return math.inf
+                acc = _compose_t(_compose_t(acc, link), step)
+            at_key = end
+        assert acc is not None
+        back = link_cache.get(at_key, {}).get(start_key)
+        if back is None:
+            return math.inf
+        return _chi2(*_from_t(_compose_t(acc, back)))
 
 
 # A pose with its covariance as plain floats (x, y, theta, c00, c01, c02, c11, c12, c22):
 # the cycle search composes many of them, far faster than with small numpy arrays.
 _T = tuple[float, float, float, float, float, float, float, float, float]
+_Walk = tuple[tuple[int, bool], ...]  # a cycle's hypotheses in order, each (id, forward)
 _ZERO: _T = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 

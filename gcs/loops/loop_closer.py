@@ -169,6 +169,27 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     at 1 m, on the full mission's journal (magic_phase, first 720 s, fiducial heading bound
     on) false closures 6 -> 4 but ATE 0.41 -> 0.50 m (true closures 1566 -> 1493); small
     world journals, seed 7: false 3 -> 1, ATE 0.430 -> 0.424 m; seed 0: unchanged.
+    ``look_alike_cycle_radius_m`` > 0 keeps the look-alike instead of refusing the match: the
+    runner-up search runs on every match (that radius, ``matcher.runner_up_ratio``) and a
+    runner-up found goes with the hypothesis (:attr:`Hypothesis.look_alike`, counted in
+    ``look_alikes``), for its cycles to tell which of the two places they agree with
+    (:mod:`gcs.loops.cycle_validation`, "Look-alikes"). It excludes the two rules above. Off by
+    default. Measured at 0.5 m (session 16, replaying the GCS journals of HEAD 1d6eb73's quick
+    missions, seeds 0/1/2/3/7/11 and 4/5/6): false closures 5 -> 2 (seed 11 3 -> 1, seeds 4 and
+    6 1 -> 0, seed 7 0 -> 1: a corridor pair 0.506 m off), ATE 0.459/0.119/0.091/0.113/0.184/
+    0.222/0.067/0.200/0.280 -> 0.455/0.118/0.089/0.123/0.207/0.221/0.108/0.179/0.275 m (median
+    0.184 -> 0.179), F1 lower on seeds 7/11/4/6 by 0.02-0.05 (the aligned F1 within +-0.03).
+    But the full mission's journal (magic_phase, 600 s, seed 0, /tmp/team/relay16/full_head):
+    false closures 5 -> 6, ATE 2.02 -> 8.94 m: held-back closures let three long-loop matches
+    between robots 8 and 9 in at 537 s, turned by 180 deg and 68-70 m off, that agreed with
+    one another (the same with ``validation.look_alike_margin`` 0.5 and with 0.6 m).
+
+    ``wide_min_points`` (0: off): a wide candidate whose scans hold fewer points than that (either
+    one) is not matched (counted in ``wide_too_few_points``): a few points fit somewhere in a
+    wide window, at a high score. The full mission's journal at 1d6eb73 (magic_phase, 600 s)
+    took two closures 2.5 m and 21-23 deg off from robot 10's node 225 (41 points, wide,
+    scores 0.93-0.95) to robot 0's nodes 30 and 31, confirmed by their one cycle with each
+    other (chi-square 1.0).
 
     ``matches_per_s``, ``candidate_max_age_s`` and ``validation.expiry_s`` are in nominal
     seconds of the progress clock: ``nominal_s_per_node`` per pose node added (module
@@ -206,12 +227,14 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     edge_floor_sigma_xy_m: float = 0.02
     edge_floor_sigma_yaw_rad: float = math.radians(0.5)
     min_scan_points: int = 20
+    wide_min_points: int = 0
     grid_window_m: float = 0.0
     grid_window_rad: float = math.inf
     max_turn_scale_yaw_rad: float = math.radians(20.0)
     max_grid_distortion_rad: float = math.radians(5.0)
     look_alike_radius_m: float = 0.0
     look_alike_chi2: float = 11.34
+    look_alike_cycle_radius_m: float = 0.0
     # long-loop candidate source (gcs.loops.long_loop_search, issue 19 item 5)
     long_loops: LongLoopConfig = msgspec.field(default_factory=LongLoopConfig)
 
@@ -272,10 +295,26 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
             )
         if self.max_rejected_kept < 0 or self.max_deferred_kept < 0:
             raise ValueError("max_rejected_kept and max_deferred_kept must be >= 0")
+        if self.wide_min_points < 0:
+            raise ValueError(f"wide_min_points: expected >= 0, got {self.wide_min_points}")
         if self.max_wide_per_step < 0 or self.min_scan_points < 1:
             raise ValueError("need max_wide_per_step >= 0 and min_scan_points >= 1")
         if not (math.isfinite(self.look_alike_radius_m) and self.look_alike_radius_m >= 0):
             raise ValueError(f"look_alike_radius_m: expected >= 0, got {self.look_alike_radius_m}")
+        if not (
+            math.isfinite(self.look_alike_cycle_radius_m) and self.look_alike_cycle_radius_m >= 0
+        ):
+            raise ValueError(
+                f"look_alike_cycle_radius_m: expected >= 0, got {self.look_alike_cycle_radius_m}"
+            )
+        if self.look_alike_cycle_radius_m > 0 and (
+            self.look_alike_radius_m > 0 or self.matcher.runner_up_radius_m > 0
+        ):
+            raise ValueError(
+                "look_alike_cycle_radius_m excludes look_alike_radius_m and "
+                "matcher.runner_up_radius_m (a look-alike is either refused or kept for the "
+                "cycles to judge)"
+            )
         if not (math.isfinite(self.look_alike_chi2) and self.look_alike_chi2 > 0):
             raise ValueError(f"look_alike_chi2: expected > 0, got {self.look_alike_chi2}")
         if not (self.edge_floor_sigma_xy_m >= 0 and self.edge_floor_sigma_yaw_rad >= 0):
@@ -303,6 +342,7 @@ class LoopCloserStats:
     closures_pruned: int = 0
     distorted: int = 0
     look_alikes: int = 0
+    wide_too_few_points: int = 0
 
 
 @dataclass
@@ -924,19 +964,33 @@ class LoopCloser:
             return None
         guess = se2.between(self.graph.pose(a), self.graph.pose(b))
         wide_xy = cand.window_xy_m > cfg.matcher.search_xy_m
+        if cand.wide and min(len(self._scans[a]), len(self._scans[b])) < cfg.wide_min_points:
+            self.stats.wide_too_few_points += 1  # a few points fit somewhere in a wide window
+            return None
         matcher = self._matcher_for(wide_xy, cand.window_yaw_rad)
         table = self._table(a, wide_xy)
         min_score = cfg.wide_min_score if cand.wide else cfg.min_score
         self.stats.matches += 1
         self.stats.wide_matches += cand.wide
         radius = self._look_alike_radius_m(cand.covariance_xyt)
+        cycle_radius = cfg.look_alike_cycle_radius_m
         result = matcher.match(
-            table, self._scans[b], guess, min_score=min_score, runner_up_radius_m=radius
+            table,
+            self._scans[b],
+            guess,
+            min_score=min_score,
+            runner_up_radius_m=cycle_radius if cycle_radius > 0.0 else radius,
         )
         if result is None:
             self.stats.below_min_score += 1
             return None
-        if result.runner_up_score > 0.0 and self._plausible_look_alike(
+        look_alike = None
+        if cycle_radius > 0.0:
+            # kept with the hypothesis: a cycle must tell the two places apart (validation)
+            if result.runner_up_a_from_b is not None:
+                look_alike = np.asarray(result.runner_up_a_from_b, dtype=np.float64)
+                self.stats.look_alikes += 1
+        elif result.runner_up_score > 0.0 and self._plausible_look_alike(
             result, guess, cand.covariance_xyt
         ):  # another place the graph cannot rule out fits nearly as well
             self.stats.look_alikes += 1
@@ -959,6 +1013,7 @@ class LoopCloser:
                 covariance=cov,
                 score=result.normalized_score,
                 time_s=progress_s,
+                look_alike=look_alike,
             )
         )
 

@@ -375,3 +375,33 @@ def test_a_loose_match_a_tight_path_places_far_off_is_refused_with_graph_offset(
     assert [h.hyp_id for h in v.validate(now_s=0.0, links=w.links, path=w.path).rejected] == [1]
     with pytest.raises(ValueError, match="graph_offset_m"):
         CycleValidationConfig(graph_offset_m=-1.0)
+
+
+def test_a_cycle_that_fits_a_members_look_alike_better_promotes_nothing() -> None:
+    """A corridor-like match 0.6 m off along the street, loose along it (0.3 m), passes its
+    cycle with a true partner: its own covariance excuses the offset. Its matcher also found
+    the true place nearly as good (its look-alike, 0.6 m away); the cycle fits that one
+    better, so it does not confirm the match, and nothing is promoted. The true match with
+    a look-alike 0.6 m off (that the cycle fits worse) is confirmed as before."""
+    w = two_robots_side_by_side()
+    loose = np.diag([0.3**2, 0.02**2, 0.005**2])
+    true_z = se2.between(w.truth[104], w.truth[203])
+    off = se2.compose(true_z, np.array([0.6, 0.0, 0.0]))
+
+    def run(look_alike: np.ndarray | None, z: np.ndarray) -> tuple[list[int], float, float]:
+        v = CycleValidator()
+        v.add(hyp(w, 1, 101, 201))
+        v.add(Hypothesis(2, 104, 203, z, loose, 0.8, 0.0, look_alike=look_alike))
+        res = v.validate(now_s=1.0, links=w.links, path=w.path)
+        (cycle,) = [c for c in res.cycles if len(c.hyp_ids) == 2]
+        alt = min(cycle.look_alike_chi2, default=math.inf)
+        return sorted(h.hyp_id for h in res.accepted), cycle.chi2, alt
+
+    accepted, chi2, alt = run(None, off)
+    assert accepted == [1, 2] and 2.0 < chi2 < 11.34 and alt == math.inf  # passes today
+    accepted, chi2, alt = run(true_z, off)
+    assert accepted == [] and alt < 0.1 < chi2  # the look-alike fits the cycle better
+    # the look-alike moved into the cycle: its chi-square is the cycle's with that match
+    assert run(None, true_z)[1] == pytest.approx(alt, abs=1e-9)
+    accepted, chi2, alt = run(off, true_z)  # the true match, its look-alike the false place
+    assert accepted == [1, 2] and chi2 < 0.1 < alt

@@ -92,3 +92,91 @@ def test_a_view_that_fits_two_places_is_no_closure(
     hyp = closer._match(cand, 0.0)
     assert (hyp is not None) == closure
     assert closer.stats.look_alikes == (0 if closure else 1)
+
+
+@pytest.mark.parametrize("radius_m", [0.0, 1.0])
+def test_a_kept_look_alike_goes_with_the_hypothesis_to_the_cycles(radius_m: float) -> None:
+    """``look_alike_cycle_radius_m``: the two-rooms match is kept as a hypothesis, and its
+    other room (4 m along the corridor) goes with it as its look-alike for the cycles to
+    judge (cycle_validation, "Look-alikes"); 0: no runner-up search, no look-alike."""
+    from gcs.loops.candidate_search import Candidate
+
+    room, both = two_rooms()
+    cfg = LoopCloserConfig(look_alike_cycle_radius_m=radius_m)
+    graph = PoseGraph()
+    k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
+    k1 = graph.add_pose(
+        0,
+        odom_from_base=(2.0, 0.0, 0.0),
+        time_s=1.0,
+        odometry_covariance=np.diag([0.5**2, 0.5**2, 0.01]),
+    )
+    closer = LoopCloser(graph, cfg)
+    closer.add_scan(k0, both)
+    closer.add_scan(k1, room)
+    c = cfg.candidates
+    cand = Candidate(
+        reference_key=k0,
+        query_key=k1,
+        reference_from_query=np.array([2.0, 0.0, 0.0]),
+        covariance_xyt=np.diag([0.5**2, 0.5**2, 0.01]),
+        window_xy_m=c.window_xy_m,
+        window_yaw_rad=c.window_yaw_rad,
+        wide=False,
+        priority=0.5,
+    )
+    hyp = closer._match(cand, 0.0)
+    assert hyp is not None
+    if radius_m == 0.0:
+        assert hyp.look_alike is None and closer.stats.look_alikes == 0
+        return
+    assert hyp.look_alike is not None and closer.stats.look_alikes == 1
+    rooms = sorted([float(hyp.a_from_b[0]), float(hyp.look_alike[0])])
+    assert rooms == pytest.approx([0.0, 4.0], abs=0.15)  # one room each
+    assert abs(float(hyp.look_alike[1]) - float(hyp.a_from_b[1])) < 0.15
+    with pytest.raises(ValueError, match="look_alike_cycle_radius_m"):
+        LoopCloserConfig(look_alike_cycle_radius_m=radius_m, look_alike_radius_m=1.0)
+
+
+@pytest.mark.parametrize(
+    ("min_points", "wide", "matched"), [(0, True, True), (50, True, False), (50, False, True)]
+)
+def test_a_wide_window_needs_enough_points(min_points: int, wide: bool, matched: bool) -> None:
+    """``wide_min_points``: a view of 49 points is not searched over the wide window (a few
+    points fit somewhere in 8 m: the full mission's 2.5 m / 22 deg closures were such views,
+    41 points); the standard window still searches it, as the wide one does without the
+    bound (here the sparse view's response is too flat to be a closure either way)."""
+    from gcs.loops.candidate_search import Candidate
+
+    room, _both = two_rooms()
+    few = room[::8]
+    assert len(few) < 50 <= len(room)
+    cfg = LoopCloserConfig(wide_min_points=min_points)
+    graph = PoseGraph()
+    k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
+    k1 = graph.add_pose(
+        0,
+        odom_from_base=(0.3, 0.0, 0.0),
+        time_s=1.0,
+        odometry_covariance=np.diag([0.5**2, 0.5**2, 0.01]),
+    )
+    closer = LoopCloser(graph, cfg)
+    closer.add_scan(k0, room)
+    closer.add_scan(k1, few)
+    c = cfg.candidates
+    cand = Candidate(
+        reference_key=k0,
+        query_key=k1,
+        reference_from_query=np.array([0.3, 0.0, 0.0]),
+        covariance_xyt=np.diag([0.5**2, 0.5**2, 0.01]),
+        window_xy_m=c.wide_xy_m if wide else c.window_xy_m,
+        window_yaw_rad=c.window_yaw_rad,
+        wide=wide,
+        priority=0.5,
+    )
+    closer._match(cand, 0.0)
+    st = closer.stats
+    searched = st.below_min_score + st.ambiguous + st.hypotheses
+    assert (searched, st.wide_too_few_points) == ((1, 0) if matched else (0, 1))
+    with pytest.raises(ValueError, match="wide_min_points"):
+        LoopCloserConfig(wide_min_points=-1)
