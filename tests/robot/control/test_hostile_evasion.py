@@ -114,3 +114,107 @@ def test_an_idle_robot_follows_a_walker_leaving_its_view_and_stays_when_it_is_ne
         cfg.blast_radius_m + cfg.margin_m
     )
     assert keep_in_view_goal(p, walker, EvasionConfig(keep_view=False), following=False) is None
+
+
+def _walled_map() -> tuple[np.ndarray, GridGeometry]:
+    """A 30 m map with a building (x 8-9 m, y -3-3 m) standing across the line from the
+    origin to a walker at x 13-15 m."""
+    geometry = GridGeometry((-10.0, -10.0), 0.1, 300, 300)
+    wall = np.zeros(geometry.shape, dtype=bool)
+    rows, cols = geometry.cell_of(
+        np.array([[x, y] for x in np.arange(8.0, 9.01, 0.05) for y in np.arange(-3.0, 3.01, 0.05)])
+    ).T
+    wall[rows, cols] = True
+    return wall, geometry
+
+
+def test_the_follow_point_sees_the_walker_past_a_building() -> None:
+    """Issue 14, small world seed 11: the follow point on the line to the robot stood behind
+    a building; with its map the robot picks a reachable point in view of the walker."""
+    from robot.control.hostile_evasion import keep_in_view_goal, line_of_sight
+
+    cfg = EvasionConfig(keep_view=True)
+    wall, geometry = _walled_map()
+    p = np.array([0.0, 0.0])
+    walker = np.array([[13.0, 0.0, 0.6, 0.0]])
+    target = walker[0, :2] + cfg.keep_predict_s * walker[0, 2:]
+    line = keep_in_view_goal(p, walker, cfg, following=False)  # no map: on the line
+    assert line is not None and not line_of_sight(line, target, wall, geometry)
+    goal = keep_in_view_goal(
+        p, walker, cfg, following=False, sight=wall, blocked=wall, geometry=geometry
+    )
+    assert goal is not None
+    assert line_of_sight(goal, target, wall, geometry)
+    rng = float(np.hypot(*(goal - target)))
+    assert cfg.keep_m - cfg.keep_sight_band_m - 1e-6 <= rng <= cfg.keep_m + 1e-6
+    assert abs(goal[1]) > 3.0  # past the building's end
+    # the point it holds is kept while it serves
+    again = keep_in_view_goal(
+        p, walker, cfg, following=True, sight=wall, blocked=wall, geometry=geometry, previous=goal
+    )
+    assert again is not None and np.allclose(again, goal)
+    # without keep_sight the map is not used
+    off = EvasionConfig(keep_view=True, keep_sight=False)
+    plain = keep_in_view_goal(
+        p, walker, off, following=False, sight=wall, blocked=wall, geometry=geometry
+    )
+    assert plain is not None and np.allclose(plain, line)
+
+
+def test_a_watcher_in_range_moves_only_when_a_building_cuts_its_view() -> None:
+    from robot.control.hostile_evasion import keep_in_view_goal, line_of_sight
+
+    cfg = EvasionConfig(keep_view=True)
+    wall, geometry = _walled_map()
+    p = np.array([5.0, 0.0])
+    walker = np.array([[13.5, 0.0, 0.0, 0.0]])  # 8.5 m off, within keep_far_m: it would hold
+    assert keep_in_view_goal(p, walker, cfg, following=False) is None
+    goal = keep_in_view_goal(
+        p, walker, cfg, following=False, sight=wall, blocked=wall, geometry=geometry
+    )
+    assert goal is not None and line_of_sight(goal, walker[0, :2], wall, geometry)
+    clear = np.zeros_like(wall)
+    assert (
+        keep_in_view_goal(
+            p, walker, cfg, following=False, sight=clear, blocked=clear, geometry=geometry
+        )
+        is None
+    )
+
+
+def test_the_follow_point_is_reachable() -> None:
+    """A point in view but walled off from the robot is not chosen."""
+    from robot.control.hostile_evasion import sight_point
+
+    cfg = EvasionConfig(keep_view=True)
+    geometry = GridGeometry((-10.0, -10.0), 0.1, 300, 300)
+    # the robot shut in a box of walls (x -2-2, y -2-2) with the walker outside
+    box = np.zeros(geometry.shape, dtype=bool)
+    for x in np.arange(-2.0, 2.01, 0.05):
+        for y in (-2.0, 2.0):
+            box[tuple(geometry.cell_of(np.array([[x, y]]))[0])] = True
+            box[tuple(geometry.cell_of(np.array([[y, x]]))[0])] = True
+    sight = np.zeros_like(box)  # the view over the box is clear (a low wall)
+    walker = np.array([[14.0, 0.0, 0.0, 0.0]])  # its ring lies wholly outside the box
+    got = sight_point(
+        np.zeros(2),
+        walker[0, :2],
+        walker,
+        cfg,
+        sight=sight,
+        blocked=box,
+        geometry=geometry,
+        robot_radius_m=0.3,
+    )
+    assert got is None
+    inside = sight_point(
+        np.zeros(2),
+        walker[0, :2],
+        walker,
+        cfg,
+        sight=sight,
+        blocked=np.zeros_like(box),
+        geometry=geometry,
+        robot_radius_m=0.3,
+    )
+    assert inside is not None  # without the box the nearest ring point serves
