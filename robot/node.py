@@ -93,7 +93,14 @@ from protocol.sensors import (
     WheelTicks,
 )
 from robot.comms_watchdog import CommsWatchdogConfig, LinkAwareTasks, LinkState
-from robot.control.deadlock import DeadlockBreaker, DeadlockConfig, Phase, path_block_distance
+from robot.control.deadlock import (
+    DeadlockBreaker,
+    DeadlockConfig,
+    Phase,
+    mover_near_block,
+    path_block_distance,
+    path_point_at,
+)
 from robot.control.hostile_evasion import (
     EvasionConfig,
     evasion_goal,
@@ -133,6 +140,10 @@ __all__ = ["NodeStats", "RobotNode", "RobotNodeConfig"]
 log = logging.getLogger(__name__)
 
 _TASK_TYPES = TaskMessage.__args__  # type: ignore[attr-defined]
+
+
+#: how often a watcher re-chooses its line-of-sight follow point (one fused map each time)
+_KEEP_SIGHT_PERIOD_S = 1.0
 
 
 class RobotNodeConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_only=True):
@@ -418,6 +429,9 @@ class RobotNode:
         self._facing_hostile = False
         # an idle robot keeping its hostile in view: where it drives (odom; None: it holds)
         self._keep_goal: np.ndarray | None = None
+        # the line-of-sight follow point (_keep_view) and when it was chosen
+        self._keep_sight_goal: np.ndarray | None = None
+        self._keep_sight_at: float | None = None
         self._watching = False  # no task, its own hostile near: it watches (_keep_view)
         self._watch_since_s: float | None = None
         # the evasion's threat test for the GCS's sightings, where a walker was (no closing)
@@ -1059,8 +1073,7 @@ class RobotNode:
         )
         if not math.isfinite(block_m):
             return False
-        if self._yield_since_s is None:
-            self._yield_since_s = now
+        latest_m = None
         if self._latest is not None:  # is what blocks us receding? the newest sweep says
             latest, latest_geometry = self._latest
             latest_m = path_block_distance(
@@ -1071,6 +1084,20 @@ class RobotNode:
                 robot_radius_m=self.config.planner.robot_radius_m,
                 lookahead_m=cfg.yield_lookahead_m,
             )
+        cleared = cfg.yield_cleared and latest_m is not None and not math.isfinite(latest_m)
+        if (
+            cfg.yield_movers_only
+            and not cleared
+            and not mover_near_block(
+                path_point_at(ref_path, pos, block_m),
+                self._movers_in_odom(now),
+                radius_m=cfg.yield_mover_radius_m,
+            )
+        ):
+            return False  # a static obstacle: it will not move out of the way
+        if self._yield_since_s is None:
+            self._yield_since_s = now
+        if latest_m is not None:
             self.deadlock.note_block_distance(now, latest_m)
             if not math.isfinite(latest_m) and len(self.fusion) > 1:
                 # the newest sweep sees the way clear where the memory still holds what
@@ -1079,6 +1106,22 @@ class RobotNode:
                 self.stats.memory_refreshes += 1
                 self._planned_goal = None
         return True
+
+    def _movers_in_odom(self, now: float) -> np.ndarray:
+        """``(N, 2)``: what may move out of a blocked path, in ``odom``: the teammates this
+        robot's camera placed by their tags within ``yield_mover_memory_s`` and its
+        confirmed person tracks (people, and teammates its LIDAR takes for people)."""
+        p = self.perception
+        if p is None:
+            return np.zeros((0, 2))
+        memory = self.config.deadlock.yield_mover_memory_s
+        rows = [(x, y) for t, x, y in p._teammates_seen if now - t <= memory]
+        rows += [
+            (float(t.x[0]), float(t.x[1]))
+            for t in p.lidar.tracker.tracks
+            if t.confirmed and now - t.time_s <= memory
+        ]
+        return np.array(rows, dtype=np.float64).reshape(-1, 2)
 
     def _nearest_reachable(
         self, classes: np.ndarray, geometry: GridGeometry, start: np.ndarray, goal: np.ndarray
@@ -1467,8 +1510,29 @@ class RobotNode:
         if near and silent and self._watch_since_s is not None:
             near = now - self._watch_since_s <= cfg.keep_silent_s
         goal = None
-        if near:
+        if near and cfg.keep_sight and len(h):
+            # the follow point in view over its own map (keep_in_view_goal): chosen once a
+            # second, held between
+            at = self._keep_sight_at
+            if at is None or now - at >= _KEEP_SIGHT_PERIOD_S:
+                self._keep_sight_at = now
+                terrain, geometry = self._current_map(keepout=False)
+                self._keep_sight_goal = keep_in_view_goal(
+                    pose[:2],
+                    h,
+                    cfg,
+                    following=self._keep_goal is not None,
+                    sight=terrain == OBSTACLE,
+                    blocked=self._with_keepout(terrain, geometry) == OBSTACLE,
+                    geometry=geometry,
+                    robot_radius_m=self.config.planner.robot_radius_m,
+                    previous=self._keep_goal,
+                )
+            goal = self._keep_sight_goal
+        elif near:
             goal = keep_in_view_goal(pose[:2], h, cfg, following=self._keep_goal is not None)
+        if not (near and cfg.keep_sight and len(h)):
+            self._keep_sight_at, self._keep_sight_goal = None, None
         if near != self._watching:
             self._watching = near
             self._planned_goal = None
