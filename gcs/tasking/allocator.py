@@ -46,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse.csgraph import connected_components
 
 from gcs.mapping.rasterization import OCCUPIED, OccupancyMap
 from gcs.tasking.disruptor_planner import DisruptorConfig, dispatch_disruptor, spread_positions
@@ -1382,7 +1383,7 @@ class TaskAllocator:
         if not idle or ctx.highway.size == 0:
             return
         pos = np.asarray([self._position(mine[r]) for r in idle])
-        access = ctx.highway.nearest(pos, ctx.blocked)
+        access = self._main_access(ctx.highway, pos, ctx.blocked)
         if (access < 0).all():
             return
         # the explored highway reachable by these disruptors
@@ -1459,6 +1460,31 @@ class TaskAllocator:
                 f"idle disruptor {rid}: {why} highway waypoint {int(centres[j])}",
             )
             self._goto(ctx, mine[rid], ctx.highway.nodes_in_map[path], "spread")
+
+    @staticmethod
+    def _main_access(
+        highway: TrajectoryGraph, pos: NDArray[np.float64], blocked: NDArray[np.bool_]
+    ) -> NDArray[np.int64]:
+        """Each position's highway entry (``TrajectoryGraph.nearest``), on the largest piece of
+        the highway when one of its waypoints is within ``access_m``: a disruptor that has not
+        driven yet stands on a waypoint of its own, its start, not joined to its teammates'
+        (1.5 m apart in the start zone, bins of 2 m: more than ``merge_m`` between their
+        means), and spread over that piece alone it stayed there, never sent as a relay nor
+        dispatched (full mission seed 0 at 1d6eb73: disruptor 11 at its start for 600 s while
+        the others were sent up to 149 m to OOIs)."""
+        access = highway.nearest(pos, blocked)
+        if highway.size == 0 or (access < 0).all():
+            return access
+        _, label = connected_components(highway.graph(blocked), directed=False)
+        ok = ~blocked if blocked is not None else np.ones(highway.size, dtype=bool)
+        sizes = np.bincount(label[ok], minlength=int(label.max()) + 1)
+        main = int(np.argmax(sizes))
+        members = np.flatnonzero(ok & (label == main))
+        for i in np.flatnonzero((access >= 0) & (label[np.maximum(access, 0)] != main)):
+            d = np.hypot(*(highway.nodes_in_map[members] - pos[i]).T)
+            if d.size and float(d.min()) <= highway.access_m:
+                access[i] = members[int(np.argmin(d))]
+        return access
 
     @staticmethod
     def _clear_of_obstacles(ctx: _Ctx, clearance_m: float) -> NDArray[np.bool_]:
