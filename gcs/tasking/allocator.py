@@ -225,6 +225,26 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # the relay spot of each sensor robot out of contact (relay_planner.relay_spots) before
     # spreading (paper 4.1: robots used as relays when a robot leaves radio range)
     relays: bool = True
+    # relays chained outwards (relay_planner.relay_spots hop_m): each silent robot's edge
+    # spot is followed by a second spot up to relay_hop_m of highway further towards it (the
+    # radio routes over up to three hops: GCS, relay, relay, robot); 0: off. Relay spots are
+    # kept for relay_keep_s after a silent robot last called for them, a relay holding at a
+    # kept spot stays there and one on its way to one goes on (the idle spread does not pull
+    # it back, newer spots do not turn it round); 0: off. Why: a spot called for by robots
+    # out of contact went when they were heard again and the relay left for the spread, near
+    # the GCS (full mission seed 0 at 8183549: the four disruptors' mean x 13-36 m, contact
+    # ending at x 70-80 m). Both off by default: full mission seed 0, 600 s, at 1d6eb73 + dc4f09f
+    # (the highway entry), with 30 m / 120 s: explored 0.397 (0.410 at 1d6eb73; 0.412 with the
+    # chain and the keep but relays on their way re-targeted), sensor robots out of contact
+    # (simulator's radio, scoring only) 41.8 % against 46.9 % out of direct contact (1d6eb73:
+    # 48.6 / 55.4), the disruptors' mean x 17-41 m (5-26), no sensor robot ever routed over
+    # 3 hops: relays spent 170-390 s of 600 driving to spots (0.3 m/s over 40-80 m of
+    # highway) and 6-266 s holding at them, and the disruptors were on OOIs 45-80 % of the
+    # time. Quick mission seeds 0/7/3/11: explored 0.944/0.887/0.940/0.871 against
+    # 0.955/0.945/0.920/0.876 at 1d6eb73 (seed 7: the relay kept on its spot reached an OOI
+    # from another side, its laser missed, neutralized 0.5)
+    relay_hop_m: float = 0.0
+    relay_keep_s: float = 0.0
     # the end of the mission (TaskingState.mission_end_s): what a robot out of radio contact
     # saw when the mission ends never reaches the GCS's map. In the last end_contact_s an
     # exploration goal is given only if the robot can drive to it and on to the nearest
@@ -287,6 +307,10 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
                 f"tasking shadow_goal_radius_m must be finite and >= 0, got "
                 f"{self.shadow_goal_radius_m}"
             )
+        for name in ("relay_hop_m", "relay_keep_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"tasking {name} must be finite and >= 0, got {v}")
         if not (math.isfinite(self.end_contact_s) and self.end_contact_s >= 0):
             raise ValueError(
                 f"tasking end_contact_s must be finite and >= 0, got {self.end_contact_s}"
@@ -465,6 +489,8 @@ class TaskAllocator:
         self._watch_areas: list[_WatchArea] = []
         self._spread_at_s = -math.inf
         self._spread_key: tuple[tuple[int, ...], tuple[int, ...]] = ((), ())
+        # relay spots kept (relay_keep_s): [x, y, until_s] in map
+        self._relay_kept: list[list[float]] = []
         # points of radio contact (lattice cells of contact_bin_m) and their centres
         self._contact_bins: set[tuple[int, int]] = set()
         self._contact_xy: list[tuple[float, float]] = []
@@ -1410,7 +1436,21 @@ class TaskAllocator:
                 contact_radius_m=self.config.exploration.contact_radius_m,
                 region=region,
                 blocked=ctx.blocked,
-            )[: len(idle)]
+                hop_m=self.config.relay_hop_m,
+            )
+            relay = self._kept_relay_spots(ctx, relay, region)
+            if self.config.relay_keep_s > 0 and relay.size:
+                # spots an idle disruptor is on its way to or holding at first: it goes on
+                # (the assignment below keeps it there) while robots call for the spot
+                goals = [self.assignments[r].goal_in_map for r in idle if r in self.assignments]
+                heading = np.asarray([g for g in goals if g is not None], dtype=np.float64)
+                mine_first = np.zeros(relay.size, dtype=bool)
+                for g in heading.reshape(-1, 2):
+                    d_spot = np.hypot(*(ctx.highway.nodes_in_map[relay] - g).T)
+                    if float(d_spot.min()) < cfg.spread_tolerance_m:
+                        mine_first[int(np.argmin(d_spot))] = True
+                relay = np.concatenate([relay[mine_first], relay[~mine_first]])
+            relay = relay[: len(idle)]
         key = (tuple(idle), tuple(relay.tolist()))
         # the relay spots alone changing (robots falling silent and heard again, contact
         # growing) re-targets the same idle disruptors at most every spread_period_s: re-
@@ -1431,6 +1471,23 @@ class TaskAllocator:
         d_all, pred_all = ctx.highway.distances(np.where(access >= 0, access, 0), ctx.blocked)
         cost = np.where(access[:, None] >= 0, d_all[:, centres], np.inf)
         cost = np.where(np.isfinite(cost), cost, 1e12)
+        for i, rid in enumerate(idle):
+            # a relay holding at a relay spot stays there, and one on its way to one goes on
+            # (relay_keep_s): re-targeted each spread_period_s as robots fell silent and were
+            # heard again, relays went to and fro between spots 40-50 m apart, 100 s away
+            # (full mission seed 0: spots at 127, 147 and 169 s, none reached)
+            a = self.assignments.get(rid)
+            if (
+                a is None
+                or a.purpose not in ("spread", "spread:done")
+                or a.goal_in_map is None
+                or self.config.relay_keep_s <= 0
+            ):
+                continue
+            at = self._position(mine[rid]) if a.purpose == "spread:done" else a.goal_in_map
+            d_spot = np.hypot(*(ctx.highway.nodes_in_map[relay] - np.asarray(at)).T)
+            if d_spot.size and float(d_spot.min()) < cfg.spread_tolerance_m:
+                cost[i, int(np.argmin(d_spot))] = -1e9
         rows, cols = linear_sum_assignment(cost)
         for i, j in zip(rows, cols, strict=True):
             rid = idle[i]
@@ -1485,6 +1542,33 @@ class TaskAllocator:
             if d.size and float(d.min()) <= highway.access_m:
                 access[i] = members[int(np.argmin(d))]
         return access
+
+    def _kept_relay_spots(
+        self, ctx: _Ctx, relay: NDArray[np.int64], region: NDArray[np.bool_]
+    ) -> NDArray[np.int64]:
+        """This plan's relay spots, then those kept from the last ``relay_keep_s`` (the most
+        recently called for first), as highway waypoints in ``region``, not blocked."""
+        keep_s = self.config.relay_keep_s
+        if keep_s <= 0:
+            return relay
+        tol = self.config.disruptor.spread_tolerance_m
+        nodes = ctx.highway.nodes_in_map
+        for k in relay.tolist():
+            x, y = float(nodes[k, 0]), float(nodes[k, 1])
+            same = [e for e in self._relay_kept if math.hypot(e[0] - x, e[1] - y) < tol]
+            if same:
+                same[0][2] = ctx.now_s + keep_s
+            else:
+                self._relay_kept.append([x, y, ctx.now_s + keep_s])
+        self._relay_kept = [e for e in self._relay_kept if e[2] > ctx.now_s]
+        out = relay.tolist()
+        kept = sorted(self._relay_kept, key=lambda e: -e[2])
+        if kept:
+            at = ctx.highway.nearest(np.asarray([e[:2] for e in kept]), ~region | ctx.blocked)
+            for k, e in zip(at.tolist(), kept, strict=True):
+                if k >= 0 and k not in out and math.dist(nodes[k], e[:2]) < tol:
+                    out.append(k)
+        return np.asarray(out, dtype=np.int64)
 
     @staticmethod
     def _clear_of_obstacles(ctx: _Ctx, clearance_m: float) -> NDArray[np.bool_]:
