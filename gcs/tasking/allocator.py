@@ -240,9 +240,13 @@ class TaskingConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # 48.6 / 55.4), the disruptors' mean x 17-41 m (5-26), no sensor robot ever routed over
     # 3 hops: relays spent 170-390 s of 600 driving to spots (0.3 m/s over 40-80 m of
     # highway) and 6-266 s holding at them, and the disruptors were on OOIs 45-80 % of the
-    # time. Quick mission seeds 0/7/3/11: explored 0.944/0.887/0.940/0.871 against
-    # 0.955/0.945/0.920/0.876 at 1d6eb73 (seed 7: the relay kept on its spot reached an OOI
-    # from another side, its laser missed, neutralized 0.5)
+    # time. The outward spot never fired there: every silent robot's nearest waypoint was
+    # within 30 m of highway of its edge spot (the highway beyond contact is only where
+    # robots came back from; a robot falls silent at the edge of what is known), and with
+    # the chain and keep but no staying on the way the run is the one at dc4f09f to 445 s
+    # (explored 0.412 both). Quick mission seeds 0/7/3/11 (30 m / 120 s): explored
+    # 0.944/0.887/0.940/0.871 against 0.955/0.945/0.942/0.871 at dc4f09f (seed 7: the
+    # relay kept on its spot reached an OOI from another side, its laser missed: 0.5)
     relay_hop_m: float = 0.0
     relay_keep_s: float = 0.0
     # the end of the mission (TaskingState.mission_end_s): what a robot out of radio contact
