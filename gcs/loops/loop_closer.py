@@ -189,7 +189,21 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     wide window, at a high score. The full mission's journal at 1d6eb73 (magic_phase, 600 s)
     took two closures 2.5 m and 21-23 deg off from robot 10's node 225 (41 points, wide,
     scores 0.93-0.95) to robot 0's nodes 30 and 31, confirmed by their one cycle with each
-    other (chi-square 1.0).
+    other (chi-square 1.0). 50 since session 16 (true wide closures with fewer: 1 of 116 in
+    that journal, 2 of 101 in seed 7's, none in seven other quick journals). That journal
+    replayed: those two gone, false closures 5 -> 5 (three new, 0.50-0.77 m off, one of them
+    42 points in the standard window), ATE 2.02 -> 1.23 m, F1 0.392 -> 0.454 (aligned 0.394
+    -> 0.510). Nine quick journals replayed: only seed 7's changed (ATE 0.184 -> 0.167 m, F1
+    0.739 -> 0.872). Live quick missions against 1d6eb73, seeds 0/7/3/11: false closures
+    0/0/0/3 -> 0/0/0/0, ATE 0.459/0.184/0.113/0.222 -> 0.387/0.161/0.094/0.185 m (median
+    0.203 -> 0.173), F1 0.697/0.739/0.924/0.828 -> 0.716/0.876/0.943/0.833 (median 0.783 ->
+    0.854; aligned 0.903 -> 0.904), explored median 0.933 -> 0.928, and seed 0 lost robot 2 to
+    a hostile's blast at 224 s. Seeds 1/2 (whose journals replay identically with it): ATE
+    0.119/0.091 -> 0.145/0.192 m, F1 0.835/0.945 -> 0.942/0.721, explored 0.897/0.868 ->
+    0.885/0.928: the missions took other paths. Over the six, medians: ATE 0.151 -> 0.173 m,
+    F1 0.832 -> 0.854 (aligned 0.934 -> 0.930), explored 0.909 -> 0.925, false closures 3 -> 0.
+    ``magic bench robustness --quick``: every run as before (no wide candidate of the logs has
+    so few points).
 
     ``matches_per_s``, ``candidate_max_age_s`` and ``validation.expiry_s`` are in nominal
     seconds of the progress clock: ``nominal_s_per_node`` per pose node added (module
@@ -227,7 +241,7 @@ class LoopCloserConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, 
     edge_floor_sigma_xy_m: float = 0.02
     edge_floor_sigma_yaw_rad: float = math.radians(0.5)
     min_scan_points: int = 20
-    wide_min_points: int = 0
+    wide_min_points: int = 50
     grid_window_m: float = 0.0
     grid_window_rad: float = math.inf
     max_turn_scale_yaw_rad: float = math.radians(20.0)

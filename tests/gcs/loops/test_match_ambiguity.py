@@ -139,19 +139,23 @@ def test_a_kept_look_alike_goes_with_the_hypothesis_to_the_cycles(radius_m: floa
 
 
 @pytest.mark.parametrize(
-    ("min_points", "wide", "matched"), [(0, True, True), (50, True, False), (50, False, True)]
+    ("min_points", "wide", "matched"),
+    [(0, True, True), (50, True, False), (50, False, True), (None, True, False)],
 )
-def test_a_wide_window_needs_enough_points(min_points: int, wide: bool, matched: bool) -> None:
+def test_a_wide_window_needs_enough_points(
+    min_points: int | None, wide: bool, matched: bool
+) -> None:
     """``wide_min_points``: a view of 49 points is not searched over the wide window (a few
     points fit somewhere in 8 m: the full mission's 2.5 m / 22 deg closures were such views,
     41 points); the standard window still searches it, as the wide one does without the
-    bound (here the sparse view's response is too flat to be a closure either way)."""
+    bound (here the sparse view's response is too flat to be a closure either way). None: the
+    default, 50."""
     from gcs.loops.candidate_search import Candidate
 
     room, _both = two_rooms()
     few = room[::8]
     assert len(few) < 50 <= len(room)
-    cfg = LoopCloserConfig(wide_min_points=min_points)
+    cfg = LoopCloserConfig() if min_points is None else LoopCloserConfig(wide_min_points=min_points)
     graph = PoseGraph()
     k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
     k1 = graph.add_pose(
