@@ -164,13 +164,15 @@ class EvasionConfig(msgspec.Struct, frozen=True, forbid_unknown_fields=True, kw_
     # building cut one's line of sight, 26 s in view: the follow point is on the line to the
     # robot, not chosen for line of sight), explored 0.921/0.912/0.918/0.879 (median
     # 0.915), ATE median 0.235 m, F1 0.776, 0 lost, seed 3's 3.0 m again. Stays off: 1 lock
-    # in 4 seeds (the target was 2), a closer approach and the maps' cost. Session 16, with
-    # the follow point chosen in view over the robot's map (keep_sight) and the E settings
-    # above, at 1d6eb73 + the node's movers-only yield (/tmp/team/robot16/S_s*, load 10-20):
-    # no lock on seeds 0/7/3/11; two sensor robots within 12 m of the walker 30/80/13/32 s
-    # (longest 20/41/13/24 s; the same code without keep_view 5/15/20/55 s, longest
-    # 5/15/14/19), explored 0.921/0.899/0.860/0.906 (median 0.903 against 0.917 without),
-    # 0 lost, 0 civilians, closest approach 3.67 m (seed 11). Stays off.
+    # in 4 seeds (the target was 2), a closer approach and the maps' cost. Session 16 (at
+    # 1d6eb73 + the node's movers-only yield, without yield_cleared; load 10-20; two sensor
+    # robots within 12 m of the walker from the truth at 0.2 s): with the E settings above
+    # the line point locked seed 7 only (63 s of two within 12 m at a stretch) and came 2.59 m
+    # from the walker there (the trigger is 2.5 m), explored 0.933/0.915/0.885/0.906 on seeds
+    # 0/7/3/11 (median 0.911); the follow point in view over the robot's map (keep_sight)
+    # locked none (longest 20/41/13/24 s), explored 0.921/0.899/0.860/0.906 (median 0.903),
+    # closest 3.67 m; keep_view off: no lock, longest 3/17/14/19 s, explored median 0.917.
+    # 0 lost, 0 civilians in all. Stays off.
     keep_view: bool = False
     keep_silent_s: float = 90.0
     keep_heard_s: float = 60.0
