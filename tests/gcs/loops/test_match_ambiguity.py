@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from gcs.graph.pose_graph import PoseGraph
+from gcs.loops.candidate_search import Candidate
+from gcs.loops.cycle_validation import Hypothesis
 from gcs.loops.loop_closer import LoopCloser, LoopCloserConfig
 
 
@@ -44,6 +46,37 @@ def two_rooms() -> tuple[np.ndarray, np.ndarray]:
     return room, np.concatenate([room, room + [4.0, 0.0]])
 
 
+def match_one(
+    cfg: LoopCloserConfig, reference: np.ndarray, query: np.ndarray, x_m: float, *, wide: bool
+) -> tuple[LoopCloser, Hypothesis | None]:
+    """One candidate matched by a real closer: ``query``'s node ``x_m`` ahead of
+    ``reference``'s on a loose odometry edge, searched over the standard or the wide window.
+    Returns the closer (its stats) and the hypothesis (None: no closure)."""
+    graph = PoseGraph()
+    k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
+    k1 = graph.add_pose(
+        0,
+        odom_from_base=(x_m, 0.0, 0.0),
+        time_s=1.0,
+        odometry_covariance=np.diag([0.5**2, 0.5**2, 0.01]),
+    )
+    closer = LoopCloser(graph, cfg)
+    closer.add_scan(k0, reference)
+    closer.add_scan(k1, query)
+    c = cfg.candidates
+    cand = Candidate(
+        reference_key=k0,
+        query_key=k1,
+        reference_from_query=np.array([x_m, 0.0, 0.0]),
+        covariance_xyt=np.diag([0.5**2, 0.5**2, 0.01]),
+        window_xy_m=c.wide_xy_m if wide else c.window_xy_m,
+        window_yaw_rad=c.window_yaw_rad,
+        wide=wide,
+        priority=0.5,
+    )
+    return closer, closer._match(cand, 0.0)
+
+
 @pytest.mark.parametrize(
     ("radius_m", "wide", "closure"),
     [
@@ -60,36 +93,12 @@ def test_a_view_that_fits_two_places_is_no_closure(
     on, between them) saw one. The match fits either room equally: with the runner-up search
     (MatcherConfig.runner_up_radius_m), in the standard or the wide window, no hypothesis,
     counted as a look-alike; without it the same match becomes a hypothesis."""
-    from gcs.loops.candidate_search import Candidate
-
     room, both = two_rooms()
     cfg = LoopCloserConfig()
     cfg = msgspec.structs.replace(
         cfg, matcher=msgspec.structs.replace(cfg.matcher, runner_up_radius_m=radius_m)
     )
-    graph = PoseGraph()
-    k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
-    k1 = graph.add_pose(
-        0,
-        odom_from_base=(2.0, 0.0, 0.0),
-        time_s=1.0,
-        odometry_covariance=np.diag([0.5**2, 0.5**2, 0.01]),
-    )
-    closer = LoopCloser(graph, cfg)
-    closer.add_scan(k0, both)
-    closer.add_scan(k1, room)
-    c = cfg.candidates
-    cand = Candidate(
-        reference_key=k0,
-        query_key=k1,
-        reference_from_query=np.array([2.0, 0.0, 0.0]),
-        covariance_xyt=np.diag([0.5**2, 0.5**2, 0.01]),
-        window_xy_m=c.wide_xy_m if wide else c.window_xy_m,
-        window_yaw_rad=c.window_yaw_rad,
-        wide=wide,
-        priority=0.5,
-    )
-    hyp = closer._match(cand, 0.0)
+    closer, hyp = match_one(cfg, both, room, 2.0, wide=wide)
     assert (hyp is not None) == closure
     assert closer.stats.look_alikes == (0 if closure else 1)
 
@@ -99,33 +108,9 @@ def test_a_kept_look_alike_goes_with_the_hypothesis_to_the_cycles(radius_m: floa
     """``look_alike_cycle_radius_m``: the two-rooms match is kept as a hypothesis, and its
     other room (4 m along the corridor) goes with it as its look-alike for the cycles to
     judge (cycle_validation, "Look-alikes"); 0: no runner-up search, no look-alike."""
-    from gcs.loops.candidate_search import Candidate
-
     room, both = two_rooms()
     cfg = LoopCloserConfig(look_alike_cycle_radius_m=radius_m)
-    graph = PoseGraph()
-    k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
-    k1 = graph.add_pose(
-        0,
-        odom_from_base=(2.0, 0.0, 0.0),
-        time_s=1.0,
-        odometry_covariance=np.diag([0.5**2, 0.5**2, 0.01]),
-    )
-    closer = LoopCloser(graph, cfg)
-    closer.add_scan(k0, both)
-    closer.add_scan(k1, room)
-    c = cfg.candidates
-    cand = Candidate(
-        reference_key=k0,
-        query_key=k1,
-        reference_from_query=np.array([2.0, 0.0, 0.0]),
-        covariance_xyt=np.diag([0.5**2, 0.5**2, 0.01]),
-        window_xy_m=c.window_xy_m,
-        window_yaw_rad=c.window_yaw_rad,
-        wide=False,
-        priority=0.5,
-    )
-    hyp = closer._match(cand, 0.0)
+    closer, hyp = match_one(cfg, both, room, 2.0, wide=False)
     assert hyp is not None
     if radius_m == 0.0:
         assert hyp.look_alike is None and closer.stats.look_alikes == 0
@@ -150,35 +135,11 @@ def test_a_wide_window_needs_enough_points(
     41 points); the standard window still searches it, as the wide one does without the
     bound (here the sparse view's response is too flat to be a closure either way). None: the
     default, 50."""
-    from gcs.loops.candidate_search import Candidate
-
     room, _both = two_rooms()
     few = room[::8]
     assert len(few) < 50 <= len(room)
     cfg = LoopCloserConfig() if min_points is None else LoopCloserConfig(wide_min_points=min_points)
-    graph = PoseGraph()
-    k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
-    k1 = graph.add_pose(
-        0,
-        odom_from_base=(0.3, 0.0, 0.0),
-        time_s=1.0,
-        odometry_covariance=np.diag([0.5**2, 0.5**2, 0.01]),
-    )
-    closer = LoopCloser(graph, cfg)
-    closer.add_scan(k0, room)
-    closer.add_scan(k1, few)
-    c = cfg.candidates
-    cand = Candidate(
-        reference_key=k0,
-        query_key=k1,
-        reference_from_query=np.array([0.3, 0.0, 0.0]),
-        covariance_xyt=np.diag([0.5**2, 0.5**2, 0.01]),
-        window_xy_m=c.wide_xy_m if wide else c.window_xy_m,
-        window_yaw_rad=c.window_yaw_rad,
-        wide=wide,
-        priority=0.5,
-    )
-    closer._match(cand, 0.0)
+    closer, _hyp = match_one(cfg, room, few, 0.3, wide=wide)
     st = closer.stats
     searched = st.below_min_score + st.ambiguous + st.hypotheses
     assert (searched, st.wide_too_few_points) == ((1, 0) if matched else (0, 1))
