@@ -1114,14 +1114,7 @@ class RobotNode:
         p = self.perception
         if p is None:
             return np.zeros((0, 2))
-        memory = self.config.deadlock.yield_mover_memory_s
-        rows = [(x, y) for t, x, y in p._teammates_seen if now - t <= memory]
-        rows += [
-            (float(t.x[0]), float(t.x[1]))
-            for t in p.lidar.tracker.tracks
-            if t.confirmed and now - t.time_s <= memory
-        ]
-        return np.array(rows, dtype=np.float64).reshape(-1, 2)
+        return p.movers_in_odom(now, self.config.deadlock.yield_mover_memory_s)
 
     def _nearest_reachable(
         self, classes: np.ndarray, geometry: GridGeometry, start: np.ndarray, goal: np.ndarray

@@ -531,6 +531,19 @@ class OnboardPerception:
                 out.append((ObjectKind.HOSTILE, float(p[0]), float(p[1])))
         return out
 
+    def movers_in_odom(self, now_s: float, memory_s: float) -> NDArray[np.float64]:
+        """``(N, 2)``: what this robot saw move within ``memory_s`` of ``now_s``, in ``odom``:
+        the teammates its camera placed by their tags and its confirmed person tracks
+        (people, and teammates the LIDAR takes for people). The node's yield rule waits only
+        for these (:mod:`robot.control.deadlock`)."""
+        rows = [(x, y) for t, x, y in self._teammates_seen if now_s - t <= memory_s]
+        rows += [
+            (float(t.x[0]), float(t.x[1]))
+            for t in self.lidar.tracker.tracks
+            if t.confirmed and now_s - t.time_s <= memory_s
+        ]
+        return np.array(rows, dtype=np.float64).reshape(-1, 2)
+
     def hostile_tracks_in_odom(self, now_s: float) -> NDArray[np.float64]:
         """This robot's hostile tracks (labelled, or within ``hostile_memory_s`` of the
         label; coasting ones too) as ``(N, 4)`` rows ``(x_m, y_m, vx_m_s, vy_m_s)`` in
