@@ -99,8 +99,12 @@ def test_roles_come_from_the_roster_and_estimation_only_sends_no_task() -> None:
     assert all(r.pose_in_map is not None and r.map_from_odom is not None for r in state.robots)
     assert state.occupancy.values.size and len(state.trajectory_keys) == 12
     out = control.step(now_s=1.0, budget_s=1.0)
-    explore = {rid for rid, m in out if isinstance(m, GoToTask)}
-    assert 2 not in explore and explore == {0, 1}  # a disruptor does not explore
+    sent = {rid for rid, m in out if isinstance(m, GoToTask)}
+    purposes = {rid: control.allocator.assignments[rid].purpose for rid in sent}
+    explore = {rid for rid, purpose in purposes.items() if purpose == "explore"}
+    assert explore == {0, 1}  # a disruptor does not explore ...
+    # ... it may only be spread over the highway (it joins it from its start since dc4f09f)
+    assert purposes.get(2, "spread") == "spread"
     quiet = _team(MissionControlConfig(enabled=False))
     assert not [
         m for _, m in quiet.step(now_s=1.0, budget_s=1.0) if not isinstance(m, HazardUpdate)
