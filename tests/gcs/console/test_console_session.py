@@ -40,14 +40,21 @@ def _moved_m(truth: list[tuple[float, np.ndarray]], t0: float, t1: float) -> np.
 
 
 def _until(team: OperatorTeam, pred: Callable[[], bool], *, by_mission_s: float) -> bool:
-    """Wait for ``pred`` while the mission runs, until mission time ``by_mission_s``."""
+    """Wait for ``pred`` while the mission runs, until mission time ``by_mission_s``. The
+    mission runs on in its own thread while the console's status comes over zenoh, so on a
+    loaded machine the status can trail the mission: the verdict waits for a status stamped
+    ``by_mission_s`` or later (within the wall guard), not judging one from before it."""
     deadline = time.monotonic() + WALL_GUARD_S
     while not pred():
         if team.error:
             raise RuntimeError("the mission thread failed") from team.error[0]
-        if team.now_s >= by_mission_s:
+        status = team.client.status
+        if team.now_s >= by_mission_s and status is not None and status.time_s >= by_mission_s:
             return pred()
-        assert time.monotonic() < deadline, f"mission stuck at {team.now_s:.1f} s"
+        heard = "none" if status is None else f"{status.time_s:.1f} s"
+        assert time.monotonic() < deadline, (
+            f"mission at {team.now_s:.1f} s, status at {heard} (wanted {by_mission_s:.1f} s)"
+        )
         time.sleep(0.02)
     return True
 
