@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 
 from gcs.graph.pose_graph import PoseGraph
-from gcs.loops.candidate_search import Candidate
 from gcs.loops.loop_closer import LoopCloser, LoopCloserConfig
-from tests.gcs.loops.test_match_ambiguity import two_rooms
+from tests.gcs.loops.test_match_ambiguity import match_one, two_rooms
 
 
 @pytest.mark.parametrize(
@@ -29,28 +28,9 @@ def test_a_runner_up_counts_only_where_the_graph_cannot_rule_it_out(
     runner-up is the other, 4 m away). Node 1 truly stands in the second room (x = 4 m)."""
     room, both = two_rooms()
     cfg = LoopCloserConfig(look_alike_radius_m=1.0)
-    graph = PoseGraph()
     prior = np.diag([prior_sigma_m**2, prior_sigma_m**2, 0.01])
-    k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
-    k1 = graph.add_pose(
-        0, odom_from_base=(guess_x_m, 0.0, 0.0), time_s=1.0, odometry_covariance=prior
-    )
-    closer = LoopCloser(graph, cfg)
-    closer.add_scan(k0, both)
-    closer.add_scan(k1, room)
-    c = cfg.candidates
-    cand = Candidate(
-        reference_key=k0,
-        query_key=k1,
-        reference_from_query=np.array([guess_x_m, 0.0, 0.0]),
-        covariance_xyt=prior,
-        window_xy_m=c.window_xy_m,
-        window_yaw_rad=c.window_yaw_rad,
-        wide=False,
-        priority=prior_sigma_m,
-    )
-    assert (closer._look_alike_radius_m(prior) == 1.0) == searched
-    hyp = closer._match(cand, 0.0)
+    assert (LoopCloser(PoseGraph(), cfg)._look_alike_radius_m(prior) == 1.0) == searched
+    closer, hyp = match_one(cfg, both, room, guess_x_m, wide=False, prior_sigma_m=prior_sigma_m)
     assert (hyp is not None) == closure
     assert closer.stats.look_alikes == (0 if closure else 1)
     if hyp is not None:

@@ -47,18 +47,26 @@ def two_rooms() -> tuple[np.ndarray, np.ndarray]:
 
 
 def match_one(
-    cfg: LoopCloserConfig, reference: np.ndarray, query: np.ndarray, x_m: float, *, wide: bool
+    cfg: LoopCloserConfig,
+    reference: np.ndarray,
+    query: np.ndarray,
+    x_m: float,
+    *,
+    wide: bool,
+    prior_sigma_m: float = 0.5,
 ) -> tuple[LoopCloser, Hypothesis | None]:
     """One candidate matched by a real closer: ``query``'s node ``x_m`` ahead of
-    ``reference``'s on a loose odometry edge, searched over the standard or the wide window.
-    Returns the closer (its stats) and the hypothesis (None: no closure)."""
+    ``reference``'s on an odometry edge of ``prior_sigma_m`` (the candidate's prior and
+    priority), searched over the standard or the wide window. Returns the closer (its
+    stats) and the hypothesis (None: no closure)."""
+    prior = np.diag([prior_sigma_m**2, prior_sigma_m**2, 0.01])
     graph = PoseGraph()
     k0 = graph.add_pose(0, odom_from_base=(0.0, 0.0, 0.0), time_s=0.0)
     k1 = graph.add_pose(
         0,
         odom_from_base=(x_m, 0.0, 0.0),
         time_s=1.0,
-        odometry_covariance=np.diag([0.5**2, 0.5**2, 0.01]),
+        odometry_covariance=prior,
     )
     closer = LoopCloser(graph, cfg)
     closer.add_scan(k0, reference)
@@ -68,11 +76,11 @@ def match_one(
         reference_key=k0,
         query_key=k1,
         reference_from_query=np.array([x_m, 0.0, 0.0]),
-        covariance_xyt=np.diag([0.5**2, 0.5**2, 0.01]),
+        covariance_xyt=prior,
         window_xy_m=c.wide_xy_m if wide else c.window_xy_m,
         window_yaw_rad=c.window_yaw_rad,
         wide=wide,
-        priority=0.5,
+        priority=prior_sigma_m,
     )
     return closer, closer._match(cand, 0.0)
 
